@@ -1,0 +1,42 @@
+"""The ``radarpc`` command: a thin layer over the package's stages.
+
+Each subcommand lives in its own module of this package and exposes ``add_parser(subparsers)``,
+which registers its parser and sets ``func`` (called with the parsed args, returns an exit code).
+The list below is explicit: adding a command means importing its module and listing it.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from radarpc import __version__
+
+
+def _command_modules():
+    # Imported lazily so that `radarpc --help` stays fast and one broken stage cannot hide the others.
+    from radarpc.cli import simulate, info
+    return [simulate, info]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="radarpc", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"radarpc {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for mod in _command_modules():
+        mod.add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (ValueError, FileNotFoundError, FileExistsError) as e:
+        # Bad input is reported as one clear line, not a traceback.
+        print(f"radarpc {args.command}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

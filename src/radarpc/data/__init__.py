@@ -1,0 +1,1 @@
+"""radarpc.data"""

@@ -1,0 +1,16 @@
+"""Sensor configs: the RADIal-like DDMA radar (:mod:`radarpc.sensors.radial`) and the
+ColoRadar radars (:mod:`radarpc.sensors.coloradar`)."""
+from radarpc.sensors.radial import (  # noqa: F401
+    RADIAL,
+    RADIAL_S,
+    RADIAL_SENSORS,
+    TINY,
+    Calibration,
+    DDMARadarConfig,
+    channel_errors,
+    load_calibration,
+    make_calibration,
+    radial_sensor,
+    save_calibration,
+    steering_vectors,
+)

@@ -1,0 +1,463 @@
+"""RADIal-like DDMA MIMO radar: sensor configs, virtual array, calibration table.
+
+Conventions (shared by the simulator, the DSP and the readers, and equal to those of RADIal's
+own processing, so that a real ``CalibrationTable`` and real cubes work unchanged):
+
+* Frame: x forward, y left, z up (metres). Azimuth ``a`` is measured from +x towards +y (left is
+  positive), elevation ``e`` from the x-y plane towards +z. A direction is the unit vector
+  ``u = (cos e cos a, cos e sin a, sin e)``.
+* RD cube: complex ``(n_range, n_doppler, n_rx)``; range of bin ``i`` is ``i * range_res_m``;
+  Doppler bin ``d`` (no fftshift) has radial velocity ``((d + n_doppler/2) mod n_doppler -
+  n_doppler/2) * velocity_res_mps``, positive for a receding target.
+* DDMA: the Doppler axis holds ``n_slots`` slots of ``slot_width = n_doppler / n_slots`` bins.
+  Tx ``m`` is phase-coded so that a target of true Doppler bin ``d0`` appears for that Tx at bin
+  ``(d0 + tx_slots[m] * slot_width) mod n_doppler``. Tx 0 sits in slot 0, the next
+  ``n_empty_slots`` slots are empty and the other Tx fill the rest (RADIal: slot 0 and 5..15).
+  The consolidated Doppler index is ``d mod slot_width``.
+* Virtual channel index ``v = tx * n_rx + rx``. Element positions are given in half wavelengths
+  in the array plane (horizontal = +y direction, vertical = +z); the array response of direction
+  ``u`` at virtual element ``p = p_tx + p_rx`` is ``g_v * exp(j * pi * (p_h * u_y + p_v * u_z))``
+  with ``g_v`` the (unknown to the user) per-channel gain/phase error of the hardware.
+* Calibration table (RADIal's ``CalibrationTable.npy`` content, stored by radarpc as
+  ``calibration.npz``): ``Signal`` ``(n_az, n_virtual, n_el)`` complex beamforming weights, the
+  conjugate of the measured array response; ``H`` ``(1, n_virtual)`` channel taper;
+  ``Azimuth_table`` ``(n_az,)`` and ``Elevation_table`` ``(n_el,)`` in degrees. The angle
+  spectrum of a virtual snapshot ``v`` is ``|Signal[az, :, el] @ (H * v)|``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from radarpc.io import DataFileError, save_npz_atomic
+
+__all__ = [
+    "SPEED_OF_LIGHT",
+    "DDMARadarConfig",
+    "Calibration",
+    "RADIAL",
+    "RADIAL_S",
+    "TINY",
+    "RADIAL_SENSORS",
+    "radial_sensor",
+    "channel_errors",
+    "steering_vectors",
+    "make_calibration",
+    "save_calibration",
+    "load_calibration",
+]
+
+SPEED_OF_LIGHT = 299_792_458.0
+BOLTZMANN = 1.380649e-23
+
+
+def _radial_tx_positions() -> tuple[tuple[float, float], ...]:
+    # 9 Tx on the horizontal line, 8 half-wavelengths apart (the 16-element Rx line fills the
+    # gaps twice over: an 84-element horizontal virtual aperture with 2x redundancy), then three
+    # Tx raised by 1, 2 and 3 half-wavelengths whose virtual elements overlap the horizontal ones,
+    # so that elevation is measurable.
+    horizontal = tuple((8.0 * k, 0.0) for k in range(9))
+    raised = ((4.0, 1.0), (36.0, 2.0), (68.0, 3.0))
+    return horizontal + raised
+
+
+@dataclass(frozen=True)
+class DDMARadarConfig:
+    """A DDMA FMCW MIMO radar whose frames are range-Doppler cubes (RADIal's radar and variants).
+
+    Every stage (simulator, DSP, models) takes its sizes from this object, never from constants.
+    """
+
+    name: str
+    n_range: int = 512                      # range bins (complex ADC samples per chirp)
+    range_res_m: float = 0.201171875        # metres per range bin
+    n_doppler: int = 256                    # Doppler bins (chirps per frame)
+    n_tx: int = 12                          # transmitters, all active at once (DDMA)
+    n_rx: int = 16                          # receivers
+    n_slots: int = 16                       # DDMA Doppler slots
+    tx_slots: tuple[int, ...] = (0,) + tuple(range(5, 16))  # slot of each Tx
+    carrier_hz: float = 77e9                # carrier frequency
+    chirp_period_s: float = 50e-6           # chirp repetition interval
+    ramp_fraction: float = 0.8              # sampled part of the chirp period
+    tx_pos: tuple[tuple[float, float], ...] = field(default_factory=_radial_tx_positions)
+    rx_pos: tuple[tuple[float, float], ...] = tuple((float(k), 0.0) for k in range(16))
+    az_grid_deg: tuple[float, float, int] = (-90.0, 90.0, 181)   # calibration azimuths (start, stop, n)
+    el_grid_deg: tuple[float, float, int] = (-10.0, 10.0, 5)     # calibration elevations
+    tx_power_dbm: float = 12.0              # per Tx
+    antenna_gain_dbi: float = 12.0          # Tx and Rx element gain
+    noise_figure_db: float = 12.0           # receiver noise figure
+    system_loss_db: float = 3.0             # feeds, window losses not in the FFT gain
+    adc_full_scale: float = 2048.0          # complex amplitude of the thermal-noise std in RD units is set by this
+    gain_error_db: float = 0.5              # std of per-Tx and per-Rx gain errors of the hardware
+    phase_error_deg: float = 6.0            # std of per-Tx and per-Rx phase errors of the hardware
+    hardware_seed: int = 1234               # seeds the hardware errors (a property of the unit)
+
+    def __post_init__(self) -> None:
+        def bad(msg: str) -> None:
+            raise ValueError(f"sensor {self.name!r}: {msg}")
+
+        for k in ("n_range", "n_doppler", "n_tx", "n_rx", "n_slots"):
+            if int(getattr(self, k)) <= 0:
+                bad(f"{k} must be positive, got {getattr(self, k)}")
+        if self.n_doppler % self.n_slots:
+            bad(f"n_doppler={self.n_doppler} must be a multiple of n_slots={self.n_slots}")
+        if len(self.tx_slots) != self.n_tx:
+            bad(f"tx_slots has {len(self.tx_slots)} entries for n_tx={self.n_tx}")
+        expected = (0,) + tuple(range(self.n_slots - self.n_tx + 1, self.n_slots))
+        if tuple(self.tx_slots) != expected:
+            bad(f"tx_slots must be Tx 0 in slot 0, then {self.n_slots - self.n_tx} empty slots, "
+                f"then the other Tx: expected {expected}, got {tuple(self.tx_slots)}")
+        if self.n_slots - self.n_tx < 1:
+            bad("DDMA needs at least one empty slot to resolve the Doppler hypothesis")
+        if len(self.tx_pos) != self.n_tx or len(self.rx_pos) != self.n_rx:
+            bad(f"tx_pos/rx_pos must have n_tx={self.n_tx}/n_rx={self.n_rx} entries")
+        for nm in ("az_grid_deg", "el_grid_deg"):
+            lo, hi, n = getattr(self, nm)
+            if int(n) < 1 or (int(n) > 1 and not hi > lo):
+                bad(f"{nm}={getattr(self, nm)} must be (start, stop, n) with stop > start")
+
+    # ---- derived quantities -------------------------------------------------------------------
+    @property
+    def wavelength_m(self) -> float:
+        return SPEED_OF_LIGHT / self.carrier_hz
+
+    @property
+    def bandwidth_hz(self) -> float:
+        """Swept bandwidth: range resolution ``c / (2 B)`` equals one range bin."""
+        return SPEED_OF_LIGHT / (2.0 * self.range_res_m)
+
+    @property
+    def sample_rate_hz(self) -> float:
+        """Complex ADC sample rate: ``n_range`` samples over the sampled ramp."""
+        return self.n_range / (self.ramp_fraction * self.chirp_period_s)
+
+    @property
+    def chirp_slope_hz_per_s(self) -> float:
+        return self.bandwidth_hz / (self.ramp_fraction * self.chirp_period_s)
+
+    @property
+    def max_range_m(self) -> float:
+        """Unambiguous (instrumented) range ``n_range * range_res_m``."""
+        return self.n_range * self.range_res_m
+
+    @property
+    def velocity_res_mps(self) -> float:
+        """Doppler bin width in radial velocity: ``lambda / (2 * n_doppler * T_c)``."""
+        return self.wavelength_m / (2.0 * self.n_doppler * self.chirp_period_s)
+
+    @property
+    def max_velocity_mps(self) -> float:
+        """Unambiguous radial velocity: velocities wrap outside ``[-v_max, v_max)``."""
+        return self.velocity_res_mps * self.n_doppler / 2
+
+    @property
+    def slot_width(self) -> int:
+        """Bins per DDMA slot = length of the consolidated Doppler axis."""
+        return self.n_doppler // self.n_slots
+
+    @property
+    def n_empty_slots(self) -> int:
+        return self.n_slots - self.n_tx
+
+    @property
+    def n_virtual(self) -> int:
+        return self.n_tx * self.n_rx
+
+    @property
+    def doppler_offsets(self) -> np.ndarray:
+        """Doppler-bin offset of each Tx, ``tx_slots * slot_width``, shape ``(n_tx,)``."""
+        return np.asarray(self.tx_slots, dtype=np.int64) * self.slot_width
+
+    @property
+    def virtual_positions(self) -> np.ndarray:
+        """Virtual element positions in half wavelengths, ``(n_virtual, 2)`` (horizontal, vertical),
+        row ``tx * n_rx + rx``."""
+        tx = np.asarray(self.tx_pos, dtype=np.float64)
+        rx = np.asarray(self.rx_pos, dtype=np.float64)
+        return (tx[:, None, :] + rx[None, :, :]).reshape(-1, 2)
+
+    @property
+    def azimuth_table_deg(self) -> np.ndarray:
+        lo, hi, n = self.az_grid_deg
+        return np.linspace(lo, hi, int(n))
+
+    @property
+    def elevation_table_deg(self) -> np.ndarray:
+        lo, hi, n = self.el_grid_deg
+        return np.linspace(lo, hi, int(n))
+
+    @property
+    def rd_shape(self) -> tuple[int, int, int]:
+        return (self.n_range, self.n_doppler, self.n_rx)
+
+    def range_of_bin(self, i):
+        """Range in metres of (possibly fractional) range bin ``i``."""
+        return i * self.range_res_m
+
+    def velocity_of_bin(self, d):
+        """Signed radial velocity (m/s, receding positive) of full-axis Doppler bin ``d``."""
+        half = self.n_doppler // 2
+        return ((np.asarray(d) + half) % self.n_doppler - half) * self.velocity_res_mps
+
+    def doppler_bin_of_velocity(self, v_mps):
+        """Fractional full-axis Doppler bin in ``[0, n_doppler)`` of radial velocity ``v_mps``."""
+        return np.mod(np.asarray(v_mps, dtype=np.float64) / self.velocity_res_mps, self.n_doppler)
+
+    def noise_power_w(self) -> float:
+        """Thermal noise power per complex ADC sample: ``k T0 F f_s``."""
+        return BOLTZMANN * 290.0 * 10 ** (self.noise_figure_db / 10) * self.sample_rate_hz
+
+    def snr_per_sample(self, range_m, rcs_m2):
+        """Radar equation: SNR of one target in one ADC sample of one virtual channel (linear).
+
+        ``P_r = P_t G^2 lambda^2 sigma / ((4 pi)^3 R^4 L)``, over :meth:`noise_power_w`.
+        The range and Doppler FFTs add the coherent gain ``n_range * n_doppler`` on top.
+        """
+        pt = 10 ** ((self.tx_power_dbm - 30) / 10)
+        g = 10 ** (self.antenna_gain_dbi / 10)
+        loss = 10 ** (self.system_loss_db / 10)
+        r = np.maximum(np.asarray(range_m, dtype=np.float64), 0.1)
+        pr = pt * g * g * self.wavelength_m ** 2 * np.asarray(rcs_m2) / ((4 * math.pi) ** 3 * r ** 4 * loss)
+        return pr / self.noise_power_w()
+
+    def to_dict(self) -> dict:
+        """Plain JSON/YAML-able dict (tuples as lists); :meth:`from_dict` inverts it."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "DDMARadarConfig":
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown sensor config keys: {sorted(unknown)}")
+        kw = {}
+        for k, v in d.items():
+            if isinstance(v, list):
+                v = tuple(tuple(x) if isinstance(x, list) else x for x in v)
+            kw[k] = v
+        return cls(**kw)
+
+
+RADIAL = DDMARadarConfig(name="radial")
+"""Full-size RADIal radar: 512 range x 256 Doppler x 16 Rx, 12 Tx DDMA, 192 virtual channels."""
+
+RADIAL_S = dataclasses.replace(
+    RADIAL, name="radial-s", n_range=128, range_res_m=4 * 0.201171875, n_doppler=64
+)
+"""Reduced RADIal: the same 12 x 16 DDMA array and field of view, 128 range x 64 Doppler bins."""
+
+TINY = DDMARadarConfig(
+    name="tiny",
+    n_range=64,
+    range_res_m=0.4,
+    n_doppler=32,
+    n_tx=2,
+    n_rx=4,
+    n_slots=4,
+    tx_slots=(0, 3),
+    tx_pos=((0.0, 0.0), (4.0, 1.0)),
+    rx_pos=tuple((float(k), 0.0) for k in range(4)),
+    az_grid_deg=(-60.0, 60.0, 61),
+    el_grid_deg=(-20.0, 20.0, 5),
+)
+"""Tiny 2 Tx x 4 Rx DDMA radar with a 64 x 32 cube, for fast tests."""
+
+RADIAL_SENSORS: dict[str, DDMARadarConfig] = {"radial": RADIAL, "radial-s": RADIAL_S, "tiny": TINY}
+
+
+def radial_sensor(name: str) -> DDMARadarConfig:
+    """The DDMA sensor config called ``name`` (one of ``RADIAL_SENSORS``)."""
+    try:
+        return RADIAL_SENSORS[name]
+    except KeyError:
+        raise ValueError(f"unknown sensor {name!r}; expected one of {sorted(RADIAL_SENSORS)}") from None
+
+
+# ---- array response and calibration ----------------------------------------------------------
+def channel_errors(cfg: DDMARadarConfig) -> np.ndarray:
+    """Per-virtual-channel complex gain of the hardware, ``(n_virtual,)`` complex128.
+
+    Product of a per-Tx and a per-Rx error (log-normal gain, Gaussian phase) drawn from
+    ``cfg.hardware_seed``: a fixed property of the radar unit that the calibration measures.
+    """
+    rng = np.random.default_rng(cfg.hardware_seed)
+    def draw(n):
+        g = 10 ** (rng.normal(0.0, cfg.gain_error_db, n) / 20)
+        ph = np.deg2rad(rng.normal(0.0, cfg.phase_error_deg, n))
+        return g * np.exp(1j * ph)
+    tx, rx = draw(cfg.n_tx), draw(cfg.n_rx)
+    tx[0] = 1.0  # reference channel
+    rx[0] = 1.0
+    return (tx[:, None] * rx[None, :]).reshape(-1)
+
+
+def steering_vectors(cfg: DDMARadarConfig, az_deg, el_deg, *, hardware: bool = True) -> np.ndarray:
+    """Array response of the virtual array towards ``(az_deg, el_deg)``.
+
+    Parameters
+    ----------
+    cfg : DDMARadarConfig
+    az_deg, el_deg : array_like
+        Broadcastable azimuth and elevation in degrees.
+    hardware : bool
+        Include the per-channel hardware errors (what the antennas really receive). ``False``
+        gives the ideal geometric response.
+
+    Returns
+    -------
+    numpy.ndarray
+        Complex128 of shape ``broadcast(az, el).shape + (n_virtual,)``.
+    """
+    a = np.deg2rad(np.asarray(az_deg, dtype=np.float64))
+    e = np.deg2rad(np.asarray(el_deg, dtype=np.float64))
+    a, e = np.broadcast_arrays(a, e)
+    uy = np.cos(e) * np.sin(a)
+    uz = np.sin(e)
+    p = cfg.virtual_positions
+    phase = np.pi * (uy[..., None] * p[:, 0] + uz[..., None] * p[:, 1])
+    resp = np.exp(1j * phase)
+    if hardware:
+        resp = resp * channel_errors(cfg)
+    return resp
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Calibrated beamforming dictionary, with RADIal's ``CalibrationTable`` content.
+
+    Attributes
+    ----------
+    signal : ndarray, complex64, ``(n_az, n_virtual, n_el)``
+        Beamforming weights (conjugate measured array response), RADIal's ``Signal``.
+    window : ndarray, float32, ``(n_virtual,)``
+        Channel taper, RADIal's ``H[0]``.
+    azimuth_deg : ndarray, ``(n_az,)``
+    elevation_deg : ndarray, ``(n_el,)``
+    """
+
+    signal: np.ndarray
+    window: np.ndarray
+    azimuth_deg: np.ndarray
+    elevation_deg: np.ndarray
+
+    def __post_init__(self) -> None:
+        s = self.signal
+        if s.ndim != 3 or s.shape[0] != len(self.azimuth_deg) or s.shape[2] != len(self.elevation_deg):
+            raise ValueError(
+                f"calibration Signal must be (n_az={len(self.azimuth_deg)}, n_virtual, "
+                f"n_el={len(self.elevation_deg)}), got {s.shape}")
+        if self.window.shape != (s.shape[1],):
+            raise ValueError(f"calibration window H must have {s.shape[1]} taps, got {self.window.shape}")
+
+    @property
+    def n_virtual(self) -> int:
+        return self.signal.shape[1]
+
+    @property
+    def grid_shape(self) -> tuple[int, int]:
+        """``(n_az, n_el)``: the angle spectrum of a snapshot reshapes to this."""
+        return self.signal.shape[0], self.signal.shape[2]
+
+    def dictionary(self, device: torch.device | str | None = None,
+                   dtype: torch.dtype = torch.complex64) -> torch.Tensor:
+        """The dictionary ``B`` with the taper folded in: ``(n_az * n_el, n_virtual)``.
+
+        Row ``k = az * n_el + el`` (RADIal's ordering), so ``|B @ v|`` is the angle spectrum of
+        the raw snapshot ``v`` and ``k // n_el, k % n_el`` index the tables.
+        """
+        b = np.moveaxis(self.signal, 2, 1).reshape(-1, self.n_virtual) * self.window[None, :]
+        return torch.as_tensor(b, device=device).to(dtype)
+
+    def check_sensor(self, cfg: DDMARadarConfig, source: str | os.PathLike = "calibration") -> None:
+        """Raise if this table does not fit ``cfg``'s virtual array."""
+        if self.n_virtual != cfg.n_virtual:
+            raise ValueError(
+                f"{source}: calibration has {self.n_virtual} virtual channels, sensor {cfg.name!r} "
+                f"has {cfg.n_virtual} (n_tx * n_rx)")
+
+
+def _channel_taper(cfg: DDMARadarConfig) -> np.ndarray:
+    # Hamming taper on the horizontal virtual position: sidelobe control for azimuth.
+    h = cfg.virtual_positions[:, 0]
+    span = h.max() - h.min()
+    t = (h - h.min()) / span if span > 0 else np.zeros_like(h)
+    return (0.54 - 0.46 * np.cos(2 * np.pi * t)).astype(np.float32)
+
+
+def make_calibration(cfg: DDMARadarConfig) -> Calibration:
+    """The calibration table of ``cfg``'s radar unit, as a chamber measurement would give it.
+
+    ``Signal[az, :, el] = conj(a(az, el))`` with ``a`` the true array response including the
+    unit's hardware errors, on the grid ``cfg.az_grid_deg x cfg.el_grid_deg``.
+    """
+    az = cfg.azimuth_table_deg
+    el = cfg.elevation_table_deg
+    resp = steering_vectors(cfg, az[:, None], el[None, :])        # (n_az, n_el, n_virtual)
+    signal = np.conj(resp).transpose(0, 2, 1).astype(np.complex64)  # (n_az, n_virtual, n_el)
+    return Calibration(signal=signal, window=_channel_taper(cfg),
+                       azimuth_deg=az.astype(np.float32), elevation_deg=el.astype(np.float32))
+
+
+def save_calibration(path: str | os.PathLike, calib: Calibration) -> None:
+    """Write ``calib`` as a plain ``.npz`` with RADIal's keys (``Signal``, ``H``, tables); atomic."""
+    save_npz_atomic(path, Signal=calib.signal, H=calib.window[None, :],
+                    Azimuth_table=calib.azimuth_deg, Elevation_table=calib.elevation_deg)
+
+
+def load_calibration(path: str | os.PathLike, *, trust_pickle: bool = False) -> Calibration:
+    """Read a calibration table.
+
+    Parameters
+    ----------
+    path : path-like
+        ``calibration.npz`` (radarpc's format, also what real RADIal tables convert to), or the
+        official pickled ``CalibrationTable.npy``.
+    trust_pickle : bool
+        The official RADIal table is a pickled dict; unpickling runs code from the file, so it
+        is refused unless you pass ``trust_pickle=True`` for a file you obtained from RADIal
+        yourself. Convert it once with :func:`save_calibration` and use the ``.npz`` after.
+
+    Raises
+    ------
+    DataFileError
+        Missing file, missing keys, or inconsistent shapes, naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataFileError(path, "calibration table is missing (expected calibration.npz with keys "
+                                  "Signal, H, Azimuth_table, Elevation_table)")
+    try:
+        if path.suffix == ".npy":
+            if not trust_pickle:
+                raise DataFileError(path, "is a pickled .npy calibration table; loading it runs code from "
+                                          "the file. Pass trust_pickle=True (CLI: --trust-pickle) for the "
+                                          "official RADIal CalibrationTable.npy you downloaded yourself")
+            d = np.load(path, allow_pickle=True).item()  # explicit user opt-in, see docstring
+        else:
+            with np.load(path, allow_pickle=False) as z:
+                d = {k: z[k] for k in z.files}
+    except DataFileError:
+        raise
+    except Exception as e:  # noqa: BLE001 - any decoding failure is a bad file
+        raise DataFileError(path, f"is not a readable calibration table ({e})") from e
+    missing = {"Signal", "H", "Azimuth_table", "Elevation_table"} - set(d)
+    if missing:
+        raise DataFileError(path, f"calibration table lacks keys {sorted(missing)}")
+    signal = np.asarray(d["Signal"])
+    h = np.asarray(d["H"], dtype=np.float32)
+    h = h.reshape(-1, h.shape[-1])[0] if h.ndim > 1 else h
+    try:
+        calib = Calibration(signal=signal.astype(np.complex64), window=h,
+                            azimuth_deg=np.asarray(d["Azimuth_table"], dtype=np.float32).reshape(-1),
+                            elevation_deg=np.asarray(d["Elevation_table"], dtype=np.float32).reshape(-1))
+    except ValueError as e:
+        raise DataFileError(path, str(e)) from e
+    if not np.isfinite(calib.signal).all():
+        raise DataFileError(path, "calibration Signal contains NaN or infinite values")
+    return calib
