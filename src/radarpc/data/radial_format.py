@@ -1,0 +1,113 @@
+"""The RADIal on-disk layout: file names, ``labels.csv`` columns, freespace geometry, splits.
+
+One place for the format, shared by the simulator's writer and the reader::
+
+    ROOT/
+      labels.csv                         one row per vehicle; a row of -1 for a frame without any
+      calibration.npz                    Signal, H, Azimuth_table, Elevation_table (radarpc; plain npz)
+      sensor.json                        the DDMARadarConfig (radarpc; absent on the real dataset)
+      radar_FFT/fft_{numSample:06d}.npy  complex RD cube (n_range, n_doppler, n_rx); .npz also accepted
+      radar_Freespace/freespace_{numSample:06d}.png   uint8 512 x 900, 255 = free, 0 = not free
+
+Camera pixel columns (``x1_pix .. y2_pix``) are -1 in simulated data: no camera is rendered.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "LABEL_COLUMNS",
+    "LABEL_TENSOR_COLUMNS",
+    "FREESPACE_SHAPE",
+    "FREESPACE_FOV_DEG",
+    "FREESPACE_CROP",
+    "FREESPACE_OUT",
+    "OFFICIAL_SPLITS",
+    "fft_path",
+    "freespace_path",
+    "freespace_azimuth_deg",
+    "simulated_sequence_name",
+    "simulated_split",
+]
+
+LABEL_COLUMNS: tuple[str, ...] = (
+    "numSample", "x1_pix", "y1_pix", "x2_pix", "y2_pix",
+    "laser_X_m", "laser_Y_m", "laser_Z_m",
+    "radar_X_m", "radar_Y_m", "radar_R_m", "radar_A_deg", "radar_D", "radar_P_db",
+    "dataset", "dataset_index", "Difficult",
+)
+"""Exactly RADIal's ``labels.csv`` header, in order."""
+
+LABEL_TENSOR_COLUMNS: tuple[str, ...] = (
+    "radar_R_m", "radar_A_deg", "radar_D", "radar_X_m", "radar_Y_m", "radar_P_db",
+    "laser_X_m", "laser_Y_m", "laser_Z_m", "x1_pix", "y1_pix", "x2_pix", "y2_pix", "Difficult",
+)
+"""Columns, in order, of the per-frame ``labels`` float tensor ``(n_vehicles, 14)`` that the
+readers return (``(0, 14)`` for a frame without vehicles)."""
+
+FREESPACE_SHAPE: tuple[int, int] = (512, 900)
+"""Freespace PNG: 512 range rows (row 0 = range 0, row pitch = sensor max range / 512) by 900
+azimuth columns over 180 degrees (0.2 deg per column)."""
+FREESPACE_FOV_DEG: float = 180.0
+FREESPACE_CROP: tuple[int, int] = (512, 448)
+"""RADIal's reader centre-crops the PNG to 512 x 448 (+-89.6 deg) ..."""
+FREESPACE_OUT: tuple[int, int] = (256, 224)
+"""... and resizes it (nearest) to 256 x 224."""
+
+OFFICIAL_SPLITS: dict[str, tuple[str, ...]] = {
+    "val": ("RECORD@2020-11-22_12.49.56", "RECORD@2020-11-22_12.11.49",
+            "RECORD@2020-11-22_12.28.47", "RECORD@2020-11-21_14.25.06"),
+    "test": ("RECORD@2020-11-22_12.45.05", "RECORD@2020-11-22_12.25.47",
+             "RECORD@2020-11-22_12.03.47", "RECORD@2020-11-22_12.54.38"),
+}
+"""RADIal's official validation and test sequences (FFTRadNet's ``dataloader.py``); every other
+sequence of the real dataset is training data."""
+
+
+def fft_path(root: str | os.PathLike, num_sample: int, suffix: str = ".npy") -> Path:
+    """``ROOT/radar_FFT/fft_{num_sample:06d}{suffix}``."""
+    return Path(root) / "radar_FFT" / f"fft_{int(num_sample):06d}{suffix}"
+
+
+def freespace_path(root: str | os.PathLike, num_sample: int) -> Path:
+    """``ROOT/radar_Freespace/freespace_{num_sample:06d}.png``."""
+    return Path(root) / "radar_Freespace" / f"freespace_{int(num_sample):06d}.png"
+
+
+def freespace_azimuth_deg(col) -> np.ndarray:
+    """Azimuth (deg, left positive) of the centre of freespace PNG column ``col``.
+
+    Column 0 is at -90 deg + half a column, column 899 at +90 deg - half a column: azimuth grows
+    with the column index, as in the range-azimuth maps of the models.
+    """
+    step = FREESPACE_FOV_DEG / FREESPACE_SHAPE[1]
+    return -FREESPACE_FOV_DEG / 2 + (np.asarray(col, dtype=np.float64) + 0.5) * step
+
+
+def simulated_sequence_name(seed: int, sequence: int) -> str:
+    """Sequence name of simulated data, written to the ``dataset`` column: ``SIM@s{seed}_q{seq:03d}``."""
+    return f"SIM@s{int(seed)}_q{int(sequence):03d}"
+
+
+def simulated_split(sequence_index: int, n_sequences: int) -> str:
+    """Deterministic split of simulated sequence ``sequence_index`` out of ``n_sequences``.
+
+    The last sequence is ``test``, the one before it ``val`` (when there are at least 3), every
+    other one ``train``; with 6 or more sequences, every 6th pair (indices 6k+4, 6k+5) is also held
+    out, keeping roughly 2/3 train, 1/6 val, 1/6 test.
+    """
+    i, n = int(sequence_index), int(n_sequences)
+    if not 0 <= i < n:
+        raise ValueError(f"sequence index {i} outside [0, {n})")
+    if n < 3:
+        return "train"
+    if i == n - 1:
+        return "test"
+    if i == n - 2:
+        return "val"
+    if n >= 6 and i % 6 in (4, 5):
+        return "val" if i % 6 == 4 else "test"
+    return "train"
