@@ -128,8 +128,11 @@ def load_array(
             arr = obj
     except DataFileError:
         raise
-    except ValueError as e:  # object arrays would need pickle
-        raise DataFileError(path, f"cannot be read without pickle or is corrupt ({e})") from e
+    except ValueError as e:
+        if "allow_pickle" in str(e):  # object arrays would need pickle
+            raise DataFileError(path, "holds Python objects and cannot be read without pickle "
+                                      "(expected a plain numeric array)") from e
+        raise DataFileError(path, f"is truncated or corrupt ({e})") from e
     except (OSError, EOFError) as e:
         raise DataFileError(path, f"is truncated or not a NumPy file ({e})") from e
     if shape is not None:

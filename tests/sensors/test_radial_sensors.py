@@ -1,0 +1,143 @@
+"""Sensor configs and calibration table of the RADIal-like DDMA radar."""
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from radarpc.io import DataFileError
+from radarpc.sensors.radial import (
+    RADIAL,
+    RADIAL_S,
+    TINY,
+    DDMARadarConfig,
+    channel_errors,
+    load_calibration,
+    make_calibration,
+    radial_sensor,
+    save_calibration,
+    steering_vectors,
+)
+
+
+def test_radial_numbers_match_the_dataset():
+    assert RADIAL.rd_shape == (512, 256, 16)
+    assert RADIAL.n_virtual == 192
+    assert RADIAL.slot_width == 16 and RADIAL.n_empty_slots == 4
+    assert tuple(RADIAL.tx_slots) == (0, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15)
+    np.testing.assert_array_equal(RADIAL.doppler_offsets, [0] + list(range(80, 256, 16)))
+    assert RADIAL.max_range_m == pytest.approx(103.0)
+    # c / (2 B) is one range bin
+    assert 299_792_458.0 / (2 * RADIAL.bandwidth_hz) == pytest.approx(RADIAL.range_res_m)
+    # lambda / (2 N Tc) and the wrap at +-v_max
+    lam = 299_792_458.0 / 77e9
+    assert RADIAL.velocity_res_mps == pytest.approx(lam / (2 * 256 * 50e-6))
+    assert RADIAL.velocity_of_bin(0) == 0
+    assert RADIAL.velocity_of_bin(255) == pytest.approx(-RADIAL.velocity_res_mps)
+    assert RADIAL.velocity_of_bin(128) == pytest.approx(-RADIAL.max_velocity_mps)
+    assert RADIAL.doppler_bin_of_velocity(-RADIAL.velocity_res_mps) == pytest.approx(255)
+
+
+def test_radial_s_keeps_array_and_field_of_view():
+    assert RADIAL_S.rd_shape == (128, 64, 16)
+    assert RADIAL_S.n_virtual == 192 and RADIAL_S.tx_pos == RADIAL.tx_pos
+    assert RADIAL_S.max_range_m == pytest.approx(RADIAL.max_range_m)
+    assert RADIAL_S.max_velocity_mps == pytest.approx(RADIAL.max_velocity_mps)
+    assert RADIAL_S.slot_width == 4
+
+
+def test_virtual_channel_order_is_tx_major():
+    p = RADIAL.virtual_positions
+    tx, rx = 7, 3
+    np.testing.assert_allclose(p[tx * 16 + rx], np.add(RADIAL.tx_pos[tx], RADIAL.rx_pos[rx]))
+
+
+def test_radar_equation_scales_with_r4_and_rcs():
+    s1 = RADIAL.snr_per_sample(10.0, 1.0)
+    assert RADIAL.snr_per_sample(20.0, 1.0) == pytest.approx(s1 / 16)
+    assert RADIAL.snr_per_sample(10.0, 10.0) == pytest.approx(10 * s1)
+
+
+@pytest.mark.parametrize("cfg", [TINY, RADIAL_S])
+@pytest.mark.parametrize("az,el", [(0.0, 0.0), (21.0, 5.0), (-47.0, -10.0)])
+def test_calibrated_beamformer_peaks_at_source(cfg, az, el):
+    calib = make_calibration(cfg)
+    v = torch.as_tensor(steering_vectors(cfg, az, el)).to(torch.complex64)
+    spec = (calib.dictionary() @ v).abs().reshape(calib.grid_shape)
+    # independent: Signal[az, :, el] @ (H * v), the RADIal formula, evaluated with numpy
+    ref = np.abs(np.einsum("avb,v->ab", calib.signal, calib.window * v.numpy()))
+    np.testing.assert_allclose(spec.numpy(), ref, rtol=1e-4, atol=1e-3 * ref.max())
+    ia, ie = np.unravel_index(np.argmax(ref), ref.shape)
+    step_az = np.diff(calib.azimuth_deg[:2])[0]
+    assert abs(calib.azimuth_deg[ia] - az) <= step_az / 2 + 1e-6
+    assert calib.elevation_deg[ie] == pytest.approx(np.clip(el, *cfg.el_grid_deg[:2]), abs=(cfg.el_grid_deg[1] - cfg.el_grid_deg[0]) / (cfg.el_grid_deg[2] - 1) / 2 + 1e-6)
+
+
+def test_hardware_errors_are_what_calibration_corrects():
+    cfg = RADIAL_S
+    err = channel_errors(cfg)
+    assert err.shape == (192,) and not np.allclose(err, 1.0)
+    ideal = steering_vectors(cfg, 10.0, 0.0, hardware=False)
+    np.testing.assert_allclose(steering_vectors(cfg, 10.0, 0.0), ideal * err)
+    # the calibration table equals the conjugate of the true (with errors) response
+    calib = make_calibration(cfg)
+    ia = int(np.argmin(np.abs(calib.azimuth_deg - 10.0)))
+    ie = int(np.argmin(np.abs(calib.elevation_deg - 0.0)))
+    np.testing.assert_allclose(calib.signal[ia, :, ie], np.conj(ideal * err).astype(np.complex64), rtol=1e-5, atol=1e-6)
+
+
+def test_calibration_npz_round_trip_with_radial_keys(tmp_path):
+    calib = make_calibration(TINY)
+    path = tmp_path / "calibration.npz"
+    save_calibration(path, calib)
+    with np.load(path, allow_pickle=False) as z:
+        assert set(z.files) == {"Signal", "H", "Azimuth_table", "Elevation_table"}
+        assert z["Signal"].shape == (61, 8, 5) and z["H"].shape == (1, 8)
+    back = load_calibration(path)
+    np.testing.assert_array_equal(back.signal, calib.signal)
+    np.testing.assert_array_equal(back.window, calib.window)
+    back.check_sensor(TINY)
+    with pytest.raises(ValueError, match="8 virtual channels.*192"):
+        back.check_sensor(RADIAL)
+
+
+def test_calibration_bad_files(tmp_path):
+    with pytest.raises(DataFileError, match="missing"):
+        load_calibration(tmp_path / "nope.npz")
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, Signal=np.zeros((3, 8, 2), np.complex64))
+    with pytest.raises(DataFileError, match=r"bad.npz.*lacks keys \['Azimuth_table', 'Elevation_table', 'H'\]"):
+        load_calibration(bad)
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not a zip file")
+    with pytest.raises(DataFileError, match="junk.npz"):
+        load_calibration(junk)
+    pickled = tmp_path / "CalibrationTable.npy"
+    np.save(pickled, np.array({"Signal": 1}, dtype=object), allow_pickle=True)
+    with pytest.raises(DataFileError, match="trust_pickle=True"):
+        load_calibration(pickled)
+
+
+def test_trusted_pickled_table_is_read(tmp_path):
+    calib = make_calibration(TINY)
+    table = {"Signal": calib.signal, "H": calib.window[None], "Azimuth_table": calib.azimuth_deg,
+             "Elevation_table": calib.elevation_deg}
+    path = tmp_path / "CalibrationTable.npy"
+    np.save(path, np.array(table, dtype=object), allow_pickle=True)
+    back = load_calibration(path, trust_pickle=True)
+    np.testing.assert_array_equal(back.signal, calib.signal)
+
+
+def test_config_dict_round_trip_and_validation():
+    d = json.loads(json.dumps(RADIAL_S.to_dict()))
+    assert DDMARadarConfig.from_dict(d) == RADIAL_S
+    assert radial_sensor("tiny") is TINY
+    with pytest.raises(ValueError, match="unknown sensor 'radal'"):
+        radial_sensor("radal")
+    with pytest.raises(ValueError, match="multiple of n_slots"):
+        dataclasses.replace(RADIAL, n_doppler=250)
+    with pytest.raises(ValueError, match="tx_slots must be Tx 0 in slot 0"):
+        dataclasses.replace(RADIAL, tx_slots=tuple(range(12)))
+    with pytest.raises(ValueError, match="unknown sensor config keys"):
+        DDMARadarConfig.from_dict({**d, "colour": 1})
