@@ -1,1 +1,36 @@
-"""radarpc.rald"""
+"""RaLD: frustum occupancy, latent diffusion models and baselines for dense radar point clouds."""
+from radarpc.rald.frustum import (
+    RALD_GRID,
+    FrustumGrid,
+    OccupancyGrid,
+    cartesian_to_polar,
+    cell_indices,
+    cells_to_points,
+    cells_to_polar,
+    denormalize,
+    in_frustum,
+    normalize,
+    occupancy,
+    polar_to_cartesian,
+    sample_queries,
+    sample_queries_batch,
+    voxelize,
+)
+
+__all__ = [
+    "RALD_GRID",
+    "FrustumGrid",
+    "OccupancyGrid",
+    "cartesian_to_polar",
+    "cell_indices",
+    "cells_to_points",
+    "cells_to_polar",
+    "denormalize",
+    "in_frustum",
+    "normalize",
+    "occupancy",
+    "polar_to_cartesian",
+    "sample_queries",
+    "sample_queries_batch",
+    "voxelize",
+]

@@ -1,0 +1,454 @@
+"""Frustum occupancy in sensor polar coordinates (RaLD, Eqs. 6-8): voxelize, look up, sample queries.
+
+A frustum cell :math:`\\mathcal{F}_{i,j,k}` is the set of points whose range, azimuth and
+elevation fall in ``[r_i, r_{i+1}) x [theta_j, theta_{j+1}) x [phi_k, phi_{k+1})``; it is occupied
+(:math:`O_{i,j,k} = 1`) if at least one LiDAR point falls inside it, and a query point takes the
+occupancy of the cell that contains it.  The default grid is the one of the RaLD autoencoder:
+range 0..15.8 m at 0.05 m, azimuth -90..90 deg at 0.25 deg, elevation -20..20 deg at 0.5 deg,
+i.e. 316 x 720 x 80 cells (the ``pc_range`` / ``voxel_size`` of RaLD's public configuration).
+
+Conventions (the same as :mod:`radarpc.sensors.radial`):
+
+* Cartesian radar frame: x forward, y left, z up, metres.
+* Polar coordinates ``(r, a, e)``: range ``r = |p|`` in metres, azimuth ``a = atan2(y, x)`` in
+  degrees with **left positive**, elevation ``e = atan2(z, hypot(x, y))`` in degrees, up positive;
+  ``p = r (cos e cos a, cos e sin a, sin e)``.  (RaLD's public code negates the azimuth, i.e.
+  right positive; radarpc keeps the left-positive convention of the rest of the package.)
+* Normalized coordinates: each polar axis mapped affinely to [-1, 1] over the grid's span,
+  ``u = (p - (lo + hi) / 2) / ((hi - lo) / 2)`` (RaLD's anisotropic normalization).
+* Cells are stored sparsely as sorted unique linear indices ``(i * n_az + j) * n_el + k`` (int64);
+  the dense ``(n_r, n_az, n_el)`` grid (18 M cells at the default size) is never allocated unless
+  :meth:`OccupancyGrid.dense` is called.
+
+Everything is torch and device-agnostic: outputs live on the device of the inputs.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal, Sequence
+
+import torch
+
+__all__ = [
+    "FrustumGrid",
+    "OccupancyGrid",
+    "RALD_GRID",
+    "cartesian_to_polar",
+    "polar_to_cartesian",
+    "normalize",
+    "denormalize",
+    "in_frustum",
+    "cell_indices",
+    "voxelize",
+    "occupancy",
+    "sample_queries",
+    "sample_queries_batch",
+    "cells_to_polar",
+    "cells_to_points",
+]
+
+Coords = Literal["cartesian", "polar", "normalized"]
+_COORDS = ("cartesian", "polar", "normalized")
+
+# Jitter is drawn in [_EDGE, 1 - _EDGE] of a cell so that float32 rounding of a normalized
+# query can never move it across a cell edge (0.1 % of a cell is ~12,000 float32 ulps).
+_EDGE = 1e-3
+
+
+@dataclass(frozen=True)
+class FrustumGrid:
+    """A regular grid in (range, azimuth, elevation): the frustum cells of RaLD.
+
+    The number of cells per axis is ``round((hi - lo) / cell)``; the span must be a whole
+    number of cells.
+    """
+
+    range_m: tuple[float, float] = (0.0, 15.8)           # [r_min, r_max] in metres
+    azimuth_deg: tuple[float, float] = (-90.0, 90.0)     # [theta_min, theta_max], left positive
+    elevation_deg: tuple[float, float] = (-20.0, 20.0)   # [phi_min, phi_max], up positive
+    cell: tuple[float, float, float] = (0.05, 0.25, 0.5)  # cell size: metres, degrees, degrees
+
+    def __post_init__(self) -> None:
+        names = ("range_m", "azimuth_deg", "elevation_deg")
+        if len(self.cell) != 3:
+            raise ValueError(f"FrustumGrid.cell must have 3 entries (range, azimuth, elevation), got {self.cell}")
+        for ax, (name, c) in enumerate(zip(names, self.cell)):
+            lo, hi = getattr(self, name)
+            if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+                raise ValueError(f"FrustumGrid.{name}={getattr(self, name)} must be finite with max > min")
+            if not (math.isfinite(c) and c > 0):
+                raise ValueError(f"FrustumGrid.cell[{ax}]={c} must be positive")
+            n = (hi - lo) / c
+            if abs(n - round(n)) > 1e-6 * max(1.0, n):
+                raise ValueError(f"FrustumGrid.{name} span {hi - lo} is not a whole number of cells of {c}")
+        if self.range_m[0] < 0:
+            raise ValueError(f"FrustumGrid.range_m={self.range_m} must start at 0 or above")
+        if self.azimuth_deg[0] < -180 or self.azimuth_deg[1] > 180:
+            raise ValueError(f"FrustumGrid.azimuth_deg={self.azimuth_deg} must lie in [-180, 180]")
+        if self.elevation_deg[0] < -90 or self.elevation_deg[1] > 90:
+            raise ValueError(f"FrustumGrid.elevation_deg={self.elevation_deg} must lie in [-90, 90]")
+
+    @property
+    def lo(self) -> tuple[float, float, float]:
+        """Lower edges ``(r_min, theta_min, phi_min)``."""
+        return (self.range_m[0], self.azimuth_deg[0], self.elevation_deg[0])
+
+    @property
+    def hi(self) -> tuple[float, float, float]:
+        """Upper edges ``(r_max, theta_max, phi_max)``."""
+        return (self.range_m[1], self.azimuth_deg[1], self.elevation_deg[1])
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Cells per axis ``(n_r, n_az, n_el)``; ``(316, 720, 80)`` for the default grid."""
+        return tuple(int(round((h - l) / c)) for l, h, c in zip(self.lo, self.hi, self.cell))
+
+    @property
+    def n_cells(self) -> int:
+        n_r, n_az, n_el = self.shape
+        return n_r * n_az * n_el
+
+    def _tensors(self, device, dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        lo = torch.tensor(self.lo, device=device, dtype=dtype)
+        hi = torch.tensor(self.hi, device=device, dtype=dtype)
+        cell = torch.tensor(self.cell, device=device, dtype=dtype)
+        return lo, hi, cell
+
+
+RALD_GRID = FrustumGrid()
+
+
+@dataclass
+class OccupancyGrid:
+    """Sparse frustum occupancy of one point cloud.
+
+    Attributes
+    ----------
+    grid : FrustumGrid
+        The cell layout.
+    cells : torch.Tensor, int64, ``(M,)``
+        Sorted unique linear indices ``(i * n_az + j) * n_el + k`` of the occupied cells.
+    n_points : int
+        Points of the input cloud that fell inside the frustum.
+    n_outside : int
+        Points of the input cloud outside the frustum (dropped).
+    """
+
+    grid: FrustumGrid
+    cells: torch.Tensor
+    n_points: int = 0
+    n_outside: int = 0
+
+    def __post_init__(self) -> None:
+        if self.cells.dtype != torch.int64 or self.cells.ndim != 1:
+            raise ValueError(f"OccupancyGrid.cells must be a 1-D int64 tensor, got {self.cells.dtype} "
+                             f"of shape {tuple(self.cells.shape)}")
+
+    @property
+    def n_occupied(self) -> int:
+        return int(self.cells.numel())
+
+    @property
+    def device(self) -> torch.device:
+        return self.cells.device
+
+    def dense(self) -> torch.Tensor:
+        """The dense boolean grid ``(n_r, n_az, n_el)`` (18 M cells by default; only when asked)."""
+        out = torch.zeros(self.grid.n_cells, dtype=torch.bool, device=self.cells.device)
+        out[self.cells] = True
+        return out.view(self.grid.shape)
+
+    def ijk(self) -> torch.Tensor:
+        """Integer cell indices ``(M, 3)`` = (range, azimuth, elevation) of the occupied cells."""
+        return _unravel(self.grid, self.cells)
+
+
+# ---- coordinates ------------------------------------------------------------------------------
+
+def _points(x, name: str = "points") -> torch.Tensor:
+    t = torch.as_tensor(x)
+    if t.is_complex():
+        raise ValueError(f"{name} must be real, got complex dtype {t.dtype}")
+    if t.ndim < 1 or t.shape[-1] != 3:
+        raise ValueError(f"{name} must have shape (..., 3), got {tuple(t.shape)}")
+    if not t.is_floating_point():
+        t = t.to(torch.float32)
+    if t.numel() and not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name} contains NaN or infinite values")
+    return t
+
+
+def cartesian_to_polar(xyz) -> torch.Tensor:
+    """Cartesian ``(x, y, z)`` -> polar ``(r [m], azimuth [deg], elevation [deg])``.
+
+    Parameters
+    ----------
+    xyz : array-like or torch.Tensor, ``(..., 3)``
+        Points in the radar frame (x forward, y left, z up).
+
+    Returns
+    -------
+    torch.Tensor, ``(..., 3)``
+        ``r = |p|``, ``a = atan2(y, x)`` (left positive), ``e = atan2(z, hypot(x, y))``;
+        the origin maps to ``(0, 0, 0)``.
+    """
+    p = _points(xyz, "xyz")
+    x, y, z = p.unbind(-1)
+    rho = torch.hypot(x, y)
+    r = torch.hypot(rho, z)
+    az = torch.rad2deg(torch.atan2(y, x))
+    el = torch.rad2deg(torch.atan2(z, rho))
+    return torch.stack((r, az, el), dim=-1)
+
+
+def polar_to_cartesian(rae) -> torch.Tensor:
+    """Polar ``(r [m], azimuth [deg], elevation [deg])`` -> Cartesian ``(x, y, z)``.
+
+    ``p = r (cos e cos a, cos e sin a, sin e)``, the inverse of :func:`cartesian_to_polar`.
+    """
+    p = _points(rae, "rae")
+    r, az, el = p.unbind(-1)
+    a, e = torch.deg2rad(az), torch.deg2rad(el)
+    ce = torch.cos(e)
+    return torch.stack((r * ce * torch.cos(a), r * ce * torch.sin(a), r * torch.sin(e)), dim=-1)
+
+
+def normalize(grid: FrustumGrid, rae) -> torch.Tensor:
+    """Polar -> normalized: ``u = (p - (lo + hi) / 2) / ((hi - lo) / 2)`` per axis, so the grid is [-1, 1]^3."""
+    p = _points(rae, "rae")
+    lo, hi, _ = grid._tensors(p.device, p.dtype)
+    return (p - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
+
+
+def denormalize(grid: FrustumGrid, u) -> torch.Tensor:
+    """Normalized -> polar: ``p = u (hi - lo) / 2 + (lo + hi) / 2`` per axis."""
+    q = _points(u, "normalized points")
+    lo, hi, _ = grid._tensors(q.device, q.dtype)
+    return q * (0.5 * (hi - lo)) + 0.5 * (lo + hi)
+
+
+def _to_polar(grid: FrustumGrid, points, coords: str) -> torch.Tensor:
+    if coords not in _COORDS:
+        raise ValueError(f"coords must be one of {_COORDS}, got {coords!r}")
+    if coords == "cartesian":
+        return cartesian_to_polar(points)
+    if coords == "normalized":
+        return denormalize(grid, points)
+    return _points(points, "rae")
+
+
+def in_frustum(grid: FrustumGrid, points, *, coords: Coords = "cartesian") -> torch.Tensor:
+    """Boolean mask ``(...,)``: the point lies in the closed box ``[lo, hi]`` of every polar axis."""
+    p = _to_polar(grid, points, coords)
+    lo, hi, _ = grid._tensors(p.device, p.dtype)
+    return ((p >= lo) & (p <= hi)).all(dim=-1)
+
+
+def cell_indices(grid: FrustumGrid, points, *, coords: Coords = "cartesian") -> tuple[torch.Tensor, torch.Tensor]:
+    """Linear cell index of each point and whether it lies inside the frustum.
+
+    Parameters
+    ----------
+    grid : FrustumGrid
+    points : array-like or torch.Tensor, ``(..., 3)``
+        Points in ``coords`` coordinates.
+    coords : {"cartesian", "polar", "normalized"}
+
+    Returns
+    -------
+    index : torch.Tensor, int64, ``(...,)``
+        ``(i * n_az + j) * n_el + k`` with ``i = floor((r - r_min) / dr)`` etc.; a point exactly on
+        the upper edge belongs to the last cell.  Meaningless where ``inside`` is False.
+    inside : torch.Tensor, bool, ``(...,)``
+    """
+    p = _to_polar(grid, points, coords)
+    lo, hi, cell = grid._tensors(p.device, p.dtype)
+    inside = ((p >= lo) & (p <= hi)).all(dim=-1)
+    n = torch.tensor(grid.shape, device=p.device)
+    ijk = torch.floor((p - lo) / cell).to(torch.int64)
+    ijk = torch.minimum(ijk.clamp_min(0), n - 1)
+    return _ravel(grid, ijk), inside
+
+
+def _ravel(grid: FrustumGrid, ijk: torch.Tensor) -> torch.Tensor:
+    _, n_az, n_el = grid.shape
+    return (ijk[..., 0] * n_az + ijk[..., 1]) * n_el + ijk[..., 2]
+
+
+def _unravel(grid: FrustumGrid, lin: torch.Tensor) -> torch.Tensor:
+    _, n_az, n_el = grid.shape
+    k = lin % n_el
+    j = (lin // n_el) % n_az
+    i = lin // (n_el * n_az)
+    return torch.stack((i, j, k), dim=-1)
+
+
+# ---- occupancy --------------------------------------------------------------------------------
+
+def voxelize(grid: FrustumGrid, points, *, coords: Coords = "cartesian") -> OccupancyGrid:
+    """Occupancy of a point cloud: the sorted unique cells holding at least one point (Eq. 7).
+
+    Parameters
+    ----------
+    grid : FrustumGrid
+    points : array-like or torch.Tensor, ``(N, 3)``
+        One LiDAR cloud (N may be 0); points outside the frustum are dropped and counted.
+    coords : {"cartesian", "polar", "normalized"}
+        Coordinates of ``points``.
+
+    Returns
+    -------
+    OccupancyGrid
+        On the device of ``points``; memory O(N), the dense grid is never built.
+    """
+    p = _points(points, "points")
+    if p.ndim != 2:
+        raise ValueError(f"points must have shape (N, 3), got {tuple(p.shape)}")
+    lin, inside = cell_indices(grid, p, coords=coords)
+    cells = torch.unique(lin[inside], sorted=True)   # (M,)
+    n_in = int(inside.sum())
+    return OccupancyGrid(grid=grid, cells=cells, n_points=n_in, n_outside=int(p.shape[0]) - n_in)
+
+
+def _lookup(sorted_cells: torch.Tensor, lin: torch.Tensor) -> torch.Tensor:
+    # Membership of each linear index in the sorted set: one binary search per query.
+    if sorted_cells.numel() == 0:
+        return torch.zeros(lin.shape, dtype=torch.bool, device=lin.device)
+    pos = torch.searchsorted(sorted_cells, lin.reshape(-1)).clamp_max(sorted_cells.numel() - 1)
+    return (sorted_cells[pos] == lin.reshape(-1)).view(lin.shape)
+
+
+def occupancy(occ: OccupancyGrid, queries, *, coords: Coords = "normalized") -> torch.Tensor:
+    """Occupancy ``O(q)`` of arbitrary query points (Eq. 8): True where the containing cell is occupied.
+
+    Parameters
+    ----------
+    occ : OccupancyGrid
+    queries : array-like or torch.Tensor, ``(..., 3)``
+        Query points in ``coords`` coordinates (default: normalized, as the decoder sees them).
+    coords : {"normalized", "polar", "cartesian"}
+
+    Returns
+    -------
+    torch.Tensor, bool, ``(...,)``
+        False for queries outside the frustum.
+    """
+    q = _points(queries, "queries").to(occ.cells.device)
+    lin, inside = cell_indices(occ.grid, q, coords=coords)
+    return _lookup(occ.cells, lin) & inside
+
+
+def sample_queries(
+    occ: OccupancyGrid,
+    n: int = 10_000,
+    positive_ratio: float = 0.0625,
+    *,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Training queries for the occupancy decoder: positives in occupied cells, negatives in empty ones.
+
+    ``n_pos = floor(n * positive_ratio)`` queries (exactly; 625 of 10,000 by default, RaLD's 6.25 %)
+    are drawn by choosing occupied cells uniformly with replacement; the other ``n - n_pos`` by
+    choosing cells uniformly among the empty ones (vectorized rejection sampling on random cells).
+    Each query is jittered uniformly within its cell (the central 99.8 %, see ``_EDGE``) and
+    returned normalized to [-1, 1].  Positives come first, then negatives.
+
+    Parameters
+    ----------
+    occ : OccupancyGrid
+    n : int
+        Total number of queries.
+    positive_ratio : float
+        Fraction of positives, in [0, 1].
+    generator : torch.Generator, optional
+        On the device of ``occ.cells``; makes the draw reproducible.
+    dtype : torch.dtype
+        Floating dtype of the returned queries.
+
+    Returns
+    -------
+    queries : torch.Tensor, ``(n, 3)``
+        Normalized polar coordinates.
+    labels : torch.Tensor, bool, ``(n,)``
+        True for the ``n_pos`` positives.
+
+    Raises
+    ------
+    ValueError
+        Bad ``n`` or ``positive_ratio``; positives requested from an empty occupancy (an empty
+        LiDAR scan); negatives requested from a fully occupied grid.
+    """
+    if int(n) != n or n < 1:
+        raise ValueError(f"n must be a positive integer, got {n}")
+    if not (0.0 <= positive_ratio <= 1.0):
+        raise ValueError(f"positive_ratio must lie in [0, 1], got {positive_ratio}")
+    n = int(n)
+    n_pos = int(math.floor(n * positive_ratio + 1e-9))
+    n_neg = n - n_pos
+    grid, dev = occ.grid, occ.cells.device
+    m = occ.n_occupied
+    if n_pos and m == 0:
+        raise ValueError("cannot sample positive queries: the occupancy grid is empty (empty LiDAR scan "
+                         "or no point inside the frustum)")
+    if n_neg and m >= grid.n_cells:
+        raise ValueError("cannot sample negative queries: every cell of the grid is occupied")
+
+    pos = occ.cells[torch.randint(0, max(m, 1), (n_pos,), device=dev, generator=generator)]   # (n_pos,)
+    neg = _sample_empty(occ, n_neg, generator)                                                 # (n_neg,)
+    lin = torch.cat((pos, neg))                                                                # (n,)
+
+    lo, _, cell = grid._tensors(dev, torch.float64)
+    u = torch.rand((n, 3), device=dev, generator=generator, dtype=torch.float64)
+    u = _EDGE + (1.0 - 2.0 * _EDGE) * u
+    rae = lo + (_unravel(grid, lin).to(torch.float64) + u) * cell      # (n, 3) polar
+    queries = normalize(grid, rae).to(dtype)
+    labels = torch.zeros(n, dtype=torch.bool, device=dev)
+    labels[:n_pos] = True
+    return queries, labels
+
+
+def _sample_empty(occ: OccupancyGrid, k: int, generator: torch.Generator | None) -> torch.Tensor:
+    dev = occ.cells.device
+    total = occ.grid.n_cells
+    if k == 0:
+        return torch.zeros(0, dtype=torch.int64, device=dev)
+    empty_frac = 1.0 - occ.n_occupied / total
+    out: list[torch.Tensor] = []
+    have = 0
+    while have < k:   # ends: each round keeps a draw with probability empty_frac > 0
+        need = k - have
+        draw = int(math.ceil(need / empty_frac * 1.2)) + 16
+        cand = torch.randint(0, total, (draw,), device=dev, generator=generator)
+        cand = cand[~_lookup(occ.cells, cand)][:need]
+        out.append(cand)
+        have += int(cand.numel())
+    return torch.cat(out)
+
+
+def sample_queries_batch(
+    occs: Sequence[OccupancyGrid],
+    n: int = 10_000,
+    positive_ratio: float = 0.0625,
+    *,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`sample_queries` for a batch of frames: queries ``(B, n, 3)`` and labels ``(B, n)``."""
+    if len(occs) == 0:
+        raise ValueError("sample_queries_batch needs at least one OccupancyGrid")
+    qs, ls = zip(*(sample_queries(o, n, positive_ratio, generator=generator, dtype=dtype) for o in occs))
+    return torch.stack(qs), torch.stack(ls)
+
+
+def cells_to_polar(occ: OccupancyGrid, *, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Polar centres ``(M, 3)`` of the occupied cells, ``lo + (ijk + 1/2) * cell``."""
+    lo, _, cell = occ.grid._tensors(occ.cells.device, torch.float64)
+    rae = lo + (occ.ijk().to(torch.float64) + 0.5) * cell
+    return rae.to(dtype)
+
+
+def cells_to_points(occ: OccupancyGrid, *, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Cartesian points ``(M, 3)`` at the centres of the occupied cells (the decoded point cloud)."""
+    return polar_to_cartesian(cells_to_polar(occ, dtype=torch.float64)).to(dtype)
