@@ -1,1 +1,24 @@
-"""radarpc.eval"""
+"""Metrics: point sets (Chamfer, EMD) and, from the other stages, detection and segmentation."""
+from radarpc.eval.pointsets import (
+    EMD_POINTS,
+    EMD_SEED,
+    CloudPair,
+    FrameMetrics,
+    PointSetReport,
+    SceneSummary,
+    chamfer_distance,
+    earth_movers_distance,
+    evaluate_clouds,
+)
+
+__all__ = [
+    "EMD_POINTS",
+    "EMD_SEED",
+    "CloudPair",
+    "FrameMetrics",
+    "PointSetReport",
+    "SceneSummary",
+    "chamfer_distance",
+    "earth_movers_distance",
+    "evaluate_clouds",
+]
