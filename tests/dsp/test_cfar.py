@@ -1,0 +1,144 @@
+"""CA-CFAR and OS-CFAR against brute-force loops over cells (borders included)."""
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from radarpc.dsp.cfar import CFARResult, ca_cfar, os_cfar
+
+
+def _training_values(p: np.ndarray, cell: tuple[int, ...], window, guard) -> np.ndarray:
+    """Powers of the valid training cells of ``cell`` (explicit offsets, explicit bounds)."""
+    vals = []
+    hw = [w // 2 for w in window]
+    hg = [g // 2 for g in guard]
+    for off in itertools.product(*[range(-h, h + 1) for h in hw]):
+        if all(abs(o) <= h for o, h in zip(off, hg)):
+            continue  # guard cell (or the cell under test)
+        t = tuple(c + o for c, o in zip(cell, off))
+        if all(0 <= ti < n for ti, n in zip(t, p.shape)):
+            vals.append(p[t])
+    return np.asarray(vals, dtype=np.float64)
+
+
+def _brute(p: np.ndarray, window, guard, stat) -> tuple[np.ndarray, np.ndarray]:
+    noise = np.empty(p.shape)
+    for cell in itertools.product(*[range(n) for n in p.shape]):
+        vals = _training_values(p, cell, window, guard)
+        noise[cell] = stat(vals)
+    return noise, p / noise
+
+
+CASES = [
+    ((37,), (9,), (3,)),
+    ((5,), (9,), (3,)),                 # array smaller than the window: every cell is a border cell
+    ((12, 7), (9, 5), (3, 1)),
+    ((20, 16), (9, 9), (3, 3)),
+    ((6, 7, 5), (5, 3, 5), (3, 1, 1)),
+]
+
+
+@pytest.mark.parametrize("shape,window,guard", CASES)
+def test_ca_cfar_matches_brute_force(shape, window, guard):
+    rng = np.random.default_rng(0)
+    p = rng.exponential(size=shape)
+    p[tuple(n // 2 for n in shape)] = 1e6  # a strong target must not leak through cancellation
+    noise_ref, snr_ref = _brute(p, window, guard, np.mean)
+    res = ca_cfar(torch.from_numpy(p), window, guard)
+    np.testing.assert_allclose(res.noise.numpy(), noise_ref, rtol=1e-12)
+    np.testing.assert_allclose(res.snr.numpy(), snr_ref, rtol=1e-12)
+    res32 = ca_cfar(torch.from_numpy(p).float(), window, guard)
+    np.testing.assert_allclose(res32.noise.numpy(), noise_ref, rtol=1e-5)
+
+
+def test_ca_cfar_batched_and_numpy_in_numpy_out():
+    rng = np.random.default_rng(1)
+    p = rng.exponential(size=(3, 2, 14, 10))
+    res = ca_cfar(p, (9, 9), (3, 3))
+    assert isinstance(res.noise, np.ndarray) and isinstance(res.snr, np.ndarray)
+    for b, c in itertools.product(range(3), range(2)):
+        noise_ref, _ = _brute(p[b, c], (9, 9), (3, 3), np.mean)
+        np.testing.assert_allclose(res.noise[b, c], noise_ref, rtol=1e-12)
+    m = res.mask(1.585)
+    assert isinstance(m, np.ndarray) and m.dtype == bool
+    np.testing.assert_array_equal(m, res.snr > 1.585)
+
+
+def test_ca_cfar_border_uses_mean_of_valid_cells_hand_worked():
+    # 1-D, window 5 (offsets -2..2), guard 1 (only the CUT): cell 0 sees cells 1, 2.
+    p = torch.tensor([4.0, 1.0, 3.0, 8.0, 2.0], dtype=torch.float64)
+    res = ca_cfar(p, 5, 1)
+    expected = torch.tensor([(1 + 3) / 2, (4 + 3 + 8) / 3, (4 + 1 + 8 + 2) / 4, (1 + 3 + 2) / 3, (3 + 8) / 2],
+                            dtype=torch.float64)
+    torch.testing.assert_close(res.noise, expected)
+    torch.testing.assert_close(res.snr, p / expected)
+
+
+@pytest.mark.parametrize("shape,window,guard", CASES)
+@pytest.mark.parametrize("rank", [1, 3, 0.5, 0.75])
+def test_os_cfar_matches_brute_force(shape, window, guard, rank):
+    rng = np.random.default_rng(2)
+    p = rng.exponential(size=shape)
+
+    def stat(vals):
+        v = np.sort(vals)
+        n = len(v)
+        k = min(rank, n) if isinstance(rank, int) else max(1, math.ceil(rank * n))
+        return v[k - 1]
+
+    noise_ref, snr_ref = _brute(p, window, guard, stat)
+    res = os_cfar(torch.from_numpy(p), window, guard, rank)
+    np.testing.assert_array_equal(res.noise.numpy(), noise_ref)
+    np.testing.assert_allclose(res.snr.numpy(), snr_ref, rtol=1e-12)
+
+
+def test_os_cfar_batched():
+    rng = np.random.default_rng(3)
+    p = rng.exponential(size=(2, 9, 8)).astype(np.float32)
+    res = os_cfar(p, (5, 5), (3, 1), 0.5)
+    for b in range(2):
+        ref, _ = _brute(p[b].astype(np.float64), (5, 5), (3, 1),
+                        lambda v: np.sort(v)[max(1, math.ceil(0.5 * len(v))) - 1])
+        np.testing.assert_allclose(res.noise[b], ref, rtol=1e-6)
+
+
+def test_zero_noise_and_result_type():
+    p = torch.zeros(10, 10)
+    p[5, 5] = 2.0
+    res = ca_cfar(p, (3, 3), (1, 1))
+    assert isinstance(res, CFARResult)
+    assert res.snr[5, 5] == math.inf and res.snr[0, 0] == 0
+    assert res.mask(1.585).sum() == 1
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(window=(8, 9), guard=(3, 3)), "odd"),
+    (dict(window=(9, 9), guard=(9, 3)), "smaller"),
+    (dict(window=(9, 9), guard=(3,)), "same number"),
+    (dict(window=(9, 9, 9, 9), guard=(3, 3, 3, 3)), "1-D, 2-D and 3-D"),
+    (dict(window=(9, 9), guard=(0, 3)), "odd"),
+])
+def test_bad_windows(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ca_cfar(torch.ones(20, 20), **kwargs)
+
+
+def test_bad_power():
+    with pytest.raises(ValueError, match="real"):
+        ca_cfar(torch.ones(20, 20, dtype=torch.complex64))
+    with pytest.raises(ValueError, match="NaN"):
+        ca_cfar(torch.tensor([[1.0, float("nan")] * 10] * 20))
+    with pytest.raises(ValueError, match=">= 0"):
+        ca_cfar(-torch.ones(20, 20))
+    with pytest.raises(ValueError, match="dims"):
+        ca_cfar(torch.ones(20))
+    with pytest.raises(ValueError, match="rank"):
+        os_cfar(torch.ones(20, 20), (9, 9), (3, 3), 73)
+    with pytest.raises(ValueError, match="quantile"):
+        os_cfar(torch.ones(20, 20), (9, 9), (3, 3), 1.5)
+    with pytest.raises(ValueError, match="tau"):
+        ca_cfar(torch.ones(20, 20)).mask(0.0)
