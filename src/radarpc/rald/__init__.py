@@ -16,6 +16,14 @@ from radarpc.rald.frustum import (
     sample_queries_batch,
     voxelize,
 )
+from radarpc.rald.oscfar_baseline import (
+    CubeAxes,
+    OSCFARConfig,
+    TuningGrid,
+    TuningResult,
+    detect_points,
+    tune_oscfar,
+)
 
 __all__ = [
     "RALD_GRID",
@@ -33,4 +41,10 @@ __all__ = [
     "sample_queries",
     "sample_queries_batch",
     "voxelize",
+    "CubeAxes",
+    "OSCFARConfig",
+    "TuningGrid",
+    "TuningResult",
+    "detect_points",
+    "tune_oscfar",
 ]
