@@ -14,3 +14,4 @@ from radarpc.sensors.radial import (  # noqa: F401
     save_calibration,
     steering_vectors,
 )
+from radarpc.sensors.coloradar import AWR1843, CASCADE, AWR1843_FOV, ColoRadarCalib, ColoRadarChipConfig, RadarFOV, Transform, load_calib, write_calib  # noqa: F401
