@@ -1,0 +1,526 @@
+"""Seeded procedural road scenes for the RADIal-like radar: point scatterers that move in time.
+
+A scene is a straight multi-lane road along the world ``+x`` axis (world frame: x along the road,
+y left, z up, ground at ``z = 0``). The ego vehicle drives in one of its lanes with a speed that
+changes linearly in time; the radar sits at its front at height ``radar_height_m`` with the axes of
+:mod:`radarpc.sensors.radial` (x forward, y left, z up), so the radar frame is the world frame
+translated to the radar.
+
+Content (all generated once per sequence from ``numpy.random.default_rng([seed, sequence])``):
+
+* vehicles (cars, trucks) in every lane at constant speed (one speed per lane, so they never
+  collide; ego-lane traffic is ahead and faster than the ego), each an extended set of
+  scatterers: rear and front faces, sides, four strong corners, and wheels whose rim points
+  rotate, so that the wheels spread in Doppler (micro-Doppler, rim speed 0 .. 2 v);
+* guard rails (points every ``guard_rail_spacing_m`` and stronger posts), lamp poles, building
+  facades behind a sidewalk, weak road-surface clutter, pedestrians (swinging legs) and cyclists;
+* occlusion: a scatterer whose line of sight crosses another vehicle's footprint is attenuated by
+  ``occlusion_loss_db`` (radar sees partly under and around cars); faces pointing away from the
+  radar are not seen.
+
+Radial velocities are those of the motion relative to the radar, so static clutter has
+``-v_ego cos(az) cos(el)``. Frames at ``t = i * frame_period_s`` are consistent in time:
+positions are the integrals of the velocities.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from radarpc.sim.rd import Scatterers
+
+__all__ = [
+    "RoadSceneConfig",
+    "VehicleTruth",
+    "RoadFrame",
+    "RoadScene",
+    "CAR",
+    "TRUCK",
+]
+
+CAR = 0
+"""``VehicleTruth.kind`` of a car."""
+TRUCK = 1
+"""``VehicleTruth.kind`` of a truck."""
+
+
+@dataclass(frozen=True)
+class RoadSceneConfig:
+    """Parameters of the procedural road scenes (ranges are ``(low, high)`` of uniform draws)."""
+
+    frame_period_s: float = 0.1                        # time between frames
+    radar_height_m: float = 0.8                        # radar above the ground
+    lane_width_m: float = 3.5
+    lanes_same: tuple[int, int] = (1, 3)               # lanes in the ego direction (inclusive)
+    lanes_opposite: tuple[int, int] = (0, 2)           # oncoming lanes (inclusive)
+    ego_speed_mps: tuple[float, float] = (0.0, 20.0)   # ego speed at t = 0
+    ego_accel_mps2: tuple[float, float] = (-0.6, 0.6)  # constant ego acceleration
+    lane_speed_mps: tuple[float, float] = (4.0, 25.0)  # speed of the traffic of a lane
+    vehicle_gap_m: tuple[float, float] = (8.0, 45.0)   # free gap between consecutive vehicles
+    truck_fraction: float = 0.15                       # probability that a vehicle is a truck
+    car_size_m: tuple[tuple[float, float], ...] = ((3.9, 4.9), (1.7, 1.95), (1.4, 1.65))  # L, W, H
+    truck_size_m: tuple[tuple[float, float], ...] = ((7.5, 12.0), (2.4, 2.55), (3.0, 3.8))
+    guard_rail_prob: float = 0.7                       # per road side
+    guard_rail_spacing_m: float = 2.0
+    pole_spacing_m: tuple[float, float] = (20.0, 40.0)
+    building_prob: float = 0.6                         # per road side
+    building_setback_m: tuple[float, float] = (6.0, 14.0)
+    clutter_per_100m: float = 40.0                     # weak road-surface scatterers
+    pedestrians: tuple[int, int] = (0, 4)
+    cyclists: tuple[int, int] = (0, 2)
+    occlusion_loss_db: float = 15.0                    # attenuation of a scatterer hidden by a vehicle
+    min_range_m: float = 1.0                           # closer scatterers are dropped
+
+    def __post_init__(self) -> None:
+        if not self.frame_period_s > 0:
+            raise ValueError(f"frame_period_s must be > 0, got {self.frame_period_s}")
+        if not self.lane_width_m > 0:
+            raise ValueError(f"lane_width_m must be > 0, got {self.lane_width_m}")
+        if self.lanes_same[0] < 1 or self.lanes_same[1] < self.lanes_same[0]:
+            raise ValueError(f"lanes_same must be (low >= 1, high >= low), got {self.lanes_same}")
+        if self.lanes_opposite[0] < 0 or self.lanes_opposite[1] < self.lanes_opposite[0]:
+            raise ValueError(f"lanes_opposite must be (low >= 0, high >= low), got {self.lanes_opposite}")
+        for name in ("truck_fraction", "guard_rail_prob", "building_prob"):
+            p = getattr(self, name)
+            if not 0.0 <= p <= 1.0:
+                raise ValueError(f"{name} must be a probability in [0, 1], got {p}")
+
+
+@dataclass
+class VehicleTruth:
+    """Ground truth of the vehicles of one frame, in the radar frame (``V`` vehicles, numpy).
+
+    Attributes
+    ----------
+    ids : int64 ``(V,)``           vehicle index in the sequence (stable over frames)
+    kind : int64 ``(V,)``          :data:`CAR` or :data:`TRUCK`
+    center_xyz : float64 ``(V, 3)`` centre of the footprint on the ground, radar frame
+    size_lwh : float64 ``(V, 3)``  length (along heading), width, height
+    yaw_rad : float64 ``(V,)``     heading, 0 = radar +x, left positive
+    velocity_xy : float64 ``(V, 2)`` ground velocity (world, absolute)
+    rel_velocity_xy : float64 ``(V, 2)`` velocity relative to the radar
+    visible_fraction : float64 ``(V,)`` share of its radar-facing scatterers not hidden by others
+    """
+
+    ids: np.ndarray
+    kind: np.ndarray
+    center_xyz: np.ndarray
+    size_lwh: np.ndarray
+    yaw_rad: np.ndarray
+    velocity_xy: np.ndarray
+    rel_velocity_xy: np.ndarray
+    visible_fraction: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+    def corners_xy(self) -> np.ndarray:
+        """Footprint corners ``(V, 4, 2)`` in the radar frame (rear-right, front-right, front-left,
+        rear-left)."""
+        hl, hw = self.size_lwh[:, 0] / 2, self.size_lwh[:, 1] / 2
+        local = np.stack([np.stack([-hl, -hw], -1), np.stack([hl, -hw], -1),
+                          np.stack([hl, hw], -1), np.stack([-hl, hw], -1)], 1)     # (V, 4, 2)
+        c, s = np.cos(self.yaw_rad)[:, None], np.sin(self.yaw_rad)[:, None]
+        x = c * local[..., 0] - s * local[..., 1] + self.center_xyz[:, None, 0]
+        y = s * local[..., 0] + c * local[..., 1] + self.center_xyz[:, None, 1]
+        return np.stack([x, y], -1)
+
+
+@dataclass
+class RoadFrame:
+    """One frame of a road scene.
+
+    Attributes
+    ----------
+    time_s : float
+    scatterers : Scatterers
+        float64 on the CPU, radar frame, already culled to the field of view and attenuated by
+        occlusion.
+    owner : Tensor int64 ``(N,)``
+        Vehicle id of each scatterer (index into the sequence's vehicles), ``-1`` for anything else.
+    vehicles : VehicleTruth
+        Every vehicle of the sequence at this time (labels select those in the field of view).
+    road_y_m : (float, float)
+        Lateral bounds ``(right, left)`` of the drivable road surface in the radar frame (the road
+        is parallel to the radar x axis).
+    ego_speed_mps : float
+    radar_height_m : float
+    """
+
+    time_s: float
+    scatterers: Scatterers
+    owner: torch.Tensor
+    vehicles: VehicleTruth
+    road_y_m: tuple[float, float]
+    ego_speed_mps: float
+    radar_height_m: float
+
+
+@dataclass
+class _Body:
+    """Scatterers rigidly attached to moving bodies (vehicles, people), body frame."""
+
+    owner: np.ndarray          # (K,) body index
+    local: np.ndarray          # (K, 3) position in the body frame (x forward, y left, z up)
+    normal: np.ndarray         # (K, 2) outward normal in the body xy plane; (0, 0) = always visible
+    rcs: np.ndarray            # (K,)
+    # periodic motion: displacement a * (cos(phase(t)), 0, sin(phase(t))) in the body x-z plane with
+    # phase(t) = phase0 - omega * t (wheel rim: a = radius, omega = speed / radius), or a swing
+    # a * sin(omega t + phase0) along x (legs: kind 2); kind 0 = rigid.
+    kind: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    amp: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    omega: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    phase0: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+def _vehicle_template(rng: np.random.Generator, length: float, width: float, height: float,
+                      truck: bool, speed: float) -> dict[str, np.ndarray]:
+    """Scatterers of one vehicle in its body frame (origin: footprint centre on the ground)."""
+    hl, hw = length / 2, width / 2
+    pts, nrm, rcs, kind, amp, omg, ph = [], [], [], [], [], [], []
+
+    def add(p, n, s, k=0, a=0.0, w=0.0, f=0.0):
+        pts.append(p); nrm.append(n); rcs.append(s); kind.append(k); amp.append(a); omg.append(w); ph.append(f)
+
+    bumper_z = 0.5 if not truck else 0.9
+    for sign, nx in ((-1.0, -1.0), (1.0, 1.0)):                         # rear, front faces
+        for y in np.linspace(-0.7 * hw, 0.7 * hw, 3):
+            add((sign * hl, y, bumper_z), (nx, 0.0), rng.uniform(0.5, 2.5) * (3 if truck else 1))
+        for y in (-0.5 * hw, 0.5 * hw):                                  # lights / plate / cab
+            add((sign * hl, y, min(1.0, 0.7 * height)), (nx, 0.0), rng.uniform(0.3, 1.2) * (2 if truck else 1))
+    n_side = max(2, int(length / 1.2))
+    for sy in (-1.0, 1.0):                                               # sides
+        for x in np.linspace(-0.8 * hl, 0.8 * hl, n_side):
+            add((x, sy * hw, rng.uniform(0.4, 0.8 * height)), (0.0, sy), rng.uniform(0.1, 0.8))
+    for sx in (-1.0, 1.0):                                               # corners (strong)
+        for sy in (-1.0, 1.0):
+            add((sx * hl, sy * hw, bumper_z), (sx / math.sqrt(2), sy / math.sqrt(2)),
+                rng.uniform(2.0, 6.0) * (2 if truck else 1))
+    radius = 0.33 if not truck else 0.5
+    axle = hl - (0.8 if not truck else 1.3)
+    omega = abs(speed) / radius
+    spin = 1.0 if speed >= 0 else -1.0                                   # rolling direction
+    for ax in (-axle, axle):                                             # wheels: hub + 3 rim points
+        for sy in (-1.0, 1.0):
+            add((ax, sy * hw, radius), (0.0, sy), rng.uniform(0.1, 0.3))
+            ph0 = rng.uniform(0, 2 * math.pi)
+            for k in range(3):
+                add((ax, sy * hw, radius), (0.0, sy), rng.uniform(0.05, 0.15),
+                    1, radius, spin * omega, ph0 + 2 * math.pi * k / 3)
+    return dict(local=np.asarray(pts, float), normal=np.asarray(nrm, float), rcs=np.asarray(rcs, float),
+                kind=np.asarray(kind, np.int64), amp=np.asarray(amp, float),
+                omega=np.asarray(omg, float), phase0=np.asarray(ph, float))
+
+
+def _person_template(rng: np.random.Generator, cyclist: bool) -> dict[str, np.ndarray]:
+    """A pedestrian (torso, two swinging legs, arm) or a cyclist (rider, bike, pedalling legs)."""
+    if cyclist:
+        pts = [(0.0, 0.0, 1.3), (0.0, 0.0, 0.6), (0.5, 0.0, 0.35), (-0.5, 0.0, 0.35), (0.0, 0.1, 0.5), (0.0, -0.1, 0.5)]
+        rcs = [0.6, 1.0, 0.2, 0.2, 0.1, 0.1]
+        kind = [0, 0, 0, 0, 2, 2]
+        amp = [0, 0, 0, 0, 0.15, 0.15]
+        f = rng.uniform(1.0, 1.5)
+    else:
+        pts = [(0.0, 0.0, 1.2), (0.0, 0.1, 0.45), (0.0, -0.1, 0.45), (0.0, 0.25, 1.0)]
+        rcs = [0.4, 0.12, 0.12, 0.05]
+        kind = [0, 2, 2, 2]
+        amp = [0, 0.3, 0.3, 0.2]
+        f = rng.uniform(0.8, 1.1)
+    n = len(pts)
+    ph0 = rng.uniform(0, 2 * math.pi)
+    phase = [ph0 + (math.pi if (k % 2) else 0.0) for k in range(n)]     # legs in antiphase
+    return dict(local=np.asarray(pts, float), normal=np.zeros((n, 2)), rcs=np.asarray(rcs, float) * rng.uniform(0.7, 1.3),
+                kind=np.asarray(kind, np.int64), amp=np.asarray(amp, float),
+                omega=np.full(n, 2 * math.pi * f), phase0=np.asarray(phase, float))
+
+
+class RoadScene:
+    """One procedural road sequence, deterministic from ``(seed, sequence)``.
+
+    Parameters
+    ----------
+    config : RoadSceneConfig
+    seed, sequence : int
+        The scene is drawn from ``numpy.random.default_rng([seed, sequence])``.
+    n_frames : int
+        Frames the sequence lasts (objects are generated to fill the view for that long).
+    max_range_m : float
+        Radar instrumented range; scatterers beyond ``max_range_m - margin_m`` are dropped so that
+        no energy wraps around the range FFT.
+    margin_m : float
+        See ``max_range_m`` (default 1 m).
+
+    Examples
+    --------
+    >>> scene = RoadScene(RoadSceneConfig(), seed=0, sequence=0, n_frames=10, max_range_m=103.0)
+    >>> fr = scene.frame(0.3)
+    >>> fr.scatterers.range_m.shape[0] > 0
+    True
+    """
+
+    def __init__(self, config: RoadSceneConfig, seed: int, sequence: int, n_frames: int,
+                 max_range_m: float, *, margin_m: float = 1.0) -> None:
+        if int(n_frames) < 1:
+            raise ValueError(f"n_frames must be >= 1, got {n_frames}")
+        if not max_range_m > margin_m + config.min_range_m:
+            raise ValueError(f"max_range_m={max_range_m} must exceed margin_m + min_range_m")
+        if int(seed) < 0 or int(sequence) < 0:
+            raise ValueError(f"seed and sequence must be >= 0, got seed={seed}, sequence={sequence}")
+        self.config = config
+        self.seed, self.sequence, self.n_frames = int(seed), int(sequence), int(n_frames)
+        self.max_range_m = float(max_range_m)
+        self.margin_m = float(margin_m)
+        rng = np.random.default_rng([self.seed, self.sequence])
+        c = config
+        duration = self.n_frames * c.frame_period_s
+
+        # ---- road and ego --------------------------------------------------------------------
+        self.n_same = int(rng.integers(c.lanes_same[0], c.lanes_same[1] + 1))
+        self.n_opp = int(rng.integers(c.lanes_opposite[0], c.lanes_opposite[1] + 1))
+        w = c.lane_width_m
+        self.road_right = -self.n_same * w                  # world y of the road edges
+        self.road_left = self.n_opp * w + (0.0 if self.n_opp else 0.5)
+        ego_lane = int(rng.integers(0, self.n_same))
+        self.ego_y = -(ego_lane + 0.5) * w
+        self.ego_v0 = float(rng.uniform(*c.ego_speed_mps))
+        a = float(rng.uniform(*c.ego_accel_mps2))
+        if self.ego_v0 + a * duration < 0:                 # never drive backwards
+            a = -self.ego_v0 / duration
+        self.ego_a = a
+        ego_x_end = self.ego_v0 * duration + 0.5 * a * duration ** 2
+        x_lo, x_hi = -40.0, ego_x_end + self.max_range_m + 40.0
+
+        # ---- vehicles -----------------------------------------------------------------------
+        veh = dict(x0=[], y=[], yaw=[], speed=[], size=[], kind=[])
+        bodies: list[dict[str, np.ndarray]] = []
+        lanes = [(-(k + 0.5) * w, 0.0) for k in range(self.n_same)] + \
+                [((k + 0.5) * w, math.pi) for k in range(self.n_opp)]
+        for li, (y_lane, yaw) in enumerate(lanes):
+            is_ego_lane = abs(y_lane - self.ego_y) < 1e-9
+            if is_ego_lane:
+                speed = self.ego_v0 + max(a, 0.0) * duration + float(rng.uniform(1.0, 6.0))
+                lo = 10.0                                    # ahead of the ego, pulling away
+            else:
+                speed = float(rng.uniform(*c.lane_speed_mps))
+                lo = x_lo
+            signed = speed if yaw == 0.0 else -speed
+            # cover the view over the whole sequence: shift the spawn window by the relative motion
+            rel = signed - self.ego_v0
+            span_lo = lo if is_ego_lane else x_lo - max(0.0, rel * duration)
+            span_hi = x_hi - min(0.0, rel * duration)
+            x = span_lo + float(rng.uniform(0.0, c.vehicle_gap_m[1]))
+            while x < span_hi:
+                truck = bool(rng.random() < c.truck_fraction)
+                sz = c.truck_size_m if truck else c.car_size_m
+                length, width, height = (float(rng.uniform(*r)) for r in sz)
+                veh["x0"].append(x + length / 2)
+                veh["y"].append(y_lane + float(rng.uniform(-0.25, 0.25)))
+                veh["yaw"].append(yaw)
+                veh["speed"].append(speed)
+                veh["size"].append((length, width, height))
+                veh["kind"].append(TRUCK if truck else CAR)
+                bodies.append(_vehicle_template(rng, length, width, height, truck, speed))
+                x += length + float(rng.uniform(*c.vehicle_gap_m))
+        self.n_vehicles = len(veh["x0"])
+        self.veh_x0 = np.asarray(veh["x0"], float)
+        self.veh_y = np.asarray(veh["y"], float)
+        self.veh_yaw = np.asarray(veh["yaw"], float)
+        self.veh_speed = np.asarray(veh["speed"], float)
+        self.veh_size = np.asarray(veh["size"], float).reshape(-1, 3)
+        self.veh_kind = np.asarray(veh["kind"], np.int64)
+
+        # ---- people (sidewalks) ---------------------------------------------------------------
+        ppl = dict(x0=[], y=[], vx=[])
+        n_ped = int(rng.integers(c.pedestrians[0], c.pedestrians[1] + 1))
+        n_cyc = int(rng.integers(c.cyclists[0], c.cyclists[1] + 1))
+        for k in range(n_ped + n_cyc):
+            cyc = k >= n_ped
+            side = 1.0 if rng.random() < 0.5 else -1.0
+            edge = self.road_left if side > 0 else self.road_right
+            ppl["y"].append(edge + side * float(rng.uniform(2.0, 4.5)))
+            ppl["x0"].append(float(rng.uniform(5.0, x_hi - 40.0)))
+            sp = float(rng.uniform(3.5, 7.0) if cyc else rng.uniform(0.8, 1.8))
+            ppl["vx"].append(sp if rng.random() < 0.5 else -sp)
+            bodies.append(_person_template(rng, cyc))
+        self.ppl_x0 = np.asarray(ppl["x0"], float)
+        self.ppl_y = np.asarray(ppl["y"], float)
+        self.ppl_vx = np.asarray(ppl["vx"], float)
+        self._body = self._stack_bodies(bodies)
+
+        # ---- static world ---------------------------------------------------------------------
+        self._static_xyz, self._static_rcs = self._static_world(rng, x_lo, x_hi)
+
+    # ---- construction helpers -------------------------------------------------------------------
+    @staticmethod
+    def _stack_bodies(bodies: list[dict[str, np.ndarray]]) -> _Body:
+        if not bodies:
+            z = np.zeros(0)
+            return _Body(owner=np.zeros(0, np.int64), local=np.zeros((0, 3)), normal=np.zeros((0, 2)),
+                         rcs=z, kind=np.zeros(0, np.int64), amp=z, omega=z, phase0=z)
+        owner = np.concatenate([np.full(len(b["rcs"]), i, np.int64) for i, b in enumerate(bodies)])
+        cat = {k: np.concatenate([b[k] for b in bodies]) for k in bodies[0]}
+        return _Body(owner=owner, **cat)
+
+    def _static_world(self, rng: np.random.Generator, x_lo: float, x_hi: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        c = self.config
+        xyz, rcs = [], []
+        for side in (-1.0, 1.0):
+            edge = self.road_left if side > 0 else self.road_right
+            if rng.random() < c.guard_rail_prob:                           # guard rail + posts
+                xs = np.arange(x_lo, x_hi, c.guard_rail_spacing_m) + rng.uniform(0, c.guard_rail_spacing_m)
+                y = edge + side * 1.0
+                xyz.append(np.stack([xs, np.full_like(xs, y), np.full_like(xs, 0.6)], 1))
+                r = rng.uniform(0.1, 0.5, xs.size)
+                r[::2] *= 4.0                                              # posts every other point
+                rcs.append(r)
+            xs = np.arange(x_lo + rng.uniform(0, 20), x_hi, rng.uniform(*c.pole_spacing_m))   # poles
+            y = edge + side * rng.uniform(1.8, 3.0)
+            xyz.append(np.stack([xs, np.full_like(xs, y), np.full_like(xs, 1.0)], 1))
+            rcs.append(rng.uniform(2.0, 6.0, xs.size))
+            if rng.random() < c.building_prob:                             # facades with gaps
+                setback = rng.uniform(*c.building_setback_m)
+                xs = np.arange(x_lo, x_hi, 1.5)
+                keep = np.sin(xs / rng.uniform(8, 20) + rng.uniform(0, 6)) > -0.4
+                xs = xs[keep]
+                y = edge + side * (setback + rng.uniform(-0.3, 0.3, xs.size))
+                z = rng.uniform(0.5, 3.0, xs.size)
+                xyz.append(np.stack([xs, y, z], 1))
+                rcs.append(rng.lognormal(np.log(1.0), 1.0, xs.size))
+            # curb: weak, dense
+            xs = np.arange(x_lo, x_hi, 3.0) + rng.uniform(0, 3.0)
+            xyz.append(np.stack([xs, np.full_like(xs, edge + side * 0.3), np.full_like(xs, 0.1)], 1))
+            rcs.append(rng.uniform(0.01, 0.05, xs.size))
+        n_cl = rng.poisson(c.clutter_per_100m * (x_hi - x_lo) / 100.0)          # road surface
+        xs = rng.uniform(x_lo, x_hi, n_cl)
+        ys = rng.uniform(self.road_right, self.road_left, n_cl)
+        xyz.append(np.stack([xs, ys, np.zeros(n_cl)], 1))
+        rcs.append(rng.lognormal(np.log(0.02), 1.0, n_cl))
+        return np.concatenate(xyz), np.concatenate(rcs)
+
+    # ---- time evolution --------------------------------------------------------------------------
+    def ego_state(self, t: float) -> tuple[np.ndarray, float]:
+        """World position of the radar ``(3,)`` and ego speed at time ``t``."""
+        x = self.ego_v0 * t + 0.5 * self.ego_a * t * t
+        return np.array([x, self.ego_y, self.config.radar_height_m]), self.ego_v0 + self.ego_a * t
+
+    def _body_poses(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World ground position ``(B, 2)``, yaw ``(B,)`` and velocity ``(B, 2)`` of every body."""
+        vx_v = self.veh_speed * np.cos(self.veh_yaw)
+        vy_v = self.veh_speed * np.sin(self.veh_yaw)
+        pos = np.concatenate([np.stack([self.veh_x0 + vx_v * t, self.veh_y + vy_v * t], 1),
+                              np.stack([self.ppl_x0 + self.ppl_vx * t, self.ppl_y], 1)])
+        yaw = np.concatenate([self.veh_yaw, np.where(self.ppl_vx >= 0, 0.0, math.pi)])
+        vel = np.concatenate([np.stack([vx_v, vy_v], 1), np.stack([self.ppl_vx, np.zeros_like(self.ppl_vx)], 1)])
+        return pos.reshape(-1, 2), yaw, vel.reshape(-1, 2)
+
+    def frame_time(self, index: int) -> float:
+        """Time of frame ``index``: ``index * frame_period_s``."""
+        return int(index) * self.config.frame_period_s
+
+    def frame(self, t: float) -> RoadFrame:
+        """Scatterers, vehicle ground truth and road geometry at time ``t`` (seconds)."""
+        if not math.isfinite(t):
+            raise ValueError(f"frame time must be finite, got {t}")
+        c = self.config
+        radar, v_ego = self.ego_state(t)
+        v_radar = np.array([v_ego, 0.0, 0.0])
+        pos, yaw, vel = self._body_poses(t)
+        b = self._body
+        cy, sy = np.cos(yaw[b.owner]), np.sin(yaw[b.owner])
+
+        # periodic motion in the body frame (wheel rims rotate, legs swing)
+        local = b.local.copy()
+        lvel = np.zeros_like(local)
+        rim = b.kind == 1
+        ph = b.phase0[rim] - b.omega[rim] * t
+        local[rim, 0] += b.amp[rim] * np.cos(ph)
+        local[rim, 2] += b.amp[rim] * np.sin(ph)
+        lvel[rim, 0] = b.amp[rim] * b.omega[rim] * np.sin(ph)
+        lvel[rim, 2] = -b.amp[rim] * b.omega[rim] * np.cos(ph)
+        leg = b.kind == 2
+        ph = b.omega[leg] * t + b.phase0[leg]
+        local[leg, 0] += b.amp[leg] * np.sin(ph)
+        lvel[leg, 0] = b.amp[leg] * b.omega[leg] * np.cos(ph)
+
+        def rot(v):  # body -> world (yaw about z)
+            return np.stack([cy * v[:, 0] - sy * v[:, 1], sy * v[:, 0] + cy * v[:, 1], v[:, 2]], 1)
+
+        dyn_xyz = rot(local) + np.concatenate([pos[b.owner], np.zeros((len(b.owner), 1))], 1)
+        dyn_vel = rot(lvel) + np.concatenate([vel[b.owner], np.zeros((len(b.owner), 1))], 1)
+        n_world = rot(np.concatenate([b.normal, np.zeros((len(b.owner), 1))], 1))[:, :2]
+        to_radar = radar[None, :2] - dyn_xyz[:, :2]
+        dist = np.linalg.norm(to_radar, axis=1).clip(1e-6)
+        cos_inc = (n_world * to_radar).sum(1) / dist
+        has_normal = np.abs(b.normal).sum(1) > 0
+        facing = ~has_normal | (cos_inc > 0.05)
+        dyn_rcs = b.rcs * np.where(has_normal, np.clip(cos_inc, 0.0, 1.0) ** 0.5, 1.0)
+        dyn_owner = np.where(b.owner < self.n_vehicles, b.owner, -1)
+
+        xyz = np.concatenate([self._static_xyz, dyn_xyz[facing]]) - radar[None, :]
+        velo = np.concatenate([np.zeros_like(self._static_xyz), dyn_vel[facing]]) - v_radar[None, :]
+        rcs = np.concatenate([self._static_rcs, dyn_rcs[facing]])
+        owner = np.concatenate([np.full(len(self._static_rcs), -1, np.int64), dyn_owner[facing]])
+
+        # vehicles in the radar frame
+        vpos = pos[: self.n_vehicles] - radar[None, :2]
+        centre = np.concatenate([vpos, np.full((self.n_vehicles, 1), -c.radar_height_m)], 1)
+        truth_vel = vel[: self.n_vehicles]
+
+        # field of view: ahead, within range
+        rng_ = np.linalg.norm(xyz, axis=1)
+        keep = (xyz[:, 0] > 0.0) & (rng_ >= c.min_range_m) & (rng_ < self.max_range_m - self.margin_m)
+        xyz, velo, rcs, owner = xyz[keep], velo[keep], rcs[keep], owner[keep]
+
+        # occlusion by other vehicles' footprints
+        hidden = self._hidden(xyz[:, :2], owner, centre[:, :2], self.veh_yaw, self.veh_size)
+        rcs = rcs * np.where(hidden, 10 ** (-c.occlusion_loss_db / 10), 1.0)
+        visible_fraction = np.ones(self.n_vehicles)
+        if self.n_vehicles:
+            tot = np.bincount(owner[owner >= 0], minlength=self.n_vehicles)
+            vis = np.bincount(owner[(owner >= 0) & ~hidden], minlength=self.n_vehicles)
+            visible_fraction = np.where(tot > 0, vis / np.maximum(tot, 1), 0.0)
+
+        truth = VehicleTruth(
+            ids=np.arange(self.n_vehicles, dtype=np.int64), kind=self.veh_kind.copy(),
+            center_xyz=centre, size_lwh=self.veh_size.copy(), yaw_rad=self.veh_yaw.copy(),
+            velocity_xy=truth_vel.copy(), rel_velocity_xy=truth_vel - v_radar[None, :2],
+            visible_fraction=visible_fraction)
+        sc = Scatterers.from_xyz(torch.from_numpy(xyz), torch.from_numpy(velo), torch.from_numpy(rcs))
+        return RoadFrame(time_s=float(t), scatterers=sc, owner=torch.from_numpy(owner), vehicles=truth,
+                         road_y_m=(self.road_right - self.ego_y, self.road_left - self.ego_y),
+                         ego_speed_mps=float(v_ego), radar_height_m=c.radar_height_m)
+
+    @staticmethod
+    def _hidden(p: np.ndarray, owner: np.ndarray, centres: np.ndarray, yaw: np.ndarray,
+                size: np.ndarray) -> np.ndarray:
+        """``(N,)`` True where the segment radar -> ``p`` crosses another vehicle's footprint."""
+        n, v = p.shape[0], centres.shape[0]
+        if n == 0 or v == 0:
+            return np.zeros(n, bool)
+        c, s = np.cos(yaw), np.sin(yaw)                                       # (V,)
+        # segment o + u d, u in [0, 1], with o = radar (origin) and d = p, in each box frame
+        ox = -(c * centres[:, 0] + s * centres[:, 1])                         # (V,)
+        oy = -(-s * centres[:, 0] + c * centres[:, 1])
+        dx = c[None, :] * p[:, None, 0] + s[None, :] * p[:, None, 1]          # (N, V)
+        dy = -s[None, :] * p[:, None, 0] + c[None, :] * p[:, None, 1]
+        hl, hw = size[:, 0] / 2, size[:, 1] / 2
+
+        def slab(o, d, h):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t1 = (-h[None, :] - o[None, :]) / d
+                t2 = (h[None, :] - o[None, :]) / d
+            inside = np.abs(o)[None, :] <= h[None, :]
+            lo = np.where(d == 0, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2))
+            hi = np.where(d == 0, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2))
+            return lo, hi
+
+        lx, hx = slab(ox, dx, hl)
+        ly, hy = slab(oy, dy, hw)
+        t_in, t_out = np.maximum(lx, ly), np.minimum(hx, hy)
+        cross = (t_in < t_out) & (t_out > 0) & (t_in < 0.98)                  # enters before reaching p
+        cross &= owner[:, None] != np.arange(v)[None, :]
+        return cross.any(axis=1)
