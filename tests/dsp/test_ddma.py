@@ -1,0 +1,109 @@
+"""DDMA consolidation: envelope, Tx-0 hypothesis, replica bins and snapshots vs direct numpy."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from radarpc.dsp.ddma import (check_rd, rd_envelope, replica_bins, resolve_tx0_doppler,
+                              rx_magnitude_sum, virtual_snapshots)
+from radarpc.sensors.radial import RADIAL_S, TINY
+from radarpc.sim.rd import Scatterers, synthesize_rd
+
+
+def _random_rd(cfg, b, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn((b, *cfg.rd_shape), dtype=torch.complex64, generator=g)
+
+
+@pytest.mark.parametrize("cfg", [TINY, RADIAL_S])
+def test_envelope_matches_numpy(cfg):
+    rd = _random_rd(cfg, 2)
+    e = rd_envelope(rd, cfg)
+    x = rd.numpy().astype(np.complex128)
+    a = np.abs(x).sum(-1)                                            # (B, Nr, Nd)
+    ref = np.zeros((2, cfg.n_range, cfg.slot_width))
+    for s in range(cfg.n_slots):
+        ref += a[:, :, s * cfg.slot_width:(s + 1) * cfg.slot_width]
+    assert e.shape == (2, cfg.n_range, cfg.slot_width)
+    np.testing.assert_allclose(e.numpy(), ref, rtol=1e-5)
+    np.testing.assert_allclose(rx_magnitude_sum(rd).numpy(), a, rtol=1e-5)
+    np.testing.assert_allclose(rd_envelope(rd[1], cfg)[0].numpy(), ref[1], rtol=1e-5)
+
+
+def _tx0_reference(a_rl: np.ndarray, cfg, l: int) -> int:
+    """RADIal rpl.py's rule written with a cumulative sum over the circularly extended slots."""
+    x = np.array([a_rl[l + s * cfg.slot_width] for s in range(cfg.n_slots)])
+    g = cfg.n_empty_slots
+    ext = np.concatenate([x, x[:g]])
+    c = np.cumsum(ext)
+    mean_after = (c[g:] - c[:-g]) / g              # mean of x[s+1..s+g]
+    return int(np.argmin(mean_after)) * cfg.slot_width + l
+
+
+@pytest.mark.parametrize("cfg", [TINY, RADIAL_S])
+def test_resolve_tx0_matches_reference_on_random_magnitudes(cfg):
+    rng = np.random.default_rng(0)
+    a = rng.exponential(size=(3, cfg.n_range, cfg.n_doppler))
+    p = 50
+    b = rng.integers(0, 3, p)
+    r = rng.integers(0, cfg.n_range, p)
+    l = rng.integers(0, cfg.slot_width, p)
+    d0 = resolve_tx0_doppler(torch.from_numpy(a), cfg, torch.from_numpy(r), torch.from_numpy(l),
+                             torch.from_numpy(b))
+    ref = [_tx0_reference(a[bi, ri], cfg, li) for bi, ri, li in zip(b, r, l)]
+    np.testing.assert_array_equal(d0.numpy(), ref)
+
+
+@pytest.mark.parametrize("cfg", [TINY, RADIAL_S])
+def test_every_doppler_hypothesis_is_resolved(cfg):
+    # one on-grid target per true Doppler bin: its replicas fill the Tx slots, the gap follows slot(d0)
+    vres = cfg.velocity_res_mps
+    half = cfg.n_doppler // 2
+    d_true = np.arange(0, cfg.n_doppler, 1 if cfg is TINY else 5)
+    frames = []
+    for d in d_true:
+        v = ((d + half) % cfg.n_doppler - half) * vres
+        frames.append(Scatterers(torch.tensor([20 * cfg.range_res_m]), torch.tensor([10.0]), torch.tensor([0.0]),
+                                 torch.tensor([float(v)]), torch.tensor([10.0])))
+    rd = synthesize_rd(cfg, frames, noise=False)
+    a = rx_magnitude_sum(rd)
+    n = len(d_true)
+    b = torch.arange(n)
+    r = torch.full((n,), 20)
+    l = torch.from_numpy(d_true % cfg.slot_width)
+    d0 = resolve_tx0_doppler(a, cfg, r, l, b)
+    np.testing.assert_array_equal(d0.numpy(), d_true)
+
+
+def test_replica_bins_and_snapshots():
+    cfg = RADIAL_S
+    d0 = torch.tensor([0, 3, 63, 37])
+    bins = replica_bins(cfg, d0)
+    assert bins.shape == (4, cfg.n_tx)
+    for j, d in enumerate(d0.tolist()):
+        ref = [(d + s * cfg.slot_width) % cfg.n_doppler for s in cfg.tx_slots]
+        assert bins[j].tolist() == ref
+    rd = _random_rd(cfg, 2, seed=1)
+    b = torch.tensor([0, 1, 1, 0])
+    r = torch.tensor([5, 0, 127, 64])
+    v = virtual_snapshots(rd, cfg, b, r, d0)
+    assert v.shape == (4, cfg.n_virtual) and v.dtype == torch.complex64
+    x = rd.numpy()
+    for j in range(4):
+        for tx in range(cfg.n_tx):
+            for rx in range(cfg.n_rx):
+                assert v[j, tx * cfg.n_rx + rx].item() == x[b[j], r[j], bins[j, tx], rx]
+
+
+def test_bad_cubes():
+    with pytest.raises(ValueError, match="complex"):
+        check_rd(torch.ones(TINY.rd_shape), TINY)
+    with pytest.raises(ValueError, match=r"\(B, 64, 32, 4\).*got \(64, 16, 4\)"):
+        check_rd(torch.ones((64, 16, 4), dtype=torch.complex64), TINY)
+    with pytest.raises(ValueError, match="complex torch.Tensor"):
+        check_rd(np.ones(TINY.rd_shape, dtype=np.complex64), TINY)
+    rd = _random_rd(TINY, 3)
+    rd[2, 5, 5, 1] = complex(float("nan"), 0.0)
+    with pytest.raises(ValueError, match=r"NaN.*\[2\]"):
+        rd_envelope(rd, TINY)
