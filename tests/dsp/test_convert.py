@@ -1,0 +1,252 @@
+"""Dataset -> point store conversion (chunks, resume, workers, torchrun sharding) and the
+sparse-RD writer, on a tiny hand-written RADIal-layout root."""
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import torch
+from PIL import Image
+
+from radarpc.data.pointstore import PointStore
+from radarpc.data.radial import RADIal
+from radarpc.data.radial_format import LABEL_COLUMNS, fft_path, freespace_path, simulated_sequence_name
+from radarpc.dsp.convert import (
+    ConvertSettings,
+    build_point_cloud,
+    convert_dataset,
+    part_path,
+    parts_dir,
+    write_sparse_rd,
+)
+from radarpc.dsp.density import tau_for_density
+from radarpc.io import save_npy_atomic
+from radarpc.sensors.radial import TINY, make_calibration, save_calibration, steering_vectors
+
+N_SEQ, PER_SEQ = 3, 3          # sequences q0 (train), q1 (val), q2 (test); 9 frames
+ZERO_FRAME = 4                 # an all-zero cube: no detection at any tau
+
+
+def make_tiny_root(root, seed=0):
+    """RADIal layout for the TINY sensor: noise + two DDMA point targets per frame."""
+    cfg = TINY
+    rng = np.random.default_rng(seed)
+    save_calibration(root / "calibration.npz", make_calibration(cfg))
+    meta = dict(cfg.to_dict(), seed=seed, n_sequences=N_SEQ, frames_per_sequence=PER_SEQ, radarpc_version="test")
+    (root / "sensor.json").write_text(json.dumps(meta))
+    rows = []
+    num = 0
+    for q in range(N_SEQ):
+        seq = simulated_sequence_name(seed, q)
+        for k in range(PER_SEQ):
+            rd = (rng.normal(size=cfg.rd_shape) + 1j * rng.normal(size=cfg.rd_shape)) / np.sqrt(2)
+            for _ in range(2):
+                r = int(rng.integers(5, cfg.n_range - 5))
+                d0 = int(rng.integers(0, cfg.n_doppler))
+                az = float(rng.uniform(-40, 40))
+                sv = steering_vectors(cfg, az, 0.0).reshape(cfg.n_tx, cfg.n_rx)        # (n_tx, n_rx)
+                for m in range(cfg.n_tx):
+                    rd[r, (d0 + int(cfg.doppler_offsets[m])) % cfg.n_doppler, :] += 40.0 * sv[m]
+                rng_m = r * cfg.range_res_m
+                x, y = rng_m * np.cos(np.deg2rad(az)), rng_m * np.sin(np.deg2rad(az))
+                vals = dict(numSample=num, radar_X_m=x, radar_Y_m=y, radar_R_m=rng_m, radar_A_deg=az,
+                            radar_D=float(cfg.velocity_of_bin(d0)), radar_P_db=30.0, laser_X_m=x,
+                            laser_Y_m=y, laser_Z_m=0.0, dataset=seq, dataset_index=k, Difficult=0)
+                rows.append([vals.get(c, -1) for c in LABEL_COLUMNS])
+            if num == ZERO_FRAME:
+                rd[:] = 0
+            fft_path(root, num).parent.mkdir(parents=True, exist_ok=True)
+            save_npy_atomic(fft_path(root, num), rd.astype(np.complex64))
+            freespace_path(root, num).parent.mkdir(parents=True, exist_ok=True)
+            Image.fromarray(np.zeros((512, 900), np.uint8)).save(freespace_path(root, num))
+            num += 1
+    with open(root / "labels.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(LABEL_COLUMNS)
+        w.writerows(rows)
+    return root
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    return make_tiny_root(tmp_path_factory.mktemp("tiny_radial"))
+
+
+def read_all(path):
+    """Table and metadata (without the creation date) of a store."""
+    store = PointStore(path)
+    meta = store.metadata.to_dict()
+    meta.pop("created")
+    return pq.read_table(path), meta, store.frame_table.to_dict()
+
+
+def test_fixed_tau_store_equals_direct_dsp(root, tmp_path):
+    out = tmp_path / "pc.parquet"
+    res = convert_dataset(root, out, tau=4.0, enrich=("rd3", "sector4"), batch_size=4, chunk_frames=4,
+                          progress=False)
+    assert res.path == out and res.n_frames == 9 and res.chunks_converted == 3
+    assert not parts_dir(out).exists()
+    store = PointStore(out)
+    assert store.frames == list(range(9))
+    assert store.metadata.density_mode == "fixed-tau" and store.metadata.tau == 4.0
+    assert store.metadata.split == "all" and store.metadata.enrich == ("rd3", "sector4")
+    assert store.metadata.sensor == TINY
+    # independent: run the DSP on every frame by itself and compare with what the store holds
+    ds = RADIal(root, split="all")
+    spc = build_point_cloud(ds, ConvertSettings(tau=4.0, enrich=("rd3", "sector4")), 4.0, "cpu")
+    densities = []
+    for i in range(len(ds)):
+        with torch.no_grad():
+            want = spc(ds[i][0].unsqueeze(0))
+        got = store[i]
+        assert got.offset.tolist() == want.offset.tolist(), i
+        for name in ("range_bin", "doppler_bin", "doppler_full", "is_neighbour"):
+            assert torch.equal(getattr(got, name), getattr(want, name).to(getattr(got, name).dtype)), name
+        for name in ("range_m", "azimuth_deg", "velocity_mps", "amplitude", "snr", "x", "y", "z", "sector"):
+            torch.testing.assert_close(getattr(got, name), getattr(want, name).float(), rtol=1e-5, atol=1e-5)
+        densities.append(float(want.density[0]))
+    assert store.frame_table.n_points[ZERO_FRAME] == 0 and store[ZERO_FRAME].x.shape == (0,)
+    assert store.metadata.achieved_density == pytest.approx(np.mean(densities), rel=1e-6)
+    assert res.achieved_density == pytest.approx(np.mean(densities), rel=1e-6)
+
+
+def test_resume_after_kill_gives_same_file(root, tmp_path):
+    ref = tmp_path / "ref.parquet"
+    convert_dataset(root, ref, density=0.1, chunk_frames=2, progress=False)
+    out = tmp_path / "pc.parquet"
+    seen = []
+
+    def kill_after_two(k):
+        seen.append(k)
+        if len(seen) == 2:
+            raise KeyboardInterrupt("simulated kill")
+
+    with pytest.raises(KeyboardInterrupt):
+        convert_dataset(root, out, density=0.1, chunk_frames=2, progress=False, on_chunk_done=kill_after_two)
+    assert not out.exists()
+    assert sorted(p.name for p in parts_dir(out).glob("part-*.parquet")) == ["part-00000.parquet", "part-00001.parquet"]
+    res = convert_dataset(root, out, density=0.1, chunk_frames=2, progress=False)
+    assert res.chunks_skipped == 2 and res.chunks_converted == 3
+    t_ref, m_ref, f_ref = read_all(ref)
+    t_out, m_out, f_out = read_all(out)
+    assert t_out.equals(t_ref) and m_out == m_ref and f_out == f_ref
+    # once finished, the same call returns at once; other settings on top of parts are refused
+    again = convert_dataset(root, out, density=0.1, chunk_frames=2, progress=False)
+    assert again.chunks_converted == 0
+    seen.clear()
+    with pytest.raises(KeyboardInterrupt):
+        convert_dataset(root, out, density=0.2, chunk_frames=3, progress=False, on_chunk_done=kill_after_two)
+    with pytest.raises(ValueError, match="other settings"):
+        convert_dataset(root, out, density=0.3, chunk_frames=3, progress=False)
+    res = convert_dataset(root, out, density=0.3, chunk_frames=3, progress=False, resume=False)
+    assert res.chunks_converted == 3 and PointStore(out).metadata.target_density == 0.3
+    assert not parts_dir(out).exists()
+
+
+def test_per_frame_and_per_dataset_density(root, tmp_path):
+    out = tmp_path / "pf.parquet"
+    convert_dataset(root, out, density=0.1, density_mode="per-frame", progress=False)
+    ft = PointStore(out).frame_table
+    live = np.arange(9) != ZERO_FRAME
+    np.testing.assert_allclose(ft.density[live], 0.1, rtol=0.1)
+    out2 = tmp_path / "pd.parquet"
+    convert_dataset(root, out2, density=0.1, density_mode="per-dataset", split="test", progress=False)
+    store = PointStore(out2)
+    assert store.frames == [6, 7, 8] and store.metadata.density_mode == "per-dataset"
+    # independent: tau from the pooled CFAR SNR of the train frames (0, 1, 2)
+    train = RADIal(root, split="train")
+    spc = build_point_cloud(train, ConvertSettings(tau=1.0), 1.0, "cpu")
+    rd = torch.stack([train[i][0] for i in range(len(train))])
+    with torch.no_grad():
+        snr = spc.detect(rd)[1].snr
+    tau = float(tau_for_density(snr, TINY, 0.1, mode="per-dataset"))
+    assert store.metadata.tau == pytest.approx(tau)
+    np.testing.assert_allclose(store.frame_table.tau, tau, rtol=1e-6)
+
+
+def test_two_workers_same_content_as_one(root, tmp_path):
+    one, two = tmp_path / "one.parquet", tmp_path / "two.parquet"
+    convert_dataset(root, one, tau=3.0, chunk_frames=3, progress=False)
+    done = []
+    res = convert_dataset(root, two, tau=3.0, chunk_frames=3, workers=2, progress=False, on_chunk_done=done.append)
+    assert res.chunks_converted == 3 and sorted(done) == [0, 1, 2]
+    t1, m1, f1 = read_all(one)
+    t2, m2, f2 = read_all(two)
+    assert t1.equals(t2) and m1 == m2 and f1 == f2
+
+
+def test_torchrun_ranks_shard_chunks_and_rank0_merges(root, tmp_path, monkeypatch):
+    ref = tmp_path / "ref.parquet"
+    convert_dataset(root, ref, tau=3.0, chunk_frames=2, progress=False)
+    out = tmp_path / "dist.parquet"
+    # rank 0 writes the manifest first (it would wait for rank 1's parts, so stop it after its chunks)
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "0")
+    monkeypatch.setenv("LOCAL_RANK", "0")
+    with pytest.raises(TimeoutError, match="waiting for"):
+        convert_dataset(root, out, tau=3.0, chunk_frames=2, progress=False, wait_timeout_s=0.0)
+    assert sorted(p.name for p in parts_dir(out).glob("part-*")) == [part_path(out, k).name for k in (0, 2, 4)]
+    monkeypatch.setenv("RANK", "1")
+    r1 = convert_dataset(root, out, tau=3.0, chunk_frames=2, progress=False)
+    assert r1.path is None and r1.chunks_converted == 2 and not out.exists()
+    monkeypatch.setenv("RANK", "0")
+    r0 = convert_dataset(root, out, tau=3.0, chunk_frames=2, progress=False)
+    assert r0.path == out and r0.chunks_skipped == 3
+    t_ref, m_ref, f_ref = read_all(ref)
+    t_out, m_out, f_out = read_all(out)
+    assert t_out.equals(t_ref) and m_out == m_ref and f_out == f_ref
+
+
+def test_sparse_rd_root_reads_back_as_masked_cube(root, tmp_path):
+    out_root = tmp_path / "srd"
+    res = write_sparse_rd(root, out_root, tau=4.0, progress=False)
+    assert res.n_frames == 9 and res.frames_written == 9
+    src, dst = RADIal(root, split="all"), RADIal(out_root, split="all")
+    assert dst.frame_ids == src.frame_ids and dst.sensor == src.sensor
+    assert np.array_equal(dst.calibration.signal, src.calibration.signal)
+    spc = build_point_cloud(src, ConvertSettings(tau=4.0), 4.0, "cpu")
+    offsets = torch.as_tensor(TINY.doppler_offsets)
+    for i in range(len(src)):
+        rd, lab, fs = src[i]
+        rd2, lab2, fs2 = dst[i]
+        assert torch.equal(lab, lab2) and torch.equal(fs, fs2)
+        # independent mask: every point's range bin x its n_tx replica Doppler bins
+        with torch.no_grad():
+            cloud = spc(rd.unsqueeze(0))
+        mask = torch.zeros(TINY.n_range, TINY.n_doppler, dtype=torch.bool)
+        bins = (cloud.doppler_full[:, None] + offsets[None, :]) % TINY.n_doppler     # (N, n_tx)
+        mask[cloud.range_bin[:, None].expand_as(bins), bins] = True
+        assert torch.equal(rd2, torch.where(mask[..., None], rd, torch.zeros((), dtype=rd.dtype))), i
+        assert float(mask.float().mean()) == pytest.approx(float(cloud.density[0]), rel=1e-6)
+    # resume: only the missing cube is recomputed
+    fft_path(out_root, 3).unlink()
+    again = write_sparse_rd(root, out_root, tau=4.0, progress=False)
+    assert again.frames_written == 1
+    assert torch.equal(RADIal(out_root, split="all")[3][0], dst[3][0])
+
+
+def test_sparse_rd_split_keeps_only_its_labels(root, tmp_path):
+    out_root = tmp_path / "srd_val"
+    write_sparse_rd(root, out_root, density=0.1, split="val", progress=False)
+    dst = RADIal(out_root, split="all")
+    assert dst.frame_ids == [3, 4, 5] and RADIal(out_root, split="val").frame_ids == [3, 4, 5]
+
+
+def test_bad_settings(root, tmp_path):
+    with pytest.raises(ValueError, match=r"density must be a fraction of RD cells in \(0, 1\], got 1.5"):
+        convert_dataset(root, tmp_path / "a.parquet", density=1.5, progress=False)
+    with pytest.raises(ValueError, match="exactly one of tau"):
+        convert_dataset(root, tmp_path / "a.parquet", density=0.1, tau=2.0, progress=False)
+    with pytest.raises(ValueError, match="exactly one of tau"):
+        ConvertSettings()
+    with pytest.raises(ValueError, match="tau must be a positive"):
+        ConvertSettings(tau=-1.0)
+    with pytest.raises(ValueError, match="positive odd"):
+        ConvertSettings(tau=2.0, window=(8, 9))
+    with pytest.raises(ValueError, match="workers must be >= 1"):
+        convert_dataset(root, tmp_path / "a.parquet", tau=2.0, workers=0, progress=False)
+    with pytest.raises(ValueError, match="must differ from the source root"):
+        write_sparse_rd(root, root, tau=2.0, progress=False)
