@@ -1,0 +1,375 @@
+"""Spectral point clouds (seed sections 3.2-3.3): RD cubes -> CFAR peaks -> angle spectra -> points.
+
+For a batch of per-Rx RD cubes ``R`` (complex ``(B, Nr, Nd, Nrx)``), :class:`SpectralPointCloud`
+
+1. forms the envelope ``E(r, l) = sum_s sum_rx |R(r, s W + l, rx)|`` (:mod:`radarpc.dsp.ddma`);
+2. runs CA-CFAR on ``|E|^2`` and keeps ``P(tau) = {(r, l) : |E|^2 / mu(r, l) > tau}`` (eq. 1), with
+   ``tau`` fixed or chosen per frame / per dataset so that ``|S(tau)| / (Nr Nd)`` hits a target
+   density (eqs. 2-3, :mod:`radarpc.dsp.density`);
+3. optionally enlarges ``P`` to ``P*(tau)``, the union of the ``n x n`` neighbourhoods of its peaks
+   truncated at the envelope borders (RD-neighbourhood enrichment, eqs. 8-9);
+4. for every kept cell resolves the DDMA hypothesis (Tx-0 Doppler bin ``d0``), gathers the
+   virtual snapshot ``v_j`` (eq. 4), beamforms ``s_j = |B v_j|`` (eq. 5), and takes
+   ``k_j = argmax s_j``, ``Ae_j = s_j[k_j]`` (eqs. 6-7), plus optionally the sector
+   descriptor (eq. 10, angle-spectrum enrichment).
+
+Points of all frames are concatenated with an ``offset`` vector (Pointcept style). Everything is
+batched torch on the input's device, without Python loops over points.
+
+Enrichment names (``enrich=``): ``"rdN"`` (odd ``N >= 3``) adds the ``N x N`` RD-neighbourhood points
+(``is_neighbour=True``) and fills ``rd_patch`` with ``E`` over the ``N x N`` cells around each
+point; ``"patchN"`` fills ``rd_patch`` only; ``"sectorA"`` / ``"sectorAxE"`` adds the
+``A x E``-sector angle descriptor (``E = 1`` by default).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from dataclasses import dataclass
+from typing import Iterable, Sequence
+
+import torch
+import torch.nn.functional as F
+
+from radarpc.dsp.beamform import beamform_peaks
+from radarpc.dsp.cfar import CFARResult, _check_window, ca_cfar
+from radarpc.dsp.ddma import (check_finite_envelope, check_rd, consolidate, resolve_tx0_doppler,
+                              rx_magnitude_sum, virtual_snapshots)
+from radarpc.dsp.density import DENSITY_MODES, check_density, density_of_mask, tau_for_density
+from radarpc.sensors.radial import Calibration, DDMARadarConfig
+
+__all__ = [
+    "SpectralPointCloudConfig",
+    "PointCloudBatch",
+    "SpectralPointCloud",
+    "offset2batch",
+]
+
+RADIAL_TAU = 10 ** (2 / 10)  # RADIal's CFAR threshold, 2 dB, as a linear SNR
+
+_RD = re.compile(r"rd(\d+)")
+_PATCH = re.compile(r"patch(\d+)")
+_SECTOR = re.compile(r"sector(\d+)(?:x(\d+))?")
+
+
+@dataclass(frozen=True)
+class SpectralPointCloudConfig:
+    """Settings of a spectral point cloud; the resolved form is what stores and runs record.
+
+    ``density`` set -> the threshold is found from it (``tau`` is then ``None``); otherwise the fixed
+    linear SNR threshold ``tau`` is used.
+    """
+
+    tau: float | None = RADIAL_TAU          # fixed linear SNR threshold (RADIal: 2 dB)
+    density: float | None = None            # target density |S|/(Nr Nd) instead of tau
+    density_mode: str = "per-frame"         # "per-frame" or "per-dataset" (pooled over the batch)
+    window: tuple[int, int] = (9, 9)        # CA-CFAR full training window (range, Doppler), odd
+    guard: tuple[int, int] = (3, 3)         # CA-CFAR full guard window, odd
+    enrich: tuple[str, ...] = ()            # "rdN", "patchN", "sectorA", "sectorAxE"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "window", tuple(int(x) for x in _seq(self.window)))
+        object.__setattr__(self, "guard", tuple(int(x) for x in _seq(self.guard)))
+        object.__setattr__(self, "enrich", tuple(str(x) for x in self.enrich))
+        w, g = _check_window(self.window, self.guard)
+        if len(w) != 2:
+            raise ValueError(f"the RD envelope CFAR is 2-D: window/guard need 2 sizes, got {w}, {g}")
+        if self.density_mode not in DENSITY_MODES:
+            raise ValueError(f"density_mode must be one of {DENSITY_MODES}, got {self.density_mode!r}")
+        if self.density is not None:
+            if isinstance(self.density, bool) or not isinstance(self.density, (int, float)) \
+                    or not 0.0 < float(self.density) <= 1.0:
+                raise ValueError(f"density must be in (0, 1] (fraction of RD cells kept), got {self.density!r}")
+            object.__setattr__(self, "density", float(self.density))
+            object.__setattr__(self, "tau", None)
+        else:
+            if self.tau is None:
+                raise ValueError("give a threshold tau or a target density")
+            t = self.tau
+            if isinstance(t, bool) or not isinstance(t, (int, float)) or not (t > 0 and math.isfinite(t)):
+                raise ValueError(f"tau must be a finite linear SNR > 0 (2 dB = 1.585), got {t!r}")
+            object.__setattr__(self, "tau", float(t))
+        _ = (self.neighbourhood, self.patch, self.sectors)  # parse now: bad names fail at construction
+        kinds = [re.match(r"[a-z]+", e).group(0) if re.match(r"[a-z]+", e) else e for e in self.enrich]
+        if len(set(kinds)) != len(kinds):
+            raise ValueError(f"each enrichment kind may be given once, got {self.enrich}")
+
+    def _match(self, pattern: re.Pattern) -> re.Match | None:
+        found = None
+        for e in self.enrich:
+            if not (_RD.fullmatch(e) or _PATCH.fullmatch(e) or _SECTOR.fullmatch(e)):
+                raise ValueError(f"unknown enrichment {e!r}; expected 'rdN' or 'patchN' (odd N >= 3), "
+                                 f"'sectorA' or 'sectorAxE' (e.g. rd3, patch5, sector32, sector32x1)")
+            m = pattern.fullmatch(e)
+            if m:
+                found = m
+        return found
+
+    @staticmethod
+    def _odd(m: re.Match | None) -> int | None:
+        if m is None:
+            return None
+        n = int(m.group(1))
+        if n < 3 or n % 2 == 0:
+            raise ValueError(f"enrichment {m.group(0)!r}: the neighbourhood size must be odd and >= 3")
+        return n
+
+    @property
+    def neighbourhood(self) -> int | None:
+        """``n`` of the RD-neighbourhood enrichment (eq. 8), or None."""
+        return self._odd(self._match(_RD))
+
+    @property
+    def patch(self) -> int | None:
+        """Side of the ``rd_patch`` feature (``patchN``, else ``rdN``), or None."""
+        p = self._odd(self._match(_PATCH))
+        return p if p is not None else self.neighbourhood
+
+    @property
+    def sectors(self) -> tuple[int, int] | None:
+        """``(n_az_sec, n_el_sec)`` of the angle-spectrum enrichment (eq. 10), or None."""
+        m = self._match(_SECTOR)
+        if m is None:
+            return None
+        a, e = int(m.group(1)), int(m.group(2) or 1)
+        if a < 1 or e < 1:
+            raise ValueError(f"enrichment {m.group(0)!r}: sector counts must be >= 1")
+        return a, e
+
+    def to_dict(self) -> dict:
+        """Plain dict (lists for tuples) for YAML/JSON/Parquet metadata."""
+        d = dataclasses.asdict(self)
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+
+def _seq(v) -> tuple:
+    return (v,) if isinstance(v, int) else tuple(v)
+
+
+def offset2batch(offset: torch.Tensor) -> torch.Tensor:
+    """Frame index of every point from the cumulative ``offset`` ``(B,)``: ``(N,)`` long."""
+    counts = torch.diff(offset, prepend=offset.new_zeros(1))
+    return torch.repeat_interleave(torch.arange(offset.numel(), device=offset.device), counts)
+
+
+@dataclass
+class PointCloudBatch:
+    """Spectral point clouds of ``B`` frames, concatenated; frame ``b`` holds points
+    ``offset[b-1]:offset[b]`` (``offset[-1] = N``). All per-point tensors are ``(N, ...)``.
+
+    Attributes
+    ----------
+    offset : LongTensor ``(B,)``         cumulative end index of each frame's points
+    range_bin, doppler_bin : LongTensor  range bin and consolidated Doppler index ``l`` (the seed's d_j)
+    doppler_full : LongTensor            resolved full-axis Doppler bin ``d0`` of Tx 0
+    range_m, azimuth_deg, elevation_deg, velocity_mps : float32
+    amplitude : float32                  ``Ae = |B v|`` at the argmax (eq. 7)
+    snr : float32                        CA-CFAR SNR ``|E|^2 / mu`` of the point's consolidated cell
+    x, y, z : float32                    metres, x forward, y left, z up
+    is_neighbour : BoolTensor            True for points added by RD-neighbourhood enrichment
+    sector : float32 ``(N, n_az_sec * n_el_sec)`` or None   angle-sector maxima (eq. 10)
+    rd_patch : float32 ``(N, n * n)`` or None   ``E`` around the point's cell, row-major
+        (range offset outer, Doppler offset inner), 0 outside the grid
+    tau : float32 ``(B,)``               threshold used per frame
+    density : float32 ``(B,)``           achieved ``|S| / (Nr Nd)`` (``S*`` with neighbourhoods)
+    """
+
+    offset: torch.Tensor
+    range_bin: torch.Tensor
+    doppler_bin: torch.Tensor
+    doppler_full: torch.Tensor
+    range_m: torch.Tensor
+    azimuth_deg: torch.Tensor
+    elevation_deg: torch.Tensor
+    velocity_mps: torch.Tensor
+    amplitude: torch.Tensor
+    snr: torch.Tensor
+    x: torch.Tensor
+    y: torch.Tensor
+    z: torch.Tensor
+    is_neighbour: torch.Tensor
+    sector: torch.Tensor | None
+    rd_patch: torch.Tensor | None
+    tau: torch.Tensor
+    density: torch.Tensor
+
+    _PER_POINT = ("range_bin", "doppler_bin", "doppler_full", "range_m", "azimuth_deg", "elevation_deg",
+                  "velocity_mps", "amplitude", "snr", "x", "y", "z", "is_neighbour", "sector", "rd_patch")
+
+    def __len__(self) -> int:
+        """Number of frames."""
+        return int(self.offset.numel())
+
+    @property
+    def num_points(self) -> int:
+        return int(self.range_bin.numel())
+
+    def batch_index(self) -> torch.Tensor:
+        """Frame index of every point, ``(N,)``."""
+        return offset2batch(self.offset)
+
+    def frame(self, b: int) -> "PointCloudBatch":
+        """The cloud of frame ``b`` alone (a batch of one)."""
+        n = len(self)
+        if not -n <= b < n:
+            raise IndexError(f"frame {b} out of range for a batch of {n} frames")
+        b = b % n
+        start = int(self.offset[b - 1]) if b > 0 else 0
+        end = int(self.offset[b])
+        kw = {k: (None if getattr(self, k) is None else getattr(self, k)[start:end]) for k in self._PER_POINT}
+        return PointCloudBatch(offset=self.offset.new_tensor([end - start]), tau=self.tau[b:b + 1],
+                               density=self.density[b:b + 1], **kw)
+
+    def to(self, device: torch.device | str) -> "PointCloudBatch":
+        kw = {f.name: (None if getattr(self, f.name) is None else getattr(self, f.name).to(device))
+              for f in dataclasses.fields(self)}
+        return PointCloudBatch(**kw)
+
+
+class SpectralPointCloud(torch.nn.Module):
+    """RD cubes -> spectral point clouds (no learnable parameters; the dictionary is a buffer).
+
+    Parameters
+    ----------
+    sensor : DDMARadarConfig
+        Radar whose cubes are processed (sizes, DDMA slots, range/velocity bins).
+    calibration : Calibration
+        Beamforming table; ``B = calibration.dictionary()`` and its azimuth/elevation tables.
+    tau : float or None
+        Fixed linear CA-CFAR threshold (default RADIal's 2 dB = 1.585); ignored if ``density`` is set.
+    density : float, optional
+        Target density ``|S(tau)| / (Nr Nd)`` in ``(0, n_tx / n_slots]`` instead of a fixed tau.
+    density_mode : {"per-frame", "per-dataset"}
+        With ``density``: a tau per frame, or one tau pooled over the frames of each call. For a
+        dataset-wide tau, compute it once with :meth:`calibrate_tau` on the training split and build
+        the module with that ``tau``.
+    window, guard : (int, int)
+        Full odd CA-CFAR window and guard sizes over (range, consolidated Doppler).
+    enrich : sequence of str
+        ``"rdN"``, ``"patchN"``, ``"sectorA"`` / ``"sectorAxE"`` (see the module docstring).
+
+    Examples
+    --------
+    >>> from radarpc.sensors.radial import TINY, make_calibration
+    >>> spc = SpectralPointCloud(TINY, make_calibration(TINY), enrich=("rd3", "sector8"))
+    >>> clouds = spc(torch.randn(2, 64, 32, 4, dtype=torch.complex64))
+    >>> len(clouds), clouds.sector.shape[1]
+    (2, 8)
+    """
+
+    def __init__(self, sensor: DDMARadarConfig, calibration: Calibration, tau: float | None = RADIAL_TAU, *,
+                 density: float | None = None, density_mode: str = "per-frame",
+                 window: Sequence[int] = (9, 9), guard: Sequence[int] = (3, 3),
+                 enrich: Sequence[str] = ()) -> None:
+        super().__init__()
+        if isinstance(enrich, str):
+            enrich = tuple(e for e in enrich.split(",") if e)
+        self.config = SpectralPointCloudConfig(tau=tau, density=density, density_mode=density_mode,
+                                               window=tuple(window), guard=tuple(guard), enrich=tuple(enrich))
+        if self.config.density is not None:
+            check_density(self.config.density, sensor)
+        calibration.check_sensor(sensor)
+        self.sensor = sensor
+        self.grid = calibration.grid_shape                          # (n_az, n_el)
+        if self.config.sectors is not None:
+            sa, se = self.config.sectors
+            if sa > self.grid[0] or se > self.grid[1]:
+                raise ValueError(f"sector enrichment {self.config.sectors} exceeds the angle grid {self.grid}")
+        self.register_buffer("dictionary_t", calibration.dictionary().transpose(0, 1).contiguous(),
+                             persistent=False)                       # (n_virtual, n_az * n_el)
+        self.register_buffer("azimuth_table", torch.as_tensor(calibration.azimuth_deg, dtype=torch.float32),
+                             persistent=False)
+        self.register_buffer("elevation_table", torch.as_tensor(calibration.elevation_deg, dtype=torch.float32),
+                             persistent=False)
+
+    # ---- detection ---------------------------------------------------------------------------
+    def _envelope(self, rd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        a = rx_magnitude_sum(rd)                                   # (B, Nr, Nd)
+        e = consolidate(a, self.sensor)                            # (B, Nr, W)
+        check_finite_envelope(e)
+        return a, e
+
+    def _cfar(self, e: torch.Tensor) -> CFARResult:
+        return ca_cfar(e.square(), self.config.window, self.config.guard)
+
+    def thresholds(self, snr: torch.Tensor) -> torch.Tensor:
+        """Threshold of each frame ``(B,)`` for CFAR SNR maps ``(B, Nr, W)`` under this config."""
+        c = self.config
+        if c.density is None:
+            return torch.full((snr.shape[0],), c.tau, dtype=snr.dtype, device=snr.device)
+        tau = tau_for_density(snr, self.sensor, c.density, mode=c.density_mode)
+        return tau.expand(snr.shape[0]).clone() if tau.ndim == 0 else tau
+
+    def detect(self, rd: torch.Tensor) -> tuple[torch.Tensor, CFARResult, torch.Tensor]:
+        """Envelope ``E`` ``(B, Nr, W)``, its CA-CFAR result, and the consolidated peaks ``P(tau)``
+        as a bool mask ``(B, Nr, W)``."""
+        rd = check_rd(rd, self.sensor)
+        _, e = self._envelope(rd)
+        res = self._cfar(e)
+        tau = self.thresholds(res.snr)
+        return e, res, res.snr > tau[:, None, None]
+
+    @torch.no_grad()
+    def calibrate_tau(self, frames: Iterable[torch.Tensor], density: float | None = None) -> float:
+        """One tau for a whole split: the mean density over ``frames`` hits ``density``.
+
+        ``frames`` yields RD cubes or batches of cubes (e.g. the training split); only their
+        ``(Nr, W)`` SNR maps are kept, on CPU.
+        """
+        target = self.config.density if density is None else density
+        if target is None:
+            raise ValueError("calibrate_tau needs a target density (argument or module config)")
+        check_density(target, self.sensor)
+        snrs = []
+        for rd in frames:
+            rd = check_rd(rd, self.sensor)
+            snrs.append(self._cfar(self._envelope(rd)[1]).snr.cpu())
+        if not snrs:
+            raise ValueError("calibrate_tau got no frames")
+        return float(tau_for_density(torch.cat(snrs), self.sensor, target, mode="per-dataset"))
+
+    # ---- points ------------------------------------------------------------------------------
+    @torch.no_grad()
+    def forward(self, rd: torch.Tensor) -> PointCloudBatch:
+        """Spectral point clouds of RD cubes ``(B, Nr, Nd, Nrx)`` or ``(Nr, Nd, Nrx)`` complex."""
+        cfg, c = self.sensor, self.config
+        rd = check_rd(rd, cfg)                                     # (B, Nr, Nd, Nrx)
+        a, e = self._envelope(rd)
+        res = self._cfar(e)
+        tau = self.thresholds(res.snr)                             # (B,)
+        peaks = res.snr > tau[:, None, None]                       # P(tau): (B, Nr, W)
+        kept = peaks
+        if c.neighbourhood is not None:                            # P*(tau), eq. 9
+            n = c.neighbourhood
+            kept = F.max_pool2d(peaks.unsqueeze(1).to(e.dtype), n, stride=1, padding=n // 2).squeeze(1) > 0
+        b, r, l = torch.nonzero(kept, as_tuple=True)               # (N,) each, frame-major
+        offset = torch.cumsum(kept.flatten(1).sum(1), 0)
+
+        d0 = resolve_tx0_doppler(a, cfg, r, l, b)                  # (N,)
+        v = virtual_snapshots(rd, cfg, b, r, d0)                   # (N, n_virtual)
+        bf = beamform_peaks(v, self.dictionary_t, self.grid, c.sectors)
+        n_el = self.grid[1]
+        az = self.azimuth_table[bf.index // n_el]
+        el = self.elevation_table[bf.index % n_el]
+        rng = r.to(torch.float32) * cfg.range_res_m
+        half = cfg.n_doppler // 2
+        vel = ((d0 + half) % cfg.n_doppler - half).to(torch.float32) * cfg.velocity_res_mps
+        a_rad, e_rad = torch.deg2rad(az), torch.deg2rad(el)
+        ground = rng * torch.cos(e_rad)
+        patch = None
+        if c.patch is not None:
+            h = c.patch // 2
+            ep = F.pad(e, (h, h, h, h))                            # zeros outside the grid
+            o = torch.arange(-h, h + 1, device=e.device)
+            rr = (r + h).view(-1, 1, 1) + o.view(1, -1, 1)
+            ll = (l + h).view(-1, 1, 1) + o.view(1, 1, -1)
+            patch = ep[b.view(-1, 1, 1), rr, ll].reshape(-1, c.patch * c.patch).to(torch.float32)
+        return PointCloudBatch(
+            offset=offset, range_bin=r, doppler_bin=l, doppler_full=d0,
+            range_m=rng, azimuth_deg=az, elevation_deg=el, velocity_mps=vel,
+            amplitude=bf.amplitude.to(torch.float32), snr=res.snr[b, r, l].to(torch.float32),
+            x=ground * torch.cos(a_rad), y=ground * torch.sin(a_rad), z=rng * torch.sin(e_rad),
+            is_neighbour=~peaks[b, r, l],
+            sector=None if bf.sectors is None else bf.sectors.to(torch.float32),
+            rd_patch=patch, tau=tau.to(torch.float32), density=density_of_mask(kept, cfg))

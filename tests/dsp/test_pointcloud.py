@@ -1,0 +1,256 @@
+"""Spectral point clouds: isolated simulated targets, enrichments against direct per-point numpy,
+batching, bad input."""
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from radarpc.dsp.pointcloud import PointCloudBatch, SpectralPointCloud, SpectralPointCloudConfig, offset2batch
+from radarpc.sensors.radial import RADIAL_S, TINY, make_calibration
+from radarpc.sim.rd import Scatterers, synthesize_rd
+
+# (range in bins, off-grid; true Doppler bin; azimuth deg) of isolated targets per sensor
+TARGETS = {
+    "tiny": [(12.3, 3, -30.0), (30.3, 17, 0.0), (48.3, 26, 24.0)],
+    "radial-s": [(15.3, 2, -40.3), (40.3, 21, 0.0), (70.3, 38, 12.6), (100.3, 55, 33.0)],
+}
+
+
+def _scene(cfg, targets, rcs=30.0):
+    half = cfg.n_doppler // 2
+    r = torch.tensor([t[0] * cfg.range_res_m for t in targets])
+    v = torch.tensor([float(((t[1] + half) % cfg.n_doppler - half) * cfg.velocity_res_mps) for t in targets])
+    az = torch.tensor([t[2] for t in targets])
+    n = len(targets)
+    rcs_t = torch.as_tensor(rcs, dtype=torch.float32).expand(n).clone()
+    return Scatterers(r, az, torch.zeros(n), v, rcs_t)
+
+
+def _half_resolution_deg(cfg, az_deg):
+    h = cfg.virtual_positions[:, 0]
+    n_h = h.max() - h.min() + 1                        # horizontal aperture in half wavelengths
+    return 0.5 * math.degrees(2.0 / n_h) / math.cos(math.radians(az_deg))
+
+
+@pytest.mark.parametrize("cfg", [TINY, RADIAL_S], ids=lambda c: c.name)
+def test_isolated_targets_are_recovered(cfg):
+    g = torch.Generator().manual_seed(0)
+    targets = TARGETS[cfg.name]
+    rd = synthesize_rd(cfg, [_scene(cfg, targets)] * 2, noise=True, generator=g)
+    spc = SpectralPointCloud(cfg, make_calibration(cfg), tau=10.0)
+    clouds = spc(rd)
+    assert len(clouds) == 2
+    for b in range(2):
+        c = clouds.frame(b)
+        for rbin, d, az in targets:
+            near = (c.range_bin - rbin).abs() <= 3
+            assert near.any(), f"target at range bin {rbin} not detected"
+            j = torch.nonzero(near).flatten()[c.amplitude[near].argmax()]
+            assert abs(int(c.range_bin[j]) - rbin) <= 0.5
+            assert int(c.doppler_bin[j]) == d % cfg.slot_width
+            assert int(c.doppler_full[j]) == d
+            assert abs(float(c.azimuth_deg[j]) - az) <= _half_resolution_deg(cfg, az)
+            assert abs(float(c.elevation_deg[j])) <= 10.0
+            assert not bool(c.is_neighbour[j])
+            assert float(c.snr[j]) > 10.0
+            half = cfg.n_doppler // 2
+            assert float(c.velocity_mps[j]) == pytest.approx(((d + half) % cfg.n_doppler - half)
+                                                             * cfg.velocity_res_mps, rel=1e-5)
+            assert float(c.range_m[j]) == pytest.approx(int(c.range_bin[j]) * cfg.range_res_m, rel=1e-6)
+
+
+def test_amplitude_tracks_target_power():
+    cfg = RADIAL_S
+    spc = SpectralPointCloud(cfg, make_calibration(cfg), tau=10.0)
+    targets = TARGETS[cfg.name][:1]
+    amps = []
+    for rcs in (1.0, 4.0, 16.0, 64.0):
+        c = spc(synthesize_rd(cfg, _scene(cfg, targets, rcs), noise=False))
+        j = c.amplitude.argmax()
+        assert int(c.range_bin[j]) == 15 and int(c.doppler_full[j]) == 2
+        amps.append(float(c.amplitude[j]))
+    # amplitude of the echo ~ sqrt(rcs): Ae doubles when the rcs is multiplied by 4
+    np.testing.assert_allclose(np.array(amps[1:]) / np.array(amps[:-1]), 2.0, rtol=1e-4)
+
+
+# ---- direct per-point reference (numpy, loops) --------------------------------------------------
+def _direct_points(rd: np.ndarray, cfg, calib, peaks: np.ndarray, n: int | None, sectors, patch):
+    """Independent evaluation of eqs. 4-10 for every kept cell of one frame."""
+    w = cfg.slot_width
+    a = np.abs(rd.astype(np.complex128)).sum(-1)                              # (Nr, Nd)
+    e = np.zeros((cfg.n_range, w))
+    for s in range(cfg.n_slots):
+        e += a[:, s * w:(s + 1) * w]
+    kept = set(zip(*np.nonzero(peaks)))
+    if n is not None:
+        h = n // 2
+        for (r, l) in list(kept):
+            for dr, dl in itertools.product(range(-h, h + 1), repeat=2):
+                if 0 <= r + dr < cfg.n_range and 0 <= l + dl < w:
+                    kept.add((r + dr, l + dl))
+    bmat = calib.dictionary().numpy().astype(np.complex128)                 # (n_az * n_el, n_virtual)
+    n_az, n_el = calib.grid_shape
+    out = {}
+    for (r, l) in sorted(kept):
+        x = [a[r, l + s * w] for s in range(cfg.n_slots)]
+        g = cfg.n_empty_slots
+        means = [np.mean([x[(s + 1 + k) % cfg.n_slots] for k in range(g)]) for s in range(cfg.n_slots)]
+        d0 = int(np.argmin(means)) * w + l
+        v = np.concatenate([rd[r, (d0 + off) % cfg.n_doppler, :] for off in cfg.doppler_offsets])
+        spec = np.abs(bmat @ v)
+        k = int(np.argmax(spec))
+        rec = dict(d0=d0, az=float(calib.azimuth_deg[k // n_el]), el=float(calib.elevation_deg[k % n_el]),
+                   amp=spec[k], neighbour=not peaks[r, l])
+        if sectors is not None:
+            grid = spec.reshape(n_az, n_el)
+            na, ne = sectors
+            rec["sector"] = [grid[(u * n_az) // na: -(-((u + 1) * n_az) // na),
+                                  (q * n_el) // ne: -(-((q + 1) * n_el) // ne)].max()
+                             for u in range(na) for q in range(ne)]
+        if patch is not None:
+            h = patch // 2
+            rec["patch"] = [e[r + dr, l + dl] if 0 <= r + dr < cfg.n_range and 0 <= l + dl < w else 0.0
+                            for dr in range(-h, h + 1) for dl in range(-h, h + 1)]
+        out[(r, l)] = rec
+    return out
+
+
+@pytest.mark.parametrize("enrich,n,sectors,patch", [
+    ((), None, None, None),
+    (("rd3", "sector8x2"), 3, (8, 2), 3),
+    (("rd5", "sector7", "patch3"), 5, (7, 1), 3),
+])
+def test_points_and_enrichments_match_direct_computation(enrich, n, sectors, patch):
+    cfg = TINY
+    calib = make_calibration(cfg)
+    g = torch.Generator().manual_seed(1)
+    rd = synthesize_rd(cfg, [_scene(cfg, TARGETS["tiny"]), _scene(cfg, TARGETS["tiny"][:1], 3.0)],
+                       noise=True, generator=g)
+    spc = SpectralPointCloud(cfg, calib, tau=4.0, enrich=enrich)
+    clouds = spc(rd)
+    _, _, mask = spc.detect(rd)
+    for b in range(2):
+        c = clouds.frame(b)
+        ref = _direct_points(rd[b].numpy(), cfg, calib, mask[b].numpy(), n, sectors, patch)
+        got = list(zip(c.range_bin.tolist(), c.doppler_bin.tolist()))
+        assert got == sorted(ref), "kept cells differ from P (or P*) built by direct loops"
+        assert (c.is_neighbour.sum() > 0) == (n is not None)
+        for j, key in enumerate(got):
+            rr = ref[key]
+            assert int(c.doppler_full[j]) == rr["d0"]
+            assert float(c.azimuth_deg[j]) == rr["az"] and float(c.elevation_deg[j]) == rr["el"]
+            assert float(c.amplitude[j]) == pytest.approx(rr["amp"], rel=1e-4)
+            assert bool(c.is_neighbour[j]) == rr["neighbour"]
+            if sectors is not None:
+                np.testing.assert_allclose(c.sector[j].numpy(), rr["sector"], rtol=1e-4)
+            if patch is not None:
+                np.testing.assert_allclose(c.rd_patch[j].numpy(), rr["patch"], rtol=1e-5, atol=1e-6)
+        if sectors is None:
+            assert c.sector is None
+        else:
+            assert c.sector.shape == (c.num_points, sectors[0] * sectors[1])
+        if patch is None:
+            assert c.rd_patch is None
+        else:
+            assert c.rd_patch.shape == (c.num_points, patch * patch)
+        # density on S (or S*): n_tx full-grid cells per kept consolidated cell
+        assert float(clouds.density[b]) == pytest.approx(cfg.n_tx * len(ref) / (cfg.n_range * cfg.n_doppler))
+
+
+def test_cartesian_coordinates():
+    cfg = RADIAL_S
+    rd = synthesize_rd(cfg, _scene(cfg, TARGETS[cfg.name]), noise=True, generator=torch.Generator().manual_seed(2))
+    c = SpectralPointCloud(cfg, make_calibration(cfg), density=0.05)(rd)
+    a = np.deg2rad(c.azimuth_deg.double().numpy())
+    e = np.deg2rad(c.elevation_deg.double().numpy())
+    r = c.range_m.double().numpy()
+    np.testing.assert_allclose(c.x.numpy(), r * np.cos(e) * np.cos(a), atol=1e-4)
+    np.testing.assert_allclose(c.y.numpy(), r * np.cos(e) * np.sin(a), atol=1e-4)
+    np.testing.assert_allclose(c.z.numpy(), r * np.sin(e), atol=1e-4)
+    for name in ("range_m", "azimuth_deg", "elevation_deg", "velocity_mps", "amplitude", "snr", "x", "y", "z"):
+        assert getattr(c, name).dtype == torch.float32
+
+
+def test_batch_equals_frames_and_helpers():
+    cfg = TINY
+    spc = SpectralPointCloud(cfg, make_calibration(cfg), density=0.1, enrich="rd3,sector4")
+    g = torch.Generator().manual_seed(3)
+    rd = torch.randn((3, *cfg.rd_shape), dtype=torch.complex64, generator=g)
+    batch = spc(rd)
+    assert len(batch) == 3 and batch.offset[-1] == batch.num_points
+    np.testing.assert_array_equal(offset2batch(batch.offset).numpy(),
+                                  np.repeat(np.arange(3), np.diff(batch.offset.numpy(), prepend=0)))
+    for b in range(3):
+        single = spc(rd[b])
+        part = batch.frame(b)
+        assert isinstance(part, PointCloudBatch) and len(part) == 1
+        for name in PointCloudBatch._PER_POINT + ("tau", "density", "offset"):
+            torch.testing.assert_close(getattr(single, name), getattr(part, name))
+    moved = batch.to("cpu")
+    torch.testing.assert_close(moved.sector, batch.sector)
+    with pytest.raises(IndexError):
+        batch.frame(3)
+
+
+def test_empty_detections_give_valid_empty_cloud():
+    cfg = TINY
+    spc = SpectralPointCloud(cfg, make_calibration(cfg), tau=1e12, enrich=("rd3", "sector8"))
+    c = spc(torch.randn((2, *cfg.rd_shape), dtype=torch.complex64))
+    assert c.num_points == 0 and c.offset.tolist() == [0, 0]
+    assert c.sector.shape == (0, 8) and c.rd_patch.shape == (0, 9)
+    assert c.density.tolist() == [0.0, 0.0] and c.frame(1).num_points == 0
+
+
+def test_complex128_input_gives_same_points():
+    cfg = TINY
+    spc = SpectralPointCloud(cfg, make_calibration(cfg), tau=3.0)
+    rd = synthesize_rd(cfg, _scene(cfg, TARGETS["tiny"]), noise=True, generator=torch.Generator().manual_seed(4))
+    a, b = spc(rd), spc(rd.to(torch.complex128))
+    assert torch.equal(a.range_bin, b.range_bin) and torch.equal(a.doppler_full, b.doppler_full)
+    torch.testing.assert_close(a.amplitude, b.amplitude, rtol=1e-4, atol=0)
+
+
+def test_config_parsing():
+    c = SpectralPointCloudConfig(enrich=("rd5", "sector32x1"))
+    assert c.neighbourhood == 5 and c.patch == 5 and c.sectors == (32, 1)
+    c = SpectralPointCloudConfig(density=0.057, enrich=("sector32",))
+    assert c.tau is None and c.sectors == (32, 1) and c.neighbourhood is None and c.patch is None
+    assert c.to_dict()["enrich"] == ["sector32"]
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(enrich=("foo",)), "unknown enrichment"),
+    (dict(enrich=("rd4",)), "odd"),
+    (dict(enrich=("rd3", "rd5")), "once"),
+    (dict(density=0.0), r"\(0, 1\]"),
+    (dict(density=1.5), r"\(0, 1\]"),
+    (dict(density=-0.1), r"\(0, 1\]"),
+    (dict(density=0.9), "unreachable"),
+    (dict(tau=0.0), "tau"),
+    (dict(tau=float("nan")), "tau"),
+    (dict(window=(8, 9)), "odd"),
+    (dict(window=(9, 9, 9), guard=(3, 3, 3)), "2-D"),
+    (dict(density=0.05, density_mode="per-epoch"), "density_mode"),
+    (dict(enrich=("sector99",)), "exceeds"),
+])
+def test_bad_settings(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        SpectralPointCloud(TINY, make_calibration(TINY), **kwargs)
+
+
+def test_bad_cubes():
+    spc = SpectralPointCloud(TINY, make_calibration(TINY))
+    with pytest.raises(ValueError, match=r"expected|\(B, 64, 32, 4\)"):
+        spc(torch.zeros((64, 32, 5), dtype=torch.complex64))
+    with pytest.raises(ValueError, match="complex"):
+        spc(torch.zeros(TINY.rd_shape))
+    rd = torch.zeros((2, *TINY.rd_shape), dtype=torch.complex64)
+    rd[1, 0, 0, 0] = complex(float("nan"), 0)
+    with pytest.raises(ValueError, match="NaN"):
+        spc(rd)
+    with pytest.raises(ValueError, match="virtual channels"):
+        SpectralPointCloud(RADIAL_S, make_calibration(TINY))
