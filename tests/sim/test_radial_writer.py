@@ -1,0 +1,136 @@
+"""Simulated RADIal roots: layout, labels round trip, resume, refusal, on-the-fly == on-disk, CLI."""
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from radarpc import __version__
+from radarpc.data.radial import RADIal, load_freespace, read_labels
+from radarpc.data.radial_format import FREESPACE_SHAPE, LABEL_COLUMNS, fft_path, freespace_path
+from radarpc.sensors.radial import TINY, load_calibration, make_calibration
+from radarpc.sim import radial_writer
+from radarpc.sim.radial_writer import RadialSimulator, SimulatedRADIal, write_radial_dataset
+
+N_SEQ, N_FR, SEED = 3, 2, 11
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    return write_radial_dataset(tmp_path_factory.mktemp("sim") / "root", TINY, N_SEQ, N_FR, SEED,
+                                progress=False)
+
+
+def all_files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_layout_and_files(root):
+    n = N_SEQ * N_FR
+    for num in range(n):
+        rd = np.load(fft_path(root, num), allow_pickle=False)
+        assert rd.shape == TINY.rd_shape and rd.dtype == np.complex64 and np.isfinite(rd).all()
+        fs = load_freespace(freespace_path(root, num))
+        assert fs.shape == FREESPACE_SHAPE and fs.dtype == np.uint8
+        assert 0 < (fs == 255).mean() < 1
+    meta = json.loads((root / "sensor.json").read_text())
+    assert meta["seed"] == SEED and meta["n_sequences"] == N_SEQ and meta["frames_per_sequence"] == N_FR
+    assert meta["radarpc_version"] == __version__ and meta["name"] == "tiny"
+    calib = load_calibration(root / "calibration.npz")
+    np.testing.assert_array_equal(calib.signal, make_calibration(TINY).signal)
+    assert not list(root.rglob("*.tmp"))
+
+
+def test_labels_round_trip_through_csv(root):
+    table = read_labels(root / "labels.csv")
+    assert (root / "labels.csv").read_text().splitlines()[0] == ",".join(LABEL_COLUMNS)
+    sim = RadialSimulator(TINY, N_SEQ, N_FR, SEED)
+    want = [r for q in range(N_SEQ) for i in range(N_FR) for r in sim.geometry(q, i)[1]]
+    assert len(table) == len(want)
+    for k, row in enumerate(want):
+        got = table.row(k)
+        assert tuple(got[c] for c in LABEL_COLUMNS) == row
+    assert sorted(set(table.num_sample.tolist())) == list(range(N_SEQ * N_FR))
+
+
+def test_resume_gives_the_identical_dataset(root, tmp_path, monkeypatch):
+    ref = all_files(root)
+    part = tmp_path / "part"
+    shutil.copytree(root, part)
+    # an interrupted run: some frames and labels.csv missing, a stray temp file
+    fft_path(part, 1).unlink()
+    freespace_path(part, 4).unlink()
+    (part / "labels.csv").unlink()
+    (part / "radar_FFT" / ".fft_000002.npy.abc.tmp").write_bytes(b"partial")
+    untouched = fft_path(part, 3).stat().st_mtime_ns
+    calls = []
+    real = radial_writer.synthesize_rd
+    monkeypatch.setattr(radial_writer, "synthesize_rd", lambda *a, **k: calls.append(1) or real(*a, **k))
+    write_radial_dataset(part, TINY, N_SEQ, N_FR, SEED, progress=False)
+    assert len(calls) == 2                                 # only frames 1 and 4 were synthesised again
+    assert fft_path(part, 3).stat().st_mtime_ns == untouched
+    (part / "radar_FFT" / ".fft_000002.npy.abc.tmp").unlink()
+    assert all_files(part) == ref
+
+
+def test_refuses_a_non_empty_folder_unless_overwrite(root, tmp_path):
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        write_radial_dataset(other, TINY, 1, 1, 0, progress=False)
+    # a partial run of another seed is not resumed either
+    with pytest.raises(FileExistsError, match="not a partial run"):
+        write_radial_dataset(root, TINY, N_SEQ, N_FR, SEED + 1, progress=False)
+    write_radial_dataset(other, TINY, 1, 1, 0, overwrite=True, progress=False)
+    assert (other / "notes.txt").read_text() == "mine" and fft_path(other, 0).is_file()
+
+
+@pytest.mark.parametrize("split", ["train", "val", "test", "all"])
+def test_on_the_fly_equals_on_disk(root, split):
+    disk = RADIal(root, split=split)
+    fly = SimulatedRADIal(TINY, N_SEQ, N_FR, SEED, split=split)
+    assert fly.frame_ids == disk.frame_ids and len(fly) == len(disk) > 0
+    assert fly.sequence_names == disk.sequences
+    assert fly.sensor == disk.sensor
+    np.testing.assert_array_equal(fly.calibration.signal, disk.calibration.signal)
+    for i in range(len(fly)):
+        a, b = disk[i], fly[i]
+        assert [x.dtype for x in b] == [torch.complex64, torch.float32, torch.bool]
+        assert b[0].shape == TINY.rd_shape and b[1].shape[1] == 14 and b[2].shape == (256, 224)
+        for x, y in zip(a, b):
+            assert x.shape == y.shape and torch.equal(x, y)
+
+
+def test_frames_are_reproducible_and_distinct():
+    ds = SimulatedRADIal(TINY, N_SEQ, N_FR, SEED, split="all")
+    assert torch.equal(ds[1][0], ds[1][0])
+    assert not torch.equal(ds[0][0], ds[1][0])
+    assert not torch.equal(ds[0][0], SimulatedRADIal(TINY, N_SEQ, N_FR, SEED + 1, split="all")[0][0])
+    with pytest.raises(IndexError):
+        ds[len(ds)]
+    with pytest.raises(ValueError, match="split"):
+        SimulatedRADIal(TINY, N_SEQ, N_FR, SEED, split="dev")
+    with pytest.raises(ValueError, match="n_sequences"):
+        SimulatedRADIal(TINY, 0, N_FR, SEED)
+
+
+def test_cli_writes_a_root(tmp_path, capsys):
+    from radarpc.cli import simulate_radial
+
+    parser = argparse.ArgumentParser()
+    simulate_radial.add_parser(parser.add_subparsers(dest="kind"))
+    out = tmp_path / "cli"
+    args = parser.parse_args(["radial", "--out", str(out), "--sequences", "1", "--frames-per-sequence", "2",
+                              "--sensor", "tiny", "--seed", "3", "--no-progress"])
+    assert args.func(args) == 0
+    assert "wrote 2 frames" in capsys.readouterr().out
+    assert fft_path(out, 1).is_file() and (out / "labels.csv").is_file()
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        args.func(parser.parse_args(["radial", "--out", str(out), "--sensor", "tiny", "--seed", "4",
+                                     "--no-progress"]))
+    with pytest.raises(ValueError, match="--device"):
+        args.func(parser.parse_args(["radial", "--out", str(tmp_path / "x"), "--device", "nodevice"]))
