@@ -14,8 +14,8 @@ from radarpc import __version__
 
 def _command_modules():
     # Imported lazily so that `radarpc --help` stays fast and one broken stage cannot hide the others.
-    from radarpc.cli import simulate, info
-    return [simulate, info]
+    from radarpc.cli import simulate, info, pointcloud, show
+    return [simulate, info, pointcloud, show]
 
 
 def build_parser() -> argparse.ArgumentParser:

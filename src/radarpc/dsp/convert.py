@@ -208,6 +208,19 @@ def build_point_cloud(ds: RADIal, settings: ConvertSettings, tau: float | None,
     return spc.to(device).eval()
 
 
+def _check_dsp_settings(settings: ConvertSettings, ds: RADIal) -> None:
+    """Fail before any file is written: enrichment names, CFAR sizes, a reachable density."""
+    from radarpc.dsp.density import check_density
+    from radarpc.dsp.pointcloud import SpectralPointCloudConfig
+
+    SpectralPointCloudConfig(tau=settings.tau, density=settings.density, density_mode=settings.density_mode,
+                             window=settings.window, guard=settings.guard, enrich=settings.enrich)
+    if settings.density is not None:
+        check_density(settings.density, ds.sensor)
+    if len(ds) == 0:
+        raise ValueError(f"{ds.root}: the {settings.split!r} split has no frames")
+
+
 def _load_batch(ds: RADIal, positions: Sequence[int], device: torch.device) -> torch.Tensor:
     """RD cubes of items ``positions`` as complex64 ``(B, Nr, Nd, Nrx)`` on ``device``."""
     cubes = [torch.from_numpy(load_rd(find_fft_file(ds.root, ds.frame_ids[p]), ds.sensor)) for p in positions]
@@ -447,6 +460,7 @@ def convert_dataset(
     env = dist_env()
     dev = _default_device(device, env)
     ds = RADIal(root, split=settings.split)
+    _check_dsp_settings(settings, ds)
     n = len(ds)
     key = _manifest_key(root, settings, ds.frame_ids)
     n_chunks = -(-n // settings.chunk_frames)
@@ -619,6 +633,7 @@ def write_sparse_rd(
         raise ValueError(f"the sparse-RD root must differ from the source root {root}")
     dev = _default_device(device, DistEnv())
     ds = RADIal(root, split=settings.split)
+    _check_dsp_settings(settings, ds)
     cal_tau = settings.tau
     if settings.mode == "per-dataset":
         cal_tau = calibrate_tau(root, settings, batch_size=int(batch_size), device=dev, progress=progress)

@@ -1,0 +1,116 @@
+"""``radarpc pointcloud`` and ``radarpc show`` on a tiny simulated root: smoke runs and bad input."""
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from radarpc.cli import pointcloud, show
+from radarpc.data.pointstore import PointStore
+from radarpc.data.radial import RADIal
+from radarpc.io import DataFileError
+from radarpc.sensors.radial import TINY
+from radarpc.sim.radial_writer import write_radial_dataset
+
+
+def run_cli(argv: list[str]) -> int:
+    """Parse ``argv`` with the two commands' own parsers and run it (as ``radarpc`` does)."""
+    parser = argparse.ArgumentParser(prog="radarpc")
+    sub = parser.add_subparsers(dest="command", required=True)
+    pointcloud.add_parser(sub)
+    show.add_parser(sub)
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    # 3 sequences (train, val, test) x 2 frames of the TINY sensor
+    return write_radial_dataset(tmp_path_factory.mktemp("sim") / "root", TINY, 3, 2, seed=0, progress=False)
+
+
+def test_pointcloud_density_enrich(root, tmp_path, capsys):
+    out = tmp_path / "pc.parquet"
+    assert run_cli(["pointcloud", str(root), "--density", "0.1", "--enrich", "rd3,sector8", "--out", str(out),
+                    "--batch-size", "3", "--chunk-frames", "4", "--quiet"]) == 0
+    msg = capsys.readouterr().out
+    assert f"wrote {out}: 6 frames" in msg and "achieved density" in msg and "(target 0.1)" in msg
+    store = PointStore(out)
+    assert store.frames == RADIal(root, split="all").frame_ids
+    assert store.metadata.enrich == ("rd3", "sector8") and store.metadata.density_mode == "per-frame"
+    assert store.schema.field("sector").type.list_size == 8 and store.schema.field("rd_patch").type.list_size == 9
+    c = store[0]
+    assert c.sector.shape == (int(c.offset[0]), 8) and bool(c.is_neighbour.any())
+    printed = float(msg.split("achieved density ")[1].split()[0])
+    assert printed == pytest.approx(store.metadata.achieved_density, abs=1e-5)
+
+
+def test_pointcloud_snr_and_sparse_rd(root, tmp_path, capsys):
+    out, srd = tmp_path / "pc.parquet", tmp_path / "srd"
+    assert run_cli(["pointcloud", str(root), "--snr", "2.0", "--split", "val", "--out", str(out),
+                    "--sparse-rd-out", str(srd), "--window", "7,5", "--guard", "3,1", "--quiet"]) == 0
+    msg = capsys.readouterr().out
+    assert "tau 2" in msg and "wrote sparse-RD root" in msg
+    store = PointStore(out)
+    assert store.metadata.tau == 2.0 and store.metadata.window == (7, 5) and store.metadata.guard == (3, 1)
+    val = RADIal(root, split="val")
+    sparse = RADIal(srd, split="all")
+    assert store.frames == val.frame_ids == sparse.frame_ids
+    offsets = torch.as_tensor(TINY.doppler_offsets)
+    for i in range(len(val)):
+        rd, sp = val[i][0], sparse[i][0]
+        cloud = store[i]
+        # the kept cells are exactly the stored points' range bins x their replica Doppler bins
+        kept = torch.zeros(TINY.n_range, TINY.n_doppler, dtype=torch.bool)
+        bins = (cloud.doppler_full[:, None] + offsets) % TINY.n_doppler
+        kept[cloud.range_bin[:, None].expand_as(bins), bins] = True
+        assert torch.equal(sp, torch.where(kept[..., None], rd, torch.zeros((), dtype=rd.dtype)))
+
+
+def test_show_writes_a_png(root, tmp_path, capsys):
+    png = tmp_path / "frame1.png"
+    assert run_cli(["show", str(root), "--frame", "1", "--density", "0.1", "--out", str(png)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    with Image.open(png) as im:
+        assert im.format == "PNG" and im.size[0] > 800 and im.size[1] > 300
+        arr = np.asarray(im.convert("L"))
+    assert arr.std() > 10                                # not a blank canvas
+    # from a store: the same points as the store holds for that frame
+    store = tmp_path / "pc.parquet"
+    run_cli(["pointcloud", str(root), "--density", "0.1", "--out", str(store), "--quiet"])
+    capsys.readouterr()
+    png2 = tmp_path / "frame1_store.png"
+    assert run_cli(["show", str(root), "--frame", "1", "--store", str(store), "--color", "amplitude",
+                    "--out", str(png2)]) == 0
+    n = int(PointStore(store)[1].offset[0])
+    assert f"{n} points" in capsys.readouterr().out and png2.is_file()
+
+
+def test_bad_input(root, tmp_path):
+    out = str(tmp_path / "pc.parquet")
+    with pytest.raises(ValueError, match=r"--density must be a fraction of RD cells in \(0, 1\], got 1.5"):
+        run_cli(["pointcloud", str(root), "--density", "1.5", "--out", out])
+    with pytest.raises(ValueError, match="--snr must be a positive"):
+        run_cli(["pointcloud", str(root), "--snr", "0", "--out", out])
+    with pytest.raises(SystemExit):                      # --density and --snr are exclusive
+        run_cli(["pointcloud", str(root), "--density", "0.1", "--snr", "2", "--out", out])
+    with pytest.raises(SystemExit):                      # one of them is required
+        run_cli(["pointcloud", str(root), "--out", out])
+    with pytest.raises(SystemExit):
+        run_cli(["pointcloud", str(root), "--snr", "2", "--window", "9", "--out", out])
+    with pytest.raises(ValueError, match="nothing to write"):
+        run_cli(["pointcloud", str(root), "--snr", "2"])
+    with pytest.raises(ValueError, match="unknown enrichment 'rdx'"):
+        run_cli(["pointcloud", str(root), "--snr", "2", "--enrich", "rdx", "--out", out, "--quiet"])
+    with pytest.raises(ValueError, match="frame 99 is not in"):
+        run_cli(["show", str(root), "--frame", "99", "--snr", "2", "--out", str(tmp_path / "f.png")])
+    bad = tmp_path / "bad.parquet"
+    bad.write_text("not parquet")
+    with pytest.raises(DataFileError, match="bad.parquet: is not a readable Parquet file"):
+        run_cli(["show", str(root), "--frame", "0", "--store", str(bad), "--out", str(tmp_path / "f.png")])
+    with pytest.raises(ValueError, match="unreachable for sensor 'tiny'"):
+        run_cli(["pointcloud", str(root), "--density", "0.9", "--out", out, "--quiet"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.parquet"]     # nothing half-written
