@@ -38,7 +38,8 @@ import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -227,6 +228,21 @@ def _load_batch(ds: RADIal, positions: Sequence[int], device: torch.device) -> t
     return torch.stack(cubes).to(device)
 
 
+def _prefetched(ds: RADIal, batches: Sequence[Sequence[int]], device: torch.device
+                ) -> Iterator[tuple[list[int], torch.Tensor]]:
+    """Yield ``(positions, rd)`` per batch, reading the next batch in a thread meanwhile (file reads
+    and validation overlap the DSP)."""
+    if not batches:
+        return
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        fut = pool.submit(_load_batch, ds, batches[0], device)
+        for j, pos in enumerate(batches):
+            rd = fut.result()
+            if j + 1 < len(batches):
+                fut = pool.submit(_load_batch, ds, batches[j + 1], device)
+            yield list(pos), rd
+
+
 def _batches(positions: Sequence[int], batch_size: int) -> list[list[int]]:
     return [list(positions[i:i + batch_size]) for i in range(0, len(positions), batch_size)]
 
@@ -248,10 +264,11 @@ def calibrate_tau(root: str | os.PathLike, settings: ConvertSettings, *, batch_s
     dev = torch.device(device)
     spc = build_point_cloud(train, dataclasses.replace(settings, density_mode="per-dataset"), 1.0, dev)
     batches = _batches(list(range(n)), batch_size)
+    it = (rd for _, rd in _prefetched(train, batches, dev))
     if progress:
         from tqdm import tqdm
-        batches = tqdm(batches, desc="calibrate tau (train)", unit="batch")
-    return spc.calibrate_tau((_load_batch(train, pos, dev) for pos in batches), density=settings.density)
+        it = tqdm(it, total=len(batches), desc="calibrate tau (train)", unit="batch")
+    return spc.calibrate_tau(it, density=settings.density)
 
 
 # ---- manifest -----------------------------------------------------------------------------------
@@ -325,8 +342,8 @@ def _run_chunks(job: _ChunkJob, on_done: Callable[[int, int], None]) -> int:
         if path.is_file():
             continue
         with PointStoreWriter(path, meta, row_group_frames=max(len(pos), 1)) as w, torch.no_grad():
-            for b in _batches(pos, job.batch_size):
-                clouds = spc(_load_batch(ds, b, dev))
+            for b, rd in _prefetched(ds, _batches(pos, job.batch_size), dev):
+                clouds = spc(rd)
                 w.write(clouds, [ds.frame_ids[p] for p in b], [ds.sequences[p] for p in b])
         done += 1
         on_done(k, len(pos))
@@ -356,7 +373,7 @@ def _run_workers(job: _ChunkJob, workers: int, on_done: Callable[[int, int], Non
                             daemon=False)
             p.start()
             procs.append(p)
-    done, errors = 0, []
+    done, errors, finished = 0, [], False
     try:
         while True:
             try:
@@ -375,9 +392,11 @@ def _run_workers(job: _ChunkJob, workers: int, on_done: Callable[[int, int], Non
                 on_done(k, payload)
             else:
                 errors.append(payload)
+        finished = True
     finally:
+        # On a worker error or an exception here (e.g. Ctrl-C), stop the others: finished parts stay.
         for p in procs:
-            if p.is_alive() and errors:
+            if p.is_alive() and (errors or not finished):
                 p.terminate()
             p.join()
     bad = [p.exitcode for p in procs if p.exitcode != 0]
@@ -647,14 +666,13 @@ def write_sparse_rd(
         _write_split_labels(root / "labels.csv", out_root / "labels.csv", set(ds.frame_ids))
 
     todo = [p for p in range(len(ds)) if not (resume and fft_path(out_root, ds.frame_ids[p]).is_file())]
-    it = _batches(todo, int(batch_size))
+    it = _prefetched(ds, _batches(todo, int(batch_size)), dev)
     if progress:
         from tqdm import tqdm
-        it = tqdm(it, desc=f"sparse RD {root.name}", unit="batch")
+        it = tqdm(it, total=-(-len(todo) // int(batch_size)), desc=f"sparse RD {root.name}", unit="batch")
     densities: list[torch.Tensor] = []
     with torch.no_grad():
-        for pos in it:
-            rd = _load_batch(ds, pos, dev)                                 # (B, Nr, Nd, Nrx)
+        for pos, rd in it:                                                 # rd: (B, Nr, Nd, Nrx)
             _, cfar, mask = spc.detect(rd)
             mask_full = sparse_rd_mask(mask, ds.sensor, rd)                  # (B, Nr, Nd) bool
             sparse = sparse_rd(rd, mask_full)                              # (B, Nr, Nd, Nrx)
