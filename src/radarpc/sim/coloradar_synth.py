@@ -1,0 +1,464 @@
+"""ColoRadar-format synthesis: radar scatterers, single-chip ADC frames, cascade heatmaps, LiDAR.
+
+One scene (:mod:`radarpc.sim.indoor`) feeds every sensor:
+
+* :func:`radar_scatterers` -- point scatterers on the surfaces visible from the radar (ray cast
+  over the field of view with per-frame jitter). Radar cross-section of a patch seen at incidence
+  ``theta``: ``sigma = r^2 dOmega * sigma0 * (cos(theta) + k_s exp(-(theta / theta_s)^2))`` --
+  diffuse plus a specular lobe, so flat walls return strongly only near normal incidence (sparse,
+  noisy radar clouds). Vertical box edges are added as strong point scatterers when visible;
+  optional multipath ghosts are the mirror images of the strongest scatterers across the scene's
+  dominant planes (floor, a wall). Radial velocity ``v_r = (v_obj - v_sensor) . u`` (receding > 0).
+* :func:`beat_signal` / :func:`synthesize_adc` -- TDM-MIMO FMCW beat signal of all scatterers,
+  every Tx x Rx x chirp x sample, vectorized in torch, chunked over scatterers::
+
+      s[t, r, c, k] = sum_n A_n exp(j 2 pi [ f0 tau_n(t, c) - S tau_n(t, c)^2 / 2 + S tau_n t_k ])
+                              exp(j 2 pi d (p_h[t, r] u_y,n + p_v[t, r] u_z,n))
+
+  with ``tau_n(t, c) = 2 (R_n + v_n T(t, c)) / c``, ``T(t, c) = (c N_tx + t) T_c`` the chirp start
+  time and ``t_k = t_adc + k / f_s``; ``A_n = g sqrt(sigma_n) / R_n^2`` (radar equation, ``g`` in
+  ADC LSB). ``exact=True`` uses ``tau_n`` of each chirp in the fast-time term (range migration
+  within the frame); the default uses the frame-centre delay there, which makes the sum a matrix
+  product (same phases otherwise). Then complex Gaussian noise and int16 I/Q quantization.
+* :func:`cascade_heatmap` -- ColoRadar cascade heatmaps computed in the frequency domain: for each
+  scatterer the Hann-windowed range-FFT response ``|W(r - R_n / dr)|^2`` times the beamformer
+  power ``|AF(az, el)|^2`` of the cascade's unique virtual elements steered at the heatmap's bin
+  angles, summed incoherently over scatterers, plus exponential noise; intensity is SNR per cell
+  (linear), the Doppler channel is the power-weighted radial velocity quantized to Doppler bins
+  (a random bin where noise dominates). Layout float32 ``[elevation, azimuth, range, 2]``.
+* :func:`lidar_scan` -- a spinning multi-beam LiDAR (OS1-64-like: 64 beams over +-16.6 deg, 1024
+  azimuth steps) ray cast against the same geometry; range noise, intensity from reflectivity and
+  incidence; rays without return are written as all-zero points (organized scan, as in ColoRadar).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from radarpc.sensors.coloradar import (
+    AWR1843,
+    CASCADE,
+    DEFAULT_CALIB,
+    SPEED_OF_LIGHT,
+    ColoRadarCalib,
+    ColoRadarChipConfig,
+    Transform,
+)
+from radarpc.sim.indoor import MATERIALS, Scene, ray_cast
+
+__all__ = [
+    "RadarSimConfig",
+    "LidarConfig",
+    "Scatterers",
+    "SimFrame",
+    "radar_scatterers",
+    "beat_signal",
+    "synthesize_adc",
+    "cascade_heatmap",
+    "lidar_directions",
+    "lidar_scan",
+    "sensor_pose",
+    "simulate_frame",
+]
+
+
+@dataclass(frozen=True)
+class RadarSimConfig:
+    """How scatterers are drawn and how the ADC is scaled."""
+
+    az_step_deg: float = 1.5          # ray grid over the radar FOV (jittered per frame)
+    el_step_deg: float = 2.0
+    fov_az_deg: float = 90.0          # half-widths of the sampled field of view
+    fov_el_deg: float = 25.0
+    max_range_m: float = 16.5
+    min_range_m: float = 0.3
+    edges: bool = True                # strong points on visible vertical box edges
+    edge_spacing_m: float = 0.3
+    edge_rcs_m2: float = 0.05
+    multipath: bool = True            # mirror ghosts of the strongest scatterers
+    ghost_count: int = 40
+    ghost_gain: float = 0.3           # amplitude factor of a ghost
+    max_scatterers: int = 4000        # keep the strongest if more
+    adc_gain_lsb: float = 1000.0      # amplitude (LSB) of a 1 m^2 target at 1 m
+    adc_noise_lsb: float = 4.0        # thermal noise std per I and Q (LSB)
+    heatmap_noise: float = 1.0        # mean noise power per heatmap cell
+
+    def __post_init__(self) -> None:
+        for k in ("az_step_deg", "el_step_deg", "max_range_m", "adc_gain_lsb", "heatmap_noise"):
+            if not getattr(self, k) > 0:
+                raise ValueError(f"RadarSimConfig.{k} must be > 0, got {getattr(self, k)}")
+        if self.adc_noise_lsb < 0 or self.ghost_gain < 0:
+            raise ValueError("adc_noise_lsb and ghost_gain must be >= 0")
+
+
+@dataclass(frozen=True)
+class LidarConfig:
+    """Spinning LiDAR pattern (defaults: Ouster OS1-64-like)."""
+
+    beams: int = 64
+    azimuth_steps: int = 1024
+    elevation_deg: tuple[float, float] = (-16.6, 16.6)
+    max_range_m: float = 120.0
+    range_noise_m: float = 0.015
+    dropout: float = 0.01             # fraction of returns randomly lost
+
+    def __post_init__(self) -> None:
+        if self.beams < 1 or self.azimuth_steps < 1:
+            raise ValueError(f"LiDAR needs beams >= 1 and azimuth_steps >= 1, got {self.beams}, {self.azimuth_steps}")
+        if not self.elevation_deg[0] <= self.elevation_deg[1]:
+            raise ValueError(f"elevation_deg must be (low, high), got {self.elevation_deg}")
+
+
+@dataclass
+class Scatterers:
+    """Point scatterers in a radar's frame."""
+
+    points: torch.Tensor      # (N, 3) sensor frame (m)
+    rcs: torch.Tensor         # (N,) radar cross-section (m^2)
+    phase: torch.Tensor       # (N,) scattering phase (rad)
+    velocity: torch.Tensor    # (N,) radial velocity (m/s, receding > 0)
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    def to_frame(self, tf: Transform) -> "Scatterers":
+        """Re-express the points with ``p' = tf.apply(p)`` (same RCS, phase, velocity)."""
+        r = torch.as_tensor(tf.rotation, dtype=self.points.dtype, device=self.points.device)
+        t = torch.as_tensor(tf.translation, dtype=self.points.dtype, device=self.points.device)
+        return Scatterers(self.points @ r.T + t, self.rcs, self.phase, self.velocity)
+
+
+@dataclass
+class SimFrame:
+    """Everything one call of :func:`simulate_frame` produces."""
+
+    adc: np.ndarray                 # int16 (tx, rx, chirps, samples, 2)
+    heatmap: np.ndarray | None      # float32 (el, az, range, 2) of the cascade
+    lidar: np.ndarray               # float32 (beams * azimuth_steps, 4) in the LiDAR frame
+    scatterers: Scatterers          # single-chip frame
+
+
+# ------------------------------------------------------------------------------------------------
+def _rot(tf: Transform, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+    return (torch.as_tensor(tf.rotation, dtype=dtype, device=device),
+            torch.as_tensor(tf.translation, dtype=dtype, device=device))
+
+
+def sensor_pose(scene: Scene, t: float, base_to_sensor: Transform) -> tuple[Transform, np.ndarray]:
+    """World <- sensor transform and world velocity ``(3,)`` of the sensor at time ``t``."""
+    base = scene.trajectory.transform(t)
+    return base @ base_to_sensor, scene.trajectory.velocity(t)
+
+
+def radar_scatterers(scene: Scene, t: float, pose: Transform, velocity: np.ndarray, *,
+                     cfg: RadarSimConfig = RadarSimConfig(), generator: torch.Generator | None = None,
+                     device: torch.device | str | None = None) -> Scatterers:
+    """Scatterers visible from a radar at world pose ``pose`` (world <- sensor) at time ``t``.
+
+    Parameters
+    ----------
+    scene : Scene
+    t : float
+        Time (s); people move.
+    pose : Transform
+        World <- radar.
+    velocity : array (3,)
+        World velocity of the radar (ego motion -> Doppler of static surfaces).
+    cfg : RadarSimConfig
+    generator : torch.Generator, optional
+        Seeds the ray jitter and the scattering phases.
+    """
+    dtype = torch.float32
+    dev = torch.device(device) if device is not None else torch.device("cpu")
+    g = generator
+    geom = scene.geometry(t, dev, dtype)
+    rw, tw = _rot(pose, dtype, dev)
+    n_az = int(2 * cfg.fov_az_deg / cfg.az_step_deg) + 1
+    n_el = int(2 * cfg.fov_el_deg / cfg.el_step_deg) + 1
+    step_az, step_el = math.radians(cfg.az_step_deg), math.radians(cfg.el_step_deg)
+    az = torch.linspace(-math.radians(cfg.fov_az_deg), math.radians(cfg.fov_az_deg), n_az, device=dev)
+    el = torch.linspace(-math.radians(cfg.fov_el_deg), math.radians(cfg.fov_el_deg), n_el, device=dev)
+    a, e = torch.meshgrid(az, el, indexing="ij")
+    a = a.reshape(-1) + (torch.rand(a.numel(), generator=g, device=dev) - 0.5) * step_az
+    e = e.reshape(-1) + (torch.rand(e.numel(), generator=g, device=dev) - 0.5) * step_el
+    u = torch.stack([e.cos() * a.cos(), e.cos() * a.sin(), e.sin()], -1)          # (M, 3) sensor frame
+    hits = ray_cast(geom, tw, u @ rw.T, max_range=cfg.max_range_m)
+    keep = hits.hit & (hits.t >= cfg.min_range_m)
+    uw = (u @ rw.T)[keep]
+    r = hits.t[keep]
+    cos_i = (hits.normal[keep] * uw).sum(-1).abs().clamp(0, 1)
+    theta = torch.acos(cos_i)
+    mat = hits.material[keep]
+    sig0 = torch.tensor([m.radar_diffuse for m in MATERIALS], dtype=dtype, device=dev)[mat]
+    ks = torch.tensor([m.radar_specular for m in MATERIALS], dtype=dtype, device=dev)[mat]
+    ths = torch.tensor([math.radians(m.specular_width_deg) for m in MATERIALS], dtype=dtype, device=dev)[mat]
+    d_omega = step_az * step_el * e[keep].cos()
+    rcs = r ** 2 * d_omega * sig0 * (cos_i + ks * torch.exp(-(theta / ths) ** 2))
+    pts_w = hits.point[keep]
+    vel_w = hits.velocity[keep]
+    if cfg.edges and scene.boxes.shape[0]:
+        ep, ercs = _edge_points(scene, geom, tw, cfg, dev, dtype)
+        if ep.shape[0]:
+            pts_w = torch.cat([pts_w, ep])
+            rcs = torch.cat([rcs, ercs])
+            vel_w = torch.cat([vel_w, torch.zeros_like(ep)])
+    if cfg.multipath and scene.mirror_planes and pts_w.shape[0]:
+        k = min(cfg.ghost_count, pts_w.shape[0])
+        top = torch.topk(rcs, k).indices
+        for n_vec, c0 in scene.mirror_planes:
+            nv = torch.tensor(n_vec, dtype=dtype, device=dev)
+            side_s = float((tw * nv).sum() - c0)
+            dp = (pts_w[top] * nv).sum(-1) - c0
+            same = torch.sign(dp) == math.copysign(1.0, side_s)
+            gp = pts_w[top] - 2 * dp[:, None] * nv
+            gv = vel_w[top] - 2 * (vel_w[top] * nv).sum(-1, keepdim=True) * nv
+            pts_w = torch.cat([pts_w, gp[same]])
+            rcs = torch.cat([rcs, rcs[top][same] * cfg.ghost_gain ** 2])
+            vel_w = torch.cat([vel_w, gv[same]])
+    # sensor frame, radial velocity
+    pts = (pts_w - tw) @ rw                                                          # R^T (p - t)
+    rng_ = pts.norm(dim=1).clamp_min(1e-6)
+    uw_all = (pts_w - tw) / rng_[:, None]
+    v_rel = vel_w - torch.as_tensor(np.asarray(velocity, dtype=np.float32), device=dev)
+    v_r = (v_rel * uw_all).sum(-1)
+    if pts.shape[0] > cfg.max_scatterers:
+        idx = torch.topk(rcs, cfg.max_scatterers).indices
+        pts, rcs, v_r = pts[idx], rcs[idx], v_r[idx]
+    phase = torch.rand(pts.shape[0], generator=g, device=dev) * (2 * math.pi)
+    return Scatterers(pts, rcs, phase, v_r)
+
+
+def _edge_points(scene: Scene, geom, origin, cfg: RadarSimConfig, dev, dtype):
+    b = scene.boxes
+    tall = b[:, 5] > 0.2
+    if not tall.any():
+        return torch.zeros((0, 3), dtype=dtype, device=dev), torch.zeros(0, dtype=dtype, device=dev)
+    bb = b[tall]
+    pts = []
+    mats = []
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            c, s = np.cos(bb[:, 6]), np.sin(bb[:, 6])
+            lx, ly = sx * bb[:, 3], sy * bb[:, 4]
+            x = bb[:, 0] + c * lx - s * ly
+            y = bb[:, 1] + s * lx + c * ly
+            z0 = np.maximum(bb[:, 2] - bb[:, 5], 0.0)
+            z1 = np.minimum(bb[:, 2] + bb[:, 5], 2.6)
+            for i in range(len(bb)):
+                if z1[i] <= z0[i]:
+                    continue
+                zs = np.arange(z0[i] + cfg.edge_spacing_m / 2, z1[i], cfg.edge_spacing_m)
+                pts.append(np.stack([np.full_like(zs, x[i]), np.full_like(zs, y[i]), zs], 1))
+                mats.append(np.full(len(zs), bb[i, 7]))
+    if not pts:
+        return torch.zeros((0, 3), dtype=dtype, device=dev), torch.zeros(0, dtype=dtype, device=dev)
+    p = torch.as_tensor(np.concatenate(pts), dtype=dtype, device=dev)
+    m = torch.as_tensor(np.concatenate(mats).astype(np.int64), device=dev)
+    rel = p - origin
+    dist = rel.norm(dim=1)
+    near = (dist < cfg.max_range_m) & (dist > cfg.min_range_m)
+    p, m, rel, dist = p[near], m[near], rel[near], dist[near]
+    if p.shape[0] == 0:
+        return p, dist
+    hits = ray_cast(geom, origin, rel / dist[:, None])
+    visible = hits.t >= dist - 0.08
+    ks = torch.tensor([mm.radar_specular for mm in MATERIALS], dtype=dtype, device=dev)[m]
+    rcs = cfg.edge_rcs_m2 * (1 + ks.sqrt())
+    return p[visible], rcs[visible]
+
+
+# ------------------------------------------------------------------------------------------------
+def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_lsb: float = 1000.0,
+                exact: bool = False, chunk: int = 256) -> torch.Tensor:
+    """Noise-free complex beat signal ``(tx, rx, chirps, samples)`` (complex64, LSB units).
+
+    See the module docstring for the formula. Computed in float64 phases on the scatterers'
+    device, chunked over scatterers.
+    """
+    dev = scat.points.device
+    w, ant = chip.waveform, chip.antenna
+    ntx, nrx, nc, ns = w.num_tx, w.num_rx, w.num_chirps_per_frame, w.num_adc_samples_per_chirp
+    f64 = torch.float64
+    p = scat.points.to(f64)
+    r0 = p.norm(dim=1).clamp_min(1e-3)
+    u = p / r0[:, None]
+    amp = gain_lsb * scat.rcs.to(f64).clamp_min(0).sqrt() / r0 ** 2
+    f0, slope, tc = w.start_frequency, w.frequency_slope, w.chirp_period_s
+    d = chip.element_spacing
+    tx = torch.as_tensor(np.asarray(ant.tx_positions), dtype=f64, device=dev)      # (ntx, 2)
+    rx = torch.as_tensor(np.asarray(ant.rx_positions), dtype=f64, device=dev)      # (nrx, 2)
+    t_chirp = ((torch.arange(nc, device=dev, dtype=f64)[None, :] * ntx
+                + torch.arange(ntx, device=dev, dtype=f64)[:, None]) * tc)          # (ntx, nc)
+    t_k = w.adc_start_time + torch.arange(ns, device=dev, dtype=f64) / w.adc_sample_frequency
+    t_mid = 0.5 * nc * ntx * tc
+    out = torch.zeros((ntx, nrx, nc, ns), dtype=torch.complex128, device=dev)
+    two_pi = 2 * math.pi
+    for s in range(0, p.shape[0], chunk):
+        sl = slice(s, s + chunk)
+        rr, vv, uu = r0[sl], scat.velocity[sl].to(f64), u[sl]
+        tau = 2 * (rr[None, None, :] + vv[None, None, :] * t_chirp[:, :, None]) / SPEED_OF_LIGHT  # (ntx, nc, n)
+        slow = two_pi * (f0 * tau - 0.5 * slope * tau ** 2)
+        arr_tx = two_pi * d * (tx[:, 0:1] * uu[None, :, 1] + tx[:, 1:2] * uu[None, :, 2])      # (ntx, n)
+        arr_rx = two_pi * d * (rx[:, 0:1] * uu[None, :, 1] + rx[:, 1:2] * uu[None, :, 2])      # (nrx, n)
+        coef = amp[sl] * torch.exp(1j * scat.phase[sl].to(f64))
+        if exact:
+            ph = (slow[:, None, :, None, :] + arr_tx[:, None, None, None, :] + arr_rx[None, :, None, None, :]
+                  + two_pi * slope * tau[:, None, :, None, :] * t_k[None, None, None, :, None])
+            out += (coef * torch.exp(1j * ph)).sum(-1)
+        else:
+            tau_mid = 2 * (rr + vv * t_mid) / SPEED_OF_LIGHT
+            fast = torch.exp(1j * two_pi * slope * tau_mid[:, None] * t_k[None, :])            # (n, ns)
+            a = (coef * torch.exp(1j * (slow[:, None] + arr_tx[:, None, None, :] + arr_rx[None, :, None, :])))
+            out += (a.reshape(-1, a.shape[-1]) @ fast).reshape(ntx, nrx, nc, ns)
+    return out.to(torch.complex64)
+
+
+def synthesize_adc(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *,
+                   cfg: RadarSimConfig = RadarSimConfig(), generator: torch.Generator | None = None,
+                   exact: bool = False) -> torch.Tensor:
+    """Single-chip ADC frame: beat signal + complex noise, rounded to int16 I/Q.
+
+    Returns
+    -------
+    torch.Tensor
+        int16 ``(tx, rx, chirps, samples, 2)`` on the scatterers' device.
+    """
+    s = beat_signal(scat, chip, gain_lsb=cfg.adc_gain_lsb, exact=exact)
+    iq = torch.view_as_real(s)
+    if cfg.adc_noise_lsb > 0:
+        iq = iq + cfg.adc_noise_lsb * torch.randn(iq.shape, generator=generator, device=iq.device,
+                                                  dtype=iq.dtype)
+    return torch.round(iq).clamp(-32768, 32767).to(torch.int16)
+
+
+# ------------------------------------------------------------------------------------------------
+def _dirichlet(x: torch.Tensor, n: int, nfft: int) -> torch.Tensor:
+    # sum_{k<n} exp(-j 2 pi k x / nfft) in closed form (complex, float64)
+    a = math.pi * x / nfft
+    small = a.abs() < 1e-9
+    ratio = torch.where(small, torch.full_like(a, float(n)), torch.sin(n * a) / torch.where(small, torch.ones_like(a), torch.sin(a)))
+    return ratio * torch.exp(-1j * (n - 1) * a)
+
+
+def _hann_response_power(delta: torch.Tensor, n: int, nfft: int) -> torch.Tensor:
+    """``|W(delta)|^2 / |W(0)|^2`` of an ``n``-sample periodic Hann window in an ``nfft`` FFT."""
+    sh = nfft / n
+    wv = 0.5 * _dirichlet(delta, n, nfft) - 0.25 * _dirichlet(delta - sh, n, nfft) - 0.25 * _dirichlet(delta + sh, n, nfft)
+    return (wv.abs() ** 2) / (0.5 * n) ** 2
+
+
+def cascade_heatmap(scat: Scatterers, chip: ColoRadarChipConfig = CASCADE, *,
+                    cfg: RadarSimConfig = RadarSimConfig(), generator: torch.Generator | None = None,
+                    noise: bool = True) -> torch.Tensor:
+    """Cascade heatmap float32 ``(elevation, azimuth, range, 2)`` (intensity = SNR, Doppler m/s).
+
+    ``scat`` must be expressed in the cascade's frame.
+    """
+    dev = scat.points.device
+    w, hm = chip.waveform, chip.heatmap
+    f32 = torch.float32
+    p = scat.points.to(f32)
+    r0 = p.norm(dim=1).clamp_min(1e-3)
+    u = p / r0[:, None]
+    nr, na, ne = hm.num_range_bins, hm.num_azimuth_bins, hm.num_elevation_bins
+    # per-scatterer SNR after coherent integration over samples, chirps and unique virtual elements
+    vpos = np.unique(chip.virtual_positions, axis=0)                                  # (V, 2)
+    n_int = w.num_adc_samples_per_chirp * w.num_chirps_per_frame * vpos.shape[0]
+    amp = cfg.adc_gain_lsb * scat.rcs.to(f32).clamp_min(0).sqrt() / r0 ** 2
+    snr = amp ** 2 / max(2 * cfg.adc_noise_lsb ** 2, 1e-12) * n_int * 0.375            # Hann loss 0.375
+    keep = r0 <= (nr + 2) * hm.range_bin_width
+    p_snr, u, r0, vel = snr[keep], u[keep], r0[keep], scat.velocity[keep].to(f32)
+    # range response of a Hann-windowed FFT, |W(delta)|^2 / |W(0)|^2, delta in bins
+    nfft = int(round(SPEED_OF_LIGHT * w.adc_sample_frequency / (2 * w.frequency_slope * hm.range_bin_width)))
+    delta = torch.arange(nr, device=dev, dtype=torch.float64)[:, None] - (r0.double() / hm.range_bin_width)[None, :]
+    wr = _hann_response_power(delta, w.num_adc_samples_per_chirp, nfft).to(f32)     # (R, N)
+    # beamformer power on the heatmap's (sin az, sin el) grid, factorized over elevation rows
+    d = chip.element_spacing
+    s_az = torch.sin(torch.as_tensor(hm.azimuth_bins, dtype=f32, device=dev))
+    s_el = torch.sin(torch.as_tensor(hm.elevation_bins, dtype=f32, device=dev))
+    rows = np.unique(vpos[:, 1])
+    af = torch.zeros((u.shape[0], na, ne), dtype=torch.complex64, device=dev)
+    for pv in rows:
+        ph_pos = torch.as_tensor(vpos[vpos[:, 1] == pv, 0], dtype=f32, device=dev)     # (H,)
+        e_in = torch.exp(1j * 2 * math.pi * d * ph_pos[None, :] * u[:, 1:2])          # (N, H)
+        e_out = torch.exp(-1j * 2 * math.pi * d * ph_pos[:, None] * s_az[None, :])    # (H, A)
+        g_row = e_in @ e_out                                                          # (N, A)
+        e_el = torch.exp(1j * 2 * math.pi * d * float(pv) * (u[:, 2:3] - s_el[None, :]))  # (N, E)
+        af += g_row[:, :, None] * e_el[:, None, :]
+    bf = (af.abs() ** 2) / vpos.shape[0] ** 2                                         # (N, A, E)
+    contrib = bf.reshape(bf.shape[0], -1) * p_snr[:, None]                             # (N, A*E)
+    inten = wr @ contrib                                                              # (R, A*E)
+    vsum = wr @ (contrib * vel[:, None])
+    vmax, nd = w.max_velocity_mps, w.num_chirps_per_frame
+    vbin = 2 * vmax / nd
+    dop = vsum / inten.clamp_min(1e-12)
+    dop = torch.remainder(dop + vmax, 2 * vmax) - vmax
+    dop = torch.round(dop / vbin) * vbin
+    if noise:
+        nz = -torch.log(torch.rand(inten.shape, generator=generator, device=dev).clamp_min(1e-12)) * cfg.heatmap_noise
+        rand_v = (torch.randint(0, nd, inten.shape, generator=generator, device=dev) - nd // 2).to(f32) * vbin
+        dop = torch.where(inten > nz, dop, rand_v)
+        inten = inten + nz
+    out = torch.stack([inten, dop], -1).reshape(nr, na, ne, 2).permute(2, 1, 0, 3)    # (E, A, R, 2)
+    return out.contiguous().to(f32)
+
+
+# ------------------------------------------------------------------------------------------------
+def lidar_directions(cfg: LidarConfig = LidarConfig(), device: torch.device | str | None = None) -> torch.Tensor:
+    """Unit ray directions ``(beams * azimuth_steps, 3)`` in the LiDAR frame, row ``beam * steps + j``.
+
+    Beams are evenly spaced over ``elevation_deg`` (top beam first); azimuth goes around from
+    +x counter-clockwise.
+    """
+    el = torch.linspace(math.radians(cfg.elevation_deg[1]), math.radians(cfg.elevation_deg[0]), cfg.beams,
+                        device=device)
+    az = torch.arange(cfg.azimuth_steps, device=device, dtype=torch.float32) * (2 * math.pi / cfg.azimuth_steps)
+    e, a = torch.meshgrid(el, az, indexing="ij")
+    return torch.stack([e.cos() * a.cos(), e.cos() * a.sin(), e.sin()], -1).reshape(-1, 3)
+
+
+def lidar_scan(scene: Scene, t: float, pose: Transform, *, cfg: LidarConfig = LidarConfig(),
+               generator: torch.Generator | None = None, device: torch.device | str | None = None) -> torch.Tensor:
+    """One LiDAR revolution at world pose ``pose`` (world <- lidar): float32 ``(M, 4)`` x, y, z,
+    intensity in the LiDAR frame; rays without return are all-zero rows."""
+    dev = torch.device(device) if device is not None else torch.device("cpu")
+    geom = scene.geometry(t, dev)
+    rw, tw = _rot(pose, torch.float32, dev)
+    dl = lidar_directions(cfg, dev)
+    hits = ray_cast(geom, tw, dl @ rw.T, max_range=cfg.max_range_m)
+    r = hits.t + cfg.range_noise_m * torch.randn(hits.t.shape, generator=generator, device=dev)
+    keep = hits.hit & (torch.rand(hits.t.shape, generator=generator, device=dev) >= cfg.dropout) & (r > 0.2)
+    refl = torch.tensor([m.lidar_reflectivity for m in MATERIALS], device=dev)[hits.material.clamp_min(0)]
+    cos_i = (hits.normal * (dl @ rw.T)).sum(-1).abs()
+    inten = 200.0 * refl * cos_i / (1 + (hits.t.clamp(max=1e4) / 20.0) ** 2) + 2 * torch.rand(
+        hits.t.shape, generator=generator, device=dev)
+    xyz = dl * r.clamp(max=1e4)[:, None]
+    out = torch.cat([xyz, inten[:, None]], 1)
+    return torch.where(keep[:, None], out, torch.zeros_like(out)).to(torch.float32)
+
+
+# ------------------------------------------------------------------------------------------------
+def simulate_frame(scene: Scene, t: float, *, calib: ColoRadarCalib = DEFAULT_CALIB,
+                   radar: RadarSimConfig = RadarSimConfig(), lidar: LidarConfig = LidarConfig(),
+                   heatmap: bool = True, seed: int = 0, device: torch.device | str | None = None) -> SimFrame:
+    """Simulate every sensor of the rig at one time ``t`` (the unit the benchmark times).
+
+    Returns single-chip ADC (int16), cascade heatmap (float32, if ``heatmap`` and the calibration
+    has a cascade) and LiDAR scan (float32, LiDAR frame), all as NumPy arrays.
+    """
+    dev = torch.device(device) if device is not None else torch.device("cpu")
+    gen = torch.Generator(device=dev)
+    gen.manual_seed(int(seed))
+    pose_sc, vel = sensor_pose(scene, t, calib.base_to_single_chip)
+    scat = radar_scatterers(scene, t, pose_sc, vel, cfg=radar, generator=gen, device=dev)
+    adc = synthesize_adc(scat, calib.single_chip, cfg=radar, generator=gen).cpu().numpy()
+    hm = None
+    if heatmap and calib.cascade is not None and calib.base_to_cascade is not None:
+        sc_to_cc = calib.base_to_cascade.inverse() @ calib.base_to_single_chip
+        hm = cascade_heatmap(scat.to_frame(sc_to_cc), calib.cascade, cfg=radar, generator=gen).cpu().numpy()
+    pose_l, _ = sensor_pose(scene, t, calib.base_to_lidar)
+    cloud = lidar_scan(scene, t, pose_l, cfg=lidar, generator=gen, device=dev).cpu().numpy()
+    return SimFrame(adc, hm, cloud, scat)

@@ -1,0 +1,257 @@
+"""Write a simulated dataset in ColoRadar's on-disk layout.
+
+::
+
+    OUT/
+      simulation.json                      resolved simulator settings (resume key)
+      calib/single_chip/{waveform_cfg,antenna_cfg,heatmap_cfg,coupling_calib}.txt
+      calib/cascade/{waveform_cfg,antenna_cfg,heatmap_cfg,coupling_calib}.txt, phase_frequency_calib.txt
+      calib/transforms/base_to_{single_chip,cascade,lidar}.txt
+      {scene}_run{k}/
+        single_chip/adc_samples/data/frame_{i}.bin       int16 [tx, rx, chirps, samples, 2]
+        single_chip/adc_samples/timestamps.txt
+        cascade/heatmaps/data/heatmap_{i}.bin            float32 [el, az, range, 2]
+        cascade/heatmaps/timestamps.txt
+        lidar/pointclouds/lidar_pointcloud_{i}.bin       float32 [N, 4] x y z intensity (LiDAR frame)
+        lidar/timestamps.txt
+        groundtruth/groundtruth_poses.txt                x y z qx qy qz qw (world <- base)
+        groundtruth/timestamps.txt
+
+Timestamps are Unix seconds. Radar frames are ~10 Hz (with jitter); LiDAR scans are 10 Hz with a
+run-specific phase offset and start one period before the first radar frame and end one after,
+so nearest-timestamp pairing is needed; poses are 20 Hz. Every file is written atomically;
+an interrupted job resumes (existing files of the right size are kept) when called again with
+the same settings; a non-empty folder written with other settings is refused unless
+``overwrite=True``. Each frame draws its randomness from a generator seeded by
+``(seed, scene, run, frame, sensor)``, so resumed output is identical to an uninterrupted one.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from radarpc.io import atomic_write
+from radarpc.sensors.coloradar import DEFAULT_CALIB, ColoRadarCalib, write_calib
+from radarpc.sim.coloradar_synth import (
+    LidarConfig,
+    RadarSimConfig,
+    cascade_heatmap,
+    lidar_scan,
+    radar_scatterers,
+    sensor_pose,
+    synthesize_adc,
+)
+from radarpc.sim.indoor import SCENE_KINDS, Scene, make_scene
+
+__all__ = ["RunTimeline", "run_timeline", "run_name", "write_coloradar", "write_run"]
+
+_EPOCH = 1_614_000_000.0   # Feb 2021, like the dataset
+
+
+def run_name(scene: str, run: int) -> str:
+    """Folder name of run ``run`` of ``scene``: ``{scene}_run{run}`` (ColoRadar's suffix)."""
+    return f"{scene}_run{run}"
+
+
+@dataclass(frozen=True)
+class RunTimeline:
+    """Timestamps (scene seconds) of one run's sensors."""
+
+    radar: np.ndarray       # (F,) single-chip frames
+    cascade: np.ndarray     # (F,) cascade heatmaps
+    lidar: np.ndarray       # (F + 2,) LiDAR scans
+    poses: np.ndarray       # (P,) ground-truth poses
+    epoch: float            # Unix time of scene time 0
+
+
+def run_timeline(frames: int, duration: float, rng: np.random.Generator, epoch: float = _EPOCH) -> RunTimeline:
+    """Radar at ~10 Hz, LiDAR at 10 Hz with a random phase, poses at 20 Hz, covering ``frames``."""
+    if frames < 1:
+        raise ValueError(f"frames must be >= 1, got {frames}")
+    t0 = 0.3
+    radar = t0 + np.arange(frames) * 0.1 + rng.uniform(-0.003, 0.003, frames)
+    cascade = radar + 0.013
+    off = float(rng.uniform(0.02, 0.08))
+    lidar = t0 - 0.1 + off + np.arange(frames + 2) * 0.1
+    end = max(radar[-1], lidar[-1], cascade[-1]) + 0.2
+    poses = np.arange(0.0, end, 0.05)
+    return RunTimeline(radar, cascade, lidar, poses, epoch)
+
+
+def _gen(seed: int, *key) -> torch.Generator:
+    g = torch.Generator()
+    g.manual_seed(zlib.crc32(json.dumps([int(seed), *key]).encode()) & 0x7FFFFFFF)
+    return g
+
+
+def _write_bin(path: Path, arr: np.ndarray) -> None:
+    with atomic_write(path, "wb") as f:
+        f.write(np.ascontiguousarray(arr).tobytes())
+
+
+def _write_lines(path: Path, lines: Sequence[str]) -> None:
+    with atomic_write(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+
+
+def _done(path: Path, nbytes: int | None, resume: bool) -> bool:
+    if not resume or not path.is_file():
+        return False
+    return nbytes is None or path.stat().st_size == nbytes
+
+
+def write_run(run_dir: str | os.PathLike, scene: Scene, frames: int, *, seed: int, key: tuple,
+              calib: ColoRadarCalib = DEFAULT_CALIB, radar: RadarSimConfig = RadarSimConfig(),
+              lidar: LidarConfig = LidarConfig(), resume: bool = True,
+              device: torch.device | str | None = None, progress=None) -> None:
+    """Write one run folder (see the module docstring). ``progress``: a tqdm bar or None."""
+    run_dir = Path(run_dir)
+    rng = np.random.default_rng(zlib.crc32(json.dumps([int(seed), *key, "timeline"]).encode()))
+    # slow the rig down if the path is too short for the requested number of frames
+    need = 0.1 * (frames + 3) + 0.5
+    if scene.trajectory.duration < need:
+        scene = dataclasses.replace(scene, trajectory=dataclasses.replace(
+            scene.trajectory, speed=scene.trajectory.length / need))
+    tl = run_timeline(frames, scene.trajectory.duration, rng)
+    ep = tl.epoch + 1000.0 * (zlib.crc32(json.dumps(list(key)).encode()) % 10_000)
+    fmt = lambda ts: [f"{ep + t:.6f}" for t in ts]  # noqa: E731
+    # ground truth and timestamps first (cheap, deterministic)
+    poses = [np.concatenate(scene.trajectory.pose(float(t))) for t in tl.poses]
+    _write_lines(run_dir / "groundtruth" / "groundtruth_poses.txt",
+                 [" ".join(f"{v:.9f}" for v in p) for p in poses])
+    _write_lines(run_dir / "groundtruth" / "timestamps.txt", fmt(tl.poses))
+    _write_lines(run_dir / "single_chip" / "adc_samples" / "timestamps.txt", fmt(tl.radar))
+    _write_lines(run_dir / "lidar" / "timestamps.txt", fmt(tl.lidar))
+    has_cc = calib.cascade is not None and calib.base_to_cascade is not None
+    if has_cc:
+        _write_lines(run_dir / "cascade" / "heatmaps" / "timestamps.txt", fmt(tl.cascade))
+    sc_to_cc = calib.base_to_cascade.inverse() @ calib.base_to_single_chip if has_cc else None
+    adc_dir = run_dir / "single_chip" / "adc_samples" / "data"
+    hm_dir = run_dir / "cascade" / "heatmaps" / "data"
+    for i, t in enumerate(tl.radar):
+        f_adc, f_hm = adc_dir / f"frame_{i}.bin", hm_dir / f"heatmap_{i}.bin"
+        need_adc = not _done(f_adc, calib.single_chip.adc_nbytes, resume)
+        need_hm = has_cc and not _done(f_hm, calib.cascade.heatmap_nbytes if has_cc else None, resume)
+        if need_adc or need_hm:
+            gen = _gen(seed, *key, i, "radar")
+            pose, vel = sensor_pose(scene, float(t), calib.base_to_single_chip)
+            scat = radar_scatterers(scene, float(t), pose, vel, cfg=radar, generator=gen, device=device)
+            if need_adc:
+                adc = synthesize_adc(scat, calib.single_chip, cfg=radar,
+                                     generator=_to_device(_gen(seed, *key, i, "adc"), scat.points.device))
+                _write_bin(f_adc, adc.cpu().numpy())
+            if need_hm:
+                hm = cascade_heatmap(scat.to_frame(sc_to_cc), calib.cascade, cfg=radar,
+                                     generator=_to_device(_gen(seed, *key, i, "heatmap"), scat.points.device))
+                _write_bin(f_hm, hm.cpu().numpy())
+        if progress is not None:
+            progress.update(1)
+    n_l = lidar.beams * lidar.azimuth_steps * 16
+    for j, t in enumerate(tl.lidar):
+        f_l = run_dir / "lidar" / "pointclouds" / f"lidar_pointcloud_{j}.bin"
+        if not _done(f_l, n_l, resume):
+            pose, _ = sensor_pose(scene, float(t), calib.base_to_lidar)
+            dev = torch.device(device) if device is not None else torch.device("cpu")
+            cloud = lidar_scan(scene, float(t), pose, cfg=lidar,
+                               generator=_to_device(_gen(seed, *key, j, "lidar"), dev), device=dev)
+            _write_bin(f_l, cloud.cpu().numpy().astype(np.float32))
+        if progress is not None:
+            progress.update(1)
+
+
+def _to_device(gen: torch.Generator, device: torch.device) -> torch.Generator:
+    if device.type == "cpu":
+        return gen
+    g = torch.Generator(device=device)
+    g.manual_seed(int(gen.initial_seed()))
+    return g
+
+
+def write_coloradar(out: str | os.PathLike, scenes: Sequence[str], runs_per_scene: int, frames: int,
+                    seed: int = 0, *, overwrite: bool = False, lidar_beams: int = 64,
+                    lidar_azimuth_steps: int = 1024, calib: ColoRadarCalib = DEFAULT_CALIB,
+                    radar: RadarSimConfig = RadarSimConfig(), device: torch.device | str | None = None,
+                    progress: bool = True) -> Path:
+    """Simulate ``runs_per_scene`` runs of each scene, ``frames`` radar frames each, into ``out``.
+
+    Parameters
+    ----------
+    out : path-like
+        Dataset root (created).
+    scenes : sequence of str
+        Scene kinds from :data:`radarpc.sim.indoor.SCENE_KINDS`.
+    runs_per_scene, frames : int
+        Runs per scene (folders ``{scene}_run{k}``) and radar frames per run.
+    seed : int
+        Master seed; the environment of a scene depends on it, runs vary the path and people.
+    overwrite : bool
+        Allow writing into a non-empty folder made with other settings (files are rewritten).
+    lidar_beams, lidar_azimuth_steps : int
+        LiDAR pattern (OS1-64: 64 x 1024).
+    device : torch device, optional
+        Where to synthesize (CPU default; CUDA when given).
+    progress : bool
+        Show a tqdm bar.
+
+    Returns
+    -------
+    pathlib.Path
+        ``out``.
+    """
+    scenes = list(scenes)
+    bad = [s for s in scenes if s not in SCENE_KINDS]
+    if not scenes or bad:
+        raise ValueError(f"scenes must be a non-empty list from {SCENE_KINDS}, got {scenes}")
+    if runs_per_scene < 1 or frames < 1:
+        raise ValueError(f"runs_per_scene and frames must be >= 1, got {runs_per_scene}, {frames}")
+    if lidar_beams < 1 or lidar_azimuth_steps < 1:
+        raise ValueError(f"lidar_beams and lidar_azimuth_steps must be >= 1, got {lidar_beams}, {lidar_azimuth_steps}")
+    out = Path(out)
+    lidar = LidarConfig(beams=int(lidar_beams), azimuth_steps=int(lidar_azimuth_steps))
+    settings = {"format": "coloradar", "generator": "radarpc.sim.coloradar_writer", "version": 1,
+                "scenes": scenes, "runs_per_scene": int(runs_per_scene), "frames": int(frames),
+                "seed": int(seed), "lidar": dataclasses.asdict(lidar), "radar": dataclasses.asdict(radar),
+                "single_chip": calib.single_chip.name,
+                "cascade": calib.cascade.name if calib.cascade is not None else None}
+    settings = json.loads(json.dumps(settings))
+    manifest = out / "simulation.json"
+    resume = True
+    if out.exists() and any(out.iterdir()):
+        same = False
+        if manifest.is_file():
+            try:
+                same = json.loads(manifest.read_text()) == settings
+            except (ValueError, OSError):
+                same = False
+        if not same:
+            if not overwrite:
+                raise FileExistsError(f"{out} is not empty and was not written with these settings; "
+                                      "pass overwrite=True (--overwrite) to write into it")
+            resume = False
+    with atomic_write(manifest, "w") as f:
+        json.dump(settings, f, indent=1)
+    write_calib(out / "calib", calib)
+    total = len(scenes) * runs_per_scene * (2 * frames + 2)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=total, desc="simulate coloradar", unit="file")
+    try:
+        for kind in scenes:
+            for k in range(runs_per_scene):
+                scene = make_scene(kind, seed, k)
+                write_run(out / run_name(kind, k), scene, frames, seed=seed, key=(kind, k), calib=calib,
+                          radar=radar, lidar=lidar, resume=resume, device=device, progress=bar)
+    finally:
+        if bar is not None:
+            bar.close()
+    return out
+
