@@ -189,6 +189,13 @@ def test_bad_files_name_the_file(tmp_path):
     pq.write_table(t.replace_schema_metadata({METADATA_KEY: json.dumps(doc).encode()}), lie)
     with pytest.raises(DataFileError, match="holds 3 rows but its frame table counts 4"):
         PointStore(lie)
+    # frame table naming other frames than the rows hold (row-group statistics disagree)
+    doc = json.loads(kv[METADATA_KEY])
+    doc["frames"]["frame"] = [100, 101]
+    moved = tmp_path / "moved.parquet"
+    pq.write_table(t.replace_schema_metadata({METADATA_KEY: json.dumps(doc).encode()}), moved)
+    with pytest.raises(DataFileError, match="row group 0 holds frames 0..1 but the frame table puts frames 100..101"):
+        PointStore(moved)
     # truncated file
     trunc = tmp_path / "trunc.parquet"
     trunc.write_bytes(good.read_bytes()[:-40])

@@ -124,21 +124,26 @@ def plot_frame(root: str | Path, frame: int, out: str | Path, settings: ConvertS
     def db(a: np.ndarray) -> np.ndarray:
         return 20.0 * np.log10(np.maximum(a, 1e-12 * max(float(a.max()), 1e-30)))  # magnitudes -> dB
 
-    fig, ax = plt.subplots(1, 3, figsize=(17, 6), gridspec_kw={"width_ratios": [1.5, 0.8, 1.3]})
+    fig, ax = plt.subplots(1, 3, figsize=(17, 6.5), gridspec_kw={"width_ratios": [1.4, 0.8, 1.4]})
     rmax = cfg.max_range_m
     im0 = ax[0].imshow(db(full), aspect="auto", origin="lower", cmap="viridis",
                        extent=(-0.5, cfg.n_doppler - 0.5, 0.0, rmax))
-    rr, dd = np.nonzero(mask_full)
-    ax[0].scatter(dd, (rr + 0.5) * cfg.range_res_m, s=6, facecolors="none", edgecolors="r", linewidths=0.6,
-                  label=f"S(tau): {int(mask_full.sum())} cells")
+    # S(tau) as an exact per-cell overlay (markers would hide the spectrum on a 512 x 256 grid)
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
+    ax[0].imshow(np.ma.masked_where(~mask_full, mask_full.astype(float)), aspect="auto", origin="lower",
+                 cmap=ListedColormap(["red"]), alpha=0.85, interpolation="nearest",
+                 extent=(-0.5, cfg.n_doppler - 0.5, 0.0, rmax))
+    ax[0].legend(handles=[Patch(color="red", label=f"S(tau): {int(mask_full.sum())} cells")],
+                 loc="upper right", fontsize=8)
     ax[0].set(xlabel="Doppler bin (full axis)", ylabel="range [m]",
               title=f"sum_rx |R| [dB], frame {frame}")
-    ax[0].legend(loc="upper right", fontsize=8)
     fig.colorbar(im0, ax=ax[0], label="dB")
     im1 = ax[1].imshow(db(e), aspect="auto", origin="lower", cmap="magma",
                        extent=(-0.5, cfg.slot_width - 0.5, 0.0, rmax))
     pr, pl = np.nonzero(pk)
-    ax[1].scatter(pl, (pr + 0.5) * cfg.range_res_m, s=10, marker="x", c="cyan", linewidths=0.8,
+    ax[1].scatter(pl, (pr + 0.5) * cfg.range_res_m, s=8, marker="x", c="cyan", linewidths=0.6,
                   label=f"P(tau): {int(pk.sum())} peaks")
     ax[1].set(xlabel="consolidated Doppler l", ylabel="range [m]", title="envelope E(r, l) [dB] + CFAR")
     ax[1].legend(loc="upper right", fontsize=8)
@@ -153,7 +158,8 @@ def plot_frame(root: str | Path, frame: int, out: str | Path, settings: ConvertS
                   label=f"labelled vehicles ({len(gx)})")
     ax[2].set(xlabel="y [m] (left +)", ylabel="x [m] (forward)",
               title=f"BEV: {len(x)} points, density {density:.4f}, tau {tau_used:.3g}")
-    ax[2].set_xlim(rmax, -rmax)  # left of the car drawn on the left
+    half = max(10.0, 1.05 * float(np.abs(np.concatenate([y, gy])).max()) if len(y) + len(gy) else 10.0)
+    ax[2].set_xlim(min(half, rmax), -min(half, rmax))  # left of the car drawn on the left
     ax[2].set_ylim(0.0, rmax)
     ax[2].set_aspect("equal")
     ax[2].legend(loc="upper left", fontsize=7, framealpha=0.6)

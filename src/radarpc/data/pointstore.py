@@ -527,6 +527,7 @@ class PointStore:
             kv = pf.metadata.metadata or {}
             rg_rows = np.asarray([pf.metadata.row_group(i).num_rows for i in range(pf.num_row_groups)],
                                  dtype=np.int64)
+            rg_frames = _frame_stats(pf, schema)                  # [(min, max) or None] per row group
         except (pa.ArrowException, OSError) as e:
             raise DataFileError(self.path, f"is not a readable Parquet file ({e})") from e
         if METADATA_KEY not in kv:
@@ -571,6 +572,11 @@ class PointStore:
         if np.any(nonempty & ~(rg_ok & end_ok)):
             raise DataFileError(self.path, "a frame straddles two row groups; the file was not written by "
                                            "PointStoreWriter")
+        for g, mm in enumerate(rg_frames):  # row-group statistics agree with the frame table
+            ids = ft.frame[(self._rg == g) & nonempty]
+            if mm is not None and ids.size and mm != (int(ids.min()), int(ids.max())):
+                raise DataFileError(self.path, f"row group {g} holds frames {mm[0]}..{mm[1]} but the frame table "
+                                               f"puts frames {int(ids.min())}..{int(ids.max())} there")
         self.num_row_groups = int(len(rg_rows))
         self.frames: list[int] = ft.frame.tolist()
         self.sequences: list[str] = list(ft.sequence)
@@ -646,6 +652,18 @@ class PointStore:
         tau = torch.as_tensor(self.frame_table.tau[idx], dtype=torch.float32)
         dens = torch.as_tensor(self.frame_table.density[idx], dtype=torch.float32)
         return _table_to_batch(table, counts, tau, dens, self.device)
+
+
+def _frame_stats(pf: pq.ParquetFile, schema: pa.Schema) -> list[tuple[int, int] | None]:
+    """``(min, max)`` of the ``frame`` column of every row group, from the footer statistics."""
+    if "frame" not in schema.names:
+        return []
+    col = schema.names.index("frame")
+    out: list[tuple[int, int] | None] = []
+    for g in range(pf.num_row_groups):
+        st = pf.metadata.row_group(g).column(col).statistics
+        out.append((int(st.min), int(st.max)) if st is not None and st.has_min_max else None)
+    return out
 
 
 def _column_numpy(table: pa.Table, name: str) -> np.ndarray:
