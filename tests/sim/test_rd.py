@@ -11,6 +11,7 @@ from radarpc.sim.rd import (
     Scatterers,
     noise_power_rd,
     peak_snr_rd,
+    psf_columns,
     steering_torch,
     synthesize_rd,
     window,
@@ -160,6 +161,15 @@ def test_window_psf_is_the_dtft_of_the_window():
     k = torch.arange(n, dtype=torch.float64)
     brute = (w[None, :] * torch.exp(-2j * math.pi * delta[:, None].double() * k[None, :] / n)).sum(1)
     torch.testing.assert_close(window_psf(delta, n), brute, rtol=0, atol=1e-12)
+
+
+def test_psf_columns_equal_the_closed_form():
+    n = 64
+    b = torch.tensor([0.0, 3.25, 17.5, 63.9, -2.3, 100.7], dtype=torch.float64)
+    i = torch.arange(n, dtype=torch.float64)
+    torch.testing.assert_close(psf_columns(b, n), window_psf(i[:, None] - b[None, :], n), rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match="real"):
+        psf_columns(torch.zeros(3, dtype=torch.complex64), n)
 
 
 def test_steering_torch_matches_numpy_reference():
