@@ -1,0 +1,585 @@
+"""ColoRadar reader: runs, radar cubes as RaLD computes them, paired LiDAR ground truth, Dataset.
+
+Works on the real dataset (run folders such as ``12_21_2020_ec_hallways_run0`` next to ``calib/``)
+and on the simulator's output (:mod:`radarpc.sim.coloradar_writer`) alike.
+
+* :class:`ColoRadarRun` -- one run folder: timestamps, poses, single-chip ADC frames, cascade
+  heatmaps, LiDAR scans, each validated against the calibration (file size must equal the bytes
+  the config implies; NaN/inf rejected; an empty LiDAR scan rejected) with
+  :class:`radarpc.io.DataFileError` naming the file.
+* :func:`pair_radar_lidar` -- nearest-timestamp pairing, pairs farther apart than ``max_dt``
+  dropped (RaLD removes non-overlapping frames).
+* :func:`lidar_to_radar` / :func:`frustum_mask` / :func:`crop_to_frustum` -- LiDAR into the
+  single-chip frame, ``p_radar = T_base_radar^-1 T_base_lidar p_lidar`` (``base_to_X`` files hold
+  translation then quaternion ``qx qy qz qw``, scalar last, mapping X-frame points to base),
+  then the radar frustum (range, azimuth ``atan2(y, x)``, elevation ``asin(z / r)``).
+* :func:`radar_cube` -- RaLD's single-chip processing: DC removal, Blackman window, range FFT
+  (128), Doppler FFT (128, fftshift), TDM velocity compensation, virtual array (8 x 2), azimuth
+  and elevation FFTs (8, 2; fftshift), range ends zeroed (5 %), then per cell the Doppler-summed
+  power normalised by its 30 % quantile, ``10 log10(P + 1)`` (dB), the velocity of the peak
+  Doppler bin and a validity mask (peak > second peak / (1 - 0.3)).
+* :func:`upsample_intensity` -- bilinear (``align_corners=True``) angle upsampling of the
+  intensity to the model grid (128 x 64 x 32), as RaLD's dataset does.
+* :class:`ColoRadar` -- torch ``Dataset`` of paired frames of a split; items are
+  :class:`ColoRadarItem` (upsampled intensity, cropped LiDAR in the radar frame, metadata).
+
+Splits (:func:`split_runs`): runs named in RaLD's published lists (``split_indoor_june.json``,
+``split_outdoor_june.json``) take that split. Any other run (simulated data, runs RaLD did not
+use) follows RaLD's rule per scene: runs sorted by their ``_run{k}`` index, the last one is
+``test``, the one before ``val``, the rest ``train`` (a scene with two runs gives train/test,
+with one run train only). Scene = run name without the ``_run{k}`` suffix.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from radarpc.io import DataFileError
+from radarpc.sensors.coloradar import AWR1843_FOV, ColoRadarCalib, ColoRadarChipConfig, RadarFOV, load_calib
+
+__all__ = [
+    "RALD_SPLITS",
+    "SPLITS",
+    "ColoRadarRun",
+    "RadarCube",
+    "ColoRadarItem",
+    "ColoRadar",
+    "find_runs",
+    "scene_of_run",
+    "split_runs",
+    "read_timestamps",
+    "read_poses",
+    "pair_radar_lidar",
+    "lidar_to_radar",
+    "frustum_mask",
+    "crop_to_frustum",
+    "radar_cube",
+    "upsample_intensity",
+    "collate_coloradar",
+]
+
+SPLITS = ("train", "val", "test")
+
+# RaLD's published run lists (resource/split_files.tar.gz of RoyAPTX4869/RaLD).
+RALD_SPLITS: dict[str, tuple[str, ...]] = {
+    "train": (
+        "12_21_2020_ec_hallways_run0", "12_21_2020_ec_hallways_run1", "12_21_2020_ec_hallways_run2",
+        "12_21_2020_arpg_lab_run0", "12_21_2020_arpg_lab_run1", "12_21_2020_arpg_lab_run2",
+        *(f"2_24_2021_aspen_run{k}" for k in range(10)),
+        *(f"2_23_2021_edgar_classroom_run{k}" for k in range(4)),
+        *(f"2_23_2021_edgar_army_run{k}" for k in range(4)),
+        *(f"2_28_2021_outdoors_run{k}" for k in range(8)),
+        *(f"2_22_2021_longboard_run{k}" for k in range(6)),
+    ),
+    "val": ("12_21_2020_arpg_lab_run3", "12_21_2020_ec_hallways_run3", "2_24_2021_aspen_run10",
+            "2_23_2021_edgar_classroom_run4", "2_23_2021_edgar_army_run4",
+            "2_28_2021_outdoors_run8", "2_22_2021_longboard_run6"),
+    "test": ("12_21_2020_arpg_lab_run4", "12_21_2020_ec_hallways_run4", "2_24_2021_aspen_run11",
+             "2_23_2021_edgar_classroom_run5", "2_23_2021_edgar_army_run5",
+             "2_28_2021_outdoors_run9", "2_22_2021_longboard_run7"),
+}
+
+_RUN_RE = re.compile(r"^(.*)_run(\d+)$")
+
+
+def scene_of_run(name: str) -> str:
+    """``'12_21_2020_ec_hallways_run3' -> '12_21_2020_ec_hallways'``; ``'lab_run0' -> 'lab'``."""
+    m = _RUN_RE.match(name)
+    return m.group(1) if m else name
+
+
+def _run_index(name: str) -> int:
+    m = _RUN_RE.match(name)
+    return int(m.group(2)) if m else 0
+
+
+def split_runs(names: Sequence[str], split: str) -> list[str]:
+    """Runs of ``names`` that belong to ``split`` (``train``/``val``/``test``/``all``), see module doc."""
+    if split not in SPLITS + ("all",):
+        raise ValueError(f"split must be one of {SPLITS + ('all',)}, got {split!r}")
+    names = sorted(set(names))
+    if split == "all":
+        return names
+    official = {n: s for s, runs in RALD_SPLITS.items() for n in runs}
+    by_scene: dict[str, list[str]] = {}
+    for n in names:
+        if n not in official:
+            by_scene.setdefault(scene_of_run(n), []).append(n)
+    assign = dict((n, official[n]) for n in names if n in official)
+    for runs in by_scene.values():
+        runs = sorted(runs, key=_run_index)
+        for i, n in enumerate(runs):
+            last = len(runs) - 1
+            assign[n] = "test" if (i == last and last >= 1) else "val" if (i == last - 1 and last >= 2) else "train"
+    return [n for n in names if assign[n] == split]
+
+
+def find_runs(root: str | os.PathLike) -> list[str]:
+    """Run folder names under a ColoRadar root (folders other than ``calib`` holding sensor data)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DataFileError(root, "dataset root folder is missing")
+    out = []
+    for d in sorted(root.iterdir()):
+        if d.is_dir() and d.name != "calib" and ((d / "lidar").is_dir() or (d / "single_chip").is_dir()):
+            out.append(d.name)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# text files
+# ------------------------------------------------------------------------------------------------
+def read_timestamps(path: str | os.PathLike) -> np.ndarray:
+    """One float (s) per line -> ``(N,)`` float64; must be finite and non-decreasing."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataFileError(path, "timestamps file is missing")
+    try:
+        vals = [float(ln.split()[0]) for ln in path.read_text().splitlines() if ln.strip()]
+    except (ValueError, IndexError) as e:
+        raise DataFileError(path, f"expected one number per line ({e})") from e
+    t = np.asarray(vals, dtype=np.float64)
+    if t.size == 0:
+        raise DataFileError(path, "holds no timestamps")
+    if not np.isfinite(t).all():
+        raise DataFileError(path, "holds NaN or infinite timestamps")
+    if (np.diff(t) < 0).any():
+        raise DataFileError(path, f"timestamps decrease at line {int(np.argmax(np.diff(t) < 0)) + 2}")
+    return t
+
+
+def read_poses(path: str | os.PathLike) -> np.ndarray:
+    """``groundtruth_poses.txt`` -> ``(N, 7)`` float64 ``x y z qx qy qz qw`` (world <- base)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataFileError(path, "poses file is missing")
+    rows = [ln.replace(",", " ").split() for ln in path.read_text().splitlines() if ln.strip()]
+    if not rows or any(len(r) != 7 for r in rows):
+        bad = next((i + 1 for i, r in enumerate(rows) if len(r) != 7), 1)
+        raise DataFileError(path, f"expected 7 numbers 'x y z qx qy qz qw' per line (line {bad})")
+    try:
+        p = np.asarray(rows, dtype=np.float64)
+    except ValueError as e:
+        raise DataFileError(path, f"cannot parse poses ({e})") from e
+    if not np.isfinite(p).all():
+        raise DataFileError(path, "holds NaN or infinite values")
+    return p
+
+
+def _read_bin(path: Path, dtype, nbytes: int | None, what: str, *, multiple_of: int | None = None) -> np.ndarray:
+    if not path.is_file():
+        raise DataFileError(path, f"{what} file is missing")
+    size = path.stat().st_size
+    if nbytes is not None and size != nbytes:
+        raise DataFileError(path, f"{what}: expected {nbytes} bytes from the calibration, found {size} "
+                                  f"({'truncated' if size < nbytes else 'too long'})")
+    if multiple_of is not None and size % multiple_of:
+        raise DataFileError(path, f"{what}: size {size} bytes is not a multiple of {multiple_of} (truncated?)")
+    arr = np.fromfile(path, dtype=dtype)
+    if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+        raise DataFileError(path, f"{what} contains NaN or infinite values")
+    return arr
+
+
+# ------------------------------------------------------------------------------------------------
+class ColoRadarRun:
+    """One ColoRadar run folder, read lazily and validated.
+
+    Parameters
+    ----------
+    path : path-like
+        The run folder (``.../12_21_2020_ec_hallways_run0`` or ``.../lab_run0``).
+    calib : ColoRadarCalib, optional
+        Defaults to ``load_calib(path.parent / "calib")``.
+    """
+
+    def __init__(self, path: str | os.PathLike, calib: ColoRadarCalib | None = None):
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise DataFileError(self.path, "run folder is missing")
+        self.calib = calib if calib is not None else load_calib(self.path.parent / "calib")
+        self.name = self.path.name
+        self.scene = scene_of_run(self.name)
+        self._ts: dict[str, np.ndarray] = {}
+
+    # -- timestamps and poses ---------------------------------------------------------------------
+    def _timestamps(self, key: str, rel: str) -> np.ndarray:
+        if key not in self._ts:
+            self._ts[key] = read_timestamps(self.path / rel)
+        return self._ts[key]
+
+    @property
+    def radar_timestamps(self) -> np.ndarray:
+        """Single-chip ADC frame times ``(F,)``."""
+        return self._timestamps("radar", "single_chip/adc_samples/timestamps.txt")
+
+    @property
+    def heatmap_timestamps(self) -> np.ndarray:
+        """Cascade heatmap times."""
+        return self._timestamps("heatmap", "cascade/heatmaps/timestamps.txt")
+
+    @property
+    def lidar_timestamps(self) -> np.ndarray:
+        return self._timestamps("lidar", "lidar/timestamps.txt")
+
+    @property
+    def pose_timestamps(self) -> np.ndarray:
+        return self._timestamps("pose", "groundtruth/timestamps.txt")
+
+    @property
+    def poses(self) -> np.ndarray:
+        """``(P, 7)`` world <- base poses ``x y z qx qy qz qw``; count checked against timestamps."""
+        p = read_poses(self.path / "groundtruth" / "groundtruth_poses.txt")
+        if len(p) != len(self.pose_timestamps):
+            raise DataFileError(self.path / "groundtruth" / "groundtruth_poses.txt",
+                                f"{len(p)} poses but {len(self.pose_timestamps)} timestamps")
+        return p
+
+    @property
+    def has_adc(self) -> bool:
+        return (self.path / "single_chip" / "adc_samples" / "timestamps.txt").is_file()
+
+    @property
+    def has_heatmaps(self) -> bool:
+        return (self.path / "cascade" / "heatmaps" / "timestamps.txt").is_file()
+
+    @property
+    def num_radar_frames(self) -> int:
+        return len(self.radar_timestamps)
+
+    @property
+    def num_lidar_frames(self) -> int:
+        return len(self.lidar_timestamps)
+
+    # -- frames -----------------------------------------------------------------------------------
+    def adc_path(self, i: int) -> Path:
+        return self.path / "single_chip" / "adc_samples" / "data" / f"frame_{i}.bin"
+
+    def heatmap_path(self, i: int) -> Path:
+        return self.path / "cascade" / "heatmaps" / "data" / f"heatmap_{i}.bin"
+
+    def lidar_path(self, i: int) -> Path:
+        return self.path / "lidar" / "pointclouds" / f"lidar_pointcloud_{i}.bin"
+
+    def adc(self, i: int) -> np.ndarray:
+        """Single-chip frame ``i`` as complex64 ``(tx, rx, chirps, samples)`` (I + jQ)."""
+        chip = self.calib.single_chip
+        raw = _read_bin(self.adc_path(i), np.int16, chip.adc_nbytes, "single-chip ADC frame")
+        raw = raw.reshape(chip.adc_shape).astype(np.float32)
+        return (raw[..., 0] + 1j * raw[..., 1]).astype(np.complex64)
+
+    def heatmap(self, i: int) -> np.ndarray:
+        """Cascade heatmap ``i``: float32 ``(elevation, azimuth, range, 2)`` (intensity, Doppler)."""
+        if self.calib.cascade is None:
+            raise DataFileError(self.path.parent / "calib" / "cascade", "cascade calibration is missing")
+        hm = self.calib.cascade.heatmap
+        arr = _read_bin(self.heatmap_path(i), np.float32, self.calib.cascade.heatmap_nbytes, "cascade heatmap")
+        return arr.reshape(hm.shape)
+
+    def lidar(self, i: int, *, drop_zeros: bool = True) -> np.ndarray:
+        """LiDAR scan ``i``: float32 ``(N, 4)`` x y z intensity in the LiDAR frame.
+
+        All-zero points (no return) are dropped unless ``drop_zeros=False``. An empty scan
+        raises :class:`DataFileError`.
+        """
+        path = self.lidar_path(i)
+        arr = _read_bin(path, np.float32, None, "LiDAR scan", multiple_of=16).reshape(-1, 4)
+        if drop_zeros:
+            arr = arr[np.any(arr[:, :3] != 0, axis=1)]
+        if arr.shape[0] == 0:
+            raise DataFileError(path, "LiDAR scan is empty (no point with a return)")
+        return arr
+
+    def __repr__(self) -> str:
+        return f"ColoRadarRun({str(self.path)!r})"
+
+
+# ------------------------------------------------------------------------------------------------
+def pair_radar_lidar(run: ColoRadarRun, *, max_dt: float | None = None, radar: str = "adc") -> np.ndarray:
+    """Nearest-timestamp pairs ``(P, 2)`` int64 ``(radar_index, lidar_index)``.
+
+    Parameters
+    ----------
+    run : ColoRadarRun
+    max_dt : float, optional
+        Drop pairs further apart (s). Default: half the median LiDAR period.
+    radar : {"adc", "heatmap"}
+        Which radar stream to pair (single-chip ADC or cascade heatmaps).
+    """
+    if radar not in ("adc", "heatmap"):
+        raise ValueError(f"radar must be 'adc' or 'heatmap', got {radar!r}")
+    tr = run.radar_timestamps if radar == "adc" else run.heatmap_timestamps
+    tl = run.lidar_timestamps
+    if max_dt is None:
+        max_dt = 0.5 * float(np.median(np.diff(tl))) if len(tl) > 1 else 0.05
+    if not max_dt > 0:
+        raise ValueError(f"max_dt must be > 0, got {max_dt}")
+    j = np.clip(np.searchsorted(tl, tr), 1, max(len(tl) - 1, 1)) if len(tl) > 1 else np.zeros(len(tr), int)
+    if len(tl) > 1:
+        j = np.where(np.abs(tl[j - 1] - tr) <= np.abs(tl[j] - tr), j - 1, j)
+    ok = np.abs(tl[j] - tr) <= max_dt
+    return np.stack([np.nonzero(ok)[0], j[ok]], 1).astype(np.int64)
+
+
+def lidar_to_radar(points: np.ndarray, calib: ColoRadarCalib) -> np.ndarray:
+    """``(N, >=3)`` LiDAR-frame points -> single-chip frame ``p_radar = T_base_radar^-1 T_base_lidar p``.
+
+    Extra columns (intensity) are carried along unchanged.
+    """
+    p = np.asarray(points)
+    if p.ndim != 2 or p.shape[1] < 3:
+        raise ValueError(f"points must be (N, 3+), got shape {p.shape}")
+    out = p.copy()
+    out[:, :3] = calib.lidar_to_single_chip().apply(p[:, :3].astype(np.float64)).astype(p.dtype)
+    return out
+
+
+def frustum_mask(points, fov: RadarFOV = AWR1843_FOV):
+    """Boolean mask of points (``(N, >=3)`` NumPy or torch) inside the radar frustum (closed bounds)."""
+    is_t = isinstance(points, torch.Tensor)
+    p = points if is_t else np.asarray(points)
+    if p.ndim != 2 or p.shape[1] < 3:
+        raise ValueError(f"points must be (N, 3+), got shape {tuple(p.shape)}")
+    lib = torch if is_t else np
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    r = lib.sqrt(x * x + y * y + z * z)
+    az = lib.arctan2(y, x) if not is_t else torch.atan2(y, x)
+    el = (torch.asin if is_t else np.arcsin)((z / lib.where(r > 0, r, lib.ones_like(r))).clip(-1, 1))
+    a0, a1 = (math.radians(v) for v in fov.azimuth_deg)
+    e0, e1 = (math.radians(v) for v in fov.elevation_deg)
+    return (r > fov.min_range_m) & (r <= fov.max_range_m) & (az >= a0) & (az <= a1) & (el >= e0) & (el <= e1)
+
+
+def crop_to_frustum(points, fov: RadarFOV = AWR1843_FOV):
+    """Points inside the radar frustum (same type as the input)."""
+    return points[frustum_mask(points, fov)]
+
+
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class RadarCube:
+    """RaLD radar cube of one frame (or a batch, leading dims first)."""
+
+    intensity_db: torch.Tensor   # (..., R, A, E) 10 log10(P / noise + 1)
+    doppler: torch.Tensor        # (..., R, A, E) radial velocity of the peak Doppler bin (m/s)
+    valid: torch.Tensor          # (..., R, A, E) bool: peak clearly above the second Doppler peak
+    range_m: torch.Tensor        # (R,) bin ranges
+    azimuth_rad: torch.Tensor    # (A,) bin azimuths (fftshift order, ascending towards +y)
+    elevation_rad: torch.Tensor  # (E,) bin elevations
+
+    def stacked(self) -> torch.Tensor:
+        """``(..., R, A, E, 3)`` float32: intensity, Doppler, validity (RaLD's ``RAEIVVmap``)."""
+        return torch.stack([self.intensity_db, self.doppler, self.valid.to(self.doppler.dtype)], -1)
+
+
+def _virtual_grid(chip: ColoRadarChipConfig) -> tuple[np.ndarray, np.ndarray, int, int]:
+    pos = chip.virtual_positions
+    if not np.allclose(pos, np.round(pos)) or (pos < 0).any():
+        raise ValueError(f"{chip.name}: virtual positions must be non-negative integers for the FFT array")
+    pos = np.round(pos).astype(np.int64)
+    return pos[:, 0], pos[:, 1], int(pos[:, 0].max()) + 1, int(pos[:, 1].max()) + 1
+
+
+def radar_cube(adc, chip: ColoRadarChipConfig, *, n_range: int = 128, n_doppler: int = 128,
+               n_azimuth: int = 8, n_elevation: int = 2, crop: float = 0.05,
+               noise_quantile: float = 0.30) -> RadarCube:
+    """RaLD's ADC -> (range, azimuth, elevation) cube (see module docstring).
+
+    Parameters
+    ----------
+    adc : complex array or tensor
+        ``(..., tx, rx, chirps, samples)``; leading dims are a batch. Torch input keeps its device.
+    chip : ColoRadarChipConfig
+        Single-chip configuration (waveform for the bin axes, antenna for the virtual array).
+    n_range, n_doppler, n_azimuth, n_elevation : int
+        FFT sizes (RaLD: 128, 128, 8, 2).
+    crop : float
+        Fraction of range bins zeroed at each end (RaLD: 0.05).
+    noise_quantile : float
+        Quantile of the Doppler-summed power used as noise level and validity margin (0.3).
+
+    Returns
+    -------
+    RadarCube
+    """
+    x = torch.as_tensor(adc)
+    if not torch.is_complex(x):
+        raise ValueError(f"adc must be complex (I + jQ), got dtype {x.dtype}")
+    w = chip.waveform
+    want = (w.num_tx, w.num_rx, w.num_chirps_per_frame, w.num_adc_samples_per_chirp)
+    if x.ndim < 4 or tuple(x.shape[-4:]) != want:
+        raise ValueError(f"adc must have shape (..., {', '.join(map(str, want))}) for {chip.name}, "
+                         f"got {tuple(x.shape)}")
+    if not torch.isfinite(torch.view_as_real(x)).all():
+        raise ValueError("adc contains NaN or infinite values")
+    for k, v in dict(n_range=n_range, n_doppler=n_doppler, n_azimuth=n_azimuth, n_elevation=n_elevation).items():
+        if int(v) < 1:
+            raise ValueError(f"{k} must be >= 1, got {v}")
+    if not (0 <= crop < 0.5) or not (0 < noise_quantile < 1):
+        raise ValueError(f"crop must be in [0, 0.5) and noise_quantile in (0, 1), got {crop}, {noise_quantile}")
+    x = x.to(torch.complex64)
+    dev = x.device
+    lead = x.shape[:-4]
+    ntx, nrx, nc, ns = want
+    x = x - x.mean(dim=(-4, -3, -2, -1), keepdim=True)
+    win = torch.as_tensor(np.blackman(ns), dtype=torch.float32, device=dev)
+    x = x * win
+    rfft = torch.fft.fft(x, n=n_range, dim=-1)                                         # (..., tx, rx, c, R)
+    dfft = torch.fft.fftshift(torch.fft.fft(rfft, n=n_doppler, dim=-2), dim=-2)       # (..., tx, rx, D, R)
+    # TDM-MIMO velocity compensation: Tx t fires t T_c after Tx 0 within a loop
+    tl = torch.arange(ntx, device=dev, dtype=torch.float32)
+    cl = torch.arange(n_doppler, device=dev, dtype=torch.float32) - n_doppler // 2
+    vcomp = torch.exp(-2j * math.pi * tl[:, None] * cl[None, :] / (ntx * n_doppler))
+    dfft = dfft * vcomp[:, None, :, None]
+    # virtual array (elevation rows, azimuth columns), duplicates summed
+    ph, pv, na_v, ne_v = _virtual_grid(chip)
+    flat = dfft.reshape(*lead, ntx * nrx, n_doppler, n_range)
+    va = torch.zeros((*lead, ne_v * na_v, n_doppler, n_range), dtype=flat.dtype, device=dev)
+    va.index_add_(len(lead), torch.as_tensor(pv * na_v + ph, device=dev), flat)
+    va = va.reshape(*lead, ne_v, na_v, n_doppler, n_range)
+    afft = torch.fft.fftshift(torch.fft.fft(va, n=n_azimuth, dim=-3), dim=-3)
+    efft = torch.fft.fftshift(torch.fft.fft(afft, n=n_elevation, dim=-4), dim=-4)    # (..., E, A, D, R)
+    c = int(n_range * crop)
+    if c > 0:
+        efft[..., :c] = 0
+        efft[..., n_range - c:] = 0
+    power = efft.abs() ** 2
+    top2 = torch.topk(power, k=min(2, n_doppler), dim=-2).values                     # (..., E, A, 2, R)
+    peak = power.argmax(dim=-2)                                                        # (..., E, A, R)
+    vbin = w.velocity_bin_width(n_doppler)
+    velocity = (peak - n_doppler // 2).to(torch.float32) * vbin
+    if n_doppler > 1:
+        valid = top2[..., 0, :] * (1 - noise_quantile) > top2[..., 1, :]
+    else:
+        valid = torch.ones_like(peak, dtype=torch.bool)
+    p = power.sum(dim=-2)                                                              # (..., E, A, R)
+    noise = torch.quantile(p.reshape(*lead, -1).double(), noise_quantile, dim=-1).to(p.dtype)
+    p = p / (noise.reshape(*lead, 1, 1, 1) + 1e-6)
+    db = 10 * torch.log10(p + 1)
+    perm = (*range(len(lead)), -1, -2, -3)                                             # -> (..., R, A, E)
+    rbw = w.range_bin_width(n_range)
+    d = chip.element_spacing
+    fa = (torch.arange(n_azimuth, device=dev, dtype=torch.float32) - n_azimuth // 2) / n_azimuth
+    fe = (torch.arange(n_elevation, device=dev, dtype=torch.float32) - n_elevation // 2) / n_elevation
+    return RadarCube(db.permute(perm).contiguous(), velocity.permute(perm).contiguous(),
+                     valid.permute(perm).contiguous(),
+                     torch.arange(n_range, device=dev, dtype=torch.float32) * rbw,
+                     torch.asin((fa / d).clamp(-1, 1)), torch.asin((fe / d).clamp(-1, 1)))
+
+
+def upsample_intensity(intensity: torch.Tensor, size: tuple[int, int, int] = (128, 64, 32)) -> torch.Tensor:
+    """Resize ``(..., R, A, E)`` to ``size`` (trilinear, ``align_corners=True``; RaLD: 128 x 64 x 32).
+
+    With equal range sizes this is RaLD's bilinear upsampling of the two angle axes.
+    """
+    x = torch.as_tensor(intensity)
+    if x.ndim < 3:
+        raise ValueError(f"intensity must be (..., R, A, E), got shape {tuple(x.shape)}")
+    if len(size) != 3 or min(size) < 1:
+        raise ValueError(f"size must be 3 positive ints, got {size}")
+    lead = x.shape[:-3]
+    y = x.reshape(-1, 1, *x.shape[-3:]).to(torch.float32)
+    y = F.interpolate(y, size=tuple(int(s) for s in size), mode="trilinear", align_corners=True)
+    return y.reshape(*lead, *size)
+
+
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class ColoRadarItem:
+    """One paired frame of :class:`ColoRadar`."""
+
+    intensity: torch.Tensor   # (R, A, E) float32 radar cube intensity (dB), upsampled to cube_size
+    points: torch.Tensor      # (N, 3) float32 LiDAR points in the radar frame, inside the frustum
+    run: str
+    scene: str
+    radar_index: int
+    lidar_index: int
+    radar_time: float
+    lidar_time: float
+
+
+class ColoRadar(torch.utils.data.Dataset):
+    """Paired (radar cube, cropped LiDAR) frames of a ColoRadar root (real or simulated).
+
+    Parameters
+    ----------
+    root : path-like
+        Folder holding ``calib/`` and the run folders.
+    split : {"train", "val", "test", "all"}
+        Run-level split (see :func:`split_runs`).
+    runs : sequence of str, optional
+        Restrict to these runs (after the split).
+    cube_size : (int, int, int) or None
+        Upsampled intensity size (RaLD: 128 x 64 x 32); None keeps the raw 128 x 8 x 2 cube.
+    fov : RadarFOV
+        Frustum for the LiDAR crop.
+    max_dt : float, optional
+        Pairing tolerance (default half the LiDAR period).
+    """
+
+    def __init__(self, root: str | os.PathLike, split: str = "train", *, runs: Sequence[str] | None = None,
+                 cube_size: tuple[int, int, int] | None = (128, 64, 32), fov: RadarFOV = AWR1843_FOV,
+                 max_dt: float | None = None):
+        self.root = Path(root)
+        self.calib = load_calib(self.root / "calib")
+        names = split_runs(find_runs(self.root), split)
+        if runs is not None:
+            missing = sorted(set(runs) - set(names))
+            if missing:
+                raise ValueError(f"runs {missing} are not in split {split!r} of {self.root}")
+            names = [n for n in names if n in set(runs)]
+        self.split = split
+        self.cube_size = cube_size
+        self.fov = fov
+        self.runs = [ColoRadarRun(self.root / n, self.calib) for n in names]
+        index = []
+        for k, run in enumerate(self.runs):
+            for ri, li in pair_radar_lidar(run, max_dt=max_dt):
+                index.append((k, int(ri), int(li)))
+        self.index = index
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def lidar_points(self, i: int) -> np.ndarray:
+        """Cropped LiDAR (N, 3) float32 in the radar frame of item ``i``."""
+        k, _, li = self.index[i]
+        run = self.runs[k]
+        pts = lidar_to_radar(run.lidar(li), self.calib)[:, :3]
+        pts = crop_to_frustum(pts, self.fov)
+        if pts.shape[0] == 0:
+            raise DataFileError(run.lidar_path(li), "no LiDAR point inside the radar frustum")
+        return pts.astype(np.float32)
+
+    def cube(self, i: int) -> RadarCube:
+        k, ri, _ = self.index[i]
+        return radar_cube(self.runs[k].adc(ri), self.calib.single_chip)
+
+    def __getitem__(self, i: int) -> ColoRadarItem:
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"index {i} out of range for {len(self)} items")
+        i = i % len(self)
+        k, ri, li = self.index[i]
+        run = self.runs[k]
+        inten = self.cube(i).intensity_db
+        if self.cube_size is not None:
+            inten = upsample_intensity(inten, self.cube_size)
+        return ColoRadarItem(inten, torch.from_numpy(self.lidar_points(i)), run.name, run.scene, ri, li,
+                             float(run.radar_timestamps[ri]), float(run.lidar_timestamps[li]))
+
+
+def collate_coloradar(items: Sequence[ColoRadarItem]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[ColoRadarItem]]:
+    """Batch items: ``(B, R, A, E)`` intensities, concatenated ``(sum N, 3)`` points, ``(B,)``
+    cumulative ``offset`` (Pointcept style), and the items (metadata)."""
+    inten = torch.stack([it.intensity for it in items])
+    pts = torch.cat([it.points for it in items])
+    offset = torch.cumsum(torch.tensor([it.points.shape[0] for it in items]), 0)
+    return inten, pts, offset, list(items)
