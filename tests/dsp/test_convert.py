@@ -23,7 +23,7 @@ from radarpc.dsp.convert import (
     write_sparse_rd,
 )
 from radarpc.dsp.density import tau_for_density
-from radarpc.io import save_npy_atomic
+from radarpc.io import DataFileError, save_npy_atomic
 from radarpc.sensors.radial import TINY, make_calibration, save_calibration, steering_vectors
 
 N_SEQ, PER_SEQ = 3, 3          # sequences q0 (train), q1 (val), q2 (test); 9 frames
@@ -233,6 +233,21 @@ def test_sparse_rd_split_keeps_only_its_labels(root, tmp_path):
     write_sparse_rd(root, out_root, density=0.1, split="val", progress=False)
     dst = RADIal(out_root, split="all")
     assert dst.frame_ids == [3, 4, 5] and RADIal(out_root, split="val").frame_ids == [3, 4, 5]
+
+
+def test_corrupt_cube_names_the_file_and_keeps_finished_parts(root, tmp_path):
+    import shutil
+
+    bad_root = tmp_path / "bad_root"
+    shutil.copytree(root, bad_root)
+    fft_path(bad_root, 5).write_bytes(b"\x93NUMPY truncated")
+    out = tmp_path / "pc.parquet"
+    with pytest.raises(DataFileError, match="fft_000005.npy"):
+        convert_dataset(bad_root, out, tau=3.0, chunk_frames=3, progress=False)
+    assert not out.exists() and part_path(out, 0).is_file() and not part_path(out, 1).exists()
+    with pytest.raises(RuntimeError, match="fft_000005.npy"):   # the same error through spawned workers
+        convert_dataset(bad_root, out, tau=3.0, chunk_frames=3, workers=2, progress=False)
+    assert not out.exists() and part_path(out, 2).is_file()
 
 
 def test_bad_settings(root, tmp_path):

@@ -7,7 +7,7 @@ and a finished chunk is never recomputed, so a killed conversion resumes where i
 gives the same final file. At the end the parts are merged into ``OUT`` (atomically) and the
 parts folder is removed. Chunks can be spread over
 
-* local processes (``workers=N``: chunk ``k`` goes to worker ``k % N``, spawned processes, each
+* local processes (``workers=N``: the i-th pending chunk goes to worker ``i % N``, spawned processes, each
   with ``torch`` threads = available threads / N), and
 * ``torchrun`` ranks (``RANK``/``WORLD_SIZE``/``LOCAL_RANK`` set): rank ``r`` converts the chunks
   ``k % WORLD_SIZE == r`` on ``cuda:LOCAL_RANK`` when CUDA is available; rank 0 merges once every
@@ -359,7 +359,8 @@ def _worker_main(job: _ChunkJob, q) -> None:  # pragma: no cover - runs in a spa
 
 
 def _run_workers(job: _ChunkJob, workers: int, on_done: Callable[[int, int], None]) -> int:
-    """Spread ``job.chunks`` over ``workers`` spawned processes (chunk ``k`` -> worker ``k % workers``)."""
+    """Spread ``job.chunks`` over ``workers`` spawned processes (the i-th pending chunk goes to
+    worker ``i % workers``); relay their progress to ``on_done`` and their errors as RuntimeError."""
     import torch.multiprocessing as mp
 
     ctx = mp.get_context("spawn")
