@@ -7,9 +7,11 @@ Examples::
     radarpc pointcloud data/sim_radial --snr 1.585 --out data/pc_2db.parquet
     radarpc pointcloud data/sim_radial --density 0.057 --density-mode per-dataset \\
         --sparse-rd-out data/sim_radial_srd057
-    torchrun --nproc-per-node 4 -m radarpc.cli pointcloud data/radial --density 0.057 --out pc.parquet
+    torchrun --nproc-per-node 4 "$(which radarpc)" pointcloud data/radial --density 0.057 --out pc.parquet
 
 A killed conversion resumes when the same command is run again (``--no-resume`` starts over).
+Under torchrun each rank converts its share of the chunks (on ``cuda:LOCAL_RANK`` when CUDA is
+available) and rank 0 merges; ``--sparse-rd-out`` is written by rank 0 alone.
 """
 from __future__ import annotations
 
