@@ -1,0 +1,124 @@
+"""Tests for radarpc.sensors.coloradar: calib file formats, defaults, transforms."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from radarpc.io import DataFileError
+from radarpc.sensors.coloradar import (
+    AWR1843,
+    CASCADE,
+    DEFAULT_CALIB,
+    SPEED_OF_LIGHT,
+    ColoRadarCalib,
+    Transform,
+    WaveformConfig,
+    load_calib,
+    matrix_to_quaternion,
+    parse_antenna_cfg,
+    parse_coupling_calib,
+    parse_heatmap_cfg,
+    parse_waveform_cfg,
+    quaternion_to_matrix,
+    read_transform,
+    write_calib,
+)
+
+
+def test_calib_round_trip(tmp_path):
+    write_calib(tmp_path / "calib", DEFAULT_CALIB)
+    got = load_calib(tmp_path / "calib")
+    assert got == DEFAULT_CALIB
+    c = parse_coupling_calib(tmp_path / "calib" / "single_chip" / "coupling_calib.txt")
+    assert c.shape == (3, 4, 128) and np.iscomplexobj(c) and not c.any()
+
+
+def test_dataset_style_files_parse(tmp_path):
+    # hand-written in the dataset's style: comments, trailing space on bin lines, F_design in GHz
+    (tmp_path / "heatmap_cfg.txt").write_text(
+        "# heatmap\nnum_range_bins 4\nnum_elevation_bins 2\nnum_azimuth_bins 3\nrange_bin_width 0.0592943951488\n"
+        "azimuth_bins -0.5 0.0 0.5 \nelevation_bins -0.1 0.1 \n")
+    hm = parse_heatmap_cfg(tmp_path / "heatmap_cfg.txt")
+    assert hm.azimuth_bins == (-0.5, 0.0, 0.5) and hm.elevation_bins == (-0.1, 0.1)
+    assert hm.shape == (2, 3, 4, 2) and hm.range_bin_width == 0.0592943951488
+    (tmp_path / "antenna_cfg.txt").write_text(
+        "num_rx 4\nnum_tx 3\nF_design 77\nrx 0 0 0\nrx 1 1 0\nrx 2 2 0\nrx 3 3 0\ntx 0 0 0\ntx 2 2 1\ntx 1 4 0\n")
+    ant = parse_antenna_cfg(tmp_path / "antenna_cfg.txt")
+    assert ant.tx_positions == ((0, 0), (4, 0), (2, 1)) and ant.design_frequency_ghz == 77
+    assert ant.virtual_positions.shape == (12, 2)
+    np.testing.assert_array_equal(ant.virtual_positions[8], [2, 1])   # tx 2 + rx 0
+    (tmp_path / "waveform_cfg.txt").write_text(
+        "num_rx 4\nnum_tx 3\nnum_adc_samples_per_chirp 128\nnum_chirps_per_frame 128\n"
+        "adc_sample_frequency 10666000\nstart_frequency 77000000000\nidle_time 1.1e-4\n"
+        "adc_start_time 7e-6\nramp_end_time 1.91e-5\nfrequency_slope 1.00000000377e14\n")
+    wf = parse_waveform_cfg(tmp_path / "waveform_cfg.txt")
+    assert wf == AWR1843.waveform
+
+
+def test_awr1843_numbers():
+    wf = AWR1843.waveform
+    # c f_s / (2 S N) equals the range bin width of the dataset's heatmap config
+    assert wf.range_bin_width() == pytest.approx(SPEED_OF_LIGHT * 10_666_000 / (2 * 1.00000000377e14 * 128))
+    assert wf.range_bin_width() == pytest.approx(AWR1843.heatmap.range_bin_width, rel=1e-6)
+    assert AWR1843.adc_shape == (3, 4, 128, 128, 2) and AWR1843.adc_nbytes == 3 * 4 * 128 * 128 * 4
+    assert CASCADE.heatmap.shape == (32, 128, 128, 2)
+    assert CASCADE.waveform.range_bin_width() == pytest.approx(0.0592943951488, rel=1e-6)
+    assert CASCADE.virtual_positions.shape == (192, 2)
+    az = np.asarray(CASCADE.heatmap.azimuth_bins)
+    assert (np.diff(az) > 0).all() and az[63] == pytest.approx(-az[64])
+
+
+def test_missing_key_and_file_errors(tmp_path):
+    (tmp_path / "waveform_cfg.txt").write_text("num_rx 4\nnum_tx 3\n")
+    with pytest.raises(DataFileError, match="waveform_cfg.txt.*num_adc_samples_per_chirp"):
+        parse_waveform_cfg(tmp_path / "waveform_cfg.txt")
+    with pytest.raises(DataFileError, match="nothere.txt.*missing"):
+        read_transform(tmp_path / "nothere.txt")
+    (tmp_path / "antenna_cfg.txt").write_text("num_rx 2\nnum_tx 1\nF_design 77\nrx 0 0 0\ntx 0 0 0\n")
+    with pytest.raises(DataFileError, match="rx rows 0..1"):
+        parse_antenna_cfg(tmp_path / "antenna_cfg.txt")
+    (tmp_path / "t.txt").write_text("1 2 3\n0 0 nan 1\n")
+    with pytest.raises(DataFileError, match="t.txt"):
+        read_transform(tmp_path / "t.txt")
+    write_calib(tmp_path / "calib", DEFAULT_CALIB)
+    (tmp_path / "calib" / "transforms" / "base_to_lidar.txt").unlink()
+    with pytest.raises(DataFileError, match="base_to_lidar.txt"):
+        load_calib(tmp_path / "calib")
+
+
+def test_waveform_validation():
+    with pytest.raises(ValueError, match="ADC window"):
+        WaveformConfig(3, 4, 128, 16, 10e6, 77e9, 1e-5, 7e-6, 10e-6, 1e14)
+    with pytest.raises(ValueError, match="num_tx"):
+        WaveformConfig(0, 4, 128, 16, 10e6, 77e9, 1e-5, 7e-6, 30e-6, 1e14)
+
+
+def test_quaternion_matches_scipy():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        np.testing.assert_allclose(quaternion_to_matrix(q), Rotation.from_quat(q).as_matrix(), atol=1e-12)
+        q2 = matrix_to_quaternion(quaternion_to_matrix(q))
+        assert min(np.abs(q2 - q).max(), np.abs(q2 + q).max()) < 1e-9
+    with pytest.raises(ValueError, match="quaternion"):
+        quaternion_to_matrix([0, 0, 0, 0])
+
+
+def test_transform_hand_made():
+    # radar rotated +90 deg about z (its x axis = base +y), 1 m forward along base x
+    s = math.sqrt(0.5)
+    t_radar = Transform((1.0, 0.0, 0.0), (0.0, 0.0, s, s))
+    np.testing.assert_allclose(t_radar.apply(np.array([[2.0, 0.0, 0.0]])), [[1.0, 2.0, 0.0]], atol=1e-12)
+    # LiDAR at the base origin, upside-down (180 deg about x)
+    t_lidar = Transform((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0))
+    calib = ColoRadarCalib(AWR1843, None, t_radar, t_lidar, None)
+    p_lidar = np.array([[1.0, 2.0, 3.0]])            # base: (1, -2, -3)
+    # radar frame: R^T (p_base - t) with R = yaw 90: (x, y) -> (y, -x)
+    want = np.array([[-2.0, 0.0, -3.0]])
+    np.testing.assert_allclose(calib.lidar_to_single_chip().apply(p_lidar), want, atol=1e-12)
+    m = calib.lidar_to_single_chip().matrix
+    np.testing.assert_allclose(m, np.linalg.inv(t_radar.matrix) @ t_lidar.matrix, atol=1e-12)
