@@ -452,7 +452,9 @@ def convert_dataset(
     calibration_frames : int, optional
         Training frames used for the per-dataset tau (default all).
     workers : int
-        Local processes (spawned) sharing the chunks; 1 runs in this process.
+        Local processes (spawned) sharing the chunks; 1 runs in this process. A script that
+        calls this with ``workers > 1`` needs the usual ``if __name__ == "__main__":`` guard
+        (spawned workers import the main module).
     device : torch.device or str, optional
         Default ``cuda:LOCAL_RANK`` when CUDA is available, else CPU.
     resume : bool
