@@ -254,3 +254,23 @@ def test_bad_cubes():
         spc(rd)
     with pytest.raises(ValueError, match="virtual channels"):
         SpectralPointCloud(RADIAL_S, make_calibration(TINY))
+
+
+def test_angle_spectrum_and_real_gemm_form():
+    from radarpc.dsp.beamform import angle_spectrum, beamform_peaks, stack_real
+    cfg = TINY
+    calib = make_calibration(cfg)
+    rng = np.random.default_rng(6)
+    v = (rng.standard_normal((5, cfg.n_virtual)) + 1j * rng.standard_normal((5, cfg.n_virtual))).astype(np.complex64)
+    b = calib.dictionary()
+    ref = np.abs(b.numpy().astype(np.complex128) @ v.astype(np.complex128).T).T   # (5, n_dir)
+    np.testing.assert_allclose(angle_spectrum(torch.from_numpy(v), b).numpy(), ref, rtol=1e-4)
+    bt = b.transpose(0, 1).contiguous()
+    w = stack_real(bt)
+    x = torch.view_as_real(torch.from_numpy(v)).reshape(5, -1)
+    y = (x.double() @ w.double()).numpy()
+    k = bt.shape[1]
+    np.testing.assert_allclose(np.hypot(y[:, :k], y[:, k:]), ref, rtol=1e-5)
+    res = beamform_peaks(torch.from_numpy(v), bt, calib.grid_shape)
+    np.testing.assert_array_equal(res.index.numpy(), ref.argmax(1))
+    np.testing.assert_allclose(res.amplitude.numpy(), ref.max(1), rtol=1e-5)

@@ -59,24 +59,26 @@ def rx_magnitude_sum(rd: torch.Tensor) -> torch.Tensor:
     """``A = sum_rx |rd|`` over the last axis: ``(..., Nr, Nd, Nrx)`` complex -> ``(..., Nr, Nd)`` real.
 
     Magnitude, not power, as in RADIal's processing. On CPU the computation runs in row blocks
-    with in-place ``re^2 + im^2`` and ``sqrt`` (about 4x faster than ``rd.abs()``); elsewhere in
+    with preallocated ``re^2 + im^2`` and ``sqrt`` buffers (several times faster than ``rd.abs()``); elsewhere in
     one pass. Both give the same values.
     """
     x = torch.view_as_real(rd.resolve_conj())                   # (..., Nd, Nrx, 2)
     if rd.device.type != "cpu":
-        return torch.addcmul(x[..., 0] * x[..., 0], x[..., 1], x[..., 1]).sqrt_().sum(-1)
+        sq = x.square()
+        return torch.add(sq[..., 0], sq[..., 1]).sqrt_().sum(-1)
     nd, nrx = rd.shape[-2], rd.shape[-1]
     rows = x.reshape(-1, nd, nrx, 2)                             # (B*Nr, Nd, Nrx, 2)
     n = rows.shape[0]
     out = torch.empty(n, nd, dtype=x.dtype, device=x.device)
-    step = max(1, _CPU_BLOCK_BYTES // max(1, nd * nrx * x.element_size()))
-    buf = torch.empty(min(step, n), nd, nrx, dtype=x.dtype, device=x.device)
+    step = max(1, _CPU_BLOCK_BYTES // max(1, nd * nrx * 2 * x.element_size()))
+    sq = torch.empty(min(step, n), nd, nrx, 2, dtype=x.dtype, device=x.device)
+    mag = torch.empty(min(step, n), nd, nrx, dtype=x.dtype, device=x.device)
     for i in range(0, n, step):
         c = rows[i:i + step]
-        b = buf[: c.shape[0]]
-        torch.mul(c[..., 0], c[..., 0], out=b)
-        b.addcmul_(c[..., 1], c[..., 1]).sqrt_()
-        torch.sum(b, dim=-1, out=out[i:i + step])
+        m = c.shape[0]
+        torch.mul(c, c, out=sq[:m])                              # contiguous re^2, im^2
+        torch.add(sq[:m, ..., 0], sq[:m, ..., 1], out=mag[:m]).sqrt_()
+        torch.sum(mag[:m], dim=-1, out=out[i:i + m])
     return out.reshape(rd.shape[:-1])
 
 
@@ -149,7 +151,11 @@ def resolve_tx0_doppler(rd_mag_sum: torch.Tensor, cfg: DDMARadarConfig, range_id
     r = range_idx.long()
     l = cons_idx.long()
     s = torch.arange(ns, device=a.device)
-    x = a[b.unsqueeze(-1) if b.ndim else b, r.unsqueeze(-1), l.unsqueeze(-1) + s * w]  # (P, n_slots)
+    cols = l.unsqueeze(-1) + s * w                                 # (P, n_slots) Doppler bins
+    if a.is_contiguous():
+        x = a.view(-1).take((b * a.shape[1] + r).unsqueeze(-1) * a.shape[2] + cols)
+    else:
+        x = a[b.unsqueeze(-1) if b.ndim else b, r.unsqueeze(-1), cols]  # (P, n_slots)
     ext = torch.cat([x, x[:, :g]], dim=1)                          # circular continuation
     m = ext[:, 1:].unfold(1, g, 1).sum(-1)                         # (P, n_slots): sum of x_{s+1..s+G}
     slot = torch.argmin(m, dim=1)
@@ -176,5 +182,10 @@ def virtual_snapshots(rd: torch.Tensor, cfg: DDMARadarConfig, batch_idx: torch.T
             raise ValueError(f"batch_idx is required for a batch of {rd.shape[0]} frames")
         batch_idx = torch.zeros_like(range_idx)
     bins = replica_bins(cfg, d0)                                   # (P, n_tx)
-    v = rd[batch_idx.long().unsqueeze(-1), range_idx.long().unsqueeze(-1), bins]  # (P, n_tx, n_rx)
-    return v.reshape(v.shape[0], cfg.n_virtual)
+    row = batch_idx.long() * cfg.n_range + range_idx.long()        # (P,) index of (b, r)
+    if rd.is_contiguous():                                         # row gather: fast on CPU and GPU
+        flat = (row.unsqueeze(-1) * cfg.n_doppler + bins).reshape(-1)
+        v = rd.view(-1, rd.shape[-1]).index_select(0, flat)        # (P * n_tx, n_rx)
+    else:
+        v = rd[batch_idx.long().unsqueeze(-1), range_idx.long().unsqueeze(-1), bins]  # (P, n_tx, n_rx)
+    return v.reshape(-1, cfg.n_virtual)

@@ -32,7 +32,7 @@ from typing import Iterable, Sequence
 import torch
 import torch.nn.functional as F
 
-from radarpc.dsp.beamform import beamform_peaks
+from radarpc.dsp.beamform import beamform_peaks, stack_real
 from radarpc.dsp.cfar import CFARResult, _check_window, ca_cfar
 from radarpc.dsp.ddma import (check_finite_envelope, check_rd, consolidate, resolve_tx0_doppler,
                               rx_magnitude_sum, virtual_snapshots)
@@ -278,6 +278,8 @@ class SpectralPointCloud(torch.nn.Module):
                 raise ValueError(f"sector enrichment {self.config.sectors} exceeds the angle grid {self.grid}")
         self.register_buffer("dictionary_t", calibration.dictionary().transpose(0, 1).contiguous(),
                              persistent=False)                       # (n_virtual, n_az * n_el)
+        self.register_buffer("dictionary_stacked", stack_real(self.dictionary_t),
+                             persistent=False)                       # (2 n_virtual, 2 n_az n_el) real
         self.register_buffer("azimuth_table", torch.as_tensor(calibration.azimuth_deg, dtype=torch.float32),
                              persistent=False)
         self.register_buffer("elevation_table", torch.as_tensor(calibration.elevation_deg, dtype=torch.float32),
@@ -348,7 +350,7 @@ class SpectralPointCloud(torch.nn.Module):
 
         d0 = resolve_tx0_doppler(a, cfg, r, l, b)                  # (N,)
         v = virtual_snapshots(rd, cfg, b, r, d0)                   # (N, n_virtual)
-        bf = beamform_peaks(v, self.dictionary_t, self.grid, c.sectors)
+        bf = beamform_peaks(v, self.dictionary_t, self.grid, c.sectors, stacked=self.dictionary_stacked)
         n_el = self.grid[1]
         az = self.azimuth_table[bf.index // n_el]
         el = self.elevation_table[bf.index % n_el]
