@@ -18,6 +18,7 @@ from radarpc.data.pointstore import (
     PointStore,
     PointStoreMetadata,
     PointStoreWriter,
+    collate_clouds,
 )
 from radarpc.dsp.pointcloud import PointCloudBatch
 from radarpc.io import DataFileError
@@ -107,6 +108,14 @@ def test_batched_read_and_iteration(tmp_path):
     assert both.offset.tolist() == [3, 7]
     assert torch.equal(both.range_m, torch.cat([frame_slice(batch, 3, "range_m"), frame_slice(batch, 1, "range_m")]))
     assert [int(c.offset[0]) for c in store] == counts
+    # DataLoader over the store with collate_clouds == read_frames
+    loader = torch.utils.data.DataLoader(store, batch_size=3, collate_fn=collate_clouds)
+    first = next(iter(loader))
+    ref = store.read_frames([0, 1, 2])
+    assert first.offset.tolist() == [2, 6, 6]
+    assert torch.equal(first.x, ref.x) and torch.equal(first.density, ref.density)
+    with pytest.raises(ValueError, match="with and without 'sector'"):
+        collate_clouds([store[0], make_batch([1])])
     assert store.index_of(7) == 2
     with pytest.raises(KeyError, match="frame 99"):
         store.index_of(99)

@@ -72,6 +72,7 @@ __all__ = [
     "PointStoreWriter",
     "PointStore",
     "point_schema",
+    "collate_clouds",
 ]
 
 METADATA_KEY = b"radarpc.pointstore"
@@ -652,6 +653,30 @@ class PointStore:
         tau = torch.as_tensor(self.frame_table.tau[idx], dtype=torch.float32)
         dens = torch.as_tensor(self.frame_table.density[idx], dtype=torch.float32)
         return _table_to_batch(table, counts, tau, dens, self.device)
+
+
+def collate_clouds(clouds: Sequence["PointCloudBatch"]) -> "PointCloudBatch":
+    """Concatenate clouds (e.g. items of a :class:`PointStore` in a DataLoader) into one batch.
+
+    Per-point tensors are concatenated, ``offset`` re-accumulated, ``tau`` / ``density`` stacked;
+    every input must carry the same optional enrichments. Use as ``collate_fn``.
+    """
+    from radarpc.dsp.pointcloud import PointCloudBatch
+
+    if not clouds:
+        raise ValueError("collate_clouds needs at least one cloud")
+    out: dict[str, torch.Tensor | None] = {}
+    for name in POINT_FIELDS + LIST_COLUMNS:
+        parts = [getattr(c, name) for c in clouds]
+        if any(p is None for p in parts):
+            if not all(p is None for p in parts):
+                raise ValueError(f"cannot collate clouds with and without {name!r}")
+            out[name] = None
+        else:
+            out[name] = torch.cat(parts)
+    counts = torch.cat([torch.diff(c.offset, prepend=c.offset.new_zeros(1)) for c in clouds])   # (B,)
+    return PointCloudBatch(offset=torch.cumsum(counts, 0), tau=torch.cat([c.tau for c in clouds]),
+                           density=torch.cat([c.density for c in clouds]), **out)
 
 
 def _frame_stats(pf: pq.ParquetFile, schema: pa.Schema) -> list[tuple[int, int] | None]:
