@@ -14,6 +14,7 @@ from radarpc.data.radial_format import FREESPACE_SHAPE, LABEL_COLUMNS, fft_path,
 from radarpc.sensors.radial import TINY, load_calibration, make_calibration
 from radarpc.sim import radial_writer
 from radarpc.sim.radial_writer import RadialSimulator, SimulatedRADIal, write_radial_dataset
+from radarpc.sim.road import RoadSceneConfig
 
 N_SEQ, N_FR, SEED = 3, 2, 11
 
@@ -39,6 +40,7 @@ def test_layout_and_files(root):
     meta = json.loads((root / "sensor.json").read_text())
     assert meta["seed"] == SEED and meta["n_sequences"] == N_SEQ and meta["frames_per_sequence"] == N_FR
     assert meta["radarpc_version"] == __version__ and meta["name"] == "tiny"
+    assert json.loads((root / "scene.json").read_text())["frame_period_s"] == RoadSceneConfig().frame_period_s
     calib = load_calibration(root / "calibration.npz")
     np.testing.assert_array_equal(calib.signal, make_calibration(TINY).signal)
     assert not list(root.rglob("*.tmp"))
@@ -85,6 +87,10 @@ def test_refuses_a_non_empty_folder_unless_overwrite(root, tmp_path):
     # a partial run of another seed is not resumed either
     with pytest.raises(FileExistsError, match="not a partial run"):
         write_radial_dataset(root, TINY, N_SEQ, N_FR, SEED + 1, progress=False)
+    # ... nor one with another scene config
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        write_radial_dataset(root, TINY, N_SEQ, N_FR, SEED, progress=False,
+                             scene_config=RoadSceneConfig(clutter_per_100m=1.0))
     write_radial_dataset(other, TINY, 1, 1, 0, overwrite=True, progress=False)
     assert (other / "notes.txt").read_text() == "mine" and fft_path(other, 0).is_file()
 

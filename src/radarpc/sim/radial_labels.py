@@ -49,7 +49,7 @@ from radarpc.data.radial_format import (
 )
 from radarpc.sensors.radial import DDMARadarConfig
 from radarpc.sim.rd import peak_snr_rd
-from radarpc.sim.road import RoadFrame, VehicleTruth
+from radarpc.sim.road import RoadFrame, VehicleTruth, footprint_crossings
 
 __all__ = [
     "LIDAR_OFFSET_M",
@@ -149,30 +149,10 @@ def frame_label_rows(cfg: DDMARadarConfig, frame: RoadFrame, *, seed: int, seque
 
 def _first_hit_range(az_rad: np.ndarray, vehicles: VehicleTruth) -> np.ndarray:
     """Distance along each ray from the radar to the first vehicle footprint, ``inf`` if none."""
-    n = az_rad.shape[0]
     if len(vehicles) == 0:
-        return np.full(n, np.inf)
-    cen = vehicles.center_xyz[:, :2]
-    c, s = np.cos(vehicles.yaw_rad), np.sin(vehicles.yaw_rad)                  # (V,)
-    ox = -(c * cen[:, 0] + s * cen[:, 1])                                      # origin in box frames
-    oy = -(-s * cen[:, 0] + c * cen[:, 1])
-    ux, uy = np.cos(az_rad)[:, None], np.sin(az_rad)[:, None]                  # (A, 1)
-    dx = c[None, :] * ux + s[None, :] * uy                                     # (A, V)
-    dy = -s[None, :] * ux + c[None, :] * uy
-    hl, hw = vehicles.size_lwh[:, 0] / 2, vehicles.size_lwh[:, 1] / 2
-
-    def slab(o, d, h):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t1 = (-h[None, :] - o[None, :]) / d
-            t2 = (h[None, :] - o[None, :]) / d
-        inside = np.abs(o)[None, :] <= h[None, :]
-        lo = np.where(d == 0, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2))
-        hi = np.where(d == 0, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2))
-        return lo, hi
-
-    lx, hx = slab(ox, dx, hl)
-    ly, hy = slab(oy, dy, hw)
-    t_in, t_out = np.maximum(lx, ly), np.minimum(hx, hy)
+        return np.full(az_rad.shape[0], np.inf)
+    dirs = np.stack([np.cos(az_rad), np.sin(az_rad)], 1)                       # unit rays (A, 2)
+    t_in, t_out = footprint_crossings(dirs, vehicles.center_xyz[:, :2], vehicles.yaw_rad, vehicles.size_lwh)
     hit = (t_in < t_out) & (t_out > 0)
     return np.where(hit, np.maximum(t_in, 0.0), np.inf).min(axis=1)
 

@@ -9,12 +9,14 @@ same device, bit-identical frames to what the reader :class:`radarpc.data.radial
 from the written root.
 
 Root layout: see :mod:`radarpc.data.radial_format`. ``sensor.json`` holds ``cfg.to_dict()`` plus
-``seed``, ``n_sequences``, ``frames_per_sequence`` and ``radarpc_version``; it is written first
-and identifies a partial run that may be resumed.
+``seed``, ``n_sequences``, ``frames_per_sequence`` and ``radarpc_version``; ``scene.json`` holds
+the :class:`RoadSceneConfig`. Both are written first and identify a partial run that may be
+resumed.
 """
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import os
@@ -211,7 +213,14 @@ def _png_complete(path: Path) -> bool:
         return False
 
 
-_OUTPUTS = ("radar_FFT", "radar_Freespace", "labels.csv", "calibration.npz", "sensor.json")
+_OUTPUTS = ("radar_FFT", "radar_Freespace", "labels.csv", "calibration.npz", "sensor.json", "scene.json")
+
+
+def _read_json(path: Path):
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
 
 
 def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequences: int,
@@ -223,10 +232,10 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
     Parameters
     ----------
     out : path-like
-        Root folder. If it is not empty it must be a partial run of the same sensor, seed and
-        sizes (its ``sensor.json`` matches), which is then completed; otherwise ``overwrite=True``
+        Root folder. If it is not empty it must be a partial run of the same sensor, seed,
+        sizes and scene config (its ``sensor.json`` and ``scene.json`` match), which is then completed; otherwise ``overwrite=True``
         deletes the dataset files in it (``radar_FFT/``, ``radar_Freespace/``, ``labels.csv``,
-        ``calibration.npz``, ``sensor.json``) and starts again.
+        ``calibration.npz``, ``sensor.json``, ``scene.json``) and starts again.
     cfg : DDMARadarConfig
     n_sequences, frames_per_sequence, seed : int
     overwrite : bool
@@ -252,15 +261,11 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
     if root.exists() and not root.is_dir():
         raise FileExistsError(f"{root} exists and is not a folder")
     meta = _sensor_json(cfg, seed, n_sequences, frames_per_sequence)
-    sensor_path = root / "sensor.json"
+    scene_meta = dataclasses.asdict(sim.scene_config)
+    sensor_path, scene_path = root / "sensor.json", root / "scene.json"
     if root.is_dir() and any(root.iterdir()):
-        matching = False
-        if sensor_path.is_file():
-            try:
-                matching = json.loads(sensor_path.read_text(encoding="utf-8")) == \
-                    json.loads(json.dumps(meta))
-            except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-                matching = False
+        matching = (_read_json(sensor_path) == json.loads(json.dumps(meta))
+                    and _read_json(scene_path) == json.loads(json.dumps(scene_meta)))
         if not matching:
             if not overwrite:
                 raise FileExistsError(
@@ -276,6 +281,8 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
     root.mkdir(parents=True, exist_ok=True)
     with atomic_write(sensor_path, "w") as f:
         json.dump(meta, f, indent=2)
+    with atomic_write(scene_path, "w") as f:
+        json.dump(scene_meta, f, indent=2)
     save_calibration(root / "calibration.npz", make_calibration(cfg))
 
     rows: list[tuple] = []

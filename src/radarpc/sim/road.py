@@ -37,6 +37,7 @@ __all__ = [
     "VehicleTruth",
     "RoadFrame",
     "RoadScene",
+    "footprint_crossings",
     "CAR",
     "TRUCK",
 ]
@@ -501,26 +502,45 @@ class RoadScene:
         n, v = p.shape[0], centres.shape[0]
         if n == 0 or v == 0:
             return np.zeros(n, bool)
-        c, s = np.cos(yaw), np.sin(yaw)                                       # (V,)
-        # segment o + u d, u in [0, 1], with o = radar (origin) and d = p, in each box frame
-        ox = -(c * centres[:, 0] + s * centres[:, 1])                         # (V,)
-        oy = -(-s * centres[:, 0] + c * centres[:, 1])
-        dx = c[None, :] * p[:, None, 0] + s[None, :] * p[:, None, 1]          # (N, V)
-        dy = -s[None, :] * p[:, None, 0] + c[None, :] * p[:, None, 1]
-        hl, hw = size[:, 0] / 2, size[:, 1] / 2
-
-        def slab(o, d, h):
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t1 = (-h[None, :] - o[None, :]) / d
-                t2 = (h[None, :] - o[None, :]) / d
-            inside = np.abs(o)[None, :] <= h[None, :]
-            lo = np.where(d == 0, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2))
-            hi = np.where(d == 0, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2))
-            return lo, hi
-
-        lx, hx = slab(ox, dx, hl)
-        ly, hy = slab(oy, dy, hw)
-        t_in, t_out = np.maximum(lx, ly), np.minimum(hx, hy)
+        t_in, t_out = footprint_crossings(p, centres, yaw, size)              # (N, V), in units of |p|
         cross = (t_in < t_out) & (t_out > 0) & (t_in < 0.98)                  # enters before reaching p
         cross &= owner[:, None] != np.arange(v)[None, :]
         return cross.any(axis=1)
+
+
+def footprint_crossings(d: np.ndarray, centres: np.ndarray, yaw: np.ndarray, size: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Where the rays ``u * d`` (``u >= 0``) from the radar enter and leave vehicle footprints.
+
+    Slab method in each box frame, vectorised over rays and boxes.
+
+    Parameters
+    ----------
+    d : ndarray ``(A, 2)``
+        Ray directions in the radar xy plane (any length: ``u`` is in units of it).
+    centres : ndarray ``(V, 2)``
+        Footprint centres; ``yaw`` ``(V,)`` headings; ``size`` ``(V, >=2)`` length and width.
+
+    Returns
+    -------
+    (t_in, t_out) : ndarray ``(A, V)`` each
+        The ray meets box ``v`` iff ``t_in < t_out`` and ``t_out > 0``; ``+-inf`` when parallel.
+    """
+    c, s = np.cos(yaw), np.sin(yaw)                                           # (V,)
+    ox = -(c * centres[:, 0] + s * centres[:, 1])                             # radar in box frames
+    oy = -(-s * centres[:, 0] + c * centres[:, 1])
+    dx = c[None, :] * d[:, None, 0] + s[None, :] * d[:, None, 1]              # (A, V)
+    dy = -s[None, :] * d[:, None, 0] + c[None, :] * d[:, None, 1]
+
+    def slab(o, dd, h):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (-h[None, :] - o[None, :]) / dd
+            t2 = (h[None, :] - o[None, :]) / dd
+        inside = np.abs(o)[None, :] <= h[None, :]
+        lo = np.where(dd == 0, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2))
+        hi = np.where(dd == 0, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2))
+        return lo, hi
+
+    lx, hx = slab(ox, dx, size[:, 0] / 2)
+    ly, hy = slab(oy, dy, size[:, 1] / 2)
+    return np.maximum(lx, ly), np.minimum(hx, hy)
