@@ -151,6 +151,10 @@ def test_writer_rejects_bad_input(tmp_path):
     bad.x[0] = float("nan")
     with pytest.raises(ValueError, match="'x' holds NaN"):
         w.write(bad, frames=[0], sequences=["A"])
+    back = make_batch([2, 1])
+    back.offset = torch.tensor([3, 2])
+    with pytest.raises(ValueError, match="non-decreasing"):
+        w.write(back, frames=[5, 6], sequences=["A", "A"])
     w.write(make_batch([1]), frames=[0], sequences=["A"])
     with pytest.raises(ValueError, match="frames written twice"):
         w.write(make_batch([1]), frames=[0], sequences=["A"])

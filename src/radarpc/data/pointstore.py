@@ -270,6 +270,9 @@ def _batch_to_table(clouds: "PointCloudBatch", frames: Sequence[int], sequences:
     """Arrow table of every point of ``clouds`` and the ``(B,)`` point count per frame."""
     offset = clouds.offset.detach().to("cpu", torch.int64).numpy()                 # (B,)
     counts = np.diff(np.concatenate([[0], offset]))                                # (B,)
+    if offset.ndim != 1 or (counts < 0).any():
+        raise ValueError(f"clouds.offset must be a non-decreasing (B,) vector of cumulative point counts, "
+                         f"got {offset.tolist()}")
     n = int(offset[-1]) if offset.size else 0
     cols: dict[str, pa.Array] = {}
     cols["frame"] = pa.array(np.repeat(np.asarray(frames, dtype=np.int64), counts), pa.int64())
