@@ -17,9 +17,10 @@ One scene (:mod:`radarpc.sim.indoor`) feeds every sensor:
 
   with ``tau_n(t, c) = 2 (R_n + v_n T(t, c)) / c``, ``T(t, c) = (c N_tx + t) T_c`` the chirp start
   time and ``t_k = t_adc + k / f_s``; ``A_n = g sqrt(sigma_n) / R_n^2`` (radar equation, ``g`` in
-  ADC LSB). ``exact=True`` uses ``tau_n`` of each chirp in the fast-time term (range migration
-  within the frame); the default uses the frame-centre delay there, which makes the sum a matrix
-  product (same phases otherwise). Then complex Gaussian noise and int16 I/Q quantization.
+  ADC LSB). ``exact=True`` evaluates this phase for every (t, r, c, k). The default splits
+  ``S tau t_k = S tau t_ctr + S tau (t_k - t_ctr)`` (``t_ctr`` the centre of the ADC window) and
+  uses the frame-centre delay in the second term only, which makes the sum over scatterers a
+  matrix product; it drops just the range migration across one frame (tested against ``exact``). Then complex Gaussian noise and int16 I/Q quantization.
 * :func:`cascade_heatmap` -- ColoRadar cascade heatmaps computed in the frequency domain: for each
   scatterer the Hann-windowed range-FFT response ``|W(r - R_n / dr)|^2`` times the beamformer
   power ``|AF(az, el)|^2`` of the cascade's unique virtual elements steered at the heatmap's bin
@@ -294,6 +295,7 @@ def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_l
                 + torch.arange(ntx, device=dev, dtype=f64)[:, None]) * tc)          # (ntx, nc)
     t_k = w.adc_start_time + torch.arange(ns, device=dev, dtype=f64) / w.adc_sample_frequency
     t_mid = 0.5 * nc * ntx * tc
+    t_ctr = float(t_k.mean())
     out = torch.zeros((ntx, nrx, nc, ns), dtype=torch.complex128, device=dev)
     two_pi = 2 * math.pi
     for s in range(0, p.shape[0], chunk):
@@ -309,9 +311,12 @@ def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_l
                   + two_pi * slope * tau[:, None, :, None, :] * t_k[None, None, None, :, None])
             out += (coef * torch.exp(1j * ph)).sum(-1)
         else:
+            # S tau t_k = S tau t_ctr + S tau (t_k - t_ctr): the first part is exact per chirp, the
+            # second uses the frame-centre delay (drops only the range migration across the frame)
             tau_mid = 2 * (rr + vv * t_mid) / SPEED_OF_LIGHT
-            fast = torch.exp(1j * two_pi * slope * tau_mid[:, None] * t_k[None, :])            # (n, ns)
-            a = (coef * torch.exp(1j * (slow[:, None] + arr_tx[:, None, None, :] + arr_rx[None, :, None, :])))
+            fast = torch.exp(1j * two_pi * slope * tau_mid[:, None] * (t_k - t_ctr)[None, :])  # (n, ns)
+            slow_c = slow + two_pi * slope * t_ctr * tau
+            a = (coef * torch.exp(1j * (slow_c[:, None] + arr_tx[:, None, None, :] + arr_rx[None, :, None, :])))
             out += (a.reshape(-1, a.shape[-1]) @ fast).reshape(ntx, nrx, nc, ns)
     return out.to(torch.complex64)
 

@@ -1,0 +1,127 @@
+"""Tests for radarpc.sim.coloradar_synth: point targets through ADC synthesis + RaLD cube, cascade
+heatmaps, LiDAR pattern and scatterer kinematics."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from radarpc.data.coloradar import radar_cube
+from radarpc.sensors.coloradar import AWR1843, BASE_TO_SINGLE_CHIP, CASCADE, SPEED_OF_LIGHT
+from radarpc.sim.coloradar_synth import (
+    LidarConfig,
+    RadarSimConfig,
+    Scatterers,
+    beat_signal,
+    cascade_heatmap,
+    lidar_directions,
+    radar_scatterers,
+    sensor_pose,
+    simulate_frame,
+    synthesize_adc,
+)
+from radarpc.sim.indoor import Scene, Trajectory, make_scene
+
+TINY = AWR1843.replace(num_chirps_per_frame=16)
+
+
+def _point(r, az_deg, el_deg, v=0.0, rcs=1.0) -> Scatterers:
+    a, e = math.radians(az_deg), math.radians(el_deg)
+    p = torch.tensor([[r * math.cos(e) * math.cos(a), r * math.cos(e) * math.sin(a), r * math.sin(e)]])
+    return Scatterers(p, torch.tensor([rcs]), torch.tensor([0.3]), torch.tensor([v]))
+
+
+def test_point_reflector_in_single_chip_cube():
+    w = TINY.waveform
+    rbw = SPEED_OF_LIGHT * w.adc_sample_frequency / (2 * w.frequency_slope * 128)   # independent of the code
+    fc = w.start_frequency + w.frequency_slope * (w.adc_start_time + w.num_adc_samples_per_chirp / (2 * w.adc_sample_frequency))
+    d = 0.5 * fc / (TINY.antenna.design_frequency_ghz * 1e9)
+    vmax = SPEED_OF_LIGHT / fc / (4 * w.num_tx * (w.idle_time + w.ramp_end_time))
+    for r_bin, az, v in ((40, 30.0, 0.8), (75, -45.0, -1.2), (20, 0.0, 0.0)):
+        s = _point(r_bin * rbw, az, 0.0, v)
+        cube = radar_cube(beat_signal(s, TINY), TINY, n_doppler=16)
+        db = cube.intensity_db
+        assert db.shape == (128, 8, 2)
+        ri, ai, ei = np.unravel_index(int(db.argmax()), db.shape)
+        assert ri == r_bin
+        assert ai == 4 + round(8 * d * math.sin(math.radians(az)))
+        assert ei == 1
+        assert bool(cube.valid[ri, ai, ei])
+        assert float(cube.doppler[ri, ai, ei]) == pytest.approx(v, abs=2 * vmax / 16)
+        assert float(cube.range_m[ri]) == pytest.approx(r_bin * rbw, rel=1e-6)
+
+
+def test_point_reflector_in_cascade_heatmap():
+    hm_cfg = CASCADE.heatmap
+    for r_bin, az, el in ((60, 20.0, 0.0), (100, -35.0, 0.0)):
+        s = _point(r_bin * hm_cfg.range_bin_width, az, el, v=0.5)
+        hm = cascade_heatmap(s, CASCADE, noise=False).numpy()
+        assert hm.shape == (32, 128, 128, 2) and hm.dtype == np.float32
+        ei, ai, ri = np.unravel_index(int(hm[..., 0].argmax()), hm.shape[:3])
+        assert ri == r_bin
+        want_az = int(np.argmin(np.abs(np.sin(np.asarray(hm_cfg.azimuth_bins)) - math.sin(math.radians(az)))))
+        assert ai == want_az
+        assert ei in (15, 16)                                         # the two beams around 0 deg
+        vbin = 2 * CASCADE.waveform.max_velocity_mps / CASCADE.waveform.num_chirps_per_frame
+        assert hm[ei, ai, ri, 1] == pytest.approx(0.5, abs=vbin / 2 + 1e-6)
+
+
+def test_exact_and_fast_beat_signal_agree():
+    chip = AWR1843.replace(num_chirps_per_frame=8, num_adc_samples_per_chirp=64)
+    s = Scatterers(torch.tensor([[4.0, 1.0, 0.2], [7.0, -2.0, 0.0]]), torch.tensor([1.0, 2.0]),
+                   torch.tensor([0.0, 1.0]), torch.tensor([0.0, 1.5]))
+    a = beat_signal(s, chip, exact=True)
+    b = beat_signal(s, chip, exact=False)
+    assert a.shape == (3, 4, 8, 64) and a.dtype == torch.complex64
+    assert float((a - b).abs().max() / a.abs().max()) < 0.02
+    static = Scatterers(s.points[:1], s.rcs[:1], s.phase[:1], torch.zeros(1))
+    torch.testing.assert_close(beat_signal(static, chip, exact=True), beat_signal(static, chip), rtol=1e-4, atol=1e-3)
+
+
+def test_adc_quantization_and_noise():
+    empty = Scatterers(torch.zeros((0, 3)), torch.zeros(0), torch.zeros(0), torch.zeros(0))
+    g = torch.Generator().manual_seed(0)
+    adc = synthesize_adc(empty, TINY, cfg=RadarSimConfig(adc_noise_lsb=5.0), generator=g)
+    assert adc.dtype == torch.int16 and tuple(adc.shape) == TINY.adc_shape
+    assert float(adc.float().std()) == pytest.approx(5.0, rel=0.05)
+    loud = synthesize_adc(_point(0.05, 0.0, 0.0, rcs=100.0), TINY)        # saturates the ADC
+    assert int(loud.max()) == 32767 and int(loud.min()) == -32768
+
+
+def test_lidar_pattern():
+    cfg = LidarConfig(beams=64, azimuth_steps=32)
+    d = lidar_directions(cfg)
+    assert d.shape == (64 * 32, 3)
+    el = torch.rad2deg(torch.asin(d[:, 2]))
+    assert float(el.max()) == pytest.approx(16.6, abs=1e-4) and float(el.min()) == pytest.approx(-16.6, abs=1e-4)
+    torch.testing.assert_close(d.norm(dim=1), torch.ones(64 * 32))
+
+
+def test_static_scatterers_doppler_is_ego_motion():
+    boxes = np.array([[6.0, 0.0, 1.5, 0.1, 10.0, 1.5, 0.0, 3]])
+    traj = Trajectory(((0.0, -3.0), (0.0, 3.0)), speed=1.0, height=1.0, handheld=False)   # moving along +y
+    scene = Scene("lab", 0, boxes, np.zeros((0, 6)), (), traj)
+    t = 2.0
+    pose, vel = sensor_pose(scene, t, BASE_TO_SINGLE_CHIP)
+    cfg = RadarSimConfig(edges=False, multipath=False, az_step_deg=5.0, el_step_deg=5.0)
+    s = radar_scatterers(scene, t, pose, vel, cfg=cfg, generator=torch.Generator().manual_seed(1))
+    assert len(s) > 10
+    u_sensor = s.points / s.points.norm(dim=1, keepdim=True)
+    u_world = u_sensor.double().numpy() @ pose.rotation.T
+    np.testing.assert_allclose(s.velocity.numpy(), -(u_world @ vel), atol=1e-4)
+    # the radar looks along base +y = the direction of travel: the wall (world x = 6) is to its right
+    assert (s.points[:, 1] < 0).float().mean() > 0.9
+    cfg_mp = RadarSimConfig(edges=False, multipath=True, az_step_deg=5.0, el_step_deg=5.0)
+    scene_mp = Scene("lab", 0, boxes, np.zeros((0, 6)), (), traj, mirror_planes=(((0.0, 0.0, 1.0), 0.0),))
+    s2 = radar_scatterers(scene_mp, t, pose, vel, cfg=cfg_mp, generator=torch.Generator().manual_seed(1))
+    assert len(s2) > len(s)
+
+
+def test_simulate_frame_shapes():
+    f = simulate_frame(make_scene("lab", 0), 1.0, lidar=LidarConfig(beams=4, azimuth_steps=64),
+                       radar=RadarSimConfig(az_step_deg=4.0, el_step_deg=5.0), seed=3)
+    assert f.adc.dtype == np.int16 and f.adc.shape == AWR1843.adc_shape
+    assert f.heatmap.shape == CASCADE.heatmap.shape and np.isfinite(f.heatmap).all()
+    assert f.lidar.shape == (4 * 64, 4) and f.lidar.dtype == np.float32
