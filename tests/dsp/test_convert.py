@@ -226,6 +226,10 @@ def test_sparse_rd_root_reads_back_as_masked_cube(root, tmp_path):
     again = write_sparse_rd(root, out_root, tau=4.0, progress=False)
     assert again.frames_written == 1
     assert torch.equal(RADIal(out_root, split="all")[3][0], dst[3][0])
+    with pytest.raises(ValueError, match="other data or settings"):
+        write_sparse_rd(root, out_root, tau=5.0, progress=False)
+    assert write_sparse_rd(root, out_root, tau=5.0, progress=False, resume=False).frames_written == 9
+    assert json.loads((out_root / "sparse_rd.json").read_text())["tau"] == 5.0
 
 
 def test_sparse_rd_split_keeps_only_its_labels(root, tmp_path):

@@ -586,9 +586,10 @@ def _barrier(env: DistEnv, wait_file: Path | None, timeout_s: float, wait_files:
 
 
 # ---- sparse RD root -----------------------------------------------------------------------------
-def _link_or_copy(src: Path, dst: Path) -> None:
-    """Hard-link ``src`` to ``dst`` (copy across file systems), atomically; skip if ``dst`` exists."""
-    if dst.exists():
+def _link_or_copy(src: Path, dst: Path, *, overwrite: bool = False) -> None:
+    """Hard-link ``src`` to ``dst`` (copy across file systems), atomically; an existing ``dst`` is
+    kept unless ``overwrite``."""
+    if dst.exists() and not overwrite:
         return
     dst.parent.mkdir(parents=True, exist_ok=True)
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
@@ -635,7 +636,8 @@ def write_sparse_rd(
     ``labels.csv`` (restricted to the split's frames), the freespace PNGs, ``calibration.npz`` /
     ``CalibrationTable.npy`` and ``sensor.json`` are hard-linked (or copied); each cube is
     written atomically and existing cubes are kept when ``resume`` (so a killed run resumes).
-    ``sparse_rd.json`` records the settings, the tau and the per-frame densities.
+    ``sparse_rd.json`` records the source, the settings and the tau (a resumed run must match
+    them), whether the run completed and the mean density of the frames it wrote.
 
     Parameters are those of :func:`convert_dataset`.
 
@@ -656,16 +658,31 @@ def write_sparse_rd(
     dev = _default_device(device, DistEnv())
     ds = RADIal(root, split=settings.split)
     _check_dsp_settings(settings, ds)
+    info_path = out_root / "sparse_rd.json"
+    key = {"source_root": str(root.resolve()), "settings": settings.to_dict()}
+    prev = None
+    if resume and info_path.is_file():
+        try:
+            prev = json.loads(info_path.read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError) as e:
+            raise DataFileError(info_path, f"is unreadable ({e}); delete it or pass resume=False") from e
+        if {k: prev.get(k) for k in key} != key:
+            raise ValueError(f"{out_root} holds a sparse-RD root made from other data or settings (see "
+                             f"{info_path}); write to another folder or pass resume=False (CLI: --no-resume)")
     cal_tau = settings.tau
     if settings.mode == "per-dataset":
-        cal_tau = calibrate_tau(root, settings, batch_size=int(batch_size), device=dev, progress=progress)
+        cal_tau = prev["tau"] if prev is not None else calibrate_tau(
+            root, settings, batch_size=int(batch_size), device=dev, progress=progress)
     spc = build_point_cloud(ds, settings, cal_tau, dev)
 
     out_root.mkdir(parents=True, exist_ok=True)
+    info = dict(key, tau=cal_tau, mode=settings.mode, radarpc_version=__version__, complete=False)
+    with atomic_write(info_path, "w") as f:
+        json.dump(info, f, indent=1)
     for name in ("calibration.npz", "CalibrationTable.npy", "sensor.json"):
         if (root / name).is_file():
-            _link_or_copy(root / name, out_root / name)
-    if not (out_root / "labels.csv").is_file():
+            _link_or_copy(root / name, out_root / name, overwrite=not resume)
+    if not resume or not (out_root / "labels.csv").is_file():
         _write_split_labels(root / "labels.csv", out_root / "labels.csv", set(ds.frame_ids))
 
     todo = [p for p in range(len(ds)) if not (resume and fft_path(out_root, ds.frame_ids[p]).is_file())]
@@ -686,12 +703,10 @@ def write_sparse_rd(
     for num in ds.frame_ids:
         fs = freespace_path(root, num)
         if fs.is_file():
-            _link_or_copy(fs, freespace_path(out_root, num))
+            _link_or_copy(fs, freespace_path(out_root, num), overwrite=not resume)
     dens = torch.cat(densities) if densities else torch.zeros(0)
-    info = {"source_root": str(root.resolve()), "settings": settings.to_dict(), "tau": cal_tau,
-            "mode": settings.mode, "frames_written_last_run": len(todo),
-            "mean_density_last_run": float(dens.mean()) if dens.numel() else None,
-            "radarpc_version": __version__}
-    with atomic_write(out_root / "sparse_rd.json", "w") as f:
+    info.update(complete=True, frames_written_last_run=len(todo),
+                mean_density_last_run=float(dens.mean()) if dens.numel() else None)
+    with atomic_write(info_path, "w") as f:
         json.dump(info, f, indent=1)
     return SparseRDResult(out_root, len(ds), len(todo), float(dens.mean()) if dens.numel() else float("nan"), cal_tau)
