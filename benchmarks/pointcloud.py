@@ -2,14 +2,16 @@
 
 Prints one JSON object per target density (0.007, 0.057, 0.56 by default) with, for the plain
 cloud and for ``enrich=("rd3", "sector32")``: frames/s, ms/frame, points/frame, achieved density,
-device, threads, the numpy baseline's frames/s on the same frames and the speed ratio; plus the
-process's peak RSS.
+device, threads, the frames/s of two numpy baselines on the same frames and the speed ratios; plus
+the process's peak RSS.
 
 The numpy baseline follows RADIal's ``SignalProcessing/rpl.py`` (one frame at a time:
 ``np.abs`` sum over Rx, slot sum, CA-CFAR with ``scipy.signal.convolve2d``, the Tx-0 search with a
 cumulative sum, a Python loop over peaks building their Doppler index lists, one complex matmul
 with the calibration matrix, argmax), with the same window/guard convention and per-frame density
 control as radarpc, so that both produce the same points (checked and reported as ``agree``).
+It already runs the dominant beamforming as one BLAS matmul per frame. The second baseline,
+``numpy_loop``, processes each peak on its own in a Python loop (matrix-vector beamforming).
 
 Usage::
 
@@ -29,6 +31,7 @@ def _parse() -> argparse.Namespace:
     p.add_argument("--batch", type=int, default=8, help="frames per forward call")
     p.add_argument("--repeats", type=int, default=5, help="timed passes (best and median reported)")
     p.add_argument("--numpy-frames", type=int, default=4, help="frames timed with the numpy baseline")
+    p.add_argument("--loop-frames", type=int, default=1, help="frames timed with the per-peak-loop baseline")
     p.add_argument("--densities", type=float, nargs="+", default=[0.007, 0.057, 0.56])
     p.add_argument("--scatterers", type=int, default=60, help="point scatterers per simulated frame")
     p.add_argument("--device", default=None, help="torch device (default: cpu, and cuda if available)")
@@ -113,6 +116,45 @@ class NumpyPointCloud:
         return out
 
 
+class NumpyLoopPointCloud(NumpyPointCloud):
+    """The same, but every peak processed on its own in a Python loop (Tx-0 search, snapshot,
+    matrix-vector beamforming, argmax, sectors): the most literal reading of the seed's equations."""
+
+    def __call__(self, rd: np.ndarray) -> dict[str, np.ndarray]:
+        cfg = self.cfg
+        power_spectrum = np.sum(np.abs(rd), axis=2)
+        reduced = np.sum(power_spectrum.reshape(cfg.n_range, cfg.n_slots, cfg.slot_width), axis=1)
+        p = reduced ** 2
+        snr = p / (signal.convolve2d(p, self.mask, mode="same") / self.count)
+        n = int(round(self.density * cfg.n_range * cfg.n_doppler / cfg.n_tx))
+        top = np.sort(snr.ravel())[::-1]
+        kept = snr > 0.5 * (top[n - 1] + top[n])
+        if self.rd_n is not None:
+            kept = binary_dilation(kept, np.ones((self.rd_n, self.rd_n), dtype=bool))
+        g = cfg.n_empty_slots
+        out: dict[str, list] = {"range_bin": [], "doppler_full": [], "k": [], "amplitude": [],
+                                "azimuth_deg": [], "elevation_deg": [], "sector": []}
+        n_az = len(self.az)
+        for r, l in zip(*np.nonzero(kept)):
+            x = power_spectrum[r, l::cfg.slot_width]
+            means = [np.mean([x[(s + 1 + i) % cfg.n_slots] for i in range(g)]) for s in range(cfg.n_slots)]
+            d0 = int(np.argmin(means)) * cfg.slot_width + l
+            v = np.concatenate([rd[r, (d0 + off) % cfg.n_doppler] for off in cfg.doppler_offsets]) * self.window
+            spec = np.abs(self.calib_mat @ v)
+            k = int(np.argmax(spec))
+            out["range_bin"].append(r)
+            out["doppler_full"].append(d0)
+            out["k"].append(k)
+            out["amplitude"].append(spec[k])
+            out["azimuth_deg"].append(self.az[k // self.n_el])
+            out["elevation_deg"].append(self.el[k % self.n_el])
+            if self.sectors is not None:
+                grid = spec.reshape(n_az, self.n_el)
+                out["sector"].append([grid[(u * n_az) // self.sectors: -(-((u + 1) * n_az) // self.sectors)].max()
+                                      for u in range(self.sectors)])
+        return {k: np.asarray(v) for k, v in out.items()}
+
+
 # ---- helpers ---------------------------------------------------------------------------------------
 def simulate(cfg: DDMARadarConfig, n: int, k: int, seed: int) -> torch.Tensor:
     """``n`` full-size frames of ``k`` random point scatterers each plus thermal noise."""
@@ -192,6 +234,12 @@ def main(args: argparse.Namespace) -> None:
             t0 = time.perf_counter()
             ref = [npc(f) for f in frames_np]
             np_fps = len(frames_np) / (time.perf_counter() - t0)
+            loop = NumpyLoopPointCloud(cfg, calib, density, rd_n=npc.rd_n, sectors=npc.sectors)
+            t0 = time.perf_counter()
+            n_loop = max(1, min(args.loop_frames, len(frames_np)))
+            ref_loop = [loop(f) for f in frames_np[:n_loop]]
+            loop_fps = n_loop / (time.perf_counter() - t0)
+            assert np.array_equal(ref_loop[0]["doppler_full"], ref[0]["doppler_full"])
             for device in devices:
                 spc = SpectralPointCloud(cfg, calib, density=density, enrich=enrich).to(device)
                 batches = [frames[i:i + args.batch].to(device) for i in range(0, args.frames, args.batch)]
@@ -219,6 +267,8 @@ def main(args: argparse.Namespace) -> None:
                     "ms_per_frame": round(1e3 * best / args.frames, 2),
                     "points_per_frame": round(pts, 1), "density_achieved": round(dens, 5),
                     "numpy_frames_per_s": round(np_fps, 2), "speedup_vs_numpy": round(fps_best / np_fps, 1),
+                    "numpy_loop_frames_per_s": round(loop_fps, 2),
+                    "speedup_vs_numpy_loop": round(fps_best / loop_fps, 1),
                     "agree_with_numpy": round(agree / max(total, 1), 4)})
         report["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
         print(json.dumps(report), flush=True)
