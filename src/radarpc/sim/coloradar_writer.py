@@ -51,7 +51,7 @@ from radarpc.sim.coloradar_synth import (
 )
 from radarpc.sim.indoor import SCENE_KINDS, Scene, make_scene
 
-__all__ = ["RunTimeline", "run_timeline", "run_name", "write_coloradar", "write_run"]
+__all__ = ["RunTimeline", "run_timeline", "run_name", "frame_generator", "write_coloradar", "write_run"]
 
 _EPOCH = 1_614_000_000.0   # Feb 2021, like the dataset
 
@@ -86,7 +86,9 @@ def run_timeline(frames: int, duration: float, rng: np.random.Generator, epoch: 
     return RunTimeline(radar, cascade, lidar, poses, epoch)
 
 
-def _gen(seed: int, *key) -> torch.Generator:
+def frame_generator(seed: int, *key) -> torch.Generator:
+    """CPU generator seeded by ``crc32(json([seed, *key]))``; the writer uses
+    ``(seed, scene, run, frame, sensor)`` with sensor in ``radar, adc, heatmap, lidar``."""
     g = torch.Generator()
     g.manual_seed(zlib.crc32(json.dumps([int(seed), *key]).encode()) & 0x7FFFFFFF)
     return g
@@ -122,46 +124,50 @@ def write_run(run_dir: str | os.PathLike, scene: Scene, frames: int, *, seed: in
             scene.trajectory, speed=scene.trajectory.length / need))
     tl = run_timeline(frames, scene.trajectory.duration, rng)
     ep = tl.epoch + 1000.0 * (zlib.crc32(json.dumps(list(key)).encode()) % 10_000)
-    fmt = lambda ts: [f"{ep + t:.6f}" for t in ts]  # noqa: E731
+    # timestamps as written, and the scene times a reader recovers from them (text minus the
+    # first pose time): the sensors are simulated at exactly those times
+    txt = {k: [f"{ep + t:.6f}" for t in getattr(tl, k)] for k in ("radar", "cascade", "lidar", "poses")}
+    t_ref = float(txt["poses"][0])
+    times = {k: np.array([float(x) for x in v]) - t_ref for k, v in txt.items()}
     # ground truth and timestamps first (cheap, deterministic)
-    poses = [np.concatenate(scene.trajectory.pose(float(t))) for t in tl.poses]
+    poses = [np.concatenate(scene.trajectory.pose(float(t))) for t in times["poses"]]
     _write_lines(run_dir / "groundtruth" / "groundtruth_poses.txt",
                  [" ".join(f"{v:.9f}" for v in p) for p in poses])
-    _write_lines(run_dir / "groundtruth" / "timestamps.txt", fmt(tl.poses))
-    _write_lines(run_dir / "single_chip" / "adc_samples" / "timestamps.txt", fmt(tl.radar))
-    _write_lines(run_dir / "lidar" / "timestamps.txt", fmt(tl.lidar))
+    _write_lines(run_dir / "groundtruth" / "timestamps.txt", txt["poses"])
+    _write_lines(run_dir / "single_chip" / "adc_samples" / "timestamps.txt", txt["radar"])
+    _write_lines(run_dir / "lidar" / "timestamps.txt", txt["lidar"])
     has_cc = calib.cascade is not None and calib.base_to_cascade is not None
     if has_cc:
-        _write_lines(run_dir / "cascade" / "heatmaps" / "timestamps.txt", fmt(tl.cascade))
+        _write_lines(run_dir / "cascade" / "heatmaps" / "timestamps.txt", txt["cascade"])
     sc_to_cc = calib.base_to_cascade.inverse() @ calib.base_to_single_chip if has_cc else None
     adc_dir = run_dir / "single_chip" / "adc_samples" / "data"
     hm_dir = run_dir / "cascade" / "heatmaps" / "data"
-    for i, t in enumerate(tl.radar):
+    for i, t in enumerate(times["radar"]):
         f_adc, f_hm = adc_dir / f"frame_{i}.bin", hm_dir / f"heatmap_{i}.bin"
         need_adc = not _done(f_adc, calib.single_chip.adc_nbytes, resume)
         need_hm = has_cc and not _done(f_hm, calib.cascade.heatmap_nbytes if has_cc else None, resume)
         if need_adc or need_hm:
-            gen = _gen(seed, *key, i, "radar")
+            gen = frame_generator(seed, *key, i, "radar")
             pose, vel = sensor_pose(scene, float(t), calib.base_to_single_chip)
             scat = radar_scatterers(scene, float(t), pose, vel, cfg=radar, generator=gen, device=device)
             if need_adc:
                 adc = synthesize_adc(scat, calib.single_chip, cfg=radar,
-                                     generator=_to_device(_gen(seed, *key, i, "adc"), scat.points.device))
+                                     generator=_to_device(frame_generator(seed, *key, i, "adc"), scat.points.device))
                 _write_bin(f_adc, adc.cpu().numpy())
             if need_hm:
                 hm = cascade_heatmap(scat.to_frame(sc_to_cc), calib.cascade, cfg=radar,
-                                     generator=_to_device(_gen(seed, *key, i, "heatmap"), scat.points.device))
+                                     generator=_to_device(frame_generator(seed, *key, i, "heatmap"), scat.points.device))
                 _write_bin(f_hm, hm.cpu().numpy())
         if progress is not None:
             progress.update(1)
     n_l = lidar.beams * lidar.azimuth_steps * 16
-    for j, t in enumerate(tl.lidar):
+    for j, t in enumerate(times["lidar"]):
         f_l = run_dir / "lidar" / "pointclouds" / f"lidar_pointcloud_{j}.bin"
         if not _done(f_l, n_l, resume):
             pose, _ = sensor_pose(scene, float(t), calib.base_to_lidar)
             dev = torch.device(device) if device is not None else torch.device("cpu")
             cloud = lidar_scan(scene, float(t), pose, cfg=lidar,
-                               generator=_to_device(_gen(seed, *key, j, "lidar"), dev), device=dev)
+                               generator=_to_device(frame_generator(seed, *key, j, "lidar"), dev), device=dev)
             _write_bin(f_l, cloud.cpu().numpy().astype(np.float32))
         if progress is not None:
             progress.update(1)

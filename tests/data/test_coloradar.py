@@ -1,0 +1,217 @@
+"""Tests for radarpc.data.coloradar: reader vs simulator, pairing, transforms, crop, bad input."""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from radarpc.data.coloradar import (
+    RALD_SPLITS,
+    ColoRadar,
+    ColoRadarRun,
+    collate_coloradar,
+    crop_to_frustum,
+    frustum_mask,
+    lidar_to_radar,
+    pair_radar_lidar,
+    radar_cube,
+    split_runs,
+    upsample_intensity,
+)
+from radarpc.io import DataFileError
+from radarpc.sensors.coloradar import AWR1843, DEFAULT_CALIB, ColoRadarCalib, RadarFOV, Transform, load_calib
+from radarpc.sim.coloradar_synth import (
+    LidarConfig,
+    RadarSimConfig,
+    cascade_heatmap,
+    lidar_scan,
+    radar_scatterers,
+    sensor_pose,
+    synthesize_adc,
+)
+from radarpc.sim.coloradar_writer import frame_generator, run_name, write_coloradar
+from radarpc.sim.indoor import make_scene
+
+CALIB = dataclasses.replace(DEFAULT_CALIB, single_chip=AWR1843.replace(num_chirps_per_frame=8))
+RADAR = RadarSimConfig(az_step_deg=4.0, el_step_deg=5.0)
+KW = dict(lidar_beams=8, lidar_azimuth_steps=128, calib=CALIB, radar=RADAR, progress=False)
+
+
+@pytest.fixture(scope="module")
+def sim_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("colo") / "sim"
+    write_coloradar(root, ["lab"], 3, 2, seed=7, **KW)
+    return root
+
+
+def test_reader_agrees_with_simulator(sim_root):
+    calib = load_calib(sim_root / "calib")
+    assert calib == CALIB
+    run = ColoRadarRun(sim_root / "lab_run1")
+    assert run.scene == "lab" and run.num_radar_frames == 2 and run.num_lidar_frames == 4
+    scene = make_scene("lab", 7, 1)
+    t0 = run.pose_timestamps[0]
+    # poses: world <- base at the pose timestamps
+    for k in (0, 5):
+        pos, q = scene.trajectory.pose(float(run.pose_timestamps[k] - t0))
+        np.testing.assert_allclose(run.poses[k], np.concatenate([pos, q]), atol=1e-6)
+    for i in range(2):
+        t = float(run.radar_timestamps[i] - t0)
+        pose, vel = sensor_pose(scene, t, CALIB.base_to_single_chip)
+        scat = radar_scatterers(scene, t, pose, vel, cfg=RADAR, generator=frame_generator(7, "lab", 1, i, "radar"))
+        adc = synthesize_adc(scat, CALIB.single_chip, cfg=RADAR, generator=frame_generator(7, "lab", 1, i, "adc")).numpy()
+        got = run.adc(i)
+        assert got.dtype == np.complex64 and got.shape == (3, 4, 8, 128)
+        np.testing.assert_array_equal(got.real, adc[..., 0])
+        np.testing.assert_array_equal(got.imag, adc[..., 1])
+        sc_to_cc = CALIB.base_to_cascade.inverse() @ CALIB.base_to_single_chip
+        hm = cascade_heatmap(scat.to_frame(sc_to_cc), CALIB.cascade, cfg=RADAR,
+                             generator=frame_generator(7, "lab", 1, i, "heatmap")).numpy()
+        np.testing.assert_array_equal(run.heatmap(i), hm)
+    for j in range(4):
+        t = float(run.lidar_timestamps[j] - t0)
+        pose, _ = sensor_pose(scene, t, CALIB.base_to_lidar)
+        cloud = lidar_scan(scene, t, pose, cfg=LidarConfig(beams=8, azimuth_steps=128),
+                           generator=frame_generator(7, "lab", 1, j, "lidar")).numpy()
+        np.testing.assert_array_equal(run.lidar(j, drop_zeros=False), cloud)
+        np.testing.assert_array_equal(run.lidar(j), cloud[np.any(cloud[:, :3] != 0, axis=1)])
+
+
+def test_resume_and_refuse(sim_root, tmp_path):
+    f = sim_root / "lab_run0" / "single_chip" / "adc_samples" / "data" / "frame_0.bin"
+    before = f.read_bytes()
+    f.unlink()
+    write_coloradar(sim_root, ["lab"], 3, 2, seed=7, **KW)          # resumes: rewrites the missing file
+    assert f.read_bytes() == before
+    with pytest.raises(FileExistsError, match="not empty"):
+        write_coloradar(sim_root, ["lab"], 3, 2, seed=8, **KW)
+    (tmp_path / "other.txt").write_text("x")
+    with pytest.raises(FileExistsError):
+        write_coloradar(tmp_path, ["lab"], 1, 1, seed=0, **KW)
+    with pytest.raises(ValueError, match="scenes"):
+        write_coloradar(tmp_path / "new", ["kitchen"], 1, 1, **KW)
+
+
+def test_dataset_items_and_splits(sim_root):
+    assert [r.name for r in ColoRadar(sim_root, "test").runs] == [run_name("lab", 2)]
+    assert [r.name for r in ColoRadar(sim_root, "val").runs] == ["lab_run1"]
+    ds = ColoRadar(sim_root, "train")
+    assert [r.name for r in ds.runs] == ["lab_run0"] and len(ds) >= 1
+    it = ds[0]
+    assert it.intensity.shape == (128, 64, 32) and it.intensity.dtype == torch.float32
+    assert it.points.ndim == 2 and it.points.shape[1] == 3 and it.points.shape[0] > 0
+    assert bool(frustum_mask(it.points).all())
+    assert abs(it.radar_time - it.lidar_time) <= 0.05 + 1e-9
+    inten, pts, offset, items = collate_coloradar([ds[0], ds[0]])
+    assert inten.shape == (2, 128, 64, 32) and offset.tolist() == [it.points.shape[0], 2 * it.points.shape[0]]
+
+
+def test_split_rule_and_rald_lists():
+    names = [f"lab_run{k}" for k in range(5)] + ["hall_run0", "hall_run1", "solo_run0"]
+    assert split_runs(names, "test") == ["hall_run1", "lab_run4"]
+    assert split_runs(names, "val") == ["lab_run3"]
+    assert split_runs(names, "train") == ["hall_run0", "lab_run0", "lab_run1", "lab_run2", "solo_run0"]
+    real = ["2_24_2021_aspen_run10", "2_24_2021_aspen_run11", "2_24_2021_aspen_run3", "12_21_2020_ec_hallways_run4"]
+    assert split_runs(real, "test") == ["12_21_2020_ec_hallways_run4", "2_24_2021_aspen_run11"]
+    assert split_runs(real, "val") == ["2_24_2021_aspen_run10"]
+    assert len(RALD_SPLITS["train"]) == 38 and len(RALD_SPLITS["test"]) == 7
+    with pytest.raises(ValueError, match="split"):
+        split_runs(names, "dev")
+
+
+def test_pairing_nearest_timestamp(tmp_path):
+    run_dir = tmp_path / "r_run0"
+    for rel, ts in (("single_chip/adc_samples/timestamps.txt", [10.00, 10.10, 10.20, 10.90]),
+                    ("lidar/timestamps.txt", [9.97, 10.07, 10.12, 10.27, 10.37])):
+        (run_dir / rel).parent.mkdir(parents=True, exist_ok=True)
+        (run_dir / rel).write_text("\n".join(f"{t:.6f}" for t in ts) + "\n")
+    run = ColoRadarRun(run_dir, calib=DEFAULT_CALIB)
+    tr, tl = [10.00, 10.10, 10.20, 10.90], [9.97, 10.07, 10.12, 10.27, 10.37]
+    for max_dt in (0.05, 0.08, 1.0):                   # brute force: argmin |dt|, dropped when > max_dt
+        want = [[i, int(np.argmin([abs(b - a) for b in tl]))] for i, a in enumerate(tr)
+                if min(abs(b - a) for b in tl) <= max_dt]
+        assert pair_radar_lidar(run, max_dt=max_dt).tolist() == want
+    assert pair_radar_lidar(run, max_dt=0.05).tolist() == [[0, 0], [1, 2]]
+    (run_dir / "lidar/timestamps.txt").write_text("1.0\n0.5\n")
+    run2 = ColoRadarRun(run_dir, calib=DEFAULT_CALIB)
+    with pytest.raises(DataFileError, match="decrease"):
+        pair_radar_lidar(run2)
+
+
+def test_lidar_to_radar_hand_made():
+    s = math.sqrt(0.5)
+    calib = ColoRadarCalib(AWR1843, None, Transform((1.0, 0.0, 0.0), (0.0, 0.0, s, s)),
+                           Transform((0.0, 0.0, 0.5), (0.0, 0.0, 0.0, 1.0)), None)
+    pts = np.array([[1.0, 2.0, 0.0, 7.0]], dtype=np.float32)          # base (1, 2, 0.5)
+    got = lidar_to_radar(pts, calib)
+    np.testing.assert_allclose(got, [[2.0, 0.0, 0.5, 7.0]], atol=1e-6)  # R^T (p - t), R = yaw +90
+
+
+def test_frustum_crop_brute_force():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-20, 20, (3000, 3)).astype(np.float32)
+    fov = RadarFOV(max_range_m=15.0, azimuth_deg=(-60.0, 90.0), elevation_deg=(-20.0, 10.0))
+    want = []
+    for x, y, z in pts.astype(np.float64):
+        r = math.sqrt(x * x + y * y + z * z)
+        az, el = math.degrees(math.atan2(y, x)), math.degrees(math.asin(z / r))
+        want.append(0 < r <= 15.0 and -60 <= az <= 90 and -20 <= el <= 10)
+    np.testing.assert_array_equal(frustum_mask(pts, fov), np.array(want))
+    np.testing.assert_array_equal(frustum_mask(torch.from_numpy(pts), fov).numpy(), np.array(want))
+    assert crop_to_frustum(pts, fov).shape == (sum(want), 3)
+
+
+def test_bad_input_errors(sim_root, tmp_path):
+    import shutil
+    root = tmp_path / "bad"
+    shutil.copytree(sim_root, root)
+    run = ColoRadarRun(root / "lab_run0")
+    f = run.adc_path(1)
+    f.write_bytes(f.read_bytes()[:-10])
+    with pytest.raises(DataFileError, match=r"frame_1\.bin.*expected 49152 bytes.*found 49142"):
+        run.adc(1)
+    hm = run.heatmap_path(0)
+    arr = np.fromfile(hm, np.float32)
+    arr[5] = np.nan
+    arr.tofile(hm)
+    with pytest.raises(DataFileError, match="heatmap_0.bin.*NaN"):
+        run.heatmap(0)
+    run.lidar_path(0).write_bytes(b"")
+    with pytest.raises(DataFileError, match="lidar_pointcloud_0.bin.*empty"):
+        run.lidar(0)
+    np.zeros((10, 4), np.float32).tofile(run.lidar_path(1))
+    with pytest.raises(DataFileError, match="lidar_pointcloud_1.bin.*empty"):
+        run.lidar(1)
+    run.lidar_path(2).write_bytes(b"\0" * 20)
+    with pytest.raises(DataFileError, match="multiple of 16"):
+        run.lidar(2)
+    (root / "calib" / "single_chip" / "antenna_cfg.txt").unlink()
+    with pytest.raises(DataFileError, match="antenna_cfg.txt.*missing"):
+        ColoRadarRun(root / "lab_run0")
+    with pytest.raises(DataFileError, match="antenna_cfg.txt"):
+        ColoRadar(root, "all")
+
+
+def test_radar_cube_validation_and_upsample():
+    chip = AWR1843.replace(num_chirps_per_frame=8)
+    with pytest.raises(ValueError, match="complex"):
+        radar_cube(np.zeros((3, 4, 8, 128), np.float32), chip)
+    with pytest.raises(ValueError, match="shape"):
+        radar_cube(np.zeros((3, 4, 8, 64), np.complex64), chip)
+    bad = np.zeros((3, 4, 8, 128), np.complex64)
+    bad[0, 0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        radar_cube(bad, chip)
+    rng = np.random.default_rng(0)
+    x = (rng.normal(size=(2, 3, 4, 8, 128)) + 1j * rng.normal(size=(2, 3, 4, 8, 128))).astype(np.complex64)
+    batch = radar_cube(x, chip, n_doppler=8)
+    one = radar_cube(x[1], chip, n_doppler=8)
+    assert batch.intensity_db.shape == (2, 128, 8, 2) and batch.stacked().shape == (2, 128, 8, 2, 3)
+    torch.testing.assert_close(batch.intensity_db[1], one.intensity_db, rtol=1e-4, atol=1e-4)
+    up = upsample_intensity(one.intensity_db, (128, 64, 32))
+    assert up.shape == (128, 64, 32)
+    torch.testing.assert_close(up[:, 0, 0], one.intensity_db[:, 0, 0])     # align_corners keeps corners
+    torch.testing.assert_close(up[:, -1, -1], one.intensity_db[:, -1, -1])
