@@ -14,7 +14,7 @@ from radarpc.sim.radial_labels import (
     reference_points,
 )
 from radarpc.sim.rd import Scatterers
-from radarpc.sim.road import RoadFrame, VehicleTruth
+from radarpc.sim.road import RoadFrame, RoadGeometry, VehicleTruth
 
 H_RADAR = 0.8
 
@@ -32,8 +32,9 @@ def vehicles(centres_xy, yaws, rel_vel, visible=None, size=(4.5, 1.8, 1.5)):
 def frame_of(veh, xyz, owner, rcs, road=(-5.0, 5.0)):
     xyz = torch.tensor(xyz, dtype=torch.float64).reshape(-1, 3)
     sc = Scatterers.from_xyz(xyz, torch.zeros_like(xyz), torch.tensor(rcs, dtype=torch.float64))
+    geo = RoadGeometry(curvature_1pm=0.0, radar_xy=(0.0, 0.0), radar_heading_rad=0.0, bounds_m=road)
     return RoadFrame(time_s=0.0, scatterers=sc, owner=torch.tensor(owner, dtype=torch.int64), vehicles=veh,
-                     road_y_m=road, ego_speed_mps=10.0, radar_height_m=H_RADAR)
+                     road=geo, ego_speed_mps=10.0, radar_height_m=H_RADAR)
 
 
 def test_reference_point_is_the_middle_of_the_visible_back_or_front_face():
@@ -118,3 +119,38 @@ def test_freespace_polar_raster_against_the_geometry():
                     blocked = True
                     break
             assert (fs[i, col] == 255) == (on_road and not blocked), (i, col)
+
+
+def test_curved_road_lateral_offset_and_freespace():
+    # left-hand bend of radius 50 m; the radar sits 2 m right of the centre line at arc length 10 m
+    k, s0, l0 = 1 / 50, 10.0, -2.0
+
+    def world(s, l):
+        t = k * s
+        return np.array([math.sin(t) / k - l * math.sin(t), (1 - math.cos(t)) / k + l * math.cos(t)])
+
+    th = k * s0
+    pos = world(s0, l0)
+    geo = RoadGeometry(curvature_1pm=k, radar_xy=tuple(pos), radar_heading_rad=th, bounds_m=(-4.0, 4.0))
+    # points of the radar's lane further along the bend, in the radar frame
+    for ds in (5.0, 20.0, 40.0):
+        rel = world(s0 + ds, l0) - pos
+        xy = np.array([math.cos(th) * rel[0] + math.sin(th) * rel[1], -math.sin(th) * rel[0] + math.cos(th) * rel[1]])
+        assert float(geo.lateral_m(xy)) == pytest.approx(l0, abs=1e-9)
+        assert bool(geo.on_road(xy))
+    assert float(geo.lateral_m(np.array([0.0, 3.0]))) == pytest.approx(l0 + 3.0, abs=1e-9)
+    veh = vehicles(np.zeros((0, 2)), [], np.zeros((0, 2)))
+    base = frame_of(veh, [(30.0, 0.0, 0.0)], [-1], [1.0])
+    fr = RoadFrame(time_s=0.0, scatterers=base.scatterers, owner=base.owner, vehicles=veh, road=geo,
+                   ego_speed_mps=10.0, radar_height_m=H_RADAR)
+    fs = freespace_mask(RADIAL, fr)
+    pitch = RADIAL.max_range_m / FREESPACE_SHAPE[0]
+    az = freespace_azimuth_deg(np.arange(FREESPACE_SHAPE[1]))
+    # straight ahead the road bends away to the left: free near, off the road far away
+    col0 = int(np.argmin(np.abs(az)))
+    assert fs[int(10 / pitch), col0] == 255 and fs[int(60 / pitch), col0] == 0
+    # along the bend: the lane point 40 m further on is free
+    rel = world(s0 + 40.0, l0) - pos
+    x, y = math.cos(th) * rel[0] + math.sin(th) * rel[1], -math.sin(th) * rel[0] + math.cos(th) * rel[1]
+    col = int(np.argmin(np.abs(az - math.degrees(math.atan2(y, x)))))
+    assert fs[int(round(math.hypot(x, y) / pitch)), col] == 255

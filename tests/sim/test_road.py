@@ -34,14 +34,39 @@ def test_same_seed_same_frames_and_different_seeds_differ():
 
 @pytest.mark.parametrize("seq", [0, 1, 2])
 def test_vehicle_velocities_are_the_time_derivative_of_positions(seq):
-    scene = RoadScene(CFG, 0, seq, 30, MAX_R)
+    straight = dataclasses.replace(CFG, straight_prob=1.0)
+    scene = RoadScene(straight, 0, seq, 30, MAX_R)
     t, h = 1.2, 0.05
     f0, f1, fm = scene.frame(t - h), scene.frame(t + h), scene.frame(t)
-    # central difference is exact for the quadratic ego motion and linear vehicle motion
+    # straight road: the radar frame only translates; central differences are exact for the
+    # quadratic ego motion and the linear vehicle motion
     rate = (f1.vehicles.center_xyz[:, :2] - f0.vehicles.center_xyz[:, :2]) / (2 * h)
     np.testing.assert_allclose(rate, fm.vehicles.rel_velocity_xy, atol=1e-9)
     ego = (scene.ego_state(t + h)[0] - scene.ego_state(t - h)[0]) / (2 * h)
     assert ego[0] == pytest.approx(fm.ego_speed_mps, abs=1e-9)
+
+
+def test_curved_road_world_motion_is_consistent():
+    bend = dataclasses.replace(CFG, straight_prob=0.0, curvature_1pm=(1 / 120, 1 / 120))
+    scene = RoadScene(bend, 2, 0, 30, MAX_R)
+    t, h = 1.5, 1e-4
+    # ego: world velocity = derivative of world position, heading = direction of travel
+    p0, p1 = scene.ego_state(t - h)[0], scene.ego_state(t + h)[0]
+    _, heading, vel, speed = scene.ego_state(t)
+    np.testing.assert_allclose((p1[:2] - p0[:2]) / (2 * h), vel, atol=1e-6)
+    if speed > 0.5:
+        assert math.atan2(vel[1], vel[0]) == pytest.approx(heading, abs=1e-9)
+    # vehicles and people: world velocities are derivatives of world positions, headings follow them
+    q0, q1 = scene._body_poses(t - h)[0], scene._body_poses(t + h)[0]
+    _, yaw_m, v_m = scene._body_poses(t)
+    np.testing.assert_allclose((q1 - q0) / (2 * h), v_m, atol=1e-5)
+    sp = np.hypot(v_m[:, 0], v_m[:, 1])
+    moving = sp > 0.5
+    np.testing.assert_allclose(np.cos(yaw_m[moving]), v_m[moving, 0] / sp[moving], atol=1e-9)
+    np.testing.assert_allclose(np.sin(yaw_m[moving]), v_m[moving, 1] / sp[moving], atol=1e-9)
+    fr = scene.frame(t)
+    ahead = np.abs(fr.vehicles.yaw_rad) < 1.0
+    assert np.ptp(fr.vehicles.yaw_rad[ahead]) > 0.05                 # headings vary along the bend
 
 
 def test_static_clutter_has_minus_ego_speed_times_cosines():

@@ -162,14 +162,14 @@ def freespace_mask(cfg: DDMARadarConfig, frame: RoadFrame) -> np.ndarray:
 
     Polar rasterisation: row ``i`` at range ``i * cfg.max_range_m / 512``, column ``j`` at
     :func:`freespace_azimuth_deg` ``(j)``. A pixel is free when it is on the road surface
-    (``road_y_m[0] <= y <= road_y_m[1]``) and nearer than the first vehicle footprint on its ray.
+    (:meth:`RoadGeometry.on_road`: its lateral offset from the curved centre line lies between
+    the road edges) and nearer than the first vehicle footprint on its ray.
     """
     n_r, n_a = FREESPACE_SHAPE
     rng = np.arange(n_r) * (cfg.max_range_m / n_r)                             # (512,)
     az = np.deg2rad(freespace_azimuth_deg(np.arange(n_a)))                     # (900,)
-    y = rng[:, None] * np.sin(az)[None, :]                                     # (512, 900)
-    lo, hi = frame.road_y_m
-    on_road = (y >= lo) & (y <= hi)
+    xy = rng[:, None, None] * np.stack([np.cos(az), np.sin(az)], -1)[None]    # (512, 900, 2)
+    on_road = frame.road.on_road(xy)
     hit = _first_hit_range(az, frame.vehicles)                                 # (900,)
     free = on_road & (rng[:, None] < hit[None, :])
     return np.where(free, 255, 0).astype(np.uint8)

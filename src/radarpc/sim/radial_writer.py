@@ -184,7 +184,7 @@ def _labels_csv(rows: list[tuple]) -> str:
 
 def _png_bytes(mask: np.ndarray) -> bytes:
     buf = io.BytesIO()
-    Image.fromarray(mask, mode="L").save(buf, format="PNG")
+    Image.fromarray(np.ascontiguousarray(mask, dtype=np.uint8)).save(buf, format="PNG")  # 2-D uint8 -> mode L
     return buf.getvalue()
 
 

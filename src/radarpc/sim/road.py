@@ -1,10 +1,18 @@
 """Seeded procedural road scenes for the RADIal-like radar: point scatterers that move in time.
 
-A scene is a straight multi-lane road along the world ``+x`` axis (world frame: x along the road,
-y left, z up, ground at ``z = 0``). The ego vehicle drives in one of its lanes with a speed that
-changes linearly in time; the radar sits at its front at height ``radar_height_m`` with the axes of
-:mod:`radarpc.sensors.radial` (x forward, y left, z up), so the radar frame is the world frame
-translated to the radar.
+A scene is a multi-lane road whose centre line is a circular arc of constant curvature
+``kappa`` (straight when 0) starting at the world origin along ``+x`` (world frame: y left, z up,
+ground at ``z = 0``). Everything on the road is placed in road coordinates ``(s, l)``: arc length
+along the centre line and lateral offset (left positive), with world position
+
+.. math::
+
+    x = \frac{\sin \kappa s}{\kappa} - l \sin \kappa s, \qquad
+    y = \frac{1 - \cos \kappa s}{\kappa} + l \cos \kappa s
+
+and road heading ``kappa s``. The ego vehicle drives along one of its lanes (``ds/dt`` changing
+linearly in time); the radar sits at its front at height ``radar_height_m``, looking along the
+lane's heading, with the axes of :mod:`radarpc.sensors.radial` (x forward, y left, z up).
 
 Content (all generated once per sequence from ``numpy.random.default_rng([seed, sequence])``):
 
@@ -18,9 +26,10 @@ Content (all generated once per sequence from ``numpy.random.default_rng([seed, 
   ``occlusion_loss_db`` (radar sees partly under and around cars); faces pointing away from the
   radar are not seen.
 
-Radial velocities are those of the motion relative to the radar, so static clutter has
-``-v_ego cos(az) cos(el)``. Frames at ``t = i * frame_period_s`` are consistent in time:
-positions are the integrals of the velocities.
+Radial velocities are those of the motion relative to the radar (``<p, v_obj - v_radar> / |p|``),
+so static clutter has ``-v_ego cos(az) cos(el)``. Frames at ``t = i * frame_period_s`` are
+consistent in time: world velocities are the time derivatives of world positions
+(``ds/dt (1 - kappa l)`` along the road heading).
 """
 from __future__ import annotations
 
@@ -34,10 +43,12 @@ from radarpc.sim.rd import Scatterers
 
 __all__ = [
     "RoadSceneConfig",
+    "RoadGeometry",
     "VehicleTruth",
     "RoadFrame",
     "RoadScene",
     "footprint_crossings",
+    "road_to_world",
     "CAR",
     "TRUCK",
 ]
@@ -57,10 +68,12 @@ class RoadSceneConfig:
     lane_width_m: float = 3.5
     lanes_same: tuple[int, int] = (1, 3)               # lanes in the ego direction (inclusive)
     lanes_opposite: tuple[int, int] = (0, 2)           # oncoming lanes (inclusive)
+    straight_prob: float = 0.4                         # probability of a straight road
+    curvature_1pm: tuple[float, float] = (-1 / 150, 1 / 150)  # else uniform curvature (1/m, left +)
     ego_speed_mps: tuple[float, float] = (0.0, 20.0)   # ego speed at t = 0
     ego_accel_mps2: tuple[float, float] = (-0.6, 0.6)  # constant ego acceleration
     lane_speed_mps: tuple[float, float] = (4.0, 25.0)  # speed of the traffic of a lane
-    vehicle_gap_m: tuple[float, float] = (8.0, 45.0)   # free gap between consecutive vehicles
+    vehicle_gap_m: tuple[float, float] = (12.0, 90.0)  # free gap between consecutive vehicles
     truck_fraction: float = 0.15                       # probability that a vehicle is a truck
     car_size_m: tuple[tuple[float, float], ...] = ((3.9, 4.9), (1.7, 1.95), (1.4, 1.65))  # L, W, H
     truck_size_m: tuple[tuple[float, float], ...] = ((7.5, 12.0), (2.4, 2.55), (3.0, 3.8))
@@ -84,10 +97,67 @@ class RoadSceneConfig:
             raise ValueError(f"lanes_same must be (low >= 1, high >= low), got {self.lanes_same}")
         if self.lanes_opposite[0] < 0 or self.lanes_opposite[1] < self.lanes_opposite[0]:
             raise ValueError(f"lanes_opposite must be (low >= 0, high >= low), got {self.lanes_opposite}")
-        for name in ("truck_fraction", "guard_rail_prob", "building_prob"):
+        for name in ("truck_fraction", "guard_rail_prob", "building_prob", "straight_prob"):
             p = getattr(self, name)
             if not 0.0 <= p <= 1.0:
                 raise ValueError(f"{name} must be a probability in [0, 1], got {p}")
+        if max(abs(k) for k in self.curvature_1pm) > 1 / 50:
+            raise ValueError(f"curvature_1pm={self.curvature_1pm} must stay within +-1/50 per metre")
+
+
+def road_to_world(kappa: float, s: np.ndarray, l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World ``(..., 2)`` positions and road headings ``(...)`` of road coordinates ``(s, l)``.
+
+    Numerically stable for ``kappa -> 0``: ``sin(k s) / k = s sinc(k s / pi)`` and
+    ``(1 - cos(k s)) / k = (k s^2 / 2) sinc(k s / 2 pi)^2``.
+    """
+    s, l = np.broadcast_arrays(np.asarray(s, float), np.asarray(l, float))
+    th = kappa * s
+    a = s * np.sinc(th / np.pi)
+    b = 0.5 * kappa * s * s * np.sinc(th / (2 * np.pi)) ** 2
+    return np.stack([a - l * np.sin(th), b + l * np.cos(th)], -1), th
+
+
+@dataclass(frozen=True)
+class RoadGeometry:
+    """The road of one frame as the radar sees it.
+
+    Attributes
+    ----------
+    curvature_1pm : float
+        Curvature of the centre line (1/m, left positive; 0 = straight).
+    radar_xy : (float, float)
+        World position of the radar.
+    radar_heading_rad : float
+        World heading of the radar x axis.
+    bounds_m : (float, float)
+        Lateral offsets ``(right, left)`` of the drivable surface's edges from the centre line.
+    """
+
+    curvature_1pm: float
+    radar_xy: tuple[float, float]
+    radar_heading_rad: float
+    bounds_m: tuple[float, float]
+
+    def to_world(self, xy: np.ndarray) -> np.ndarray:
+        """Radar-frame ground points ``(..., 2)`` to world coordinates."""
+        c, s = math.cos(self.radar_heading_rad), math.sin(self.radar_heading_rad)
+        xy = np.asarray(xy, float)
+        return np.stack([c * xy[..., 0] - s * xy[..., 1] + self.radar_xy[0],
+                         s * xy[..., 0] + c * xy[..., 1] + self.radar_xy[1]], -1)
+
+    def lateral_m(self, xy: np.ndarray) -> np.ndarray:
+        """Lateral offset ``l`` from the centre line of radar-frame ground points ``(..., 2)``."""
+        w = self.to_world(xy)
+        k = self.curvature_1pm
+        if k == 0.0:
+            return w[..., 1]
+        return 1.0 / k - math.copysign(1.0, k) * np.hypot(w[..., 0], w[..., 1] - 1.0 / k)
+
+    def on_road(self, xy: np.ndarray) -> np.ndarray:
+        """Boolean: the radar-frame ground points lie on the drivable surface."""
+        lat = self.lateral_m(xy)
+        return (lat >= self.bounds_m[0]) & (lat <= self.bounds_m[1])
 
 
 @dataclass
@@ -100,9 +170,9 @@ class VehicleTruth:
     kind : int64 ``(V,)``          :data:`CAR` or :data:`TRUCK`
     center_xyz : float64 ``(V, 3)`` centre of the footprint on the ground, radar frame
     size_lwh : float64 ``(V, 3)``  length (along heading), width, height
-    yaw_rad : float64 ``(V,)``     heading, 0 = radar +x, left positive
-    velocity_xy : float64 ``(V, 2)`` ground velocity (world, absolute)
-    rel_velocity_xy : float64 ``(V, 2)`` velocity relative to the radar
+    yaw_rad : float64 ``(V,)``     heading in the radar frame, 0 = radar +x, left positive
+    velocity_xy : float64 ``(V, 2)`` ground velocity over the ground, in radar-frame axes
+    rel_velocity_xy : float64 ``(V, 2)`` velocity relative to the radar, in radar-frame axes
     visible_fraction : float64 ``(V,)`` share of its radar-facing scatterers not hidden by others
     """
 
@@ -144,9 +214,8 @@ class RoadFrame:
         Vehicle id of each scatterer (index into the sequence's vehicles), ``-1`` for anything else.
     vehicles : VehicleTruth
         Every vehicle of the sequence at this time (labels select those in the field of view).
-    road_y_m : (float, float)
-        Lateral bounds ``(right, left)`` of the drivable road surface in the radar frame (the road
-        is parallel to the radar x axis).
+    road : RoadGeometry
+        The road surface, for the freespace mask.
     ego_speed_mps : float
     radar_height_m : float
     """
@@ -155,7 +224,7 @@ class RoadFrame:
     scatterers: Scatterers
     owner: torch.Tensor
     vehicles: VehicleTruth
-    road_y_m: tuple[float, float]
+    road: RoadGeometry
     ego_speed_mps: float
     radar_height_m: float
 
@@ -281,8 +350,9 @@ class RoadScene:
         # ---- road and ego --------------------------------------------------------------------
         self.n_same = int(rng.integers(c.lanes_same[0], c.lanes_same[1] + 1))
         self.n_opp = int(rng.integers(c.lanes_opposite[0], c.lanes_opposite[1] + 1))
+        self.kappa = 0.0 if rng.random() < c.straight_prob else float(rng.uniform(*c.curvature_1pm))
         w = c.lane_width_m
-        self.road_right = -self.n_same * w                  # world y of the road edges
+        self.road_right = -self.n_same * w                  # lateral offsets l of the road edges
         self.road_left = self.n_opp * w + (0.0 if self.n_opp else 0.5)
         ego_lane = int(rng.integers(0, self.n_same))
         self.ego_y = -(ego_lane + 0.5) * w
@@ -400,22 +470,34 @@ class RoadScene:
         ys = rng.uniform(self.road_right, self.road_left, n_cl)
         xyz.append(np.stack([xs, ys, np.zeros(n_cl)], 1))
         rcs.append(rng.lognormal(np.log(0.02), 1.0, n_cl))
-        return np.concatenate(xyz), np.concatenate(rcs)
+        sl = np.concatenate(xyz)                                                 # (s, l, z)
+        world, _ = road_to_world(self.kappa, sl[:, 0], sl[:, 1])
+        return np.concatenate([world, sl[:, 2:]], 1), np.concatenate(rcs)
 
     # ---- time evolution --------------------------------------------------------------------------
-    def ego_state(self, t: float) -> tuple[np.ndarray, float]:
-        """World position of the radar ``(3,)`` and ego speed at time ``t``."""
-        x = self.ego_v0 * t + 0.5 * self.ego_a * t * t
-        return np.array([x, self.ego_y, self.config.radar_height_m]), self.ego_v0 + self.ego_a * t
+    def _along_road(self, s: np.ndarray, l: np.ndarray, s_dot: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World position ``(..., 2)``, road heading and world velocity ``(..., 2)`` of points
+        moving along the road at ``ds/dt = s_dot`` with fixed lateral offset ``l``."""
+        pos, th = road_to_world(self.kappa, s, l)
+        speed = np.asarray(s_dot, float) * (1.0 - self.kappa * np.asarray(l, float))
+        return pos, th, np.stack([speed * np.cos(th), speed * np.sin(th)], -1)
+
+    def ego_state(self, t: float) -> tuple[np.ndarray, float, np.ndarray, float]:
+        """Radar pose at time ``t``: world position ``(3,)``, heading (rad), world velocity
+        ``(2,)`` and speed over the ground."""
+        s = self.ego_v0 * t + 0.5 * self.ego_a * t * t
+        pos, th, vel = self._along_road(np.array(s), np.array(self.ego_y), np.array(self.ego_v0 + self.ego_a * t))
+        return (np.array([pos[0], pos[1], self.config.radar_height_m]), float(th), vel,
+                float(np.hypot(vel[0], vel[1])))
 
     def _body_poses(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """World ground position ``(B, 2)``, yaw ``(B,)`` and velocity ``(B, 2)`` of every body."""
-        vx_v = self.veh_speed * np.cos(self.veh_yaw)
-        vy_v = self.veh_speed * np.sin(self.veh_yaw)
-        pos = np.concatenate([np.stack([self.veh_x0 + vx_v * t, self.veh_y + vy_v * t], 1),
-                              np.stack([self.ppl_x0 + self.ppl_vx * t, self.ppl_y], 1)])
-        yaw = np.concatenate([self.veh_yaw, np.where(self.ppl_vx >= 0, 0.0, math.pi)])
-        vel = np.concatenate([np.stack([vx_v, vy_v], 1), np.stack([self.ppl_vx, np.zeros_like(self.ppl_vx)], 1)])
+        s_dot = np.concatenate([np.where(np.cos(self.veh_yaw) >= 0, 1.0, -1.0) * self.veh_speed, self.ppl_vx])
+        s = np.concatenate([self.veh_x0, self.ppl_x0]) + s_dot * t
+        l = np.concatenate([self.veh_y, self.ppl_y])
+        pos, th, vel = self._along_road(s, l, s_dot)
+        yaw = th + np.where(s_dot >= 0, 0.0, math.pi)
         return pos.reshape(-1, 2), yaw, vel.reshape(-1, 2)
 
     def frame_time(self, index: int) -> float:
@@ -427,8 +509,16 @@ class RoadScene:
         if not math.isfinite(t):
             raise ValueError(f"frame time must be finite, got {t}")
         c = self.config
-        radar, v_ego = self.ego_state(t)
-        v_radar = np.array([v_ego, 0.0, 0.0])
+        radar, heading, v_radar_xy, v_ego = self.ego_state(t)
+        v_radar = np.array([v_radar_xy[0], v_radar_xy[1], 0.0])
+        ch, sh = math.cos(heading), math.sin(heading)
+
+        def radar_axes(v):  # world vectors (N, 2 or 3) -> radar axes (rotation by -heading)
+            out = v.copy()
+            out[:, 0] = ch * v[:, 0] + sh * v[:, 1]
+            out[:, 1] = -sh * v[:, 0] + ch * v[:, 1]
+            return out
+
         pos, yaw, vel = self._body_poses(t)
         b = self._body
         cy, sy = np.cos(yaw[b.owner]), np.sin(yaw[b.owner])
@@ -461,15 +551,16 @@ class RoadScene:
         dyn_rcs = b.rcs * np.where(has_normal, np.clip(cos_inc, 0.0, 1.0) ** 0.5, 1.0)
         dyn_owner = np.where(b.owner < self.n_vehicles, b.owner, -1)
 
-        xyz = np.concatenate([self._static_xyz, dyn_xyz[facing]]) - radar[None, :]
-        velo = np.concatenate([np.zeros_like(self._static_xyz), dyn_vel[facing]]) - v_radar[None, :]
+        xyz = radar_axes(np.concatenate([self._static_xyz, dyn_xyz[facing]]) - radar[None, :])
+        velo = radar_axes(np.concatenate([np.zeros_like(self._static_xyz), dyn_vel[facing]]) - v_radar[None, :])
         rcs = np.concatenate([self._static_rcs, dyn_rcs[facing]])
         owner = np.concatenate([np.full(len(self._static_rcs), -1, np.int64), dyn_owner[facing]])
 
         # vehicles in the radar frame
-        vpos = pos[: self.n_vehicles] - radar[None, :2]
+        vpos = radar_axes(pos[: self.n_vehicles] - radar[None, :2])
         centre = np.concatenate([vpos, np.full((self.n_vehicles, 1), -c.radar_height_m)], 1)
-        truth_vel = vel[: self.n_vehicles]
+        truth_vel = radar_axes(vel[: self.n_vehicles])
+        truth_yaw = np.angle(np.exp(1j * (yaw[: self.n_vehicles] - heading)))        # wrapped to (-pi, pi]
 
         # field of view: ahead, within range
         rng_ = np.linalg.norm(xyz, axis=1)
@@ -477,7 +568,7 @@ class RoadScene:
         xyz, velo, rcs, owner = xyz[keep], velo[keep], rcs[keep], owner[keep]
 
         # occlusion by other vehicles' footprints
-        hidden = self._hidden(xyz[:, :2], owner, centre[:, :2], self.veh_yaw, self.veh_size)
+        hidden = self._hidden(xyz[:, :2], owner, centre[:, :2], truth_yaw, self.veh_size)
         rcs = rcs * np.where(hidden, 10 ** (-c.occlusion_loss_db / 10), 1.0)
         visible_fraction = np.ones(self.n_vehicles)
         if self.n_vehicles:
@@ -487,12 +578,14 @@ class RoadScene:
 
         truth = VehicleTruth(
             ids=np.arange(self.n_vehicles, dtype=np.int64), kind=self.veh_kind.copy(),
-            center_xyz=centre, size_lwh=self.veh_size.copy(), yaw_rad=self.veh_yaw.copy(),
-            velocity_xy=truth_vel.copy(), rel_velocity_xy=truth_vel - v_radar[None, :2],
+            center_xyz=centre, size_lwh=self.veh_size.copy(), yaw_rad=truth_yaw,
+            velocity_xy=truth_vel, rel_velocity_xy=truth_vel - radar_axes(v_radar[None, :2]),
             visible_fraction=visible_fraction)
         sc = Scatterers.from_xyz(torch.from_numpy(xyz), torch.from_numpy(velo), torch.from_numpy(rcs))
         return RoadFrame(time_s=float(t), scatterers=sc, owner=torch.from_numpy(owner), vehicles=truth,
-                         road_y_m=(self.road_right - self.ego_y, self.road_left - self.ego_y),
+                         road=RoadGeometry(curvature_1pm=self.kappa, radar_xy=(float(radar[0]), float(radar[1])),
+                                           radar_heading_rad=float(heading),
+                                           bounds_m=(float(self.road_right), float(self.road_left))),
                          ego_speed_mps=float(v_ego), radar_height_m=c.radar_height_m)
 
     @staticmethod
