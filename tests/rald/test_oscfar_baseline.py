@@ -135,3 +135,17 @@ def test_bad_parameters_and_cubes():
         CubeAxes((0.0, 1.0, 1.0), (0.0,), (0.0,))
     with pytest.raises(ValueError, match="LiDAR cloud is empty"):
         tune_oscfar([(_noise_cube(0), np.zeros((0, 3)))], AXES)
+
+
+def test_angles_outside_the_frustum_are_clipped_and_radian_axes():
+    # the AWR1843's 2-bin elevation FFT: bins at asin(-0.5 / d) ~ -80 deg and 0 deg
+    axes = CubeAxes.from_radians(torch.arange(R) * 0.125, torch.linspace(-1.2, 1.2, A),
+                                 torch.tensor([-1.396, 0.0]))
+    assert axes.elevation_deg[0] == pytest.approx(-79.99, abs=0.01)
+    cube = _noise_cube(4)
+    cube[40, 0, 0] = 40.0
+    pts = detect_points(cube, axes, OSCFARConfig(tau_db=20.0, refine=False))
+    assert pts.shape == (1, 3)
+    np.testing.assert_allclose(pts[0].numpy(), _xyz(5.0, -np.rad2deg(1.2), -20.0), atol=1e-5)
+    free = detect_points(cube, axes, OSCFARConfig(tau_db=20.0, refine=False, clip_angles_deg=None))
+    np.testing.assert_allclose(free[0].numpy(), _xyz(5.0, -np.rad2deg(1.2), -np.rad2deg(1.396)), atol=1e-5)

@@ -14,8 +14,8 @@ from radarpc import __version__
 
 def _command_modules():
     # Imported lazily so that `radarpc --help` stays fast and one broken stage cannot hide the others.
-    from radarpc.cli import simulate, info, pointcloud, show, demo
-    return [simulate, info, pointcloud, show, demo]
+    from radarpc.cli import simulate, info, pointcloud, show, demo, baseline, evaluate_points
+    return [simulate, info, pointcloud, show, demo, baseline, evaluate_points]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -18,7 +18,8 @@ Pipeline for one frame (``cube_db``: intensity in dB, ``(n_r, n_az, n_el)``):
 5. each detected cell becomes a point at its bin centre (range, azimuth, elevation) mapped to
    Cartesian (x forward, y left, z up); with ``refine`` the range and azimuth are refined by a
    parabola through the dB values of the cell and its two neighbours (offset clipped to half a bin)
-   where the cell is a local maximum along that axis.
+   where the cell is a local maximum along that axis; azimuth and elevation are clipped to the
+   frustum (``clip_angles_deg``), since FFT angle bins may lie outside it.
 
 The parameters are tuned on the validation split by an exhaustive grid search minimizing the mean
 Chamfer distance to the cropped LiDAR (:func:`tune_oscfar`); the chosen configuration is saved as
@@ -84,6 +85,13 @@ class CubeAxes:
     def shape(self) -> tuple[int, int, int]:
         return (len(self.range_m), len(self.azimuth_deg), len(self.elevation_deg))
 
+    @classmethod
+    def from_radians(cls, range_m, azimuth_rad, elevation_rad) -> "CubeAxes":
+        """From bin tables with angles in radians (e.g. :class:`radarpc.data.coloradar.RadarCube`)."""
+        def vec(v):
+            return np.asarray(v.detach().cpu() if hasattr(v, "detach") else v, dtype=np.float64)
+        return cls(tuple(vec(range_m)), tuple(np.rad2deg(vec(azimuth_rad))), tuple(np.rad2deg(vec(elevation_rad))))
+
 
 @dataclass(frozen=True)
 class OSCFARConfig:
@@ -97,6 +105,7 @@ class OSCFARConfig:
     min_range_m: float = 0.3                     # cells closer than this are never detections
     min_points: int = 1                          # keep at least this many highest-SNR cells per frame
     refine: bool = True                          # parabolic sub-bin refinement in range and azimuth
+    clip_angles_deg: tuple[float, float] | None = (90.0, 20.0)  # |azimuth|, |elevation| of points clipped to these
 
     def __post_init__(self) -> None:
         for name in ("window", "guard"):
@@ -117,6 +126,11 @@ class OSCFARConfig:
             object.__setattr__(self, "angle_bins", ab)
         if self.min_range_m < 0 or not math.isfinite(self.min_range_m):
             raise ValueError(f"OSCFARConfig.min_range_m={self.min_range_m} must be >= 0")
+        if self.clip_angles_deg is not None:
+            ca = tuple(float(x) for x in self.clip_angles_deg)
+            if len(ca) != 2 or not all(0 < x <= 180 for x in ca):
+                raise ValueError(f"OSCFARConfig.clip_angles_deg={self.clip_angles_deg} must be two angles in (0, 180] or None")
+            object.__setattr__(self, "clip_angles_deg", ca)
         if int(self.min_points) < 1:
             raise ValueError(f"OSCFARConfig.min_points={self.min_points} must be >= 1")
 
@@ -124,6 +138,7 @@ class OSCFARConfig:
         d = asdict(self)
         d["window"], d["guard"] = list(self.window), list(self.guard)
         d["angle_bins"] = None if self.angle_bins is None else list(self.angle_bins)
+        d["clip_angles_deg"] = None if self.clip_angles_deg is None else list(self.clip_angles_deg)
         return d
 
     @classmethod
@@ -133,7 +148,7 @@ class OSCFARConfig:
         if unknown:
             raise ValueError(f"unknown OS-CFAR config keys {sorted(unknown)}; expected {sorted(known)}")
         kw = dict(d)
-        for k in ("window", "guard", "angle_bins"):
+        for k in ("window", "guard", "angle_bins", "clip_angles_deg"):
             if kw.get(k) is not None:
                 kw[k] = tuple(kw[k])
         return cls(**kw)
@@ -254,7 +269,8 @@ def _axis_value(values: Sequence[float], frac_idx: torch.Tensor) -> torch.Tensor
     return v[i0] + t * (v[i0 + 1] - v[i0])
 
 
-def cells_to_points(mask: torch.Tensor, cube_db: torch.Tensor, axes: CubeAxes, *, refine: bool = True) -> torch.Tensor:
+def cells_to_points(mask: torch.Tensor, cube_db: torch.Tensor, axes: CubeAxes, *, refine: bool = True,
+                    clip_angles_deg: tuple[float, float] | None = None) -> torch.Tensor:
     """Detected cells of one frame -> Cartesian points ``(N, 3)`` (float32) in the radar frame.
 
     Parameters
@@ -265,6 +281,10 @@ def cells_to_points(mask: torch.Tensor, cube_db: torch.Tensor, axes: CubeAxes, *
     axes : CubeAxes
     refine : bool
         Parabolic sub-bin refinement in range and azimuth.
+    clip_angles_deg : (float, float), optional
+        Clip ``|azimuth|`` and ``|elevation|`` of the points to these (the radar frustum): FFT
+        angle bins can lie outside the field of view (the AWR1843's 2-bin elevation FFT has bins
+        at about -80 and 0 deg).
     """
     if mask.ndim != 3 or tuple(mask.shape) != tuple(cube_db.shape) or tuple(mask.shape) != axes.shape:
         raise ValueError(f"mask {tuple(mask.shape)}, cube {tuple(cube_db.shape)} and axes {axes.shape} "
@@ -278,6 +298,10 @@ def cells_to_points(mask: torch.Tensor, cube_db: torch.Tensor, axes: CubeAxes, *
     rae = torch.stack([_axis_value(axes.range_m, frac[:, 0]),
                        _axis_value(axes.azimuth_deg, frac[:, 1]),
                        _axis_value(axes.elevation_deg, frac[:, 2])], dim=-1)   # (N, 3) polar
+    if clip_angles_deg is not None:
+        a, e = clip_angles_deg
+        rae[:, 1].clamp_(-a, a)
+        rae[:, 2].clamp_(-e, e)
     return polar_to_cartesian(rae).to(torch.float32)
 
 
@@ -289,8 +313,8 @@ def detect_points(cube_db, axes: CubeAxes, cfg: OSCFARConfig = OSCFARConfig()) -
     """
     mask, x, ax = detect_cells(cube_db, axes, cfg)
     if mask.ndim == 3:
-        return cells_to_points(mask, x, ax, refine=cfg.refine)
-    return [cells_to_points(m, c, ax, refine=cfg.refine) for m, c in zip(mask, x)]
+        return cells_to_points(mask, x, ax, refine=cfg.refine, clip_angles_deg=cfg.clip_angles_deg)
+    return [cells_to_points(m, c, ax, refine=cfg.refine, clip_angles_deg=cfg.clip_angles_deg) for m, c in zip(mask, x)]
 
 
 # ---- tuning -------------------------------------------------------------------------------------
@@ -374,7 +398,8 @@ def tune_oscfar(
             x, ax = (upsample_angles(cube, axes, ab) if ab is not None else (cube, axes))
             snr = os_cfar(torch.pow(10.0, x / 10.0), w, g, float(r)).snr
             for j, c in enumerate(group):
-                pts = cells_to_points(_threshold(snr, ax, c, x.device), x, ax, refine=c.refine)
+                pts = cells_to_points(_threshold(snr, ax, c, x.device), x, ax, refine=c.refine,
+                                      clip_angles_deg=c.clip_angles_deg)
                 sums[j, 0] += chamfer_distance(pts, lidar)
                 sums[j, 1] += pts.shape[0]
         for j, c in enumerate(group):

@@ -1,0 +1,92 @@
+"""``radarpc baseline os-cfar`` and ``radarpc evaluate-points`` end to end on a tiny simulated root."""
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from radarpc.cli import main
+from radarpc.data.coloradar import ColoRadar
+from radarpc.eval.pointsets import chamfer_distance, earth_movers_distance
+from radarpc.rald.oscfar_baseline import load_config
+from radarpc.sensors.coloradar import DEFAULT_CALIB
+from radarpc.sim.coloradar_synth import RadarSimConfig
+from radarpc.sim.coloradar_writer import write_coloradar
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    # 3 runs of one scene: run0 train, run1 val, run2 test; a cheap radar and LiDAR, no cascade.
+    out = tmp_path_factory.mktemp("colo") / "sim"
+    calib = dataclasses.replace(DEFAULT_CALIB, cascade=None, base_to_cascade=None)
+    radar = RadarSimConfig(az_step_deg=6.0, el_step_deg=8.0, edges=False, multipath=False, max_scatterers=200)
+    write_coloradar(out, ["hallway"], 3, 2, 0, lidar_beams=16, lidar_azimuth_steps=256, calib=calib,
+                    radar=radar, progress=False)
+    return out
+
+
+def test_baseline_then_evaluate(root, tmp_path, capsys):
+    pred = tmp_path / "oscfar"
+    assert main(["baseline", "os-cfar", str(root), "--split", "test", "--out", str(pred), "--quick-tune"]) == 0
+    ds = ColoRadar(root, "test", cube_size=None)
+    index = json.loads((pred / "index.json").read_text())
+    assert len(index["frames"]) == len(ds) > 0
+    cfg = load_config(pred / "config.yaml")
+    tuning = json.loads((pred / "tuning.json").read_text())
+    assert len(tuning["candidates"]) == 3 and tuning["best"] == cfg.to_dict()
+    assert tuning["best_chamfer_m"] == min(c["chamfer_m"] for c in tuning["candidates"])
+    for e in index["frames"]:
+        pts = np.load(pred / e["file"], allow_pickle=False)
+        assert pts.dtype == np.float32 and pts.ndim == 2 and pts.shape[1] == 3 and len(pts) == e["n_points"] >= 1
+        assert e["run"] == "hallway_run2" and e["file"] == f"hallway_run2/{e['frame']:06d}.npy"
+
+    capsys.readouterr()
+    assert main(["evaluate-points", str(pred), "--data", str(root), "--split", "test", "--emd-points", "256"]) == 0
+    printed = capsys.readouterr().out
+    assert "| hallway |" in printed and "**all**" in printed
+    metrics = json.loads((pred / "metrics.json").read_text())
+    assert metrics["emd_points"] == 256 and (pred / "metrics.md").is_file()
+    # the numbers are those of the metric functions on the files and the reader's LiDAR
+    for i, f in enumerate(metrics["frames"]):
+        k, ri, _ = ds.index[i]
+        p = np.load(pred / f["run"] / f"{ri:06d}.npy")
+        gt = ds.lidar_points(i)
+        assert f["chamfer"] == pytest.approx(chamfer_distance(p, gt))
+        assert f["emd"] == pytest.approx(earth_movers_distance(p, gt, n=256, seed=0))
+    assert metrics["overall"]["chamfer_mean"] == pytest.approx(np.mean([f["chamfer"] for f in metrics["frames"]]))
+
+    # resume: a rerun keeps config.yaml and the existing files
+    before = {e["file"]: (pred / e["file"]).stat().st_mtime_ns for e in index["frames"]}
+    assert main(["baseline", "os-cfar", str(root), "--split", "test", "--out", str(pred)]) == 0
+    assert {f: (pred / f).stat().st_mtime_ns for f in before} == before
+
+
+def test_evaluate_points_names_a_missing_or_bad_prediction(root, tmp_path, capsys):
+    pred = tmp_path / "hand"
+    ds = ColoRadar(root, "test", cube_size=None)
+    frames = [ds.index[i][1] for i in range(len(ds))]
+    (pred / "hallway_run2").mkdir(parents=True)
+    np.save(pred / "hallway_run2" / f"{frames[0]:06d}.npy", np.ones((5, 3), np.float32))
+    missing = pred / "hallway_run2" / f"{frames[1]:06d}.npy"
+    assert main(["evaluate-points", str(pred), "--data", str(root), "--split", "test"]) == 2
+    err = capsys.readouterr().err
+    assert str(missing) in err and "missing" in err
+    np.save(missing, np.zeros((0, 3), np.float32))
+    assert main(["evaluate-points", str(pred), "--data", str(root), "--split", "test"]) == 2
+    err = capsys.readouterr().err
+    assert str(missing) in err and "empty" in err
+    np.save(missing, np.zeros((4, 2), np.float32))
+    assert main(["evaluate-points", str(pred), "--data", str(root), "--split", "test"]) == 2
+    assert "expected shape *x3" in capsys.readouterr().err
+    assert not (pred / "metrics.json").exists()
+
+
+def test_baseline_with_given_config_and_bad_split(root, tmp_path, capsys):
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("oscfar: {window: [9, 3, 3], guard: [3, 1, 1], rank: 0.5, tau_db: 6.0}\n")
+    pred = tmp_path / "given"
+    assert main(["baseline", "os-cfar", str(root), "--split", "val", "--out", str(pred), "--config", str(cfg)]) == 0
+    assert load_config(pred / "config.yaml").tau_db == 6.0 and not (pred / "tuning.json").exists()
+    cfg.write_text("oscfar: {window: [8, 3, 3]}\n")
+    assert main(["baseline", "os-cfar", str(root), "--out", str(tmp_path / "x"), "--config", str(cfg)]) == 2
+    assert "cfg.yaml" in capsys.readouterr().err
