@@ -109,6 +109,8 @@ def test_on_the_fly_equals_on_disk(root, split):
         assert b[0].shape == TINY.rd_shape and b[1].shape[1] == 14 and b[2].shape == (256, 224)
         for x, y in zip(a, b):
             assert x.shape == y.shape and torch.equal(x, y)
+        assert fly.frame_labels(i) == disk.frame_labels(i)
+        assert fly.index_of(fly.frame_ids[i]) == i
 
 
 def test_frames_are_reproducible_and_distinct():

@@ -323,7 +323,8 @@ class SimulatedRADIal(torch.utils.data.Dataset):
     returns it for the root that :func:`write_radial_dataset` writes with the same arguments on
     the same device: ``rd`` complex64 ``(n_range, n_doppler, n_rx)`` on ``device``, ``labels``
     float32 ``(n_vehicles, 14)`` with columns :data:`LABEL_TENSOR_COLUMNS` (``(0, 14)`` when none),
-    ``freespace`` bool ``(256, 224)``.
+    ``freespace`` bool ``(256, 224)``. Every vehicle row is kept (the reader's default
+    ``difficult=True``).
 
     Parameters
     ----------
@@ -380,6 +381,18 @@ class SimulatedRADIal(torch.utils.data.Dataset):
         labels = torch.from_numpy(_rows_to_tensor(fr.label_rows)).to(self.device)
         fs = torch.from_numpy(np.ascontiguousarray(freespace_to_model(fr.freespace))).to(self.device)
         return fr.rd, labels, fs
+
+    def frame_labels(self, i: int) -> list[dict[str, int | float | str]]:
+        """The raw ``labels.csv`` rows (all :data:`LABEL_COLUMNS`) of item ``i``, -1 row included."""
+        q, k = self.sim.locate(self.frame_ids[int(i)])
+        return [dict(zip(LABEL_COLUMNS, r)) for r in self.sim.geometry(q, k)[1]]
+
+    def index_of(self, num_sample: int) -> int:
+        """Position of frame ``num_sample`` in this split."""
+        try:
+            return self.frame_ids.index(int(num_sample))
+        except ValueError:
+            raise KeyError(f"frame {num_sample} is not in this {self.split!r} split") from None
 
     def __repr__(self) -> str:
         return (f"SimulatedRADIal(sensor={self.sensor.name!r}, split={self.split!r}, frames={len(self)}, "
