@@ -73,6 +73,9 @@ def sector_pool(spectrum: torch.Tensor, grid: tuple[int, int], sectors: tuple[in
     n_as, n_es = sectors
     if not (1 <= n_as <= n_az and 1 <= n_es <= n_el):
         raise ValueError(f"angle sectors {sectors} must be between (1, 1) and the grid {grid}")
+    if n_es == 1:  # separable: elevation max first, then 1-D pooling over azimuth (faster)
+        x = spectrum.reshape(-1, n_az, n_el).amax(dim=-1).unsqueeze(1)   # (P, 1, n_az)
+        return F.adaptive_max_pool1d(x, n_as).reshape(spectrum.shape[0], n_as)
     x = spectrum.reshape(-1, 1, n_az, n_el)
     return F.adaptive_max_pool2d(x, (n_as, n_es)).reshape(spectrum.shape[0], n_as * n_es)
 
