@@ -355,74 +355,74 @@ class RoadScene:
         self.road_right = -self.n_same * w                  # lateral offsets l of the road edges
         self.road_left = self.n_opp * w + (0.0 if self.n_opp else 0.5)
         ego_lane = int(rng.integers(0, self.n_same))
-        self.ego_y = -(ego_lane + 0.5) * w
+        self.ego_l = -(ego_lane + 0.5) * w
         self.ego_v0 = float(rng.uniform(*c.ego_speed_mps))
         a = float(rng.uniform(*c.ego_accel_mps2))
         if self.ego_v0 + a * duration < 0:                 # never drive backwards
             a = -self.ego_v0 / duration
         self.ego_a = a
-        ego_x_end = self.ego_v0 * duration + 0.5 * a * duration ** 2
-        x_lo, x_hi = -40.0, ego_x_end + self.max_range_m + 40.0
+        ego_s_end = self.ego_v0 * duration + 0.5 * a * duration ** 2
+        s_lo, s_hi = -40.0, ego_s_end + self.max_range_m + 40.0
 
         # ---- vehicles -----------------------------------------------------------------------
-        veh = dict(x0=[], y=[], yaw=[], speed=[], size=[], kind=[])
+        veh = dict(s0=[], l=[], yaw=[], speed=[], size=[], kind=[])
         bodies: list[dict[str, np.ndarray]] = []
         lanes = [(-(k + 0.5) * w, 0.0) for k in range(self.n_same)] + \
                 [((k + 0.5) * w, math.pi) for k in range(self.n_opp)]
-        for li, (y_lane, yaw) in enumerate(lanes):
-            is_ego_lane = abs(y_lane - self.ego_y) < 1e-9
+        for y_lane, yaw in lanes:
+            is_ego_lane = abs(y_lane - self.ego_l) < 1e-9
             if is_ego_lane:
                 speed = self.ego_v0 + max(a, 0.0) * duration + float(rng.uniform(1.0, 6.0))
                 lo = 10.0                                    # ahead of the ego, pulling away
             else:
                 speed = float(rng.uniform(*c.lane_speed_mps))
-                lo = x_lo
+                lo = s_lo
             signed = speed if yaw == 0.0 else -speed
             # cover the view over the whole sequence: shift the spawn window by the relative motion
             rel = signed - self.ego_v0
-            span_lo = lo if is_ego_lane else x_lo - max(0.0, rel * duration)
-            span_hi = x_hi - min(0.0, rel * duration)
+            span_lo = lo if is_ego_lane else s_lo - max(0.0, rel * duration)
+            span_hi = s_hi - min(0.0, rel * duration)
             x = span_lo + float(rng.uniform(0.0, c.vehicle_gap_m[1]))
             while x < span_hi:
                 truck = bool(rng.random() < c.truck_fraction)
                 sz = c.truck_size_m if truck else c.car_size_m
                 length, width, height = (float(rng.uniform(*r)) for r in sz)
-                veh["x0"].append(x + length / 2)
-                veh["y"].append(y_lane + float(rng.uniform(-0.25, 0.25)))
+                veh["s0"].append(x + length / 2)
+                veh["l"].append(y_lane + float(rng.uniform(-0.25, 0.25)))
                 veh["yaw"].append(yaw)
                 veh["speed"].append(speed)
                 veh["size"].append((length, width, height))
                 veh["kind"].append(TRUCK if truck else CAR)
                 bodies.append(_vehicle_template(rng, length, width, height, truck, speed))
                 x += length + float(rng.uniform(*c.vehicle_gap_m))
-        self.n_vehicles = len(veh["x0"])
-        self.veh_x0 = np.asarray(veh["x0"], float)
-        self.veh_y = np.asarray(veh["y"], float)
+        self.n_vehicles = len(veh["s0"])
+        self.veh_s0 = np.asarray(veh["s0"], float)
+        self.veh_l = np.asarray(veh["l"], float)
         self.veh_yaw = np.asarray(veh["yaw"], float)
         self.veh_speed = np.asarray(veh["speed"], float)
         self.veh_size = np.asarray(veh["size"], float).reshape(-1, 3)
         self.veh_kind = np.asarray(veh["kind"], np.int64)
 
         # ---- people (sidewalks) ---------------------------------------------------------------
-        ppl = dict(x0=[], y=[], vx=[])
+        ppl = dict(s0=[], l=[], vs=[])
         n_ped = int(rng.integers(c.pedestrians[0], c.pedestrians[1] + 1))
         n_cyc = int(rng.integers(c.cyclists[0], c.cyclists[1] + 1))
         for k in range(n_ped + n_cyc):
             cyc = k >= n_ped
             side = 1.0 if rng.random() < 0.5 else -1.0
             edge = self.road_left if side > 0 else self.road_right
-            ppl["y"].append(edge + side * float(rng.uniform(2.0, 4.5)))
-            ppl["x0"].append(float(rng.uniform(5.0, x_hi - 40.0)))
+            ppl["l"].append(edge + side * float(rng.uniform(2.0, 4.5)))
+            ppl["s0"].append(float(rng.uniform(5.0, s_hi - 40.0)))
             sp = float(rng.uniform(3.5, 7.0) if cyc else rng.uniform(0.8, 1.8))
-            ppl["vx"].append(sp if rng.random() < 0.5 else -sp)
+            ppl["vs"].append(sp if rng.random() < 0.5 else -sp)
             bodies.append(_person_template(rng, cyc))
-        self.ppl_x0 = np.asarray(ppl["x0"], float)
-        self.ppl_y = np.asarray(ppl["y"], float)
-        self.ppl_vx = np.asarray(ppl["vx"], float)
+        self.ppl_s0 = np.asarray(ppl["s0"], float)
+        self.ppl_l = np.asarray(ppl["l"], float)
+        self.ppl_vs = np.asarray(ppl["vs"], float)
         self._body = self._stack_bodies(bodies)
 
         # ---- static world ---------------------------------------------------------------------
-        self._static_xyz, self._static_rcs = self._static_world(rng, x_lo, x_hi)
+        self._static_xyz, self._static_rcs = self._static_world(rng, s_lo, s_hi)
 
     # ---- construction helpers -------------------------------------------------------------------
     @staticmethod
@@ -435,26 +435,26 @@ class RoadScene:
         cat = {k: np.concatenate([b[k] for b in bodies]) for k in bodies[0]}
         return _Body(owner=owner, **cat)
 
-    def _static_world(self, rng: np.random.Generator, x_lo: float, x_hi: float
+    def _static_world(self, rng: np.random.Generator, s_lo: float, s_hi: float
                       ) -> tuple[np.ndarray, np.ndarray]:
         c = self.config
         xyz, rcs = [], []
         for side in (-1.0, 1.0):
             edge = self.road_left if side > 0 else self.road_right
             if rng.random() < c.guard_rail_prob:                           # guard rail + posts
-                xs = np.arange(x_lo, x_hi, c.guard_rail_spacing_m) + rng.uniform(0, c.guard_rail_spacing_m)
+                xs = np.arange(s_lo, s_hi, c.guard_rail_spacing_m) + rng.uniform(0, c.guard_rail_spacing_m)
                 y = edge + side * 1.0
                 xyz.append(np.stack([xs, np.full_like(xs, y), np.full_like(xs, 0.6)], 1))
                 r = rng.uniform(0.1, 0.5, xs.size)
                 r[::2] *= 4.0                                              # posts every other point
                 rcs.append(r)
-            xs = np.arange(x_lo + rng.uniform(0, 20), x_hi, rng.uniform(*c.pole_spacing_m))   # poles
+            xs = np.arange(s_lo + rng.uniform(0, 20), s_hi, rng.uniform(*c.pole_spacing_m))   # poles
             y = edge + side * rng.uniform(1.8, 3.0)
             xyz.append(np.stack([xs, np.full_like(xs, y), np.full_like(xs, 1.0)], 1))
             rcs.append(rng.uniform(2.0, 6.0, xs.size))
             if rng.random() < c.building_prob:                             # facades with gaps
                 setback = rng.uniform(*c.building_setback_m)
-                xs = np.arange(x_lo, x_hi, 1.5)
+                xs = np.arange(s_lo, s_hi, 1.5)
                 keep = np.sin(xs / rng.uniform(8, 20) + rng.uniform(0, 6)) > -0.4
                 xs = xs[keep]
                 y = edge + side * (setback + rng.uniform(-0.3, 0.3, xs.size))
@@ -462,11 +462,11 @@ class RoadScene:
                 xyz.append(np.stack([xs, y, z], 1))
                 rcs.append(rng.lognormal(np.log(1.0), 1.0, xs.size))
             # curb: weak, dense
-            xs = np.arange(x_lo, x_hi, 3.0) + rng.uniform(0, 3.0)
+            xs = np.arange(s_lo, s_hi, 3.0) + rng.uniform(0, 3.0)
             xyz.append(np.stack([xs, np.full_like(xs, edge + side * 0.3), np.full_like(xs, 0.1)], 1))
             rcs.append(rng.uniform(0.01, 0.05, xs.size))
-        n_cl = rng.poisson(c.clutter_per_100m * (x_hi - x_lo) / 100.0)          # road surface
-        xs = rng.uniform(x_lo, x_hi, n_cl)
+        n_cl = rng.poisson(c.clutter_per_100m * (s_hi - s_lo) / 100.0)          # road surface
+        xs = rng.uniform(s_lo, s_hi, n_cl)
         ys = rng.uniform(self.road_right, self.road_left, n_cl)
         xyz.append(np.stack([xs, ys, np.zeros(n_cl)], 1))
         rcs.append(rng.lognormal(np.log(0.02), 1.0, n_cl))
@@ -487,15 +487,15 @@ class RoadScene:
         """Radar pose at time ``t``: world position ``(3,)``, heading (rad), world velocity
         ``(2,)`` and speed over the ground."""
         s = self.ego_v0 * t + 0.5 * self.ego_a * t * t
-        pos, th, vel = self._along_road(np.array(s), np.array(self.ego_y), np.array(self.ego_v0 + self.ego_a * t))
+        pos, th, vel = self._along_road(np.array(s), np.array(self.ego_l), np.array(self.ego_v0 + self.ego_a * t))
         return (np.array([pos[0], pos[1], self.config.radar_height_m]), float(th), vel,
                 float(np.hypot(vel[0], vel[1])))
 
     def _body_poses(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """World ground position ``(B, 2)``, yaw ``(B,)`` and velocity ``(B, 2)`` of every body."""
-        s_dot = np.concatenate([np.where(np.cos(self.veh_yaw) >= 0, 1.0, -1.0) * self.veh_speed, self.ppl_vx])
-        s = np.concatenate([self.veh_x0, self.ppl_x0]) + s_dot * t
-        l = np.concatenate([self.veh_y, self.ppl_y])
+        s_dot = np.concatenate([np.where(np.cos(self.veh_yaw) >= 0, 1.0, -1.0) * self.veh_speed, self.ppl_vs])
+        s = np.concatenate([self.veh_s0, self.ppl_s0]) + s_dot * t
+        l = np.concatenate([self.veh_l, self.ppl_l])
         pos, th, vel = self._along_road(s, l, s_dot)
         yaw = th + np.where(s_dot >= 0, 0.0, math.pi)
         return pos.reshape(-1, 2), yaw, vel.reshape(-1, 2)
