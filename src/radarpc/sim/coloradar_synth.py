@@ -273,7 +273,7 @@ def _edge_points(scene: Scene, geom, origin, cfg: RadarSimConfig, dev, dtype):
 
 # ------------------------------------------------------------------------------------------------
 def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_lsb: float = 1000.0,
-                exact: bool = False, chunk: int = 256) -> torch.Tensor:
+                exact: bool = False, chunk: int = 1024) -> torch.Tensor:
     """Noise-free complex beat signal ``(tx, rx, chirps, samples)`` (complex64, LSB units).
 
     See the module docstring for the formula. Computed in float64 phases on the scatterers'
@@ -296,8 +296,10 @@ def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_l
     t_k = w.adc_start_time + torch.arange(ns, device=dev, dtype=f64) / w.adc_sample_frequency
     t_mid = 0.5 * nc * ntx * tc
     t_ctr = float(t_k.mean())
-    out = torch.zeros((ntx, nrx, nc, ns), dtype=torch.complex128, device=dev)
+    out = torch.zeros((ntx, nrx, nc, ns), dtype=torch.complex128 if exact else torch.complex64, device=dev)
     two_pi = 2 * math.pi
+    if exact:   # the exact path materialises (tx, rx, chirps, samples, n): bound it to ~2e7 elements
+        chunk = max(1, min(chunk, int(2e7 // (ntx * nrx * nc * ns))))
     for s in range(0, p.shape[0], chunk):
         sl = slice(s, s + chunk)
         rr, vv, uu = r0[sl], scat.velocity[sl].to(f64), u[sl]
@@ -312,11 +314,14 @@ def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_l
             out += (coef * torch.exp(1j * ph)).sum(-1)
         else:
             # S tau t_k = S tau t_ctr + S tau (t_k - t_ctr): the first part is exact per chirp, the
-            # second uses the frame-centre delay (drops only the range migration across the frame)
+            # second uses the frame-centre delay (drops only the range migration across the frame).
+            # Phases in float64, products and the sum over scatterers in complex64.
             tau_mid = 2 * (rr + vv * t_mid) / SPEED_OF_LIGHT
-            fast = torch.exp(1j * two_pi * slope * tau_mid[:, None] * (t_k - t_ctr)[None, :])  # (n, ns)
-            slow_c = slow + two_pi * slope * t_ctr * tau
-            a = (coef * torch.exp(1j * (slow_c[:, None] + arr_tx[:, None, None, :] + arr_rx[None, :, None, :])))
+            fast = torch.exp(1j * two_pi * slope * tau_mid[:, None] * (t_k - t_ctr)[None, :]).to(torch.complex64)
+            e_slow = (coef * torch.exp(1j * (slow + two_pi * slope * t_ctr * tau))).to(torch.complex64)  # (ntx, nc, n)
+            e_tx = torch.exp(1j * arr_tx).to(torch.complex64)
+            e_rx = torch.exp(1j * arr_rx).to(torch.complex64)
+            a = e_slow[:, None] * (e_tx[:, None, None, :] * e_rx[None, :, None, :])               # (ntx, nrx, nc, n)
             out += (a.reshape(-1, a.shape[-1]) @ fast).reshape(ntx, nrx, nc, ns)
     return out.to(torch.complex64)
 
@@ -340,19 +345,26 @@ def synthesize_adc(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *,
 
 
 # ------------------------------------------------------------------------------------------------
-def _dirichlet(x: torch.Tensor, n: int, nfft: int) -> torch.Tensor:
-    # sum_{k<n} exp(-j 2 pi k x / nfft) in closed form (complex, float64)
-    a = math.pi * x / nfft
-    small = a.abs() < 1e-9
-    ratio = torch.where(small, torch.full_like(a, float(n)), torch.sin(n * a) / torch.where(small, torch.ones_like(a), torch.sin(a)))
-    return ratio * torch.exp(-1j * (n - 1) * a)
-
-
 def _hann_response_power(delta: torch.Tensor, n: int, nfft: int) -> torch.Tensor:
-    """``|W(delta)|^2 / |W(0)|^2`` of an ``n``-sample periodic Hann window in an ``nfft`` FFT."""
+    """``|W(delta)|^2 / |W(0)|^2`` of an ``n``-sample periodic Hann window in an ``nfft`` FFT.
+
+    ``W = 0.5 D(x) - 0.25 D(x - nfft/n) - 0.25 D(x + nfft/n)`` with the Dirichlet kernel
+    ``D(x) = sum_k exp(-j 2 pi k x / nfft) = exp(-j (n-1) a) sin(n a) / sin(a)``, ``a = pi x / nfft``;
+    the three kernels share the phase up to ``exp(+-j (n-1) pi / n)``.
+    """
     sh = nfft / n
-    wv = 0.5 * _dirichlet(delta, n, nfft) - 0.25 * _dirichlet(delta - sh, n, nfft) - 0.25 * _dirichlet(delta + sh, n, nfft)
-    return (wv.abs() ** 2) / (0.5 * n) ** 2
+
+    def ratio(x):
+        a = math.pi * x / nfft
+        sa = torch.sin(a)
+        small = sa.abs() < 1e-6
+        return torch.where(small, torch.full_like(a, float(n)), torch.sin(n * a) / torch.where(small, torch.ones_like(a), sa))
+
+    phi = (n - 1) * math.pi / n                  # phase of D(x -+ sh) relative to D(x): exp(+-j phi)
+    d0, dm, dp = ratio(delta), ratio(delta - sh), ratio(delta + sh)
+    re = 0.5 * d0 - 0.25 * (dm + dp) * math.cos(phi)
+    im = -0.25 * (dm - dp) * math.sin(phi)
+    return (re * re + im * im) / (0.5 * n) ** 2
 
 
 def cascade_heatmap(scat: Scatterers, chip: ColoRadarChipConfig = CASCADE, *,
@@ -378,25 +390,25 @@ def cascade_heatmap(scat: Scatterers, chip: ColoRadarChipConfig = CASCADE, *,
     p_snr, u, r0, vel = snr[keep], u[keep], r0[keep], scat.velocity[keep].to(f32)
     # range response of a Hann-windowed FFT, |W(delta)|^2 / |W(0)|^2, delta in bins
     nfft = int(round(SPEED_OF_LIGHT * w.adc_sample_frequency / (2 * w.frequency_slope * hm.range_bin_width)))
-    delta = torch.arange(nr, device=dev, dtype=torch.float64)[:, None] - (r0.double() / hm.range_bin_width)[None, :]
-    wr = _hann_response_power(delta, w.num_adc_samples_per_chirp, nfft).to(f32)     # (R, N)
+    delta = torch.arange(nr, device=dev, dtype=f32)[:, None] - (r0 / hm.range_bin_width)[None, :]   # (R, N)
+    wr = _hann_response_power(delta, w.num_adc_samples_per_chirp, nfft)               # (R, N)
     # beamformer power on the heatmap's (sin az, sin el) grid, factorized over elevation rows
     d = chip.element_spacing
     s_az = torch.sin(torch.as_tensor(hm.azimuth_bins, dtype=f32, device=dev))
     s_el = torch.sin(torch.as_tensor(hm.elevation_bins, dtype=f32, device=dev))
     rows = np.unique(vpos[:, 1])
-    af = torch.zeros((u.shape[0], na, ne), dtype=torch.complex64, device=dev)
+    g_rows, e_rows = [], []
     for pv in rows:
         ph_pos = torch.as_tensor(vpos[vpos[:, 1] == pv, 0], dtype=f32, device=dev)     # (H,)
         e_in = torch.exp(1j * 2 * math.pi * d * ph_pos[None, :] * u[:, 1:2])          # (N, H)
         e_out = torch.exp(-1j * 2 * math.pi * d * ph_pos[:, None] * s_az[None, :])    # (H, A)
-        g_row = e_in @ e_out                                                          # (N, A)
-        e_el = torch.exp(1j * 2 * math.pi * d * float(pv) * (u[:, 2:3] - s_el[None, :]))  # (N, E)
-        af += g_row[:, :, None] * e_el[:, None, :]
-    bf = (af.abs() ** 2) / vpos.shape[0] ** 2                                         # (N, A, E)
+        g_rows.append(e_in @ e_out)                                                   # (N, A)
+        e_rows.append(torch.exp(1j * 2 * math.pi * d * float(pv) * (u[:, 2:3] - s_el[None, :])))  # (N, E)
+    af = torch.bmm(torch.stack(g_rows, -1), torch.stack(e_rows, 1))                   # (N, A, E)
+    bf = torch.view_as_real(af).square().sum(-1) / vpos.shape[0] ** 2                 # |AF|^2, (N, A, E)
     contrib = bf.reshape(bf.shape[0], -1) * p_snr[:, None]                             # (N, A*E)
-    inten = wr @ contrib                                                              # (R, A*E)
-    vsum = wr @ (contrib * vel[:, None])
+    both = wr @ torch.cat([contrib, contrib * vel[:, None]], 1)                        # (R, 2*A*E)
+    inten, vsum = both[:, :na * ne], both[:, na * ne:]
     vmax, nd = w.max_velocity_mps, w.num_chirps_per_frame
     vbin = 2 * vmax / nd
     dop = vsum / inten.clamp_min(1e-12)

@@ -240,23 +240,37 @@ class Scene:
 # ------------------------------------------------------------------------------------------------
 # ray casting
 # ------------------------------------------------------------------------------------------------
-def _cast_boxes(o, d, g: Geometry, eps: float):
-    # o, d: (M, 3). Yaw-rotated slab test in each box frame -> (M, B) entry distance and axis.
+def _cast_boxes(o, d, g: Geometry, eps: float) -> torch.Tensor:
+    # o, d: (M, 3). Slab test in each (yaw-rotated) box frame, axis by axis on (M, B) tensors.
     c, s = torch.cos(g.box_yaw), torch.sin(g.box_yaw)                       # (B,)
-    rel = o[:, None, :] - g.box_center[None]                                 # (M, B, 3)
-    ol = torch.stack([c * rel[..., 0] + s * rel[..., 1], -s * rel[..., 0] + c * rel[..., 1], rel[..., 2]], -1)
-    dz = d[:, None, 2].expand(-1, c.shape[0])
-    dl = torch.stack([c * d[:, None, 0] + s * d[:, None, 1], -s * d[:, None, 0] + c * d[:, None, 1], dz], -1)  # (M, B, 3)
-    dl = torch.where(dl.abs() < 1e-12, torch.full_like(dl, 1e-12), dl)
-    inv = 1.0 / dl
-    t1 = (-g.box_half[None] - ol) * inv
-    t2 = (g.box_half[None] - ol) * inv
-    tn, tf = torch.minimum(t1, t2), torch.maximum(t1, t2)
-    tmin, axis = tn.max(-1)                                                  # (M, B)
-    tmax = tf.min(-1).values
-    hit = (tmax >= tmin) & (tmax > eps) & (tmin > eps)
-    t = torch.where(hit, tmin, torch.full_like(tmin, float("inf")))
-    return t, axis, dl
+    rx = o[:, None, 0] - g.box_center[None, :, 0]
+    ry = o[:, None, 1] - g.box_center[None, :, 1]
+    rz = o[:, None, 2] - g.box_center[None, :, 2]
+    dx, dy, dz = d[:, None, 0], d[:, None, 1], d[:, None, 2]
+    loc = ((c * rx + s * ry, c * dx + s * dy), (c * ry - s * rx, c * dy - s * dx), (rz, dz.expand_as(rz)))
+    tmin = tmax = None
+    for k, (ol, dl) in enumerate(loc):
+        inv = 1.0 / torch.where(dl.abs() < 1e-12, torch.full_like(dl, 1e-12), dl)
+        h = g.box_half[None, :, k]
+        t1 = (-h - ol) * inv
+        t2 = (h - ol) * inv
+        lo, hi = torch.minimum(t1, t2), torch.maximum(t1, t2)
+        tmin = lo if tmin is None else torch.maximum(tmin, lo)
+        tmax = hi if tmax is None else torch.minimum(tmax, hi)
+    hit = (tmax >= tmin) & (tmin > eps)
+    return torch.where(hit, tmin, torch.full_like(tmin, float("inf")))
+
+
+def _box_normal(p: torch.Tensor, g: Geometry, j: torch.Tensor) -> torch.Tensor:
+    # outward normal of box j at surface point p: the face whose slab the point lies on
+    c, s = torch.cos(g.box_yaw[j]), torch.sin(g.box_yaw[j])
+    r = p - g.box_center[j]
+    loc = torch.stack([c * r[:, 0] + s * r[:, 1], -s * r[:, 0] + c * r[:, 1], r[:, 2]], -1)
+    q = loc / g.box_half[j]
+    ax = q.abs().argmax(1)
+    nl = torch.zeros_like(loc)
+    nl.scatter_(1, ax[:, None], torch.sign(q.gather(1, ax[:, None])))
+    return torch.stack([c * nl[:, 0] - s * nl[:, 1], s * nl[:, 0] + c * nl[:, 1], nl[:, 2]], -1)
 
 
 def _cast_cylinders(o, d, g: Geometry, eps: float):
@@ -286,15 +300,8 @@ def _cast_chunk(oc, dc, g: Geometry, eps: float):
     best_m = torch.full((m,), -1, dtype=torch.long, device=dc.device)
     best_v = torch.zeros((m, 3), dtype=dc.dtype, device=dc.device)
     if g.box_center.shape[0]:
-        tb, axis, dl = _cast_boxes(oc, dc, g, eps)
-        tmin, j = tb.min(1)                                                   # (m,)
-        ax = axis.gather(1, j[:, None])[:, 0]
-        dsel = dl[torch.arange(m, device=dc.device), j]                       # (m, 3)
-        sgn = -torch.sign(dsel.gather(1, ax[:, None])[:, 0])
-        nl = torch.zeros((m, 3), dtype=dc.dtype, device=dc.device)
-        nl.scatter_(1, ax[:, None], sgn[:, None])
-        cy, sy = torch.cos(g.box_yaw[j]), torch.sin(g.box_yaw[j])
-        nw = torch.stack([cy * nl[:, 0] - sy * nl[:, 1], sy * nl[:, 0] + cy * nl[:, 1], nl[:, 2]], -1)
+        tmin, j = _cast_boxes(oc, dc, g, eps).min(1)                         # (m,)
+        nw = _box_normal(oc + tmin.clamp_max(1e9)[:, None] * dc, g, j)
         upd = tmin < best_t
         best_t = torch.where(upd, tmin, best_t)
         best_n = torch.where(upd[:, None], nw, best_n)
