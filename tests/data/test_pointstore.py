@@ -45,6 +45,7 @@ def make_batch(counts, *, seed=0, sector=4, rd_patch=9) -> PointCloudBatch:
 
 def make_meta(**kw) -> PointStoreMetadata:
     d = dict(sensor=TINY, density_mode="per-frame", tau=None, target_density=0.05, achieved_density=0.0,
+             peak_density=0.0,
              enrich=("rd3", "sector4"), window=(9, 9), guard=(3, 3), source_root="/data/root", split="all")
     d.update(kw)
     return PointStoreMetadata(**d)
@@ -72,6 +73,9 @@ def test_round_trip_every_column_dtype_and_metadata(tmp_path):
     assert m.created and m.radarpc_version
     np.testing.assert_allclose(store.frame_table.tau, batch.tau.double().numpy())
     np.testing.assert_array_equal(store.frame_table.n_points, counts)
+    peaks = [int((~frame_slice(batch, b, "is_neighbour")).sum()) for b in range(4)]
+    np.testing.assert_array_equal(store.frame_table.n_peaks, peaks)
+    assert m.peak_density == pytest.approx(np.mean(peaks) * TINY.n_tx / (TINY.n_range * TINY.n_doppler))
     for i in range(4):
         c = store[i]
         assert c.offset.tolist() == [counts[i]]

@@ -97,7 +97,7 @@ def test_fixed_tau_store_equals_direct_dsp(root, tmp_path):
     # independent: run the DSP on every frame by itself and compare with what the store holds
     ds = RADIal(root, split="all")
     spc = build_point_cloud(ds, ConvertSettings(tau=4.0, enrich=("rd3", "sector4")), 4.0, "cpu")
-    densities = []
+    densities, peak_densities = [], []
     for i in range(len(ds)):
         with torch.no_grad():
             want = spc(ds[i][0].unsqueeze(0))
@@ -108,9 +108,12 @@ def test_fixed_tau_store_equals_direct_dsp(root, tmp_path):
         for name in ("range_m", "azimuth_deg", "velocity_mps", "amplitude", "snr", "x", "y", "z", "sector"):
             torch.testing.assert_close(getattr(got, name), getattr(want, name).float(), rtol=1e-5, atol=1e-5)
         densities.append(float(want.density[0]))
+        peak_densities.append(int((~want.is_neighbour).sum()) * TINY.n_tx / (TINY.n_range * TINY.n_doppler))
     assert store.frame_table.n_points[ZERO_FRAME] == 0 and store[ZERO_FRAME].x.shape == (0,)
     assert store.metadata.achieved_density == pytest.approx(np.mean(densities), rel=1e-6)
     assert res.achieved_density == pytest.approx(np.mean(densities), rel=1e-6)
+    assert res.peak_density == pytest.approx(np.mean(peak_densities), rel=1e-6)
+    assert res.peak_density < res.achieved_density        # rd3 adds neighbourhood cells to S*
 
 
 def test_resume_after_kill_gives_same_file(root, tmp_path):

@@ -89,9 +89,11 @@ def run(args: argparse.Namespace) -> int:
                               chunk_frames=args.chunk_frames, **common)
         if res.path is not None:
             tau = "per frame" if res.tau is None else f"{res.tau:.6g}"
+            extra = "" if abs(res.achieved_density - res.peak_density) < 1e-9 else \
+                f", {res.achieved_density:.5f} with the RD-neighbourhood points"
             print(f"wrote {res.path}: {res.n_frames} frames, {res.n_points} points, tau {tau}, "
-                  f"achieved density {res.achieved_density:.5f}"
-                  + (f" (target {args.density})" if args.density is not None else "")
+                  f"achieved density {res.peak_density:.5f}"
+                  + (f" (target {args.density})" if args.density is not None else "") + extra
                   + f"; {res.chunks_converted} chunk(s) converted, {res.chunks_skipped} resumed")
     if args.sparse_rd_out is not None and dist_env().rank == 0:
         srd = write_sparse_rd(args.root, args.sparse_rd_out, **common)

@@ -21,7 +21,7 @@ File layout (pyarrow Parquet)::
     key-value metadata "radarpc.pointstore": JSON with
       "metadata": PointStoreMetadata (sensor config dict, tau / target density, density mode,
                   achieved mean density, enrichments, CFAR window/guard, source, version, date)
-      "frames":   the per-frame table (frame, sequence, n_points, tau, density), *including frames
+      "frames":   the per-frame table (frame, sequence, n_points, n_peaks, tau, density), *including frames
                   without any point*, so that the reader yields an empty cloud for them.
 
 Row groups hold whole frames (a frame never straddles two row groups); the reader locates a
@@ -133,7 +133,8 @@ class PointStoreMetadata:
     density_mode: str                        # one of DENSITY_MODES
     tau: float | None                        # linear SNR threshold (fixed, or calibrated per-dataset)
     target_density: float | None             # requested |S(tau)| / (Nr * ND), in (0, 1]
-    achieved_density: float                  # mean over frames of |S(tau)| / (Nr * ND)
+    achieved_density: float                  # mean over frames of the DSP's density (|S*| with rdN points)
+    peak_density: float                      # mean over frames of |S(tau)| / (Nr * ND), CFAR peaks only
     enrich: tuple[str, ...]                  # enrichment names, e.g. ("rd3", "sector32")
     window: tuple[int, int]                  # CFAR window (range, Doppler), cells
     guard: tuple[int, int]                   # CFAR guard (range, Doppler), cells
@@ -179,6 +180,7 @@ class PointStoreMetadata:
         for k in ("tau", "target_density"):
             kw[k] = None if d[k] is None else float(d[k])
         kw["achieved_density"] = float(d["achieved_density"])
+        kw["peak_density"] = float(d["peak_density"])
         return cls(**kw)
 
 
@@ -191,25 +193,28 @@ class FrameTable:
     frame : ndarray int64 ``(F,)``      RADIal numSample, in file order
     sequence : tuple of str ``(F,)``    sequence name
     n_points : ndarray int64 ``(F,)``   rows of the frame
+    n_peaks : ndarray int64 ``(F,)``    rows that are CFAR peaks (``is_neighbour`` False): ``|P(tau)|``
     tau : ndarray float64 ``(F,)``      CFAR threshold used for the frame
-    density : ndarray float64 ``(F,)``  achieved density of the frame
+    density : ndarray float64 ``(F,)``  achieved density of the frame as the DSP reports it
+                                        (``|S*(tau)| / (Nr Nd)`` with RD-neighbourhood points)
     """
 
     frame: np.ndarray
     sequence: tuple[str, ...]
     n_points: np.ndarray
+    n_peaks: np.ndarray
     tau: np.ndarray
     density: np.ndarray
 
     def __post_init__(self) -> None:
         n = self.frame.shape[0]
-        for name in ("n_points", "tau", "density"):
+        for name in ("n_points", "n_peaks", "tau", "density"):
             if getattr(self, name).shape != (n,):
                 raise ValueError(f"frame table: {name} has shape {getattr(self, name).shape}, expected ({n},)")
         if len(self.sequence) != n:
             raise ValueError(f"frame table: {len(self.sequence)} sequence names for {n} frames")
-        if n and int(self.n_points.min()) < 0:
-            raise ValueError("frame table: negative point count")
+        if n and (int(self.n_peaks.min()) < 0 or bool((self.n_peaks > self.n_points).any())):
+            raise ValueError("frame table: point counts must satisfy 0 <= n_peaks <= n_points")
 
     def __len__(self) -> int:
         return int(self.frame.shape[0])
@@ -222,7 +227,8 @@ class FrameTable:
     @classmethod
     def empty(cls) -> "FrameTable":
         z = np.zeros(0)
-        return cls(frame=z.astype(np.int64), sequence=(), n_points=z.astype(np.int64), tau=z, density=z)
+        return cls(frame=z.astype(np.int64), sequence=(), n_points=z.astype(np.int64),
+                   n_peaks=z.astype(np.int64), tau=z, density=z)
 
     @classmethod
     def concat(cls, tables: Sequence["FrameTable"]) -> "FrameTable":
@@ -231,6 +237,7 @@ class FrameTable:
         return cls(frame=np.concatenate([t.frame for t in tables]).astype(np.int64),
                    sequence=tuple(s for t in tables for s in t.sequence),
                    n_points=np.concatenate([t.n_points for t in tables]).astype(np.int64),
+                   n_peaks=np.concatenate([t.n_peaks for t in tables]).astype(np.int64),
                    tau=np.concatenate([t.tau for t in tables]).astype(np.float64),
                    density=np.concatenate([t.density for t in tables]).astype(np.float64))
 
@@ -239,7 +246,7 @@ class FrameTable:
         index = {s: i for i, s in enumerate(names)}
         return {"frame": self.frame.tolist(), "sequence_names": names,
                 "sequence": [index[s] for s in self.sequence], "n_points": self.n_points.tolist(),
-                "tau": self.tau.tolist(), "density": self.density.tolist()}
+                "n_peaks": self.n_peaks.tolist(), "tau": self.tau.tolist(), "density": self.density.tolist()}
 
     @classmethod
     def from_dict(cls, d: dict) -> "FrameTable":
@@ -247,6 +254,7 @@ class FrameTable:
         return cls(frame=np.asarray(d["frame"], dtype=np.int64).reshape(-1),
                    sequence=tuple(names[int(i)] for i in d["sequence"]),
                    n_points=np.asarray(d["n_points"], dtype=np.int64).reshape(-1),
+                   n_peaks=np.asarray(d["n_peaks"], dtype=np.int64).reshape(-1),
                    tau=np.asarray(d["tau"], dtype=np.float64).reshape(-1),
                    density=np.asarray(d["density"], dtype=np.float64).reshape(-1))
 
@@ -317,8 +325,8 @@ class PointStoreWriter:
     path : path-like
         Final ``.parquet`` file. Nothing appears under this name before :meth:`close` succeeds.
     metadata : PointStoreMetadata
-        Description of the conversion. ``achieved_density`` is recomputed at close as the mean of
-        the per-frame densities written; ``created`` is set to now (UTC) when empty.
+        Description of the conversion. ``achieved_density`` and ``peak_density`` are recomputed
+        at close from the frames written; ``created`` is set to now (UTC) when empty.
     row_group_frames : int
         Frames buffered before a row group is written (row groups hold whole frames).
     compression : str
@@ -395,12 +403,15 @@ class PointStoreWriter:
                                     _list_size(getattr(clouds, "rd_patch", None), "rd_patch", n)))
         assert self._schema is not None
         table, counts = _batch_to_table(clouds, frames, sequences, self._schema)
+        peak = ~clouds.is_neighbour.detach().to("cpu").numpy().astype(np.bool_)            # (N,)
+        frame_of = np.repeat(np.arange(b), counts)                                          # (N,)
+        n_peaks = np.bincount(frame_of[peak], minlength=b).astype(np.int64)                 # (B,)
         tau = clouds.tau.detach().to("cpu", torch.float64).numpy().reshape(-1)
         dens = clouds.density.detach().to("cpu", torch.float64).numpy().reshape(-1)
         if tau.shape != (b,) or dens.shape != (b,):
             raise ValueError(f"clouds.tau and clouds.density must be ({b},), got {tau.shape} and {dens.shape}")
         self._append(table, FrameTable(frame=np.asarray(frames, dtype=np.int64), sequence=tuple(map(str, sequences)),
-                                       n_points=counts, tau=tau, density=dens))
+                                       n_points=counts, n_peaks=n_peaks, tau=tau, density=dens))
 
     def _append(self, table: pa.Table, frames: FrameTable) -> None:
         self._seen.update(frames.frame.tolist())
@@ -461,8 +472,12 @@ class PointStoreWriter:
             self.flush()
             frames = FrameTable.concat(self._frames)
             achieved = float(frames.density.mean()) if len(frames) else 0.0
+            sensor = self.metadata.sensor
+            # |S(tau)| = n_tx |P(tau)| (each consolidated peak maps to its n_tx replica bins)
+            peak = float(frames.n_peaks.mean()) * sensor.n_tx / (sensor.n_range * sensor.n_doppler) \
+                if len(frames) else 0.0
             meta = dataclasses.replace(
-                self.metadata, achieved_density=achieved,
+                self.metadata, achieved_density=achieved, peak_density=peak,
                 created=self.metadata.created or _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
             assert self._writer is not None and self._tmp is not None
             self._writer.add_key_value_metadata(_encode_footer(meta, frames))

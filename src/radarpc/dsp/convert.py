@@ -127,7 +127,8 @@ class ConvertResult:
     path: Path | None                # the merged store (None on ranks other than 0)
     n_frames: int                    # frames in the converted split
     n_points: int                    # points written (0 on ranks other than 0)
-    achieved_density: float          # mean per-frame density (nan on ranks other than 0)
+    achieved_density: float          # mean per-frame density as the DSP reports it, |S*| with rdN (nan off rank 0)
+    peak_density: float              # mean |S(tau)| / (Nr * ND), CFAR peaks only (nan on ranks other than 0)
     tau: float | None                # the fixed or calibrated threshold (None in per-frame mode)
     chunks_converted: int            # chunks computed by this process (and its workers)
     chunks_skipped: int              # chunks found complete from an earlier run
@@ -496,7 +497,8 @@ def convert_dataset(
                 and m.enrich == settings.enrich and m.window == settings.window and m.guard == settings.guard
                 and m.density_mode == settings.mode and m.target_density == settings.density
                 and (settings.tau is None or m.tau == settings.tau)):
-            return ConvertResult(out, n, int(store.frame_table.n_points.sum()), m.achieved_density, m.tau, 0, n_chunks)
+            return ConvertResult(out, n, int(store.frame_table.n_points.sum()), m.achieved_density,
+                                 m.peak_density, m.tau, 0, n_chunks)
 
     # The manifest fixes the settings, the frames, the calibrated tau and the creation date.
     if env.rank == 0:
@@ -512,7 +514,7 @@ def convert_dataset(
                 cal_tau = calibrate_tau(root, settings, batch_size=int(batch_size), device=dev, progress=progress)
             meta = PointStoreMetadata(
                 sensor=ds.sensor, density_mode=settings.mode, tau=cal_tau, target_density=settings.density,
-                achieved_density=0.0, enrich=settings.enrich, window=settings.window, guard=settings.guard,
+                achieved_density=0.0, peak_density=0.0, enrich=settings.enrich, window=settings.window, guard=settings.guard,
                 source_root=key["root"], split=settings.split, radarpc_version=__version__,
                 created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
             manifest = dict(key, tau=cal_tau, meta=meta.to_dict(), n_chunks=n_chunks)
@@ -559,7 +561,7 @@ def convert_dataset(
     all_parts = [part_path(out, k) for k in range(n_chunks)]
     _barrier(env, None, wait_timeout_s, wait_files=all_parts)
     if env.rank != 0:
-        return ConvertResult(None, n, 0, float("nan"), manifest["tau"], converted, skipped)
+        return ConvertResult(None, n, 0, float("nan"), float("nan"), manifest["tau"], converted, skipped)
     meta = PointStoreMetadata.from_dict(manifest["meta"])
     with PointStoreWriter(out, meta, row_group_frames=settings.chunk_frames) as w:
         for p in all_parts:
@@ -567,6 +569,7 @@ def convert_dataset(
     _remove_parts_dir(pdir)
     store = PointStore(out)
     return ConvertResult(out, n, int(store.frame_table.n_points.sum()), store.metadata.achieved_density,
+                         store.metadata.peak_density,
                          manifest["tau"], converted, skipped)
 
 
