@@ -158,7 +158,8 @@ def plot_frame(root: str | Path, frame: int, out: str | Path, settings: ConvertS
                   label=f"labelled vehicles ({len(gx)})")
     ax[2].set(xlabel="y [m] (left +)", ylabel="x [m] (forward)",
               title=f"BEV: {len(x)} points, density {density:.4f}, tau {tau_used:.3g}")
-    half = max(10.0, 1.05 * float(np.abs(np.concatenate([y, gy])).max()) if len(y) + len(gy) else 10.0)
+    # lateral half-width: every point and label, and at least 40 % of the range (a readable panel)
+    half = max(0.4 * rmax, 1.05 * float(np.abs(np.concatenate([y, gy])).max()) if len(y) + len(gy) else 0.0)
     ax[2].set_xlim(min(half, rmax), -min(half, rmax))  # left of the car drawn on the left
     ax[2].set_ylim(0.0, rmax)
     ax[2].set_aspect("equal")
