@@ -22,7 +22,16 @@ from radarpc.data.coloradar import (
     upsample_intensity,
 )
 from radarpc.io import DataFileError
-from radarpc.sensors.coloradar import AWR1843, DEFAULT_CALIB, ColoRadarCalib, RadarFOV, Transform, load_calib
+from radarpc.sensors.coloradar import (
+    AWR1843,
+    CASCADE,
+    DEFAULT_CALIB,
+    ColoRadarCalib,
+    RadarFOV,
+    Transform,
+    beam_angles,
+    load_calib,
+)
 from radarpc.sim.coloradar_synth import (
     LidarConfig,
     RadarSimConfig,
@@ -35,7 +44,10 @@ from radarpc.sim.coloradar_synth import (
 from radarpc.sim.coloradar_writer import frame_generator, run_name, write_coloradar
 from radarpc.sim.indoor import make_scene
 
-CALIB = dataclasses.replace(DEFAULT_CALIB, single_chip=AWR1843.replace(num_chirps_per_frame=8))
+TINY_CASCADE = CASCADE.replace(num_range_bins=64, num_azimuth_bins=16, num_elevation_bins=4,
+                               azimuth_bins=beam_angles(16, CASCADE.element_spacing, half_bin=True),
+                               elevation_bins=beam_angles(4, CASCADE.element_spacing, half_bin=True))
+CALIB = dataclasses.replace(DEFAULT_CALIB, single_chip=AWR1843.replace(num_chirps_per_frame=8), cascade=TINY_CASCADE)
 RADAR = RadarSimConfig(az_step_deg=4.0, el_step_deg=5.0)
 KW = dict(lidar_beams=8, lidar_azimuth_steps=128, calib=CALIB, radar=RADAR, progress=False)
 
@@ -215,3 +227,22 @@ def test_radar_cube_validation_and_upsample():
     assert up.shape == (128, 64, 32)
     torch.testing.assert_close(up[:, 0, 0], one.intensity_db[:, 0, 0])     # align_corners keeps corners
     torch.testing.assert_close(up[:, -1, -1], one.intensity_db[:, -1, -1])
+
+
+def test_cli_simulate_and_info(sim_root, tmp_path, capsys):
+    from radarpc.cli import main
+
+    out = tmp_path / "cli"
+    rc = main(["simulate", "coloradar", "--out", str(out), "--scenes", "outdoor", "--runs-per-scene", "1",
+               "--frames", "1", "--lidar-beams", "4", "--lidar-azimuth-steps", "64", "--no-progress"])
+    assert rc == 0
+    run = ColoRadarRun(out / "outdoor_run0")
+    assert run.num_radar_frames == 1 and run.adc(0).shape == (3, 4, 128, 128)
+    assert run.lidar(0, drop_zeros=False).shape == (4 * 64, 4)
+    assert main(["simulate", "coloradar", "--out", str(out), "--scenes", "lab", "--frames", "1"]) == 2
+    assert "not empty" in capsys.readouterr().err
+    png = tmp_path / "info.png"
+    assert main(["info", str(sim_root), "--plot", str(png), "--check"]) == 0
+    text = capsys.readouterr().out
+    assert "lab_run2" in text and "test:" in text and "0 bad" in text
+    assert png.stat().st_size > 10_000

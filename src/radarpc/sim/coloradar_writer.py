@@ -19,7 +19,9 @@
 
 Timestamps are Unix seconds. Radar frames are ~10 Hz (with jitter); LiDAR scans are 10 Hz with a
 run-specific phase offset and start one period before the first radar frame and end one after,
-so nearest-timestamp pairing is needed; poses are 20 Hz. Every file is written atomically;
+so nearest-timestamp pairing is needed; poses are 20 Hz. The cascade heatmap of frame ``i`` is
+stamped 13 ms after single-chip frame ``i`` but drawn from the same scatterers (seen from the
+cascade's mount), a simplification of the real, independently triggered sensors. Every file is written atomically;
 an interrupted job resumes (existing files of the right size are kept) when called again with
 the same settings; a non-empty folder written with other settings is refused unless
 ``overwrite=True``. Each frame draws its randomness from a generator seeded by
@@ -147,9 +149,10 @@ def write_run(run_dir: str | os.PathLike, scene: Scene, frames: int, *, seed: in
         need_adc = not _done(f_adc, calib.single_chip.adc_nbytes, resume)
         need_hm = has_cc and not _done(f_hm, calib.cascade.heatmap_nbytes if has_cc else None, resume)
         if need_adc or need_hm:
-            gen = frame_generator(seed, *key, i, "radar")
+            dev = torch.device(device) if device is not None else torch.device("cpu")
+            gen = _to_device(frame_generator(seed, *key, i, "radar"), dev)
             pose, vel = sensor_pose(scene, float(t), calib.base_to_single_chip)
-            scat = radar_scatterers(scene, float(t), pose, vel, cfg=radar, generator=gen, device=device)
+            scat = radar_scatterers(scene, float(t), pose, vel, cfg=radar, generator=gen, device=dev)
             if need_adc:
                 adc = synthesize_adc(scat, calib.single_chip, cfg=radar,
                                      generator=_to_device(frame_generator(seed, *key, i, "adc"), scat.points.device))
