@@ -142,3 +142,16 @@ def test_bad_power():
         os_cfar(torch.ones(20, 20), (9, 9), (3, 3), 1.5)
     with pytest.raises(ValueError, match="tau"):
         ca_cfar(torch.ones(20, 20)).mask(0.0)
+
+
+def test_os_cfar_blocked_equals_unblocked(monkeypatch):
+    import radarpc.dsp.cfar as cfar_mod
+    rng = np.random.default_rng(4)
+    p = torch.from_numpy(rng.exponential(size=(2, 11, 6, 5)))
+    whole = os_cfar(p, (5, 3, 3), (3, 1, 1), 0.6)
+    monkeypatch.setattr(cfar_mod, "_OS_STACK_BYTES", 1)             # one row of axis 0 per block
+    blocked = os_cfar(p, (5, 3, 3), (3, 1, 1), 0.6)
+    torch.testing.assert_close(blocked.noise, whole.noise, rtol=0, atol=0)
+    ref, _ = _brute(p[1].numpy(), (5, 3, 3), (3, 1, 1),
+                    lambda v: np.sort(v)[max(1, math.ceil(0.6 * len(v))) - 1])
+    np.testing.assert_array_equal(blocked.noise[1].numpy(), ref)

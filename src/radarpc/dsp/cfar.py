@@ -32,6 +32,10 @@ __all__ = ["CFARResult", "ca_cfar", "os_cfar"]
 
 Array = torch.Tensor | np.ndarray
 
+# OS-CFAR sorts every cell's training values: the stacked neighbourhoods are built in blocks of
+# at most this many bytes.
+_OS_STACK_BYTES = 1 << 27
+
 
 @dataclass
 class CFARResult:
@@ -245,23 +249,30 @@ def os_cfar(power: Array, window: int | Sequence[int], guard: int | Sequence[int
     for h in reversed(hw):
         spec += [h, h]
     xp = F.pad(x, spec, value=math.inf)  # cells outside the array sort last
-    spatial = x.shape[first:]
-    cols = []
-    for d in offsets:
-        v = xp
-        for j, (dj, h) in enumerate(zip(d, hw)):
-            v = v.narrow(first + j, h + dj, spatial[j])
-        cols.append(v)
-    stack = torch.stack(cols, dim=-1)                                # (..., *spatial, n_full)
-    ordered, _ = torch.sort(stack, dim=-1)
-    n_valid = _valid_counts(tuple(spatial), w, g, x.dtype, x.device).round().long()  # (*spatial,)
+    spatial = tuple(x.shape[first:])
+    n_valid = _valid_counts(spatial, w, g, x.dtype, x.device).round().long()  # (*spatial,)
     if isinstance(rank, (int, np.integer)):
-        k = torch.clamp(n_valid, max=int(rank))
+        k_all = torch.clamp(n_valid, max=int(rank))
     else:
-        k = torch.ceil(float(rank) * n_valid.to(torch.float64)).long().clamp_min(1)
-        k = torch.minimum(k, n_valid)
-    idx = (k - 1).clamp_min(0).expand(x.shape).unsqueeze(-1)
-    noise = torch.gather(ordered, -1, idx).squeeze(-1)
+        k_all = torch.ceil(float(rank) * n_valid.to(torch.float64)).long().clamp_min(1)
+        k_all = torch.minimum(k_all, n_valid)
+    # Blocks along the first spatial axis bound the (..., block, *rest, n_full) neighbour stack.
+    per_row = max(1, x.numel() // spatial[0]) * n_full * x.element_size()
+    rows = max(1, _OS_STACK_BYTES // per_row)
+    noise = torch.empty_like(x)
+    for i0 in range(0, spatial[0], rows):
+        m = min(rows, spatial[0] - i0)
+        cols = []
+        for d in offsets:
+            v = xp.narrow(first, hw[0] + d[0] + i0, m)
+            for j in range(1, nd):
+                v = v.narrow(first + j, hw[j] + d[j], spatial[j])
+            cols.append(v)
+        ordered, _ = torch.sort(torch.stack(cols, dim=-1), dim=-1)  # (..., m, *rest, n_full)
+        k = k_all.narrow(0, i0, m)
+        blk_shape = x.shape[:first] + (m,) + spatial[1:]
+        idx = (k - 1).clamp_min(0).expand(blk_shape).unsqueeze(-1)
+        noise.narrow(first, i0, m).copy_(torch.gather(ordered, -1, idx).squeeze(-1))
     inf = torch.full((), math.inf, dtype=x.dtype, device=x.device)
     noise = torch.where(n_valid.expand(x.shape) > 0, noise, inf)
     return _finish(x, noise, is_np)
