@@ -69,10 +69,11 @@ class SpectralPointCloudConfig:
     enrich: tuple[str, ...] = ()            # "rdN", "patchN", "sectorA", "sectorAxE"
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "window", tuple(int(x) for x in _seq(self.window)))
-        object.__setattr__(self, "guard", tuple(int(x) for x in _seq(self.guard)))
-        object.__setattr__(self, "enrich", tuple(str(x) for x in self.enrich))
-        w, g = _check_window(self.window, self.guard)
+        w, g = _check_window(_seq(self.window), _seq(self.guard))
+        object.__setattr__(self, "window", w)
+        object.__setattr__(self, "guard", g)
+        enrich = self.enrich.split(",") if isinstance(self.enrich, str) else self.enrich
+        object.__setattr__(self, "enrich", tuple(str(x).strip() for x in enrich if str(x).strip()))
         if len(w) != 2:
             raise ValueError(f"the RD envelope CFAR is 2-D: window/guard need 2 sizes, got {w}, {g}")
         if self.density_mode not in DENSITY_MODES:
@@ -144,7 +145,7 @@ class SpectralPointCloudConfig:
 
 
 def _seq(v) -> tuple:
-    return (v,) if isinstance(v, int) else tuple(v)
+    return (v,) if isinstance(v, int) or not hasattr(v, "__iter__") else tuple(v)
 
 
 def offset2batch(offset: torch.Tensor) -> torch.Tensor:
@@ -263,10 +264,8 @@ class SpectralPointCloud(torch.nn.Module):
                  window: Sequence[int] = (9, 9), guard: Sequence[int] = (3, 3),
                  enrich: Sequence[str] = ()) -> None:
         super().__init__()
-        if isinstance(enrich, str):
-            enrich = tuple(e for e in enrich.split(",") if e)
         self.config = SpectralPointCloudConfig(tau=tau, density=density, density_mode=density_mode,
-                                               window=tuple(window), guard=tuple(guard), enrich=tuple(enrich))
+                                               window=window, guard=guard, enrich=enrich)
         if self.config.density is not None:
             check_density(self.config.density, sensor)
         calibration.check_sensor(sensor)
@@ -350,10 +349,12 @@ class SpectralPointCloud(torch.nn.Module):
 
         d0 = resolve_tx0_doppler(a, cfg, r, l, b)                  # (N,)
         v = virtual_snapshots(rd, cfg, b, r, d0)                   # (N, n_virtual)
-        bf = beamform_peaks(v, self.dictionary_t, self.grid, c.sectors, stacked=self.dictionary_stacked)
+        dev = rd.device                                            # tables follow the input's device
+        bf = beamform_peaks(v, self.dictionary_t.to(dev), self.grid, c.sectors,
+                            stacked=self.dictionary_stacked.to(dev))
         n_el = self.grid[1]
-        az = self.azimuth_table[bf.index // n_el]
-        el = self.elevation_table[bf.index % n_el]
+        az = self.azimuth_table.to(dev)[bf.index // n_el]
+        el = self.elevation_table.to(dev)[bf.index % n_el]
         rng = r.to(torch.float32) * cfg.range_res_m
         half = cfg.n_doppler // 2
         vel = ((d0 + half) % cfg.n_doppler - half).to(torch.float32) * cfg.velocity_res_mps
