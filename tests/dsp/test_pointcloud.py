@@ -57,9 +57,7 @@ def test_isolated_targets_are_recovered(cfg):
             assert abs(float(c.elevation_deg[j])) <= 10.0
             assert not bool(c.is_neighbour[j])
             assert float(c.snr[j]) > 10.0
-            half = cfg.n_doppler // 2
-            assert float(c.velocity_mps[j]) == pytest.approx(((d + half) % cfg.n_doppler - half)
-                                                             * cfg.velocity_res_mps, rel=1e-5)
+            assert float(c.velocity_mps[j]) == pytest.approx(float(cfg.velocity_of_bin(d)), rel=1e-5, abs=1e-6)
             assert float(c.range_m[j]) == pytest.approx(int(c.range_bin[j]) * cfg.range_res_m, rel=1e-6)
 
 
@@ -220,6 +218,8 @@ def test_config_parsing():
     c = SpectralPointCloudConfig(density=0.057, enrich=("sector32",))
     assert c.tau is None and c.sectors == (32, 1) and c.neighbourhood is None and c.patch is None
     assert c.to_dict()["enrich"] == ["sector32"]
+    c = SpectralPointCloudConfig(enrich="rd3, sector32", window=[11, 7], guard=[5, 3])
+    assert c.enrich == ("rd3", "sector32") and c.window == (11, 7) and c.guard == (5, 3)
 
 
 @pytest.mark.parametrize("kwargs,match", [
