@@ -246,3 +246,14 @@ def test_cli_simulate_and_info(sim_root, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "lab_run2" in text and "test:" in text and "0 bad" in text
     assert png.stat().st_size > 10_000
+
+
+def test_calib_beside_runs_folder(sim_root, tmp_path):
+    # coloradar-library layout: <dir>/kitti/<run>/ and <dir>/calib/
+    import shutil
+    shutil.copytree(sim_root / "calib", tmp_path / "calib")
+    shutil.copytree(sim_root / "lab_run2", tmp_path / "kitti" / "lab_run2")
+    ds = ColoRadar(tmp_path / "kitti", "all")
+    assert [r.name for r in ds.runs] == ["lab_run2"] and ds.calib == CALIB
+    with pytest.raises(DataFileError, match="calib"):
+        ColoRadar(tmp_path / "kitti" / "lab_run2" / "lidar", "all")

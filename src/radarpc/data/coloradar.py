@@ -52,6 +52,7 @@ __all__ = [
     "RadarCube",
     "ColoRadarItem",
     "ColoRadar",
+    "find_calib",
     "find_runs",
     "scene_of_run",
     "split_runs",
@@ -120,6 +121,17 @@ def split_runs(names: Sequence[str], split: str) -> list[str]:
             last = len(runs) - 1
             assign[n] = "test" if (i == last and last >= 1) else "val" if (i == last - 1 and last >= 2) else "train"
     return [n for n in names if assign[n] == split]
+
+
+def find_calib(root: str | os.PathLike) -> Path:
+    """The ``calib`` folder of a dataset root: ``ROOT/calib`` (ColoRadar's own tools, RaLD, the
+    simulator) or ``ROOT/../calib`` (coloradar-library's ``kitti/`` layout, calib beside the runs'
+    folder). Raises :class:`DataFileError` naming ``ROOT/calib`` when neither exists."""
+    root = Path(root)
+    for cand in (root / "calib", root.parent / "calib"):
+        if cand.is_dir():
+            return cand
+    raise DataFileError(root / "calib", "calibration folder is missing (expected ROOT/calib/ or ROOT/../calib/)")
 
 
 def find_runs(root: str | os.PathLike) -> list[str]:
@@ -198,14 +210,14 @@ class ColoRadarRun:
     path : path-like
         The run folder (``.../12_21_2020_ec_hallways_run0`` or ``.../lab_run0``).
     calib : ColoRadarCalib, optional
-        Defaults to ``load_calib(path.parent / "calib")``.
+        Defaults to the ``calib/`` found by :func:`find_calib` from the run's parent folder.
     """
 
     def __init__(self, path: str | os.PathLike, calib: ColoRadarCalib | None = None):
         self.path = Path(path)
         if not self.path.is_dir():
             raise DataFileError(self.path, "run folder is missing")
-        self.calib = calib if calib is not None else load_calib(self.path.parent / "calib")
+        self.calib = calib if calib is not None else load_calib(find_calib(self.path.parent))
         self.name = self.path.name
         self.scene = scene_of_run(self.name)
         self._ts: dict[str, np.ndarray] = {}
@@ -529,7 +541,7 @@ class ColoRadar(torch.utils.data.Dataset):
                  cube_size: tuple[int, int, int] | None = (128, 64, 32), fov: RadarFOV = AWR1843_FOV,
                  max_dt: float | None = None):
         self.root = Path(root)
-        self.calib = load_calib(self.root / "calib")
+        self.calib = load_calib(find_calib(self.root))
         names = split_runs(find_runs(self.root), split)
         if runs is not None:
             missing = sorted(set(runs) - set(names))
