@@ -125,3 +125,14 @@ def test_simulate_frame_shapes():
     assert f.adc.dtype == np.int16 and f.adc.shape == AWR1843.adc_shape
     assert f.heatmap.shape == CASCADE.heatmap.shape and np.isfinite(f.heatmap).all()
     assert f.lidar.shape == (4 * 64, 4) and f.lidar.dtype == np.float32
+
+
+def test_scatterers_validation():
+    with pytest.raises(ValueError, match=r"points must be \(N, 3\)"):
+        Scatterers(torch.zeros(4, 2), torch.zeros(4), torch.zeros(4), torch.zeros(4))
+    with pytest.raises(ValueError, match="rcs must have shape"):
+        Scatterers(torch.zeros(4, 3), torch.zeros(3), torch.zeros(4), torch.zeros(4))
+    with pytest.raises(ValueError, match="velocity must be real and finite"):
+        Scatterers(torch.zeros(1, 3), torch.ones(1), torch.zeros(1), torch.tensor([float("nan")]))
+    with pytest.raises(ValueError, match=">= 0"):
+        Scatterers(torch.ones(1, 3), -torch.ones(1), torch.zeros(1), torch.zeros(1))

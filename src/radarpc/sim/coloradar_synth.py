@@ -122,6 +122,22 @@ class Scatterers:
     phase: torch.Tensor       # (N,) scattering phase (rad)
     velocity: torch.Tensor    # (N,) radial velocity (m/s, receding > 0)
 
+    def __post_init__(self) -> None:
+        p = self.points
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise ValueError(f"Scatterers.points must be (N, 3), got {tuple(p.shape)}")
+        n = p.shape[0]
+        for k in ("rcs", "phase", "velocity"):
+            v = getattr(self, k)
+            if tuple(v.shape) != (n,):
+                raise ValueError(f"Scatterers.{k} must have shape ({n},), got {tuple(v.shape)}")
+            if torch.is_complex(v) or not torch.isfinite(v).all():
+                raise ValueError(f"Scatterers.{k} must be real and finite")
+        if not torch.isfinite(p).all():
+            raise ValueError("Scatterers.points contain NaN or infinite values")
+        if (self.rcs < 0).any():
+            raise ValueError("Scatterers.rcs must be >= 0")
+
     def __len__(self) -> int:
         return int(self.points.shape[0])
 
@@ -369,10 +385,10 @@ def _hann_response_power(delta: torch.Tensor, n: int, nfft: int) -> torch.Tensor
 
 def cascade_heatmap(scat: Scatterers, chip: ColoRadarChipConfig = CASCADE, *,
                     cfg: RadarSimConfig = RadarSimConfig(), generator: torch.Generator | None = None,
-                    noise: bool = True) -> torch.Tensor:
+                    noise: bool = True, chunk: int = 1024) -> torch.Tensor:
     """Cascade heatmap float32 ``(elevation, azimuth, range, 2)`` (intensity = SNR, Doppler m/s).
 
-    ``scat`` must be expressed in the cascade's frame.
+    ``scat`` must be expressed in the cascade's frame; ``chunk`` scatterers are beamformed at a time.
     """
     dev = scat.points.device
     w, hm = chip.waveform, chip.heatmap
@@ -397,17 +413,18 @@ def cascade_heatmap(scat: Scatterers, chip: ColoRadarChipConfig = CASCADE, *,
     s_az = torch.sin(torch.as_tensor(hm.azimuth_bins, dtype=f32, device=dev))
     s_el = torch.sin(torch.as_tensor(hm.elevation_bins, dtype=f32, device=dev))
     rows = np.unique(vpos[:, 1])
-    g_rows, e_rows = [], []
-    for pv in rows:
-        ph_pos = torch.as_tensor(vpos[vpos[:, 1] == pv, 0], dtype=f32, device=dev)     # (H,)
-        e_in = torch.exp(1j * 2 * math.pi * d * ph_pos[None, :] * u[:, 1:2])          # (N, H)
-        e_out = torch.exp(-1j * 2 * math.pi * d * ph_pos[:, None] * s_az[None, :])    # (H, A)
-        g_rows.append(e_in @ e_out)                                                   # (N, A)
-        e_rows.append(torch.exp(1j * 2 * math.pi * d * float(pv) * (u[:, 2:3] - s_el[None, :])))  # (N, E)
-    af = torch.bmm(torch.stack(g_rows, -1), torch.stack(e_rows, 1))                   # (N, A, E)
-    bf = torch.view_as_real(af).square().sum(-1) / vpos.shape[0] ** 2                 # |AF|^2, (N, A, E)
-    contrib = bf.reshape(bf.shape[0], -1) * p_snr[:, None]                             # (N, A*E)
-    both = wr @ torch.cat([contrib, contrib * vel[:, None]], 1)                        # (R, 2*A*E)
+    row_pos = [torch.as_tensor(vpos[vpos[:, 1] == pv, 0], dtype=f32, device=dev) for pv in rows]   # (H_row,)
+    e_out = [torch.exp(-1j * 2 * math.pi * d * hp[:, None] * s_az[None, :]) for hp in row_pos]      # (H_row, A)
+    both = torch.zeros((nr, 2 * na * ne), dtype=f32, device=dev)
+    for c0 in range(0, u.shape[0], chunk):                     # chunks bound memory to ~chunk * A * E
+        uc = u[c0:c0 + chunk]
+        g_rows = [torch.exp(1j * 2 * math.pi * d * hp[None, :] * uc[:, 1:2]) @ eo              # (n, A)
+                  for hp, eo in zip(row_pos, e_out)]
+        e_rows = [torch.exp(1j * 2 * math.pi * d * float(pv) * (uc[:, 2:3] - s_el[None, :])) for pv in rows]
+        af = torch.bmm(torch.stack(g_rows, -1), torch.stack(e_rows, 1))                       # (n, A, E)
+        bf = torch.view_as_real(af).square().sum(-1) / vpos.shape[0] ** 2                     # |AF|^2
+        contrib = bf.reshape(bf.shape[0], -1) * p_snr[c0:c0 + chunk, None]                    # (n, A*E)
+        both += wr[:, c0:c0 + chunk] @ torch.cat([contrib, contrib * vel[c0:c0 + chunk, None]], 1)
     inten, vsum = both[:, :na * ne], both[:, na * ne:]
     vmax, nd = w.max_velocity_mps, w.num_chirps_per_frame
     vbin = 2 * vmax / nd
