@@ -78,7 +78,7 @@ class RadarSimConfig:
     min_range_m: float = 0.3
     edges: bool = True                # strong points on visible vertical box edges
     edge_spacing_m: float = 0.3
-    edge_rcs_m2: float = 0.05
+    edge_rcs_m2: float = 0.02         # per edge point, times (1 + sqrt(specular gain))
     multipath: bool = True            # mirror ghosts of the strongest scatterers
     ghost_count: int = 40
     ghost_gain: float = 0.3           # amplitude factor of a ghost
@@ -250,7 +250,9 @@ def radar_scatterers(scene: Scene, t: float, pose: Transform, velocity: np.ndarr
 
 def _edge_points(scene: Scene, geom, origin, cfg: RadarSimConfig, dev, dtype):
     b = scene.boxes
-    tall = b[:, 5] > 0.2
+    # vertical edges of tall, wide boxes (walls, cabinets, doors, desks' bodies); thin legs and
+    # frames are left to the ray-cast surface samples
+    tall = (b[:, 5] > 0.2) & (np.maximum(b[:, 3], b[:, 4]) >= 0.2)
     if not tall.any():
         return torch.zeros((0, 3), dtype=dtype, device=dev), torch.zeros(0, dtype=dtype, device=dev)
     bb = b[tall]
