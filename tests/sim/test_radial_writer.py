@@ -142,3 +142,34 @@ def test_cli_writes_a_root(tmp_path, capsys):
                                      "--no-progress"]))
     with pytest.raises(ValueError, match="--device"):
         args.func(parser.parse_args(["radial", "--out", str(tmp_path / "x"), "--device", "nodevice"]))
+
+
+def test_labels_point_at_their_vehicles_in_the_rd_cube():
+    # independent of the label code: the label's range and radial velocity must find the vehicle's
+    # echo (Tx 0 replica) in the synthesised cube, well above the noise floor
+    from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS
+    from radarpc.sensors.radial import RADIAL_S
+    from radarpc.sim.rd import noise_power_rd
+
+    cfg = RADIAL_S
+    ds = SimulatedRADIal(cfg, 2, 2, 5, split="all")
+    col = {c: k for k, c in enumerate(LABEL_TENSOR_COLUMNS)}
+    ratios = []
+    for i in range(len(ds)):
+        rd, labels, _ = ds[i]
+        power = (rd.abs() ** 2).sum(-1) / (cfg.n_rx * noise_power_rd(cfg))   # (R, D), 1 = noise floor
+        for row in labels:
+            if row[col["Difficult"]] == 1 or row[col["radar_P_db"]] < 25 or abs(row[col["radar_A_deg"]]) > 60:
+                continue
+            r0 = int(round(float(row[col["radar_R_m"]]) / cfg.range_res_m))
+            d0 = int(round(float(cfg.doppler_bin_of_velocity(float(row[col["radar_D"]]))))) % cfg.n_doppler
+            prof = power[max(r0 - 1, 0): r0 + 3].amax(0)                     # (D,) over the near face
+            replicas = torch.as_tensor((d0 + cfg.doppler_offsets) % cfg.n_doppler)
+            empty = torch.as_tensor([(d0 + k * cfg.slot_width) % cfg.n_doppler for k in range(1, cfg.n_empty_slots + 1)])
+            # the Tx replicas of the label's velocity carry the echo, > 15 dB above the noise, and
+            # more power than the DDMA slots that this velocity leaves empty (which other objects
+            # at the same range may fill)
+            assert float(prof[replicas].min()) > 30.0, (i, row.tolist())
+            ratios.append(float(prof[replicas].mean()) / float(prof[empty].mean()))
+    assert len(ratios) >= 3 and min(ratios) > 1.5
+    assert float(np.median(ratios)) > 5.0          # a sign error in radar_D gives ~1
