@@ -225,6 +225,10 @@ def test_radar_cube_validation_and_upsample():
     torch.testing.assert_close(batch.intensity_db[1], one.intensity_db, rtol=1e-4, atol=1e-4)
     up = upsample_intensity(one.intensity_db, (128, 64, 32))
     assert up.shape == (128, 64, 32)
+    torch.testing.assert_close(upsample_intensity(one), up)
+    # equal range size: per range bin, RaLD's bilinear (align_corners=True) angle upsampling
+    ref = torch.nn.functional.interpolate(one.intensity_db[None], size=(64, 32), mode="bilinear", align_corners=True)[0]
+    torch.testing.assert_close(up, ref, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(up[:, 0, 0], one.intensity_db[:, 0, 0])     # align_corners keeps corners
     torch.testing.assert_close(up[:, -1, -1], one.intensity_db[:, -1, -1])
 

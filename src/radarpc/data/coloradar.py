@@ -487,12 +487,13 @@ def radar_cube(adc, chip: ColoRadarChipConfig, *, n_range: int = 128, n_doppler:
                      torch.asin((fa / d).clamp(-1, 1)), torch.asin((fe / d).clamp(-1, 1)))
 
 
-def upsample_intensity(intensity: torch.Tensor, size: tuple[int, int, int] = (128, 64, 32)) -> torch.Tensor:
-    """Resize ``(..., R, A, E)`` to ``size`` (trilinear, ``align_corners=True``; RaLD: 128 x 64 x 32).
+def upsample_intensity(intensity: "torch.Tensor | RadarCube", size: tuple[int, int, int] = (128, 64, 32)) -> torch.Tensor:
+    """Resize ``(..., R, A, E)`` intensity (or a :class:`RadarCube`'s) to ``size``
+    (trilinear, ``align_corners=True``; RaLD: 128 x 64 x 32).
 
     With equal range sizes this is RaLD's bilinear upsampling of the two angle axes.
     """
-    x = torch.as_tensor(intensity)
+    x = intensity.intensity_db if isinstance(intensity, RadarCube) else torch.as_tensor(intensity)
     if x.ndim < 3:
         raise ValueError(f"intensity must be (..., R, A, E), got shape {tuple(x.shape)}")
     if len(size) != 3 or min(size) < 1:
