@@ -403,7 +403,8 @@ def cascade_heatmap(scat: Scatterers, chip: ColoRadarChipConfig = CASCADE, *,
     vpos = np.unique(chip.virtual_positions, axis=0)                                  # (V, 2)
     n_int = w.num_adc_samples_per_chirp * w.num_chirps_per_frame * vpos.shape[0]
     amp = cfg.adc_gain_lsb * scat.rcs.to(f32).clamp_min(0).sqrt() / r0 ** 2
-    snr = amp ** 2 / max(2 * cfg.adc_noise_lsb ** 2, 1e-12) * n_int * 0.375            # Hann loss 0.375
+    # Hann range window: processing gain (sum w)^2 / sum w^2 = 2N/3 instead of N
+    snr = amp ** 2 / max(2 * cfg.adc_noise_lsb ** 2, 1e-12) * n_int * (2.0 / 3.0)
     keep = r0 <= (nr + 2) * hm.range_bin_width
     p_snr, u, r0, vel = snr[keep], u[keep], r0[keep], scat.velocity[keep].to(f32)
     # range response of a Hann-windowed FFT, |W(delta)|^2 / |W(0)|^2, delta in bins
