@@ -18,6 +18,7 @@ import argparse
 import datetime
 import inspect
 import json
+import os
 import platform
 import sys
 import tempfile
@@ -29,6 +30,16 @@ import torch
 
 from radarpc.eval.pointsets import chamfer_distance, earth_movers_distance
 from radarpc.rald.frustum import RALD_GRID, polar_to_cartesian, sample_queries, voxelize
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def _best(fn, repeat: int) -> float:
@@ -92,7 +103,8 @@ def main(argv: list[str] | None = None) -> dict:
         "python": platform.python_version(),
         "torch": torch.__version__,
         "device": "cpu",
-        "cpu": platform.processor() or platform.machine(),
+        "cpu": _cpu_model(),
+        "cpu_count": os.cpu_count(),
         "threads": torch.get_num_threads(),
         "points": args.points,
         "chamfer_s": _best(lambda: chamfer_distance(pred, gt), args.repeat),

@@ -116,7 +116,8 @@ def test_evaluate_clouds_per_scene_tables(tmp_path):
     d = json.loads((tmp_path / "m.json").read_text())
     assert d["emd_points"] == 40 and len(d["frames"]) == 3 and d["scenes"][0]["scene"] == "hall"
     md = (tmp_path / "m.md").read_text()
-    assert "| hall | 2 |" in md and "**all**" in md
+    assert "| hall | 2 |" in md and "**all**" in md and "mean subset size 40" in md
+    assert d["frames"][0]["emd_k"] == 40
     with pytest.raises(ValueError, match="run 'lab_0' frame 0: pred cloud is empty"):
         evaluate_clouds([CloudPair("lab_0", 0, np.zeros((0, 3)), gt)], {"lab_0": "lab"})
     with pytest.raises(ValueError, match="no scene"):

@@ -155,6 +155,7 @@ class FrameMetrics:
     emd: float         # metres
     n_pred: int
     n_gt: int
+    emd_k: int         # points per cloud in the EMD subsets, min(emd_points, n_pred, n_gt)
 
 
 @dataclass(frozen=True)
@@ -196,8 +197,10 @@ class PointSetReport:
             lines.append(f"| {name} | {s.n_frames} | {s.chamfer_mean:.3f} | {s.chamfer_median:.3f} | "
                          f"{s.emd_mean:.3f} | {s.emd_median:.3f} |")
         lines.append("")
-        lines.append(f"CD: RaLD's non-squared Chamfer distance on the full clouds. EMD: exact assignment "
-                     f"on {self.emd_points}-point random subsets (seed {self.emd_seed}).")
+        k = np.mean([f.emd_k for f in self.frames]) if self.frames else 0.0
+        lines.append(f"CD: RaLD's non-squared Chamfer distance on the full clouds. EMD: exact assignment on "
+                     f"random subsets of min({self.emd_points}, |pred|, |gt|) points per cloud (seed "
+                     f"{self.emd_seed}; mean subset size {k:.0f}).")
         return "\n".join(lines) + "\n"
 
     def to_dict(self) -> dict:
@@ -265,8 +268,9 @@ def evaluate_clouds(
             emd = earth_movers_distance(pair.pred, pair.gt, n=emd_points, seed=emd_seed)
         except ValueError as e:
             raise ValueError(f"run {pair.run!r} frame {pair.frame}: {e}") from e
-        frames.append(FrameMetrics(pair.run, int(pair.frame), scene, cd, emd,
-                                   len(pair.pred), len(pair.gt)))
+        n_pred, n_gt = len(pair.pred), len(pair.gt)
+        frames.append(FrameMetrics(pair.run, int(pair.frame), scene, cd, emd, n_pred, n_gt,
+                                   min(int(emd_points), n_pred, n_gt)))
     if not frames:
         raise ValueError("evaluate_clouds got no frames to score")
     by_scene: dict[str, list[FrameMetrics]] = {}
