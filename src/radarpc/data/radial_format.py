@@ -5,7 +5,8 @@ One place for the format, shared by the simulator's writer and the reader::
     ROOT/
       labels.csv                         one row per vehicle; a row of -1 for a frame without any
       calibration.npz                    Signal, H, Azimuth_table, Elevation_table (radarpc; plain npz)
-      sensor.json                        the DDMARadarConfig (radarpc; absent on the real dataset)
+      sensor.json                        the DDMARadarConfig + seed and sizes (radarpc; absent on the real dataset)
+      scene.json                         the RoadSceneConfig of a simulated root (radarpc; absent on the real dataset)
       radar_FFT/fft_{numSample:06d}.npy  complex RD cube (n_range, n_doppler, n_rx); .npz also accepted
       radar_Freespace/freespace_{numSample:06d}.png   uint8 512 x 900, 255 = free, 0 = not free
 
