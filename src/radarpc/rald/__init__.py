@@ -15,6 +15,7 @@ from radarpc.rald.frustum import (
     sample_queries,
     sample_queries_batch,
     voxelize,
+    voxelize_batch,
 )
 from radarpc.rald.oscfar_baseline import (
     CubeAxes,
@@ -41,6 +42,7 @@ __all__ = [
     "sample_queries",
     "sample_queries_batch",
     "voxelize",
+    "voxelize_batch",
     "CubeAxes",
     "OSCFARConfig",
     "TuningGrid",

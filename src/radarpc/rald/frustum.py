@@ -41,6 +41,7 @@ __all__ = [
     "in_frustum",
     "cell_indices",
     "voxelize",
+    "voxelize_batch",
     "occupancy",
     "sample_queries",
     "sample_queries_batch",
@@ -141,9 +142,12 @@ class OccupancyGrid:
     n_outside: int = 0
 
     def __post_init__(self) -> None:
-        if self.cells.dtype != torch.int64 or self.cells.ndim != 1:
-            raise ValueError(f"OccupancyGrid.cells must be a 1-D int64 tensor, got {self.cells.dtype} "
-                             f"of shape {tuple(self.cells.shape)}")
+        c = self.cells
+        if c.dtype != torch.int64 or c.ndim != 1:
+            raise ValueError(f"OccupancyGrid.cells must be a 1-D int64 tensor, got {c.dtype} "
+                             f"of shape {tuple(c.shape)}")
+        if c.numel() and (int(c[0]) < 0 or int(c[-1]) >= self.grid.n_cells or bool((c[1:] <= c[:-1]).any())):
+            raise ValueError(f"OccupancyGrid.cells must be sorted unique indices in [0, {self.grid.n_cells})")
 
     @property
     def n_occupied(self) -> int:
@@ -309,6 +313,44 @@ def voxelize(grid: FrustumGrid, points, *, coords: Coords = "cartesian") -> Occu
     cells = torch.unique(lin[inside], sorted=True)   # (M,)
     n_in = int(inside.sum())
     return OccupancyGrid(grid=grid, cells=cells, n_points=n_in, n_outside=int(p.shape[0]) - n_in)
+
+
+def voxelize_batch(grid: FrustumGrid, points, offset, *, coords: Coords = "cartesian") -> list[OccupancyGrid]:
+    """:func:`voxelize` for a batch of clouds concatenated Pointcept-style.
+
+    Parameters
+    ----------
+    grid : FrustumGrid
+    points : array-like or torch.Tensor, ``(sum N_b, 3)``
+        The clouds one after the other (e.g. from :func:`radarpc.data.coloradar.collate_coloradar`).
+    offset : array-like or torch.Tensor, int, ``(B,)``
+        Cumulative end index of each cloud (``offset[-1] == len(points)``).
+    coords : {"cartesian", "polar", "normalized"}
+
+    Returns
+    -------
+    list of OccupancyGrid
+        One per cloud, on the device of ``points``; one ``unique`` over the whole batch.
+    """
+    p = _points(points, "points")
+    if p.ndim != 2:
+        raise ValueError(f"points must have shape (N, 3), got {tuple(p.shape)}")
+    off = torch.as_tensor(offset, device=p.device)
+    if off.ndim != 1 or off.numel() == 0 or off.is_floating_point():
+        raise ValueError(f"offset must be a non-empty 1-D integer tensor, got {tuple(off.shape)} {off.dtype}")
+    off = off.to(torch.int64)
+    if bool((off[1:] < off[:-1]).any()) or int(off[0]) < 0 or int(off[-1]) != p.shape[0]:
+        raise ValueError(f"offset must be non-decreasing cumulative sizes ending at len(points)={p.shape[0]}, "
+                         f"got {off.tolist()}")
+    batch = torch.bucketize(torch.arange(p.shape[0], device=p.device), off, right=True)   # (N,) cloud of each point
+    lin, inside = cell_indices(grid, p, coords=coords)
+    keyed = torch.unique(batch[inside] * grid.n_cells + lin[inside], sorted=True)            # (M_total,)
+    which = keyed // grid.n_cells
+    bounds = torch.searchsorted(which, torch.arange(off.numel() + 1, device=p.device))
+    n_in = torch.bincount(batch[inside], minlength=off.numel())
+    sizes = torch.diff(off, prepend=off.new_zeros(1))
+    return [OccupancyGrid(grid, keyed[bounds[b]:bounds[b + 1]] - b * grid.n_cells, int(n_in[b]),
+                          int(sizes[b] - n_in[b])) for b in range(off.numel())]
 
 
 def _lookup(sorted_cells: torch.Tensor, lin: torch.Tensor) -> torch.Tensor:
