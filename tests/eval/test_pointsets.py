@@ -7,6 +7,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from radarpc.eval.pointsets import (
+    ChamferTarget,
     CloudPair,
     chamfer_distance,
     earth_movers_distance,
@@ -33,6 +34,7 @@ def test_chamfer_matches_brute_force_and_is_symmetric(n, m):
     assert cd == pytest.approx(_brute_chamfer(p, g), rel=1e-12)
     assert chamfer_distance(g, p) == pytest.approx(cd, rel=1e-12)
     assert chamfer_distance(torch.from_numpy(p).float(), g) == pytest.approx(cd, rel=1e-5)
+    assert ChamferTarget(g)(p) == cd
 
 
 def test_chamfer_hand_worked_two_points():

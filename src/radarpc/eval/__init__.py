@@ -2,6 +2,7 @@
 from radarpc.eval.pointsets import (
     EMD_POINTS,
     EMD_SEED,
+    ChamferTarget,
     CloudPair,
     FrameMetrics,
     PointSetReport,
@@ -14,6 +15,7 @@ from radarpc.eval.pointsets import (
 __all__ = [
     "EMD_POINTS",
     "EMD_SEED",
+    "ChamferTarget",
     "CloudPair",
     "FrameMetrics",
     "PointSetReport",

@@ -40,7 +40,7 @@ import torch.nn.functional as F
 import yaml
 
 from radarpc.dsp.cfar import os_cfar
-from radarpc.eval.pointsets import chamfer_distance
+from radarpc.eval.pointsets import ChamferTarget
 from radarpc.io import DataFileError, atomic_write
 from radarpc.rald.frustum import polar_to_cartesian
 
@@ -377,12 +377,13 @@ def tune_oscfar(
     TuningResult
         Ties are broken by the order of :meth:`TuningGrid.candidates`.
     """
-    data = [(_check_cube(c, axes), l) for c, l in frames]
-    if not data:
-        raise ValueError("tune_oscfar needs at least one validation frame")
-    for i, (_, lidar) in enumerate(data):
+    data = []
+    for i, (cube, lidar) in enumerate(frames):
         if len(lidar) == 0:
             raise ValueError(f"validation frame {i}: the LiDAR cloud is empty; Chamfer distance needs points")
+        data.append((_check_cube(cube, axes), ChamferTarget(lidar)))   # LiDAR KD-tree built once
+    if not data:
+        raise ValueError("tune_oscfar needs at least one validation frame")
     cands = grid.candidates()
     groups: dict[tuple, list[OSCFARConfig]] = {}
     for c in cands:
@@ -394,13 +395,13 @@ def tune_oscfar(
     scores: dict[OSCFARConfig, tuple[float, float]] = {}
     for (ab, w, g, r), group in it:
         sums = np.zeros((len(group), 2))
-        for cube, lidar in data:
+        for cube, target in data:
             x, ax = (upsample_angles(cube, axes, ab) if ab is not None else (cube, axes))
             snr = os_cfar(torch.pow(10.0, x / 10.0), w, g, float(r)).snr
             for j, c in enumerate(group):
                 pts = cells_to_points(_threshold(snr, ax, c, x.device), x, ax, refine=c.refine,
                                       clip_angles_deg=c.clip_angles_deg)
-                sums[j, 0] += chamfer_distance(pts, lidar)
+                sums[j, 0] += target(pts)
                 sums[j, 1] += pts.shape[0]
         for j, c in enumerate(group):
             scores[c] = (sums[j, 0] / len(data), sums[j, 1] / len(data))
