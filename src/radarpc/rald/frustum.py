@@ -6,6 +6,9 @@ elevation fall in ``[r_i, r_{i+1}) x [theta_j, theta_{j+1}) x [phi_k, phi_{k+1})
 occupancy of the cell that contains it.  The default grid is the one of the RaLD autoencoder:
 range 0..15.8 m at 0.05 m, azimuth -90..90 deg at 0.25 deg, elevation -20..20 deg at 0.5 deg,
 i.e. 316 x 720 x 80 cells (the ``pc_range`` / ``voxel_size`` of RaLD's public configuration).
+The ColoRadar reader crops LiDAR to 15.863 m (the radar's last range bin); as in RaLD, the few
+points between 15.8 m and 15.863 m fall outside the grid and are dropped (counted in
+``OccupancyGrid.n_outside``).
 
 Conventions (the same as :mod:`radarpc.sensors.radial`):
 
