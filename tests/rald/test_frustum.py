@@ -131,6 +131,8 @@ def test_sample_queries_exact_ratio_and_labels_agree_with_lookup():
     # reproducible with the same generator seed
     q2, _ = sample_queries(occ, n=10_000, generator=torch.Generator().manual_seed(5))
     assert torch.equal(q, q2)
+    qs, ls = sample_queries(occ, n=10_000, generator=torch.Generator().manual_seed(6), shuffle=True)
+    assert int(ls.sum()) == 625 and not ls[:625].all() and torch.equal(occupancy(occ, qs), ls)
     # jitter covers the cell: positives are not all at cell centres
     rae = denormalize(RALD_GRID, q[:625].double())
     frac = (rae - torch.tensor(RALD_GRID.lo, dtype=torch.float64)) / torch.tensor(RALD_GRID.cell, dtype=torch.float64)

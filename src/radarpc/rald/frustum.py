@@ -391,6 +391,7 @@ def sample_queries(
     *,
     generator: torch.Generator | None = None,
     dtype: torch.dtype = torch.float32,
+    shuffle: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Training queries for the occupancy decoder: positives in occupied cells, negatives in empty ones.
 
@@ -398,7 +399,8 @@ def sample_queries(
     are drawn by choosing occupied cells uniformly with replacement; the other ``n - n_pos`` by
     choosing cells uniformly among the empty ones (vectorized rejection sampling on random cells).
     Each query is jittered uniformly within its cell (the central 99.8 %, see ``_EDGE``) and
-    returned normalized to [-1, 1].  Positives come first, then negatives.
+    returned normalized to [-1, 1].  Positives come first, then negatives (as in RaLD), unless
+    ``shuffle``.
 
     Parameters
     ----------
@@ -411,6 +413,8 @@ def sample_queries(
         On the device of ``occ.cells``; makes the draw reproducible.
     dtype : torch.dtype
         Floating dtype of the returned queries.
+    shuffle : bool
+        Randomly permute queries and labels together.
 
     Returns
     -------
@@ -451,6 +455,9 @@ def sample_queries(
     queries = normalize(grid, rae).to(dtype)
     labels = torch.zeros(n, dtype=torch.bool, device=dev)
     labels[:n_pos] = True
+    if shuffle:
+        perm = torch.randperm(n, device=dev, generator=generator)
+        queries, labels = queries[perm], labels[perm]
     return queries, labels
 
 
@@ -479,11 +486,13 @@ def sample_queries_batch(
     *,
     generator: torch.Generator | None = None,
     dtype: torch.dtype = torch.float32,
+    shuffle: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`sample_queries` for a batch of frames: queries ``(B, n, 3)`` and labels ``(B, n)``."""
     if len(occs) == 0:
         raise ValueError("sample_queries_batch needs at least one OccupancyGrid")
-    qs, ls = zip(*(sample_queries(o, n, positive_ratio, generator=generator, dtype=dtype) for o in occs))
+    qs, ls = zip(*(sample_queries(o, n, positive_ratio, generator=generator, dtype=dtype, shuffle=shuffle)
+                        for o in occs))
     return torch.stack(qs), torch.stack(ls)
 
 
