@@ -44,10 +44,14 @@ def test_pointcloud_density_enrich(root, tmp_path, capsys):
     assert store.schema.field("sector").type.list_size == 8 and store.schema.field("rd_patch").type.list_size == 9
     c = store[0]
     assert c.sector.shape == (int(c.offset[0]), 8) and bool(c.is_neighbour.any())
+    # with rd3 the target applies to the encoded set S*(tau); the CFAR peaks S(tau) are printed apart
     printed = float(msg.split("achieved density ")[1].split()[0])
-    assert printed == pytest.approx(store.metadata.peak_density, abs=1e-5)
+    assert printed == pytest.approx(store.metadata.achieved_density, abs=1e-5)
     assert printed == pytest.approx(0.1, rel=0.1)                   # per-frame control hits the target
-    assert "with the RD-neighbourhood points" in msg
+    assert "of S*(tau) with rd3 neighbourhoods" in msg
+    peaks = float(msg.split("CFAR peaks S(tau) alone ")[1].split(";")[0])
+    assert peaks == pytest.approx(store.metadata.peak_density, abs=1e-5) and peaks < printed
+    np.testing.assert_allclose(store.frame_table.density, 0.1, rtol=0.1)
 
 
 def test_pointcloud_snr_and_sparse_rd(root, tmp_path, capsys):

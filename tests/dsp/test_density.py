@@ -1,13 +1,16 @@
-"""Density of peak sets and the density controller (per frame, per dataset) on simulated frames."""
+"""Density of peak sets and the density controller (per frame, per dataset, on S(tau) and, with the
+RD-neighbourhood enrichment, on S*(tau)) on simulated frames."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
 
-from radarpc.dsp.density import density_of_mask, max_density, tau_for_density
+from radarpc.dsp.density import (DENSITY_MODES, density_of_mask, max_density, neighbourhood_mask,
+                                 neighbourhood_snr, tau_for_density)
 from radarpc.dsp.pointcloud import SpectralPointCloud
 from radarpc.sensors.radial import RADIAL_S, TINY, make_calibration
+from radarpc.sim.radial_writer import SimulatedRADIal
 from radarpc.sim.rd import Scatterers, synthesize_rd
 
 
@@ -105,3 +108,147 @@ def test_bad_mode_and_shape():
         tau_for_density(torch.ones(1, 64, 8), TINY, 0.1, mode="per-split")
     with pytest.raises(ValueError, match=r"\(B, 64, 8\)"):
         tau_for_density(torch.ones(1, 64, 9), TINY, 0.1)
+
+
+# ---- RD-neighbourhood enrichment: the target applies to S*(tau) (eq. 9) -------------------------
+def _np_dilate(mask: np.ndarray, n: int) -> np.ndarray:
+    """Union of the n x n neighbourhoods of the True cells over the last two axes, truncated at
+    the borders (eq. 8), by shifted ORs: an independent numpy version of P*(tau)."""
+    h = n // 2
+    nr, w = mask.shape[-2:]
+    out = np.zeros_like(mask)
+    for dr in range(-h, h + 1):
+        for dl in range(-h, h + 1):
+            # cell (r, l) is covered by a peak at (r + dr, l + dl)
+            out[..., max(0, -dr):nr - max(0, dr), max(0, -dl):w - max(0, dl)] |= \
+                mask[..., max(0, dr):nr - max(0, -dr), max(0, dl):w - max(0, -dl)]
+    return out
+
+
+def _reachable_counts(snr: np.ndarray, n: int) -> np.ndarray:
+    """Every |P*(tau)| a threshold can give for one frame's SNR map (Nr, W): brute force over all
+    thresholds (each distinct SNR value, and below the minimum)."""
+    u = np.unique(snr)
+    masks = snr[None] > u[:, None, None]                                # (U, Nr, W)
+    counts = _np_dilate(masks, n).reshape(len(u), -1).sum(1)
+    return np.unique(np.append(counts, snr.size))
+
+
+def _closest(reachable: np.ndarray, m: int) -> int:
+    """The reachable count closest to m, the smaller one on a tie."""
+    d = np.abs(reachable - m)
+    return int(reachable[d == d.min()].min())
+
+
+@pytest.fixture(scope="module")
+def sim_frames():
+    """Six realistic RADIAL_S frames (road scenes: vehicles, clutter, noise) and their CFAR SNR."""
+    ds = SimulatedRADIal(RADIAL_S, 3, 2, seed=3, split="all")
+    rd = torch.stack([ds[i][0] for i in range(len(ds))])                # (6, 128, 64, 16)
+    snr = SpectralPointCloud(RADIAL_S, ds.calibration).detect(rd)[1].snr   # (6, 128, 16)
+    return rd, ds.calibration, snr
+
+
+@pytest.mark.parametrize("n", [3, 5])
+def test_neighbourhood_mask_equals_numpy_dilation(n):
+    g = torch.Generator().manual_seed(n)
+    snr = torch.rand(3, TINY.n_range, TINY.slot_width, generator=g, dtype=torch.float64) * 4
+    snr[0, 0, 0] = snr[1, -1, -1] = snr[2, 0, -1] = 100.0               # peaks on the corners
+    for tau in (1.0, 3.9, 50.0):
+        peaks = snr > tau
+        ref = _np_dilate(peaks.numpy(), n)
+        np.testing.assert_array_equal(neighbourhood_mask(peaks, n).numpy(), ref)
+        # P*(tau) is the threshold of the max-filtered SNR: {D > tau}
+        np.testing.assert_array_equal((neighbourhood_snr(snr, n) > tau).numpy(), ref)
+    assert int(neighbourhood_mask(snr > 50.0, n).sum()) == 3 * (n // 2 + 1) ** 2   # truncated corners
+
+
+def test_enriched_controller_hand_worked_ties():
+    cfg = TINY                                          # 64 x 8 consolidated cells, |S| = 2 |P| of 2048
+    snr = torch.zeros(1, cfg.n_range, cfg.slot_width, dtype=torch.float64)
+    snr[0, 0, 0] = 5.0                                  # corner peak: 2 x 2 truncated neighbourhood
+    snr[0, 10, 4] = 3.0                                 # interior peak: 3 x 3
+    # reachable |P*| = 0, 4, 4 + 9 = 13 and 512 (tau below 0); the closest wins, a tie the smaller
+    for m, want in [(2, 0), (3, 4), (4, 4), (8, 4), (9, 13), (13, 13), (200, 13), (300, 512)]:
+        target = m * cfg.n_tx / (cfg.n_range * cfg.n_doppler)
+        for mode in DENSITY_MODES:
+            tau = tau_for_density(snr, cfg, target, mode=mode, neighbourhood=3)
+            got = int(neighbourhood_mask(snr > tau.reshape(-1, 1, 1), 3).sum())
+            assert got == want, (m, mode, float(tau))
+    # above the largest reachable density (every consolidated cell): a clear error, as without rdN
+    with pytest.raises(ValueError, match="unreachable"):
+        tau_for_density(snr, cfg, 0.6, neighbourhood=3)
+    for bad in (1, 4, True, 3.0):
+        with pytest.raises(ValueError, match="odd integer >= 3"):
+            tau_for_density(snr, cfg, 0.1, neighbourhood=bad)
+
+
+@pytest.mark.parametrize("n", [3, 5])
+def test_enriched_per_frame_controller_hits_target(sim_frames, n):
+    rd, calib, snr = sim_frames
+    cfg, target = RADIAL_S, 0.2
+    spc = SpectralPointCloud(cfg, calib, density=target, enrich=(f"rd{n}",))
+    clouds = spc(rd)
+    # the target applies to the encoded set S*(tau): within 10 % on every frame
+    assert np.all(np.abs(clouds.density.numpy() / target - 1) < 0.10), clouds.density
+    assert np.all(clouds.peak_density.numpy() < clouds.density.numpy())
+    m = round(target * cfg.n_range * cfg.n_doppler / cfg.n_tx)
+    for b in range(len(clouds)):
+        c = clouds.frame(b)
+        # the points are exactly the numpy dilation of {snr > tau}, and S = the non-neighbour points
+        ref = _np_dilate(snr[b].numpy() > float(c.tau[0]), n)
+        got = np.zeros_like(ref)
+        got[c.range_bin.numpy(), c.doppler_bin.numpy()] = True
+        np.testing.assert_array_equal(got, ref)
+        assert int(ref.sum()) == c.num_points
+        assert float(c.density[0]) == pytest.approx(cfg.n_tx * ref.sum() / (cfg.n_range * cfg.n_doppler))
+        assert float(c.peak_density[0]) == pytest.approx(
+            cfg.n_tx * int((~c.is_neighbour).sum()) / (cfg.n_range * cfg.n_doppler))
+        # exact: no threshold gives a count closer to the target
+        assert c.num_points == _closest(_reachable_counts(snr[b].numpy(), n), m)
+
+
+@pytest.mark.parametrize("n", [3, 5])
+def test_enriched_per_dataset_controller_hits_mean_target(sim_frames, n):
+    rd, calib, snr = sim_frames
+    cfg, target = RADIAL_S, 0.057
+    spc = SpectralPointCloud(cfg, calib, density=target, density_mode="per-dataset", enrich=(f"rd{n}", "sector8"))
+    clouds = spc(rd)
+    assert torch.unique(clouds.tau).numel() == 1
+    assert abs(float(clouds.density.mean()) / target - 1) < 0.10, clouds.density
+    # pooled count against the pooled brute force
+    m = round(target * len(rd) * cfg.n_range * cfg.n_doppler / cfg.n_tx)
+    u = np.unique(snr.numpy())
+    pooled = _np_dilate(snr.numpy()[None] > u[:, None, None, None], n).reshape(len(u), -1).sum(1)
+    reachable = np.unique(np.append(pooled, snr.numel()))
+    assert clouds.num_points == _closest(reachable, m)
+    # calibrate on a "training split" (in two batches), reuse the single tau as a fixed threshold
+    tau = spc.calibrate_tau([rd[:2], rd[2:]])
+    assert tau == pytest.approx(float(clouds.tau[0]))
+    fixed = SpectralPointCloud(cfg, calib, tau=tau, enrich=(f"rd{n}", "sector8"))(rd)
+    torch.testing.assert_close(fixed.density, clouds.density)
+    # without rdN the same target applies to S(tau): a lower tau, more CFAR peaks
+    plain = SpectralPointCloud(cfg, calib, density=target, density_mode="per-dataset")(rd)
+    assert float(plain.tau[0]) < tau and abs(float(plain.density.mean()) / target - 1) < 0.10
+
+
+@pytest.mark.parametrize("n", [3, 5])
+def test_enriched_density_monotone_in_tau(sim_frames, n):
+    rd, calib, snr = sim_frames
+    taus = (0.5, 1.0, 1.585, 3.0, 10.0, 100.0, 1e4)
+    dens = np.stack([SpectralPointCloud(RADIAL_S, calib, tau=t, enrich=(f"rd{n}",))(rd[:2]).density.numpy()
+                     for t in taus])                                 # (n_tau, 2)
+    assert np.all(np.diff(dens, axis=0) <= 0) and dens[0].min() > dens[-1].max()
+    # the same on a fine sweep through the independent dilation
+    grid = np.quantile(snr.numpy(), np.linspace(0, 1, 200))
+    counts = _np_dilate(snr.numpy()[None] > grid[:, None, None, None], n).reshape(len(grid), len(snr), -1).sum(2)
+    assert np.all(np.diff(counts, axis=0) <= 0)
+    # and the controller's tau falls as the target density rises
+    t = [float(tau_for_density(snr, RADIAL_S, d, mode="per-dataset", neighbourhood=n)) for d in (0.02, 0.057, 0.2, 0.5)]
+    assert np.all(np.diff(t) < 0)
+
+
+def test_peak_density_without_enrichment_is_density(sim_frames):
+    rd, calib, _ = sim_frames
+    c = SpectralPointCloud(RADIAL_S, calib, density=0.057, enrich=("sector8",))(rd[:2])
+    torch.testing.assert_close(c.peak_density, c.density)

@@ -55,7 +55,8 @@ def add_density_args(p: argparse.ArgumentParser):
     mutually exclusive group (``--density`` | ``--snr``) so that a command can add to it."""
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--density", type=_fraction, metavar="D",
-                   help="target density |S(tau)| / (Nr * ND) in (0, 1], e.g. 0.057 (RADIal's default)")
+                   help="target density |S(tau)| / (Nr * ND) in (0, 1], e.g. 0.057 (RADIal's default); "
+                        "with an rdN enrichment the density of the enlarged set |S*(tau)| / (Nr * ND)")
     g.add_argument("--snr", type=_fraction, metavar="TAU",
                    help="fixed linear CFAR SNR threshold tau (> 0), e.g. 1.585 (= 2 dB)")
     p.add_argument("--density-mode", choices=("per-frame", "per-dataset"), default="per-frame",
@@ -89,10 +90,12 @@ def run(args: argparse.Namespace) -> int:
                               chunk_frames=args.chunk_frames, **common)
         if res.path is not None:
             tau = "per frame" if res.tau is None else f"{res.tau:.6g}"
-            extra = "" if abs(res.achieved_density - res.peak_density) < 1e-9 else \
-                f", {res.achieved_density:.5f} with the RD-neighbourhood points"
+            rd = next((e for e in parse_enrich(args.enrich) if e.startswith("rd")), None)
+            # the achieved (and target) density is that of the encoded set: S*(tau) with rdN, else S(tau)
+            extra = "" if rd is None else \
+                f" of S*(tau) with {rd} neighbourhoods; CFAR peaks S(tau) alone {res.peak_density:.5f}"
             print(f"wrote {res.path}: {res.n_frames} frames, {res.n_points} points, tau {tau}, "
-                  f"achieved density {res.peak_density:.5f}"
+                  f"achieved density {res.achieved_density:.5f}"
                   + (f" (target {args.density})" if args.density is not None else "") + extra
                   + f"; {res.chunks_converted} chunk(s) converted, {res.chunks_skipped} resumed")
     if args.sparse_rd_out is not None and dist_env().rank == 0:

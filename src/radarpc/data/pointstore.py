@@ -132,8 +132,9 @@ class PointStoreMetadata:
     sensor: DDMARadarConfig                  # radar that produced the RD cubes
     density_mode: str                        # one of DENSITY_MODES
     tau: float | None                        # linear SNR threshold (fixed, or calibrated per-dataset)
-    target_density: float | None             # requested |S(tau)| / (Nr * ND), in (0, 1]
-    achieved_density: float                  # mean over frames of the DSP's density (|S*| with rdN points)
+    target_density: float | None             # requested density of the encoded set, in (0, 1]:
+                                             #   |S*(tau)| / (Nr * ND) with rdN, else |S(tau)| / (Nr * ND)
+    achieved_density: float                  # mean over frames of the encoded set's density (S*, or S)
     peak_density: float                      # mean over frames of |S(tau)| / (Nr * ND), CFAR peaks only
     enrich: tuple[str, ...]                  # enrichment names, e.g. ("rd3", "sector32")
     window: tuple[int, int]                  # CFAR window (range, Doppler), cells
@@ -195,8 +196,9 @@ class FrameTable:
     n_points : ndarray int64 ``(F,)``   rows of the frame
     n_peaks : ndarray int64 ``(F,)``    rows that are CFAR peaks (``is_neighbour`` False): ``|P(tau)|``
     tau : ndarray float64 ``(F,)``      CFAR threshold used for the frame
-    density : ndarray float64 ``(F,)``  achieved density of the frame as the DSP reports it
-                                        (``|S*(tau)| / (Nr Nd)`` with RD-neighbourhood points)
+    density : ndarray float64 ``(F,)``  achieved density of the frame's encoded set
+                                        (``|S*(tau)| / (Nr Nd)`` with RD-neighbourhood points, else
+                                        ``|S(tau)| / (Nr Nd)``); ``|S(tau)|`` is ``n_tx * n_peaks``
     """
 
     frame: np.ndarray
@@ -670,14 +672,18 @@ class PointStore:
         counts = self.frame_table.n_points[idx]
         tau = torch.as_tensor(self.frame_table.tau[idx], dtype=torch.float32)
         dens = torch.as_tensor(self.frame_table.density[idx], dtype=torch.float32)
-        return _table_to_batch(table, counts, tau, dens, self.device)
+        s = self.metadata.sensor                       # |S(tau)| = n_tx |P(tau)|
+        peak = torch.as_tensor(self.frame_table.n_peaks[idx] * (s.n_tx / (s.n_range * s.n_doppler)),
+                               dtype=torch.float32)
+        return _table_to_batch(table, counts, tau, dens, self.device, peak)
 
 
 def collate_clouds(clouds: Sequence["PointCloudBatch"]) -> "PointCloudBatch":
     """Concatenate clouds (e.g. items of a :class:`PointStore` in a DataLoader) into one batch.
 
-    Per-point tensors are concatenated, ``offset`` re-accumulated, ``tau`` / ``density`` stacked;
-    every input must carry the same optional enrichments. Use as ``collate_fn``.
+    Per-point tensors are concatenated, ``offset`` re-accumulated, ``tau`` / ``density`` (and
+    ``peak_density`` when every input has it) stacked; every input must carry the same optional
+    enrichments. Use as ``collate_fn``.
     """
     from radarpc.dsp.pointcloud import PointCloudBatch
 
@@ -693,8 +699,10 @@ def collate_clouds(clouds: Sequence["PointCloudBatch"]) -> "PointCloudBatch":
         else:
             out[name] = torch.cat(parts)
     counts = torch.cat([torch.diff(c.offset, prepend=c.offset.new_zeros(1)) for c in clouds])   # (B,)
+    peaks = [getattr(c, "peak_density", None) for c in clouds]
+    peak = None if any(p is None for p in peaks) else torch.cat(peaks)
     return PointCloudBatch(offset=torch.cumsum(counts, 0), tau=torch.cat([c.tau for c in clouds]),
-                           density=torch.cat([c.density for c in clouds]), **out)
+                           density=torch.cat([c.density for c in clouds]), peak_density=peak, **out)
 
 
 def _frame_stats(pf: pq.ParquetFile, schema: pa.Schema) -> list[tuple[int, int] | None]:
@@ -719,7 +727,7 @@ def _column_numpy(table: pa.Table, name: str) -> np.ndarray:
 
 
 def _table_to_batch(table: pa.Table, counts: np.ndarray, tau: torch.Tensor, density: torch.Tensor,
-                    device: torch.device) -> "PointCloudBatch":
+                    device: torch.device, peak_density: torch.Tensor | None = None) -> "PointCloudBatch":
     from radarpc.dsp.pointcloud import PointCloudBatch
 
     fields: dict[str, torch.Tensor | None] = {}
@@ -733,4 +741,5 @@ def _table_to_batch(table: pa.Table, counts: np.ndarray, tau: torch.Tensor, dens
         fields[name] = (torch.from_numpy(_column_numpy(table, name).astype(np.float32, copy=True)).to(device)
                         if name in table.schema.names else None)
     offset = torch.from_numpy(np.cumsum(counts).astype(np.int64)).to(device)      # (B,)
-    return PointCloudBatch(offset=offset, tau=tau.to(device), density=density.to(device), **fields)
+    return PointCloudBatch(offset=offset, tau=tau.to(device), density=density.to(device),
+                           peak_density=None if peak_density is None else peak_density.to(device), **fields)

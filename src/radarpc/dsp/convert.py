@@ -15,10 +15,11 @@ parts folder is removed. Chunks can be spread over
   the parts folder, which must then be on a shared file system).
 
 Density control (seed Sec. 3.2): the detected set is ``S(tau) = {(r, l) : E(r, l) / mu(r, l) >
-tau}`` expanded to the ``M`` Tx replicas, density ``|S(tau)| / (Nr * ND)``. Give either a fixed
-linear SNR threshold ``tau`` or a target ``density``: ``per-frame`` picks a tau for every frame,
-``per-dataset`` calibrates one tau on the *training* split (stored in the metadata) and applies
-it to the requested split.
+tau}`` expanded to the ``M`` Tx replicas, density ``|S(tau)| / (Nr * ND)``. A target density
+applies to the set the store encodes: ``S(tau)``, or ``S*(tau)`` (eq. 9) with an ``rdN``
+enrichment. Give either a fixed linear SNR threshold ``tau`` or a target ``density``:
+``per-frame`` picks a tau for every frame, ``per-dataset`` calibrates one tau on the *training*
+split (stored in the metadata) and applies it to the requested split.
 
 :func:`write_sparse_rd` writes the RD cubes masked to ``S(tau)`` as a new RADIal-layout root
 (labels, freespace, calibration and sensor description linked or copied) that the unchanged
@@ -76,7 +77,7 @@ class ConvertSettings:
     """
 
     tau: float | None = None                 # fixed linear SNR threshold (RADIal default 1.585 = 2 dB)
-    density: float | None = None             # target density |S(tau)| / (Nr * ND), in (0, 1]
+    density: float | None = None             # target density of the encoded set (S*, with rdN, else S), in (0, 1]
     density_mode: str = "per-frame"          # "per-frame" or "per-dataset" (only with density)
     enrich: tuple[str, ...] = ()             # e.g. ("rd3", "sector32"); () = plain spectral points
     window: tuple[int, int] = (9, 9)         # CA-CFAR window (range, Doppler), cells
@@ -127,7 +128,7 @@ class ConvertResult:
     path: Path | None                # the merged store (None on ranks other than 0)
     n_frames: int                    # frames in the converted split
     n_points: int                    # points written (0 on ranks other than 0)
-    achieved_density: float          # mean per-frame density as the DSP reports it, |S*| with rdN (nan off rank 0)
+    achieved_density: float          # mean density of the encoded set, |S*| with rdN, else |S| (nan off rank 0)
     peak_density: float              # mean |S(tau)| / (Nr * ND), CFAR peaks only (nan on ranks other than 0)
     tau: float | None                # the fixed or calibrated threshold (None in per-frame mode)
     chunks_converted: int            # chunks computed by this process (and its workers)
@@ -252,7 +253,8 @@ def calibrate_tau(root: str | os.PathLike, settings: ConvertSettings, *, batch_s
                   device: torch.device | str = "cpu", progress: bool = False) -> float:
     """One tau for the whole dataset: the mean density over the *training* split hits the target.
 
-    :meth:`SpectralPointCloud.calibrate_tau` (pooled CFAR SNR maps, see
+    The density is that of the encoded set (``S*(tau)`` when ``settings.enrich`` has ``rdN``, else
+    ``S(tau)``). :meth:`SpectralPointCloud.calibrate_tau` (pooled CFAR SNR maps, see
     :func:`radarpc.dsp.density.tau_for_density`) over the first ``settings.calibration_frames``
     training frames (all of them by default).
     """

@@ -4,14 +4,31 @@ The seed's density (eq. 3) is ``|S(tau)| / (N_r * N_D)`` with ``S(tau)`` the det
 full RD grid. Every consolidated peak ``(r, l)`` maps to ``M = n_tx`` distinct full-grid cells and
 distinct peaks never share one, so ``|S(tau)| = n_tx * |P(tau)|``. The largest reachable density
 is therefore ``n_tx / n_slots`` (every consolidated cell detected): 0.75 for RADIal.
+
+The density of a point cloud is the data budget it *encodes*. With the RD-neighbourhood enrichment
+``rdN`` (eqs. 8-9) that is ``S*(tau)``, the ``n_tx`` replicas of
+
+    P*(tau) = U_{(r, l) in P(tau)} N_n(r, l),    N_n truncated at the envelope borders,
+
+so the controller then picks tau for ``|S*(tau)| / (N_r N_D)`` (seed Table 2 compares SpectralPillars
+and PointPillars at matched densities). Because the square neighbourhood is symmetric, a cell lies
+in ``P*(tau)`` iff some cell of its own (truncated) neighbourhood passes the test:
+
+    P*(tau) = {(r, l) : D(r, l) > tau},    D(r, l) = max_{(r', l') in N_n(r, l)} SNR(r', l'),
+
+i.e. ``P*(tau)`` is a plain threshold of the max-filtered SNR map ``D`` (:func:`neighbourhood_snr`).
+``|P*(tau)| = #{D > tau}`` is a non-increasing step function of tau, and the controller finds its
+threshold exactly from the order statistics of ``D`` (no bisection tolerance).
 """
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 from radarpc.sensors.radial import DDMARadarConfig
 
-__all__ = ["DENSITY_MODES", "density_of_mask", "max_density", "check_density", "tau_for_density"]
+__all__ = ["DENSITY_MODES", "density_of_mask", "max_density", "check_density", "check_neighbourhood",
+           "neighbourhood_mask", "neighbourhood_snr", "tau_for_density"]
 
 DENSITY_MODES = ("per-frame", "per-dataset")
 
@@ -32,6 +49,61 @@ def check_density(target: float, cfg: DDMARadarConfig) -> float:
         raise ValueError(f"density {target} is unreachable for sensor {cfg.name!r}: at most "
                          f"n_tx / n_slots = {max_density(cfg):.4f} (every consolidated cell detected)")
     return t
+
+
+def check_neighbourhood(n: int) -> int:
+    """Validate the side ``n`` of the RD neighbourhood (eq. 8): an odd integer ``>= 3``."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 3 or n % 2 == 0:
+        raise ValueError(f"the RD neighbourhood size n must be an odd integer >= 3, got {n!r}")
+    return n
+
+
+def _check_maps(x: torch.Tensor, what: str) -> None:
+    if x.ndim != 3:
+        raise ValueError(f"{what} must be (B, Nr, W), got {tuple(x.shape)}")
+
+
+def neighbourhood_snr(snr: torch.Tensor, n: int) -> torch.Tensor:
+    """``D(r, l) = max`` of ``snr`` over the ``n x n`` neighbourhood of ``(r, l)``, truncated at
+    the borders (eq. 8), so that ``P*(tau) = {D > tau}`` (eq. 9).
+
+    Parameters
+    ----------
+    snr : Tensor, real, ``(B, Nr, W)``
+        CFAR SNR of the consolidated envelope.
+    n : int
+        Odd neighbourhood side ``>= 3``.
+
+    Returns
+    -------
+    Tensor, ``(B, Nr, W)``, ``snr``'s dtype and device
+    """
+    check_neighbourhood(n)
+    _check_maps(snr, "snr")
+    # max_pool2d pads with -inf: cells outside the grid never win the max (truncation of eq. 8)
+    return F.max_pool2d(snr.unsqueeze(1), n, stride=1, padding=n // 2).squeeze(1)
+
+
+def neighbourhood_mask(peaks: torch.Tensor, n: int) -> torch.Tensor:
+    """``P*`` (eq. 9): union of the ``n x n`` neighbourhoods (truncated at the borders) of ``peaks``.
+
+    Parameters
+    ----------
+    peaks : BoolTensor ``(B, Nr, W)``
+        Consolidated peak set ``P(tau)``.
+    n : int
+        Odd neighbourhood side ``>= 3``.
+
+    Returns
+    -------
+    BoolTensor ``(B, Nr, W)``
+    """
+    check_neighbourhood(n)
+    _check_maps(peaks, "peaks")
+    if peaks.dtype != torch.bool:
+        raise ValueError(f"peaks must be a bool mask, got {peaks.dtype}")
+    x = peaks.unsqueeze(1).to(torch.float32)                                   # (B, 1, Nr, W)
+    return F.max_pool2d(x, n, stride=1, padding=n // 2).squeeze(1) > 0
 
 
 def density_of_mask(mask: torch.Tensor, cfg: DDMARadarConfig) -> torch.Tensor:
@@ -73,13 +145,58 @@ def _below(smallest: torch.Tensor) -> torch.Tensor:
     return torch.where(smallest > 0, 0.5 * smallest, torch.full_like(smallest, -1.0))
 
 
-def tau_for_density(snr_batch: torch.Tensor, cfg: DDMARadarConfig, target: float, *,
-                    mode: str = "per-frame") -> torch.Tensor:
-    """The linear SNR threshold(s) ``tau`` whose peak set ``{snr > tau}`` has the target density.
+def _between(hi: torch.Tensor, lo: torch.Tensor) -> torch.Tensor:
+    """A threshold in ``[lo, hi)`` for ``hi > lo``: the midpoint, or ``lo`` when rounding puts the
+    midpoint on ``hi`` (``{x > tau}`` then keeps every value ``>= hi`` and none ``<= lo``)."""
+    tau = 0.5 * hi + 0.5 * lo                                   # no overflow for huge SNRs
+    return torch.where(tau < hi, tau, lo)
 
-    The number of consolidated peaks is ``n = round(target * N_r N_D / n_tx)`` per frame; ``tau``
-    is the midpoint between the ``n``-th and ``(n + 1)``-th largest SNR, so exactly ``n`` cells pass
-    (fewer only when SNR values tie at the boundary).
+
+def _closest_count_threshold(values: torch.Tensor, m: int) -> torch.Tensor:
+    """Per row of ``values`` ``(G, N)``, a tau whose count ``#{values > tau}`` is the reachable
+    count closest to ``m`` (a tie between two reachable counts goes to the smaller one).
+
+    The reachable counts are ``0`` and ``#{values >= v}`` for every value ``v``: ties (equal values)
+    make the count jump. With ``v`` the ``m``-th largest value, the two candidates around ``m`` are
+    ``c_lo = #{values > v} < m`` (tau in ``[v, next larger value)``) and ``c_hi = #{values >= v} >= m``
+    (tau in ``[next smaller value, v)``); ``c_hi == m`` when ``v`` is not tied.
+    """
+    g, total = values.shape
+    if m <= 0:
+        return values.max(dim=1).values                                       # nothing exceeds the max
+    if m >= total:
+        return _below(values.min(dim=1).values)
+    v = torch.kthvalue(values, total - m + 1, dim=1).values                   # m-th largest, (G,)
+    vv = v[:, None]
+    c_hi = (values >= vv).sum(1)                                              # (G,)
+    c_lo = (values > vv).sum(1)
+    inf = torch.full_like(values, float("inf"))
+    above = torch.where(values > vv, values, inf).min(dim=1).values           # next larger value (inf: none)
+    below = torch.where(values < vv, values, -inf).max(dim=1).values          # next smaller value (-inf: none)
+    tau_lo = torch.where(torch.isinf(above), v, _between(above, v))           # keeps c_lo cells
+    tau_hi = torch.where(torch.isinf(below), _below(v), _between(v, below))   # keeps c_hi cells
+    return torch.where((c_hi - m) < (m - c_lo), tau_hi, tau_lo)
+
+
+def tau_for_density(snr_batch: torch.Tensor, cfg: DDMARadarConfig, target: float, *,
+                    mode: str = "per-frame", neighbourhood: int | None = None) -> torch.Tensor:
+    """The linear SNR threshold(s) ``tau`` whose encoded set has the target density.
+
+    Without ``neighbourhood`` the encoded set is ``S(tau)`` (peaks ``{snr > tau}``): the number of
+    consolidated peaks is ``m = round(target * N_r N_D / n_tx)`` per frame and ``tau`` is the
+    midpoint between the ``m``-th and ``(m + 1)``-th largest SNR, so exactly ``m`` cells pass (fewer
+    only when SNR values tie at the boundary).
+
+    With ``neighbourhood = n`` the encoded set is ``S*(tau)`` (eq. 9, the ``n x n`` RD-neighbourhood
+    enrichment): ``|P*(tau)| = #{D > tau}`` with ``D`` the max-filtered SNR
+    (:func:`neighbourhood_snr`), and tau is chosen *exactly* over all thresholds: the returned tau
+    realises the reachable ``|P*|`` closest to ``m`` (a tie between two goes to the smaller set).
+    ``|P*|`` can only take the values ``#{D >= v}``: one more peak adds its whole neighbourhood,
+    up to ``n^2`` cells at once, so the achieved density may differ from the target by up to half
+    such a step (per frame, full RADIal, rd3: ``<= 4.5 * 12 / 131072 = 4e-4``); when two frames'
+    cells share exactly the same SNR the step can be larger. The achieved density is what
+    :class:`~radarpc.dsp.pointcloud.PointCloudBatch` reports. A target above ``n_tx / n_slots``
+    raises ``ValueError`` in both cases.
 
     Parameters
     ----------
@@ -92,6 +209,8 @@ def tau_for_density(snr_batch: torch.Tensor, cfg: DDMARadarConfig, target: float
         ``per-frame``: one tau per frame, each frame hits the target. ``per-dataset``: one tau for
         all the given frames (pooled SNRs), so that their *mean* density hits the target; call it
         on the SNRs of the training split and reuse the tau on every split.
+    neighbourhood : int, optional
+        Odd ``n >= 3`` of an active ``rdN`` enrichment: target ``|S*(tau)|`` instead of ``|S(tau)|``.
 
     Returns
     -------
@@ -101,6 +220,8 @@ def tau_for_density(snr_batch: torch.Tensor, cfg: DDMARadarConfig, target: float
     target = check_density(target, cfg)
     if mode not in DENSITY_MODES:
         raise ValueError(f"density mode must be one of {DENSITY_MODES}, got {mode!r}")
+    if neighbourhood is not None:
+        check_neighbourhood(neighbourhood)
     if snr_batch.ndim == 2:
         snr_batch = snr_batch.unsqueeze(0)
     if snr_batch.ndim != 3 or tuple(snr_batch.shape[1:]) != (cfg.n_range, cfg.slot_width):
@@ -110,6 +231,12 @@ def tau_for_density(snr_batch: torch.Tensor, cfg: DDMARadarConfig, target: float
     cells = cfg.n_range * cfg.slot_width
     n = int(round(target * cfg.n_range * cfg.n_doppler / cfg.n_tx))
     n = min(max(n, 0), cells)
+    if neighbourhood is not None:                              # S*(tau): threshold D = max-filtered SNR
+        d = neighbourhood_snr(snr_batch, neighbourhood)        # (B, Nr, W)
+        if mode == "per-frame":
+            return _closest_count_threshold(d.flatten(1), n)   # (B,)
+        m = int(round(target * snr_batch.shape[0] * cfg.n_range * cfg.n_doppler / cfg.n_tx))
+        return _closest_count_threshold(d.reshape(1, -1), m)[0]
     if mode == "per-frame":
         flat = snr_batch.flatten(1)                                          # (B, cells)
         if n >= cells:

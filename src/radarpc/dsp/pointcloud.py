@@ -4,8 +4,9 @@ For a batch of per-Rx RD cubes ``R`` (complex ``(B, Nr, Nd, Nrx)``), :class:`Spe
 
 1. forms the envelope ``E(r, l) = sum_s sum_rx |R(r, s W + l, rx)|`` (:mod:`radarpc.dsp.ddma`);
 2. runs CA-CFAR on ``|E|^2`` and keeps ``P(tau) = {(r, l) : |E|^2 / mu(r, l) > tau}`` (eq. 1), with
-   ``tau`` fixed or chosen per frame / per dataset so that ``|S(tau)| / (Nr Nd)`` hits a target
-   density (eqs. 2-3, :mod:`radarpc.dsp.density`);
+   ``tau`` fixed or chosen per frame / per dataset so that the density of the *encoded* set hits a
+   target (eqs. 2-3, :mod:`radarpc.dsp.density`): ``|S(tau)| / (Nr Nd)``, or ``|S*(tau)| / (Nr Nd)``
+   with the RD-neighbourhood enrichment;
 3. optionally enlarges ``P`` to ``P*(tau)``, the union of the ``n x n`` neighbourhoods of its peaks
    truncated at the envelope borders (RD-neighbourhood enrichment, eqs. 8-9);
 4. for every kept cell resolves the DDMA hypothesis (Tx-0 Doppler bin ``d0``), gathers the
@@ -36,7 +37,8 @@ from radarpc.dsp.beamform import beamform_peaks, stack_real
 from radarpc.dsp.cfar import CFARResult, _check_window, ca_cfar
 from radarpc.dsp.ddma import (check_finite_envelope, check_rd, consolidate, resolve_tx0_doppler,
                               rx_magnitude_sum, virtual_snapshots)
-from radarpc.dsp.density import DENSITY_MODES, check_density, density_of_mask, tau_for_density
+from radarpc.dsp.density import (DENSITY_MODES, check_density, density_of_mask, neighbourhood_mask,
+                                 tau_for_density)
 from radarpc.sensors.radial import Calibration, DDMARadarConfig
 
 __all__ = [
@@ -62,7 +64,7 @@ class SpectralPointCloudConfig:
     """
 
     tau: float | None = RADIAL_TAU          # fixed linear SNR threshold (RADIal: 2 dB)
-    density: float | None = None            # target density |S|/(Nr Nd) instead of tau
+    density: float | None = None            # target density of the encoded set (S, or S* with rdN) instead of tau
     density_mode: str = "per-frame"         # "per-frame" or "per-dataset" (pooled over the batch)
     window: tuple[int, int] = (9, 9)        # CA-CFAR full training window (range, Doppler), odd
     guard: tuple[int, int] = (3, 3)         # CA-CFAR full guard window, odd
@@ -173,7 +175,10 @@ class PointCloudBatch:
     rd_patch : float32 ``(N, n * n)`` or None   ``E`` around the point's cell, row-major
         (range offset outer, Doppler offset inner), 0 outside the grid
     tau : float32 ``(B,)``               threshold used per frame
-    density : float32 ``(B,)``           achieved ``|S| / (Nr Nd)`` (``S*`` with neighbourhoods)
+    density : float32 ``(B,)``           achieved density of the encoded set: ``|S*(tau)| / (Nr Nd)``
+                                         with RD-neighbourhood points, else ``|S(tau)| / (Nr Nd)``
+    peak_density : float32 ``(B,)`` or None   ``|S(tau)| / (Nr Nd)`` of the CFAR peaks alone
+                                         (equals ``density`` without RD-neighbourhood points)
     """
 
     offset: torch.Tensor
@@ -194,6 +199,7 @@ class PointCloudBatch:
     rd_patch: torch.Tensor | None
     tau: torch.Tensor
     density: torch.Tensor
+    peak_density: torch.Tensor | None = None
 
     _PER_POINT = ("range_bin", "doppler_bin", "doppler_full", "range_m", "azimuth_deg", "elevation_deg",
                   "velocity_mps", "amplitude", "snr", "x", "y", "z", "is_neighbour", "sector", "rd_patch")
@@ -219,8 +225,9 @@ class PointCloudBatch:
         start = int(self.offset[b - 1]) if b > 0 else 0
         end = int(self.offset[b])
         kw = {k: (None if getattr(self, k) is None else getattr(self, k)[start:end]) for k in self._PER_POINT}
+        peak = None if self.peak_density is None else self.peak_density[b:b + 1]
         return PointCloudBatch(offset=self.offset.new_tensor([end - start]), tau=self.tau[b:b + 1],
-                               density=self.density[b:b + 1], **kw)
+                               density=self.density[b:b + 1], peak_density=peak, **kw)
 
     def to(self, device: torch.device | str) -> "PointCloudBatch":
         kw = {f.name: (None if getattr(self, f.name) is None else getattr(self, f.name).to(device))
@@ -240,7 +247,9 @@ class SpectralPointCloud(torch.nn.Module):
     tau : float or None
         Fixed linear CA-CFAR threshold (default RADIal's 2 dB = 1.585); ignored if ``density`` is set.
     density : float, optional
-        Target density ``|S(tau)| / (Nr Nd)`` in ``(0, n_tx / n_slots]`` instead of a fixed tau.
+        Target density in ``(0, n_tx / n_slots]`` instead of a fixed tau, of the set the cloud
+        encodes: ``|S(tau)| / (Nr Nd)``, or ``|S*(tau)| / (Nr Nd)`` with ``rdN`` (the threshold is
+        then chosen on the neighbourhood-enlarged set, see :func:`radarpc.dsp.density.tau_for_density`).
     density_mode : {"per-frame", "per-dataset"}
         With ``density``: a tau per frame, or one tau pooled over the frames of each call. For a
         dataset-wide tau, compute it once with :meth:`calibrate_tau` on the training split and build
@@ -299,12 +308,13 @@ class SpectralPointCloud(torch.nn.Module):
         c = self.config
         if c.density is None:
             return torch.full((snr.shape[0],), c.tau, dtype=snr.dtype, device=snr.device)
-        tau = tau_for_density(snr, self.sensor, c.density, mode=c.density_mode)
+        tau = tau_for_density(snr, self.sensor, c.density, mode=c.density_mode, neighbourhood=c.neighbourhood)
         return tau.expand(snr.shape[0]).clone() if tau.ndim == 0 else tau
 
     def detect(self, rd: torch.Tensor) -> tuple[torch.Tensor, CFARResult, torch.Tensor]:
         """Envelope ``E`` ``(B, Nr, W)``, its CA-CFAR result, and the consolidated peaks ``P(tau)``
-        as a bool mask ``(B, Nr, W)``."""
+        as a bool mask ``(B, Nr, W)`` (CFAR peaks only, before any RD-neighbourhood enlargement; a
+        density target with ``rdN`` sets tau on ``S*(tau)``)."""
         rd = check_rd(rd, self.sensor)
         _, e = self._envelope(rd)
         res = self._cfar(e)
@@ -315,8 +325,9 @@ class SpectralPointCloud(torch.nn.Module):
     def calibrate_tau(self, frames: Iterable[torch.Tensor], density: float | None = None) -> float:
         """One tau for a whole split: the mean density over ``frames`` hits ``density``.
 
-        ``frames`` yields RD cubes or batches of cubes (e.g. the training split); only their
-        ``(Nr, W)`` SNR maps are kept, on CPU.
+        The density is that of the encoded set, ``S*(tau)`` when this module has an ``rdN``
+        enrichment, else ``S(tau)``. ``frames`` yields RD cubes or batches of cubes (e.g. the
+        training split); only their ``(Nr, W)`` SNR maps are kept, on CPU.
         """
         target = self.config.density if density is None else density
         if target is None:
@@ -328,7 +339,8 @@ class SpectralPointCloud(torch.nn.Module):
             snrs.append(self._cfar(self._envelope(rd)[1]).snr.cpu())
         if not snrs:
             raise ValueError("calibrate_tau got no frames")
-        return float(tau_for_density(torch.cat(snrs), self.sensor, target, mode="per-dataset"))
+        return float(tau_for_density(torch.cat(snrs), self.sensor, target, mode="per-dataset",
+                                     neighbourhood=self.config.neighbourhood))
 
     # ---- points ------------------------------------------------------------------------------
     @torch.no_grad()
@@ -342,8 +354,7 @@ class SpectralPointCloud(torch.nn.Module):
         peaks = res.snr > tau[:, None, None]                       # P(tau): (B, Nr, W)
         kept = peaks
         if c.neighbourhood is not None:                            # P*(tau), eq. 9
-            n = c.neighbourhood
-            kept = F.max_pool2d(peaks.unsqueeze(1).to(e.dtype), n, stride=1, padding=n // 2).squeeze(1) > 0
+            kept = neighbourhood_mask(peaks, c.neighbourhood)
         b, r, l = torch.nonzero(kept, as_tuple=True)               # (N,) each, frame-major
         offset = torch.cumsum(kept.flatten(1).sum(1), 0)
 
@@ -360,6 +371,7 @@ class SpectralPointCloud(torch.nn.Module):
         vel = ((d0 + half) % cfg.n_doppler - half).to(torch.float32) * cfg.velocity_res_mps
         a_rad, e_rad = torch.deg2rad(az), torch.deg2rad(el)
         ground = rng * torch.cos(e_rad)
+        density = density_of_mask(kept, cfg)                       # (B,) encoded set: S or S*
         patch = None
         if c.patch is not None:
             h = c.patch // 2
@@ -375,4 +387,5 @@ class SpectralPointCloud(torch.nn.Module):
             x=ground * torch.cos(a_rad), y=ground * torch.sin(a_rad), z=rng * torch.sin(e_rad),
             is_neighbour=~peaks[b, r, l],
             sector=None if bf.sectors is None else bf.sectors.to(torch.float32),
-            rd_patch=patch, tau=tau.to(torch.float32), density=density_of_mask(kept, cfg))
+            rd_patch=patch, tau=tau.to(torch.float32), density=density,
+            peak_density=density if kept is peaks else density_of_mask(peaks, cfg))
