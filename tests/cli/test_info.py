@@ -138,3 +138,23 @@ def test_neither_root_and_coloradar_dispatch(tmp_path: Path, monkeypatch: pytest
     fake.info_coloradar = lambda args: seen.append(args.root) or 7
     monkeypatch.setitem(sys.modules, "radarpc.cli.info_coloradar", fake)
     assert run([str(tmp_path)]) == 7 and seen == [str(tmp_path)]
+
+
+def test_through_radarpc_main(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from radarpc.cli import main
+
+    out = tmp_path / "sim"
+    assert main(["simulate", "radial", "--out", str(out), "--sequences", "3", "--frames-per-sequence", "2",
+                 "--sensor", "tiny", "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["info", str(out), "--check"]) == 0
+    text = capsys.readouterr().out
+    assert "frames:      6" in text and "sequences:   3" in text and "0 problem(s)" in text
+    assert "train 2 frames / 1 seq, val 2 frames / 1 seq, test 2 frames / 1 seq" in text
+    assert (out / "info.png").is_file()
+    fft_path(out, 3).write_bytes(b"\x93NUMPY garbage")
+    assert main(["info", str(out), "--check", "--no-plot"]) == 1
+    assert "frame 3:" in capsys.readouterr().out
+    # a folder that is neither layout: one clear line on stderr, exit code 2
+    assert main(["info", str(tmp_path)]) == 2
+    assert "neither a RADIal root" in capsys.readouterr().err
