@@ -34,9 +34,9 @@ class DemoConfig:
     frames_per_sequence: int = 8            # frames per sequence
     density: float = 0.057                  # RADIal's default point-cloud density
     enrich: str = "rd3,sector32"            # SpectralPillars enrichments
-    colo_scenes: str = "hallway,lab,classroom,outdoor"  # ColoRadar scenes
-    colo_runs_per_scene: int = 1            # runs per scene
-    colo_frames: int = 6                    # frames per run
+    colo_scenes: str = "hallway,outdoor"     # ColoRadar scenes (3 runs each: train, val, test)
+    colo_runs_per_scene: int = 3            # runs per scene
+    colo_frames: int = 4                    # frames per run
     colo_lidar_beams: int = 32              # LiDAR beams (64 for the real sensor's pattern)
     seed: int = 0                           # simulator seed
     device: str = "cpu"                     # torch device for synthesis and DSP
