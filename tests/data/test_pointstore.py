@@ -85,6 +85,9 @@ def test_round_trip_every_column_dtype_and_metadata(tmp_path):
             assert got.dtype == want.dtype, name
             assert torch.equal(got, want), name
         assert float(c.tau[0]) == pytest.approx(float(batch.tau[i]))
+        # the CFAR-peak density |S(tau)| = n_tx |P(tau)| comes back from the frame's peak count
+        assert float(c.peak_density[0]) == pytest.approx(peaks[i] * TINY.n_tx / (TINY.n_range * TINY.n_doppler))
+        assert float(c.density[0]) == pytest.approx(float(batch.density[i]))
     # on-disk Arrow types
     schema = pq.read_schema(path)
     assert schema.names[: len(REQUIRED_COLUMNS)] == list(REQUIRED_COLUMNS)
@@ -118,6 +121,10 @@ def test_batched_read_and_iteration(tmp_path):
     ref = store.read_frames([0, 1, 2])
     assert first.offset.tolist() == [2, 6, 6]
     assert torch.equal(first.x, ref.x) and torch.equal(first.density, ref.density)
+    assert torch.equal(first.peak_density, ref.peak_density) and first.peak_density.shape == (3,)
+    # a cloud without peak_density (built by hand) collates to None rather than a partial vector
+    mixed = collate_clouds([store[0], make_batch([1], sector=0, rd_patch=0)])
+    assert mixed.peak_density is None and mixed.density.shape == (2,)
     with pytest.raises(ValueError, match="with and without 'sector'"):
         collate_clouds([store[0], make_batch([1])])
     assert store.index_of(7) == 2

@@ -170,6 +170,31 @@ def test_per_frame_and_per_dataset_density(root, tmp_path):
     np.testing.assert_allclose(store.frame_table.tau, tau, rtol=1e-6)
 
 
+def test_density_with_rd_neighbourhood_applies_to_s_star(root, tmp_path):
+    # per frame: every live frame's encoded set S*(tau) hits the target; S(tau) alone is smaller
+    out = tmp_path / "pf_rd3.parquet"
+    res = convert_dataset(root, out, density=0.1, enrich=("rd3",), progress=False)
+    store = PointStore(out)
+    live = np.arange(9) != ZERO_FRAME
+    np.testing.assert_allclose(store.frame_table.density[live], 0.1, rtol=0.1)
+    peak = store.frame_table.n_peaks * TINY.n_tx / (TINY.n_range * TINY.n_doppler)
+    assert np.all(peak[live] < store.frame_table.density[live])
+    assert res.achieved_density == pytest.approx(store.frame_table.density.mean())
+    assert res.peak_density == pytest.approx(peak.mean()) and res.peak_density < res.achieved_density
+    # per dataset: tau calibrated on the pooled train SNRs for S*(tau), independently recomputed
+    out2 = tmp_path / "pd_rd3.parquet"
+    convert_dataset(root, out2, density=0.1, density_mode="per-dataset", enrich=("rd3",), progress=False)
+    train = RADIal(root, split="train")
+    spc = build_point_cloud(train, ConvertSettings(tau=1.0), 1.0, "cpu")
+    with torch.no_grad():
+        snr = spc.detect(torch.stack([train[i][0] for i in range(len(train))]))[1].snr
+    tau_star = float(tau_for_density(snr, TINY, 0.1, mode="per-dataset", neighbourhood=3))
+    tau_s = float(tau_for_density(snr, TINY, 0.1, mode="per-dataset"))
+    assert PointStore(out2).metadata.tau == pytest.approx(tau_star) and tau_star > tau_s
+    # the train frames' mean S* density is on target
+    assert PointStore(out2).frame_table.density[:3].mean() == pytest.approx(0.1, rel=0.1)
+
+
 def test_two_workers_same_content_as_one(root, tmp_path):
     one, two = tmp_path / "one.parquet", tmp_path / "two.parquet"
     convert_dataset(root, one, tau=3.0, chunk_frames=3, progress=False)

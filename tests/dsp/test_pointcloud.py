@@ -186,7 +186,7 @@ def test_batch_equals_frames_and_helpers():
         single = spc(rd[b])
         part = batch.frame(b)
         assert isinstance(part, PointCloudBatch) and len(part) == 1
-        for name in PointCloudBatch._PER_POINT + ("tau", "density", "offset"):
+        for name in PointCloudBatch._PER_POINT + ("tau", "density", "peak_density", "offset"):
             torch.testing.assert_close(getattr(single, name), getattr(part, name))
     moved = batch.to("cpu")
     torch.testing.assert_close(moved.sector, batch.sector)
@@ -201,6 +201,7 @@ def test_empty_detections_give_valid_empty_cloud():
     assert c.num_points == 0 and c.offset.tolist() == [0, 0]
     assert c.sector.shape == (0, 8) and c.rd_patch.shape == (0, 9)
     assert c.density.tolist() == [0.0, 0.0] and c.frame(1).num_points == 0
+    assert c.peak_density.tolist() == [0.0, 0.0]
 
 
 def test_complex128_input_gives_same_points():
