@@ -40,6 +40,7 @@ class DemoConfig:
     colo_lidar_beams: int = 32              # LiDAR beams (64 for the real sensor's pattern)
     seed: int = 0                           # simulator seed
     device: str = "cpu"                     # torch device for synthesis and DSP
+    quick_tune: bool = False                # OS-CFAR tuned on a 3-setting grid (smoke tests)
 
 
 @dataclass
@@ -83,7 +84,8 @@ def run_demo(cfg: DemoConfig) -> Path:
                                      "--runs-per-scene", str(cfg.colo_runs_per_scene), "--frames", str(cfg.colo_frames),
                                      "--seed", str(cfg.seed), "--lidar-beams", str(cfg.colo_lidar_beams)]),
         _Step("check ColoRadar", ["info", str(colo_root), "--plot", str(out / "coloradar_info.png")]),
-        _Step("OS-CFAR baseline", ["baseline", "os-cfar", str(colo_root), "--split", "test", "--out", str(preds)]),
+        _Step("OS-CFAR baseline", ["baseline", "os-cfar", str(colo_root), "--split", "test", "--out", str(preds)]
+              + (["--quick-tune"] if cfg.quick_tune else [])),
         _Step("Chamfer / EMD", ["evaluate-points", str(preds), "--data", str(colo_root), "--split", "test"]),
     ]
     t_all = time.perf_counter()
