@@ -161,6 +161,12 @@ def test_neighbourhood_mask_equals_numpy_dilation(n):
         # P*(tau) is the threshold of the max-filtered SNR: {D > tau}
         np.testing.assert_array_equal((neighbourhood_snr(snr, n) > tau).numpy(), ref)
     assert int(neighbourhood_mask(snr > 50.0, n).sum()) == 3 * (n // 2 + 1) ** 2   # truncated corners
+    with pytest.raises(ValueError, match="real floating-point"):
+        neighbourhood_snr(snr.to(torch.complex128), n)
+    with pytest.raises(ValueError, match="bool mask"):
+        neighbourhood_mask(snr, n)
+    with pytest.raises(ValueError, match=r"\(B, Nr, W\)"):
+        neighbourhood_mask(snr[0] > 1, n)
 
 
 def test_enriched_controller_hand_worked_ties():

@@ -80,6 +80,8 @@ def neighbourhood_snr(snr: torch.Tensor, n: int) -> torch.Tensor:
     """
     check_neighbourhood(n)
     _check_maps(snr, "snr")
+    if not snr.is_floating_point():
+        raise ValueError(f"snr must be a real floating-point SNR map, got {snr.dtype}")
     # max_pool2d pads with -inf: cells outside the grid never win the max (truncation of eq. 8)
     return F.max_pool2d(snr.unsqueeze(1), n, stride=1, padding=n // 2).squeeze(1)
 
