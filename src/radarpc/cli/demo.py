@@ -97,9 +97,10 @@ def run_demo(cfg: DemoConfig) -> Path:
     from radarpc.data.pointstore import PointStore
 
     ps = PointStore(store)
-    n_points = sum(int(ps[i].offset[-1]) if len(ps[i].offset) else 0 for i in range(len(ps)))
-    steps[2].notes.append(f"{len(ps)} frames, {n_points} points, target density {cfg.density}, "
-                          f"achieved mean density {ps.metadata.achieved_density:.4f}")
+    n_points = int(ps.frame_table.n_points.sum())
+    steps[2].notes.append(f"{len(ps)} frames, {n_points} points, target density {cfg.density}, achieved "
+                          f"mean density {ps.metadata.achieved_density:.4f} (of the encoded set S*(tau); "
+                          f"CFAR peaks S(tau) alone {ps.metadata.peak_density:.4f})")
     metrics_md = preds / "metrics.md"
     report = out / "REPORT.md"
     lines = [
