@@ -9,7 +9,9 @@ The numpy baseline follows RADIal's ``SignalProcessing/rpl.py`` (one frame at a 
 ``np.abs`` sum over Rx, slot sum, CA-CFAR with ``scipy.signal.convolve2d``, the Tx-0 search with a
 cumulative sum, a Python loop over peaks building their Doppler index lists, one complex matmul
 with the calibration matrix, argmax), with the same window/guard convention and per-frame density
-control as radarpc, so that both produce the same points (checked and reported as ``agree``).
+control as radarpc (tau chosen on the CFAR peaks ``S(tau)``, or with ``rd3`` on the encoded
+neighbourhood set ``S*(tau)`` through a scipy max filter, see :func:`numpy_tau`), so that both
+produce the same points (checked and reported as ``agree``).
 It already runs the dominant beamforming as one BLAS matmul per frame. The second baseline,
 ``numpy_loop``, processes each peak on its own in a Python loop (matrix-vector beamforming).
 
@@ -53,13 +55,39 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from scipy import signal  # noqa: E402
-from scipy.ndimage import binary_dilation  # noqa: E402
+from scipy.ndimage import binary_dilation, maximum_filter  # noqa: E402
 
 from radarpc.dsp import SpectralPointCloud  # noqa: E402
 from radarpc.sensors.radial import RADIAL, Calibration, DDMARadarConfig, make_calibration  # noqa: E402
 
 
 # ---- the straightforward numpy implementation (rpl.py style) ---------------------------------------
+def numpy_tau(snr: np.ndarray, cfg: DDMARadarConfig, density: float, rd_n: int | None) -> float:
+    """Per-frame threshold of the encoded set, written independently of ``radarpc.dsp.density``.
+
+    Without ``rd_n``: midpoint between the ``m``-th and ``(m + 1)``-th largest SNR,
+    ``m = round(density * Nr * ND / n_tx)``. With ``rd_n = n``: the encoded set is
+    ``P*(tau) = {D > tau}``, ``D`` the ``n x n`` max-filtered SNR (cells outside the grid count as
+    ``-inf``); among the reachable counts (0 and ``#{D >= u}`` for every distinct value ``u`` of
+    ``D``) take the one closest to ``m`` (a tie goes to the smaller count) and put tau midway
+    between the two distinct values of ``D`` around it.
+    """
+    m = int(round(density * cfg.n_range * cfg.n_doppler / cfg.n_tx))
+    if rd_n is None:
+        top = np.sort(snr.ravel())[::-1]
+        return 0.5 * (top[m - 1] + top[m])
+    d = maximum_filter(snr, size=(rd_n, rd_n), mode="constant", cval=-np.inf)
+    values, counts = np.unique(d, return_counts=True)                  # ascending distinct values
+    reachable = np.concatenate([np.cumsum(counts[::-1])[::-1], [0]])   # #{D >= values[i]}, then 0
+    dist = np.abs(reachable - m)
+    i = int(np.flatnonzero(dist == dist.min()).max())                  # closest; a tie -> the smaller count
+    if i == len(values):                                               # count 0: nothing exceeds the max
+        return float(values[-1])
+    if i == 0:                                                         # every cell: below the minimum
+        return float(values[0]) - 1.0
+    return 0.5 * (float(values[i - 1]) + float(values[i]))
+
+
 class NumpyPointCloud:
     """Per-frame numpy spectral point cloud, written like RADIal's ``rpl.py``."""
 
@@ -82,9 +110,7 @@ class NumpyPointCloud:
         reduced = np.sum(power_spectrum.reshape(cfg.n_range, cfg.n_slots, cfg.slot_width), axis=1)
         p = reduced ** 2
         snr = p / (signal.convolve2d(p, self.mask, mode="same") / self.count)
-        n = int(round(self.density * cfg.n_range * cfg.n_doppler / cfg.n_tx))
-        top = np.sort(snr.ravel())[::-1]
-        tau = 0.5 * (top[n - 1] + top[n])
+        tau = numpy_tau(snr, cfg, self.density, self.rd_n)           # on S, or on S* with rdN
         peaks = snr > tau
         kept = peaks
         if self.rd_n is not None:
@@ -126,9 +152,7 @@ class NumpyLoopPointCloud(NumpyPointCloud):
         reduced = np.sum(power_spectrum.reshape(cfg.n_range, cfg.n_slots, cfg.slot_width), axis=1)
         p = reduced ** 2
         snr = p / (signal.convolve2d(p, self.mask, mode="same") / self.count)
-        n = int(round(self.density * cfg.n_range * cfg.n_doppler / cfg.n_tx))
-        top = np.sort(snr.ravel())[::-1]
-        kept = snr > 0.5 * (top[n - 1] + top[n])
+        kept = snr > numpy_tau(snr, cfg, self.density, self.rd_n)
         if self.rd_n is not None:
             kept = binary_dilation(kept, np.ones((self.rd_n, self.rd_n), dtype=bool))
         g = cfg.n_empty_slots
