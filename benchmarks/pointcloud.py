@@ -38,6 +38,8 @@ def _parse() -> argparse.Namespace:
     p.add_argument("--scatterers", type=int, default=60, help="point scatterers per simulated frame")
     p.add_argument("--device", default=None, help="torch device (default: cpu, and cuda if available)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--stages", action="store_true",
+                   help="also print the per-stage wall time of one batch at density 0.057 (CPU)")
     return p.parse_args()
 
 
@@ -58,6 +60,10 @@ from scipy import signal  # noqa: E402
 from scipy.ndimage import binary_dilation, maximum_filter  # noqa: E402
 
 from radarpc.dsp import SpectralPointCloud  # noqa: E402
+from radarpc.dsp.beamform import beamform_peaks  # noqa: E402
+from radarpc.dsp.cfar import ca_cfar  # noqa: E402
+from radarpc.dsp.ddma import consolidate, resolve_tx0_doppler, rx_magnitude_sum, virtual_snapshots  # noqa: E402
+from radarpc.dsp.density import neighbourhood_mask  # noqa: E402
 from radarpc.sensors.radial import RADIAL, Calibration, DDMARadarConfig, make_calibration  # noqa: E402
 
 
@@ -226,6 +232,51 @@ def time_torch(spc: SpectralPointCloud, batches: list[torch.Tensor], repeats: in
     return times, out
 
 
+def stage_times(spc: SpectralPointCloud, batch: torch.Tensor, repeats: int) -> dict[str, float]:
+    """Best-of-``repeats`` wall time per frame (ms) of each stage of ``spc.forward`` on ``batch``,
+    rebuilt from the same public functions; ``sector pooling`` is the beamforming time with sectors
+    minus the time without."""
+    cfg, c = spc.sensor, spc.config
+    dict_t, stacked = spc.dictionary_t, spc.dictionary_stacked
+    best: dict[str, float] = {}
+
+    def tick(name: str, t0: float) -> float:
+        t1 = time.perf_counter()
+        best[name] = min(best.get(name, float("inf")), t1 - t0)
+        return t1
+
+    for _ in range(repeats + 1):                                   # first pass: warm-up, overwritten
+        t = time.perf_counter()
+        a = rx_magnitude_sum(batch)                                # (B, Nr, Nd)
+        e = consolidate(a, cfg)                                    # (B, Nr, W)
+        t = tick("envelope sum_rx |RD| + slot sum", t)
+        snr = ca_cfar(e.square(), c.window, c.guard).snr
+        tau = spc.thresholds(snr)
+        kept = snr > tau[:, None, None]
+        if c.neighbourhood is not None:
+            kept = neighbourhood_mask(kept, c.neighbourhood)
+        t = tick("CA-CFAR + density threshold (+ rdN mask)", t)
+        b, r, l = torch.nonzero(kept, as_tuple=True)
+        d0 = resolve_tx0_doppler(a, cfg, r, l, b)
+        v = virtual_snapshots(batch, cfg, b, r, d0)                # (P, n_virtual)
+        t = tick("Tx-0 search + snapshot gather", t)
+        beamform_peaks(v, dict_t, spc.grid, None, stacked=stacked)
+        t = tick("beamforming GEMM + argmax", t)
+        if c.sectors is not None:
+            beamform_peaks(v, dict_t, spc.grid, c.sectors, stacked=stacked)
+            t = tick("beamforming with sectors", t)
+        spc(batch)
+        tick("whole forward", t)
+        if _ == 0:
+            best.clear()
+    n = batch.shape[0]
+    out = {k: round(1e3 * val / n, 2) for k, val in best.items()}
+    if c.sectors is not None:
+        out["sector pooling"] = round(out.pop("beamforming with sectors") - out["beamforming GEMM + argmax"], 2)
+    out["points_per_frame"] = round(int(kept.sum()) / n, 1)
+    return out
+
+
 def cpu_model() -> str:
     try:
         with open("/proc/cpuinfo") as f:
@@ -296,6 +347,14 @@ def main(args: argparse.Namespace) -> None:
                     "agree_with_numpy": round(agree / max(total, 1), 4)})
         report["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
         print(json.dumps(report), flush=True)
+    if args.stages:
+        batch = frames[: args.batch]
+        stages = {name: stage_times(SpectralPointCloud(cfg, calib, density=0.057, enrich=enrich), batch,
+                                    args.repeats)
+                  for name, enrich in configs.items()}
+        print(json.dumps({"stages_ms_per_frame": stages, "density_target": 0.057, "batch": args.batch,
+                          "threads": args.threads, "device": "cpu",
+                          "load_avg_1min": os.getloadavg()[0]}), flush=True)
 
 
 if __name__ == "__main__":
