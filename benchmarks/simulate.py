@@ -35,6 +35,18 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+def cpu_model() -> str:
+    """``model name`` of ``/proc/cpuinfo`` (what ``lscpu`` shows), else the platform's processor."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def bench(sensor: str, device: torch.device, n_frames: int, seed: int) -> dict:
     cfg = radial_sensor(sensor)
     n_seq = 4
@@ -74,7 +86,7 @@ def bench(sensor: str, device: torch.device, n_frames: int, seed: int) -> dict:
         "frame_ms_best": round(1e3 * min(whole_t), 2),
         "mb_per_frame": round(rd.numel() * rd.element_size() / 1e6, 2),
         "torch": torch.__version__,
-        "cpu": platform.processor() or platform.machine(),
+        "cpu": cpu_model(),
         "load_average_1min": round(os.getloadavg()[0], 2),
     }
 
