@@ -290,6 +290,16 @@ def _edge_points(scene: Scene, geom, origin, cfg: RadarSimConfig, dev, dtype):
 
 
 # ------------------------------------------------------------------------------------------------
+def _unit_phasor(phase: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
+    """``scale * exp(j phase)`` as complex64: float64 ``phase`` reduced to ``[-pi, pi)``, then
+    cos/sin in float32 (``scale`` broadcasts over the last axis)."""
+    ph = (torch.remainder(phase + math.pi, 2 * math.pi) - math.pi).to(torch.float32)
+    re, im = torch.cos(ph), torch.sin(ph)
+    if scale is not None:
+        re, im = re * scale, im * scale
+    return torch.complex(re, im)
+
+
 def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_lsb: float = 1000.0,
                 exact: bool = False, chunk: int = 1024) -> torch.Tensor:
     """Noise-free complex beat signal ``(tx, rx, chirps, samples)`` (complex64, LSB units).
@@ -313,34 +323,58 @@ def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_l
                 + torch.arange(ntx, device=dev, dtype=f64)[:, None]) * tc)          # (ntx, nc)
     t_k = w.adc_start_time + torch.arange(ns, device=dev, dtype=f64) / w.adc_sample_frequency
     t_mid = 0.5 * nc * ntx * tc
+    t_tx_all = torch.arange(ntx, device=dev, dtype=f64) * tc                         # (ntx,) Tx offset in a loop
+    t_loop_all = torch.arange(nc, device=dev, dtype=f64) * (ntx * tc)                  # (nc,) loop start
     t_ctr = float(t_k.mean())
-    out = torch.zeros((ntx, nrx, nc, ns), dtype=torch.complex128 if exact else torch.complex64, device=dev)
+    if exact:
+        out = torch.zeros((ntx, nrx, nc, ns), dtype=torch.complex128, device=dev)
+    else:
+        acc = torch.zeros((ntx, nc, nrx * ns), dtype=torch.complex64, device=dev)
     two_pi = 2 * math.pi
     if exact:   # the exact path materialises (tx, rx, chirps, samples, n): bound it to ~2e7 elements
         chunk = max(1, min(chunk, int(2e7 // (ntx * nrx * nc * ns))))
     for s in range(0, p.shape[0], chunk):
         sl = slice(s, s + chunk)
         rr, vv, uu = r0[sl], scat.velocity[sl].to(f64), u[sl]
-        tau = 2 * (rr[None, None, :] + vv[None, None, :] * t_chirp[:, :, None]) / SPEED_OF_LIGHT  # (ntx, nc, n)
-        slow = two_pi * (f0 * tau - 0.5 * slope * tau ** 2)
         arr_tx = two_pi * d * (tx[:, 0:1] * uu[None, :, 1] + tx[:, 1:2] * uu[None, :, 2])      # (ntx, n)
         arr_rx = two_pi * d * (rx[:, 0:1] * uu[None, :, 1] + rx[:, 1:2] * uu[None, :, 2])      # (nrx, n)
-        coef = amp[sl] * torch.exp(1j * scat.phase[sl].to(f64))
         if exact:
+            tau = 2 * (rr[None, None, :] + vv[None, None, :] * t_chirp[:, :, None]) / SPEED_OF_LIGHT  # (ntx, nc, n)
+            slow = two_pi * (f0 * tau - 0.5 * slope * tau ** 2)
+            coef = amp[sl] * torch.exp(1j * scat.phase[sl].to(f64))
             ph = (slow[:, None, :, None, :] + arr_tx[:, None, None, None, :] + arr_rx[None, :, None, None, :]
                   + two_pi * slope * tau[:, None, :, None, :] * t_k[None, None, None, :, None])
             out += (coef * torch.exp(1j * ph)).sum(-1)
         else:
             # S tau t_k = S tau t_ctr + S tau (t_k - t_ctr): the first part is exact per chirp, the
             # second uses the frame-centre delay (drops only the range migration across the frame).
-            # Phases in float64, products and the sum over scatterers in complex64.
-            tau_mid = 2 * (rr + vv * t_mid) / SPEED_OF_LIGHT
-            fast = torch.exp(1j * two_pi * slope * tau_mid[:, None] * (t_k - t_ctr)[None, :]).to(torch.complex64)
-            e_slow = (coef * torch.exp(1j * (slow + two_pi * slope * t_ctr * tau))).to(torch.complex64)  # (ntx, nc, n)
-            e_tx = torch.exp(1j * arr_tx).to(torch.complex64)
-            e_rx = torch.exp(1j * arr_rx).to(torch.complex64)
-            a = e_slow[:, None] * (e_tx[:, None, None, :] * e_rx[None, :, None, :])               # (ntx, nrx, nc, n)
-            out += (a.reshape(-1, a.shape[-1]) @ fast).reshape(ntx, nrx, nc, ns)
+            # With tau = a + b T (a = 2 R / c, b = 2 v / c) and F = f0 + S t_ctr the per-chirp phase is
+            #   2 pi (F tau - S tau^2 / 2) = th0 + c1 T + c2 T^2,
+            #   th0 = 2 pi (F a - S a^2 / 2),  c1 = 2 pi b (F - S a),  c2 = -pi S b^2,
+            # and T = t T_c + c T_loop splits it into a Tx part and a chirp part (the cross term
+            # 2 c2 t T_c c T_loop, below 1e-8 rad for |v| < 10 m/s, is dropped). The sum over
+            # scatterers is then one complex GEMM:
+            #   s[t, r, c, k] = sum_n L[t, c, n] R[n, r, k]
+            #   L = A_n e^{j(phi_n + th0 + arr_tx + c1 t T_c + c2 (t T_c)^2)} e^{j(c1 c T_loop + c2 (c T_loop)^2)}
+            #   R = e^{j arr_rx} e^{j 2 pi S tau_mid (t_k - t_ctr)}
+            # Phases in float64 reduced modulo 2 pi, cos/sin in float32, products and GEMM in complex64.
+            a_n, b_n = 2 * rr / SPEED_OF_LIGHT, 2 * vv / SPEED_OF_LIGHT                      # (n,)
+            f_c = f0 + slope * t_ctr
+            th0 = two_pi * (f_c * a_n - 0.5 * slope * a_n ** 2)
+            c1 = two_pi * b_n * (f_c - slope * a_n)
+            c2 = -math.pi * slope * b_n ** 2
+            t_tx, t_loop = t_tx_all[:, None], t_loop_all[:, None]                            # (ntx, 1), (nc, 1)
+            e_t = _unit_phasor(scat.phase[sl].to(f64) + th0 + arr_tx + c1 * t_tx + c2 * t_tx ** 2,
+                               amp[sl].to(torch.float32))                                    # (ntx, n)
+            e_c = _unit_phasor(c1 * t_loop + c2 * t_loop ** 2)                               # (nc, n)
+            tau_mid = a_n + b_n * t_mid
+            e_r = _unit_phasor(arr_rx.T)                                                     # (n, nrx)
+            e_k = _unit_phasor((two_pi * slope * tau_mid)[:, None] * (t_k - t_ctr)[None, :])  # (n, ns)
+            left = e_t[:, None, :] * e_c[None, :, :]                                         # (ntx, nc, n)
+            right = (e_r[:, :, None] * e_k[:, None, :]).reshape(-1, nrx * ns)                # (n, nrx * ns)
+            acc += torch.matmul(left, right)                                                 # (ntx, nc, nrx * ns)
+    if not exact:
+        out = acc.reshape(ntx, nc, nrx, ns).permute(0, 2, 1, 3).contiguous()
     return out.to(torch.complex64)
 
 
@@ -372,17 +406,19 @@ def _hann_response_power(delta: torch.Tensor, n: int, nfft: int) -> torch.Tensor
     """
     sh = nfft / n
 
-    def ratio(x):
-        a = math.pi * x / nfft
+    def ratio(x: torch.Tensor) -> torch.Tensor:                     # sin(n a) / sin(a), n where sin(a) = 0
+        a = x * (math.pi / nfft)
         sa = torch.sin(a)
-        small = sa.abs() < 1e-6
-        return torch.where(small, torch.full_like(a, float(n)), torch.sin(n * a) / torch.where(small, torch.ones_like(a), sa))
+        return torch.where(sa.abs() < 1e-6, float(n), torch.sin(n * a) / sa)
 
     phi = (n - 1) * math.pi / n                  # phase of D(x -+ sh) relative to D(x): exp(+-j phi)
     d0, dm, dp = ratio(delta), ratio(delta - sh), ratio(delta + sh)
-    re = 0.5 * d0 - 0.25 * (dm + dp) * math.cos(phi)
-    im = -0.25 * (dm - dp) * math.sin(phi)
-    return (re * re + im * im) / (0.5 * n) ** 2
+    re = 0.5 * d0 - (0.25 * math.cos(phi)) * (dm + dp)
+    im = (-0.25 * math.sin(phi)) * (dm - dp)
+    return re.square_().addcmul_(im, im).mul_(1.0 / (0.5 * n) ** 2)
+
+
+_HM_BLOCK = 64   # scatterers per beamforming block in cascade_heatmap (~2 MB of float32 at 128 x 32 bins)
 
 
 def cascade_heatmap(scat: Scatterers, chip: ColoRadarChipConfig = CASCADE, *,
@@ -411,24 +447,60 @@ def cascade_heatmap(scat: Scatterers, chip: ColoRadarChipConfig = CASCADE, *,
     nfft = int(round(SPEED_OF_LIGHT * w.adc_sample_frequency / (2 * w.frequency_slope * hm.range_bin_width)))
     delta = torch.arange(nr, device=dev, dtype=f32)[:, None] - (r0 / hm.range_bin_width)[None, :]   # (R, N)
     wr = _hann_response_power(delta, w.num_adc_samples_per_chirp, nfft)               # (R, N)
-    # beamformer power on the heatmap's (sin az, sin el) grid, factorized over elevation rows
+    # Beamformer of the unique virtual elements (p_h, p_v), grouped in rows of equal p_v:
+    #   AF(n, a, e) = sum_k g_k(n, a) exp(-j 2 pi d p_v,k sin el_e)
+    #   g_k(n, a)  = sum_{h in row k} exp(j 2 pi d (p_h u_y,n + p_v,k u_z,n)) exp(-j 2 pi d p_h sin az_a)
+    # g_k by a real GEMM per row on [cos | sin] of the element phases, scaled by sqrt(SNR_n) / V so
+    # that |AF|^2 is already SNR_n |AF|^2 / V^2; [Re AF | Im AF] by one GEMM with the 2K x 2E
+    # elevation steering; then both[r, (a, e)] = sum_n [w_r; w_r v_n] |AF|^2 (one GEMM).
     d = chip.element_spacing
+    two_pi_d = 2 * math.pi * d
     s_az = torch.sin(torch.as_tensor(hm.azimuth_bins, dtype=f32, device=dev))
     s_el = torch.sin(torch.as_tensor(hm.elevation_bins, dtype=f32, device=dev))
     rows = np.unique(vpos[:, 1])
-    row_pos = [torch.as_tensor(vpos[vpos[:, 1] == pv, 0], dtype=f32, device=dev) for pv in rows]   # (H_row,)
-    e_out = [torch.exp(-1j * 2 * math.pi * d * hp[:, None] * s_az[None, :]) for hp in row_pos]      # (H_row, A)
-    both = torch.zeros((nr, 2 * na * ne), dtype=f32, device=dev)
+    nk = len(rows)
+    order = np.lexsort((vpos[:, 0], vpos[:, 1]))                                     # elements by row
+    hp_all = torch.as_tensor(vpos[order, 0], dtype=f32, device=dev)                   # (V,)
+    pv_all = torch.as_tensor(vpos[order, 1], dtype=f32, device=dev)                   # (V,)
+    counts = [int((vpos[:, 1] == pv).sum()) for pv in rows]
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(int)
+    # columns of [cos | sin] (n, 2V) regrouped as [cos row 0, sin row 0, cos row 1, ...]
+    perm = torch.as_tensor(np.concatenate([np.r_[st:st + c, vpos.shape[0] + st:vpos.shape[0] + st + c]
+                                           for st, c in zip(starts, counts)]), device=dev)
+    steer = []                                                                        # (2 H_k, 2 A) each
+    for st, c in zip(starts, counts):
+        th = two_pi_d * hp_all[st:st + c, None] * s_az[None, :]                      # (H_k, A)
+        cth, sth = torch.cos(th), torch.sin(th)
+        steer.append(torch.cat([torch.cat([cth, -sth], 1), torch.cat([sth, cth], 1)], 0))
+    th_e = -two_pi_d * torch.as_tensor(rows, dtype=f32, device=dev)[:, None] * s_el[None, :]   # (K, E)
+    ce, se = torch.cos(th_e), torch.sin(th_e)
+    # rows 2k, 2k+1 of y multiply Re g_k, Im g_k: AF_re = sum Re g ce - Im g se, AF_im = sum Re g se + Im g ce
+    y = torch.stack([torch.cat([ce, se], 1), torch.cat([-se, ce], 1)], 1).reshape(2 * nk, 2 * ne)   # (2K, 2E)
+    scale = p_snr.sqrt() / vpos.shape[0]                                              # (N,)
+    w2 = torch.cat([wr, wr * vel[None, :]], 0)                                        # (2R, N)
+    hp_d, pv_d = two_pi_d * hp_all, two_pi_d * pv_all
+    both = torch.zeros((2 * nr, na * ne), dtype=f32, device=dev)
+    # work buffers allocated once (fresh large allocations cost page faults on every block)
+    bf_buf = torch.empty((min(chunk, u.shape[0]), na, ne), dtype=f32, device=dev)    # SNR |AF|^2 / V^2
+    x_buf = torch.empty((_HM_BLOCK, na, 2 * nk), dtype=f32, device=dev)               # Re, Im g_k
+    af_buf = torch.empty((_HM_BLOCK * na, 2 * ne), dtype=f32, device=dev)             # Re, Im AF
     for c0 in range(0, u.shape[0], chunk):                     # chunks bound memory to ~chunk * A * E
-        uc = u[c0:c0 + chunk]
-        g_rows = [torch.exp(1j * 2 * math.pi * d * hp[None, :] * uc[:, 1:2]) @ eo              # (n, A)
-                  for hp, eo in zip(row_pos, e_out)]
-        e_rows = [torch.exp(1j * 2 * math.pi * d * float(pv) * (uc[:, 2:3] - s_el[None, :])) for pv in rows]
-        af = torch.bmm(torch.stack(g_rows, -1), torch.stack(e_rows, 1))                       # (n, A, E)
-        bf = torch.view_as_real(af).square().sum(-1) / vpos.shape[0] ** 2                     # |AF|^2
-        contrib = bf.reshape(bf.shape[0], -1) * p_snr[c0:c0 + chunk, None]                    # (n, A*E)
-        both += wr[:, c0:c0 + chunk] @ torch.cat([contrib, contrib * vel[c0:c0 + chunk, None]], 1)
-    inten, vsum = both[:, :na * ne], both[:, na * ne:]
+        n_c = min(chunk, u.shape[0] - c0)
+        bf = bf_buf[:n_c]
+        for b0 in range(0, n_c, _HM_BLOCK):                    # blocks small enough to stay in cache
+            uc, sc = u[c0 + b0:c0 + b0 + _HM_BLOCK], scale[c0 + b0:c0 + b0 + _HM_BLOCK]
+            n = uc.shape[0]
+            ph = torch.addcmul(uc[:, 1:2] * hp_d, uc[:, 2:3], pv_d)                   # (n, V) element phases
+            cs = torch.cat([torch.cos(ph), torch.sin(ph)], 1)[:, perm] * sc[:, None]  # (n, 2V)
+            g = [(cs[:, 2 * st:2 * (st + c)] @ stk).reshape(n, 2, na).transpose(1, 2)  # (n, A, 2) Re, Im g_k
+                 for st, c, stk in zip(starts, counts, steer)]
+            x = torch.cat(g, 2, out=x_buf[:n])                                        # (n, A, 2K)
+            af = torch.mm(x.reshape(n * na, 2 * nk), y, out=af_buf[:n * na]).reshape(n, na, 2 * ne)
+            blk = bf[b0:b0 + n]
+            torch.mul(af[:, :, :ne], af[:, :, :ne], out=blk)
+            blk.addcmul_(af[:, :, ne:], af[:, :, ne:])
+        both.addmm_(w2[:, c0:c0 + n_c], bf.reshape(n_c, na * ne))
+    inten, vsum = both[:nr], both[nr:]                                                # (R, A E) each
     vmax, nd = w.max_velocity_mps, w.num_chirps_per_frame
     vbin = 2 * vmax / nd
     dop = vsum / inten.clamp_min(1e-12)

@@ -241,16 +241,17 @@ class Scene:
 # ray casting
 # ------------------------------------------------------------------------------------------------
 def _cast_boxes(o, d, g: Geometry, eps: float) -> torch.Tensor:
-    # o, d: (M, 3). Slab test in each (yaw-rotated) box frame, axis by axis on (M, B) tensors.
+    # o: (M, 3) or (1, 3) (shared origin), d: (M, 3). Slab test in each (yaw-rotated) box frame, axis
+    # by axis on (M, B) tensors; origin-only terms stay (1, B) for a shared origin.
     c, s = torch.cos(g.box_yaw), torch.sin(g.box_yaw)                       # (B,)
     rx = o[:, None, 0] - g.box_center[None, :, 0]
     ry = o[:, None, 1] - g.box_center[None, :, 1]
     rz = o[:, None, 2] - g.box_center[None, :, 2]
     dx, dy, dz = d[:, None, 0], d[:, None, 1], d[:, None, 2]
-    loc = ((c * rx + s * ry, c * dx + s * dy), (c * ry - s * rx, c * dy - s * dx), (rz, dz.expand_as(rz)))
+    loc = ((c * rx + s * ry, c * dx + s * dy), (c * ry - s * rx, c * dy - s * dx), (rz, dz))
     tmin = tmax = None
     for k, (ol, dl) in enumerate(loc):
-        inv = 1.0 / torch.where(dl.abs() < 1e-12, torch.full_like(dl, 1e-12), dl)
+        inv = 1.0 / torch.where(dl.abs() < 1e-12, 1e-12, dl)
         h = g.box_half[None, :, k]
         t1 = (-h - ol) * inv
         t2 = (h - ol) * inv
@@ -258,7 +259,7 @@ def _cast_boxes(o, d, g: Geometry, eps: float) -> torch.Tensor:
         tmin = lo if tmin is None else torch.maximum(tmin, lo)
         tmax = hi if tmax is None else torch.minimum(tmax, hi)
     hit = (tmax >= tmin) & (tmin > eps)
-    return torch.where(hit, tmin, torch.full_like(tmin, float("inf")))
+    return torch.where(hit, tmin, float("inf"))
 
 
 def _box_normal(p: torch.Tensor, g: Geometry, j: torch.Tensor) -> torch.Tensor:
@@ -285,7 +286,7 @@ def _cast_cylinders(o, d, g: Geometry, eps: float):
     t = (-b - sq) / (2 * a)
     z = o[:, None, 2] + t * d[:, None, 2]
     ok = (disc >= 0) & (t > eps) & (z >= g.cyl_z[None, :, 0]) & (z <= g.cyl_z[None, :, 1])
-    return torch.where(ok, t, torch.full_like(t, float("inf")))
+    return torch.where(ok, t, float("inf"))
 
 
 def _subset(g: Geometry, bi: torch.Tensor, ci: torch.Tensor) -> Geometry:
@@ -294,7 +295,7 @@ def _subset(g: Geometry, bi: torch.Tensor, ci: torch.Tensor) -> Geometry:
 
 
 def _cast_chunk(oc, dc, g: Geometry, eps: float):
-    m = oc.shape[0]
+    m = dc.shape[0]
     best_t = torch.full((m,), float("inf"), dtype=dc.dtype, device=dc.device)
     best_n = torch.zeros((m, 3), dtype=dc.dtype, device=dc.device)
     best_m = torch.full((m,), -1, dtype=torch.long, device=dc.device)
@@ -379,7 +380,7 @@ def ray_cast(geometry: Geometry, origins: torch.Tensor, directions: torch.Tensor
     for s in range(0, m, chunk):
         idx = order[s:s + chunk]
         dc = d[idx]
-        oc = o.expand(dc.shape[0], 3) if shared else o[idx]
+        oc = o[None] if shared else o[idx]                      # (1, 3) broadcasts over the chunk
         gg = g
         if shared:
             az = torch.atan2(dc[:, 1], dc[:, 0])
