@@ -1,4 +1,7 @@
 """Atomic writes and validated array loading."""
+import os
+import stat
+
 import numpy as np
 import pytest
 
@@ -16,6 +19,18 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
     with atomic_write(target, "w") as f:
         f.write("whole")
     assert target.read_text() == "whole"
+
+
+def test_atomic_write_respects_umask(tmp_path):
+    old = os.umask(0o022)
+    try:
+        with atomic_write(tmp_path / "a.bin") as f:
+            f.write(b"x")
+        plain = tmp_path / "plain.bin"
+        plain.write_bytes(b"x")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "a.bin").stat().st_mode) == stat.S_IMODE(plain.stat().st_mode) == 0o644
 
 
 def test_load_array_validates(tmp_path):

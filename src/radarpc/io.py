@@ -18,6 +18,7 @@ import numpy as np
 __all__ = [
     "DataFileError",
     "atomic_write",
+    "temp_file_beside",
     "save_npy_atomic",
     "save_npz_atomic",
     "load_array",
@@ -36,6 +37,26 @@ class DataFileError(ValueError):
         super().__init__(f"{self.path}: {problem}")
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def temp_file_beside(path: str | os.PathLike) -> Path:
+    """Create an empty temporary file next to ``path`` (same folder, so ``os.replace`` is atomic).
+
+    Unlike a bare ``mkstemp`` (mode 0600), the file gets the permissions a plain ``open()`` would
+    give it under the current umask, so renamed outputs are readable as users expect.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    os.chmod(tmp, 0o666 & ~_umask())
+    return Path(tmp)
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator:
     """Open a temporary file next to ``path``; rename it onto ``path`` only on success.
@@ -52,11 +73,9 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator:
     >>> with atomic_write("out.txt", "w") as f:  # doctest: +SKIP
     ...     f.write("hello")
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    tmp = temp_file_beside(path)
     try:
-        with os.fdopen(fd, mode) as f:
+        with open(tmp, mode) as f:
             yield f
             f.flush()
             os.fsync(f.fileno())

@@ -41,7 +41,6 @@ import datetime as _dt
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator, Sequence
@@ -52,7 +51,7 @@ import pyarrow.parquet as pq
 import torch
 
 from radarpc import __version__
-from radarpc.io import DataFileError
+from radarpc.io import DataFileError, temp_file_beside
 from radarpc.sensors.radial import DDMARadarConfig
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -368,10 +367,7 @@ class PointStoreWriter:
             self.abort()
 
     def _open(self, schema: pa.Schema) -> None:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
-        os.close(fd)
-        self._tmp = Path(tmp)
+        self._tmp = temp_file_beside(self.path)
         self._schema = schema
         self._writer = pq.ParquetWriter(str(self._tmp), schema, compression=self.compression)
 
