@@ -202,7 +202,7 @@ def radar_scatterers(scene: Scene, t: float, pose: Transform, velocity: np.ndarr
     a = a.reshape(-1) + (torch.rand(a.numel(), generator=g, device=dev) - 0.5) * step_az
     e = e.reshape(-1) + (torch.rand(e.numel(), generator=g, device=dev) - 0.5) * step_el
     u = torch.stack([e.cos() * a.cos(), e.cos() * a.sin(), e.sin()], -1)          # (M, 3) sensor frame
-    hits = ray_cast(geom, tw, u @ rw.T, max_range=cfg.max_range_m)
+    hits = ray_cast(geom, tw, u @ rw.T, max_range=cfg.max_range_m, chunk=1024)
     keep = hits.hit & (hits.t >= cfg.min_range_m)
     uw = (u @ rw.T)[keep]
     r = hits.t[keep]
@@ -503,16 +503,19 @@ def cascade_heatmap(scat: Scatterers, chip: ColoRadarChipConfig = CASCADE, *,
     inten, vsum = both[:nr], both[nr:]                                                # (R, A E) each
     vmax, nd = w.max_velocity_mps, w.num_chirps_per_frame
     vbin = 2 * vmax / nd
-    dop = vsum / inten.clamp_min(1e-12)
-    dop = torch.remainder(dop + vmax, 2 * vmax) - vmax
-    dop = torch.round(dop / vbin) * vbin
+    # power-weighted radial velocity, wrapped to the unambiguous interval and quantized (in place)
+    dop = vsum.div_(inten.clamp_min(1e-12))
+    dop.add_(vmax).remainder_(2 * vmax).sub_(vmax)
+    dop.div_(vbin).round_().mul_(vbin)
     if noise:
-        nz = -torch.log(torch.rand(inten.shape, generator=generator, device=dev).clamp_min(1e-12)) * cfg.heatmap_noise
-        rand_v = (torch.randint(0, nd, inten.shape, generator=generator, device=dev) - nd // 2).to(f32) * vbin
+        nz = torch.rand(inten.shape, generator=generator, device=dev).clamp_min_(1e-12).log_().neg_().mul_(cfg.heatmap_noise)
+        rand_v = (torch.randint(0, nd, inten.shape, generator=generator, device=dev) - nd // 2).to(f32).mul_(vbin)
         dop = torch.where(inten > nz, dop, rand_v)
-        inten = inten + nz
-    out = torch.stack([inten, dop], -1).reshape(nr, na, ne, 2).permute(2, 1, 0, 3)    # (E, A, R, 2)
-    return out.contiguous().to(f32)
+        inten = inten.add_(nz)
+    out = torch.empty((ne, na, nr, 2), dtype=f32, device=dev)                          # (E, A, R, 2)
+    out[..., 0] = inten.reshape(nr, na, ne).permute(2, 1, 0)
+    out[..., 1] = dop.reshape(nr, na, ne).permute(2, 1, 0)
+    return out
 
 
 # ------------------------------------------------------------------------------------------------

@@ -240,19 +240,19 @@ class Scene:
 # ------------------------------------------------------------------------------------------------
 # ray casting
 # ------------------------------------------------------------------------------------------------
-def _cast_boxes(o, d, g: Geometry, eps: float) -> torch.Tensor:
-    # o: (M, 3) or (1, 3) (shared origin), d: (M, 3). Slab test in each (yaw-rotated) box frame, axis
-    # by axis on (M, B) tensors; origin-only terms stay (1, B) for a shared origin.
-    c, s = torch.cos(g.box_yaw), torch.sin(g.box_yaw)                       # (B,)
-    rx = o[:, None, 0] - g.box_center[None, :, 0]
-    ry = o[:, None, 1] - g.box_center[None, :, 1]
-    rz = o[:, None, 2] - g.box_center[None, :, 2]
-    dx, dy, dz = d[:, None, 0], d[:, None, 1], d[:, None, 2]
+def _slab_t(o, d, center, half, c, s, eps: float) -> torch.Tensor:
+    # Entry distance of rays o + t d into yaw-oriented boxes (slab test in each box frame, axis by
+    # axis), inf where missed. Arguments broadcast: o, d, center, half (..., 3); c, s = cos, sin of
+    # the yaw (...). Used on (M, 1) x (1, B) grids and on gathered (P,) ray-box pairs alike.
+    rx = o[..., 0] - center[..., 0]
+    ry = o[..., 1] - center[..., 1]
+    rz = o[..., 2] - center[..., 2]
+    dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
     loc = ((c * rx + s * ry, c * dx + s * dy), (c * ry - s * rx, c * dy - s * dx), (rz, dz))
     tmin = tmax = None
     for k, (ol, dl) in enumerate(loc):
         inv = 1.0 / torch.where(dl.abs() < 1e-12, 1e-12, dl)
-        h = g.box_half[None, :, k]
+        h = half[..., k]
         t1 = (-h - ol) * inv
         t2 = (h - ol) * inv
         lo, hi = torch.minimum(t1, t2), torch.maximum(t1, t2)
@@ -260,6 +260,29 @@ def _cast_boxes(o, d, g: Geometry, eps: float) -> torch.Tensor:
         tmax = hi if tmax is None else torch.minimum(tmax, hi)
     hit = (tmax >= tmin) & (tmin > eps)
     return torch.where(hit, tmin, float("inf"))
+
+
+def _cyl_t(o, d, center, radius, z01, eps: float) -> torch.Tensor:
+    # Entry distance of rays into vertical cylinders (side surface), inf where missed; arguments
+    # broadcast like _slab_t: center (..., 2), radius (...), z01 (..., 2).
+    ox = o[..., 0] - center[..., 0]
+    oy = o[..., 1] - center[..., 1]
+    dx, dy = d[..., 0], d[..., 1]
+    a = (dx * dx + dy * dy).clamp_min(1e-12)
+    b = 2 * (ox * dx + oy * dy)
+    cc = ox * ox + oy * oy - radius ** 2
+    disc = b * b - 4 * a * cc
+    sq = disc.clamp_min(0).sqrt()
+    t = (-b - sq) / (2 * a)
+    z = o[..., 2] + t * d[..., 2]
+    ok = (disc >= 0) & (t > eps) & (z >= z01[..., 0]) & (z <= z01[..., 1])
+    return torch.where(ok, t, float("inf"))
+
+
+def _cast_boxes(o, d, g: Geometry, eps: float) -> torch.Tensor:
+    # o: (M, 3) or (1, 3), d: (M, 3) -> (M, B)
+    c, s = torch.cos(g.box_yaw), torch.sin(g.box_yaw)                       # (B,)
+    return _slab_t(o[:, None, :], d[:, None, :], g.box_center[None], g.box_half[None], c[None], s[None], eps)
 
 
 def _box_normal(p: torch.Tensor, g: Geometry, j: torch.Tensor) -> torch.Tensor:
@@ -275,18 +298,8 @@ def _box_normal(p: torch.Tensor, g: Geometry, j: torch.Tensor) -> torch.Tensor:
 
 
 def _cast_cylinders(o, d, g: Geometry, eps: float):
-    ox = o[:, None, 0] - g.cyl_center[None, :, 0]
-    oy = o[:, None, 1] - g.cyl_center[None, :, 1]
-    dx, dy = d[:, None, 0], d[:, None, 1]
-    a = (dx * dx + dy * dy).clamp_min(1e-12)
-    b = 2 * (ox * dx + oy * dy)
-    cc = ox * ox + oy * oy - g.cyl_radius[None] ** 2
-    disc = b * b - 4 * a * cc
-    sq = disc.clamp_min(0).sqrt()
-    t = (-b - sq) / (2 * a)
-    z = o[:, None, 2] + t * d[:, None, 2]
-    ok = (disc >= 0) & (t > eps) & (z >= g.cyl_z[None, :, 0]) & (z <= g.cyl_z[None, :, 1])
-    return torch.where(ok, t, float("inf"))
+    # o: (M, 3) or (1, 3), d: (M, 3) -> (M, C)
+    return _cyl_t(o[:, None, :], d[:, None, :], g.cyl_center[None], g.cyl_radius[None], g.cyl_z[None], eps)
 
 
 def _subset(g: Geometry, bi: torch.Tensor, ci: torch.Tensor) -> Geometry:
@@ -374,6 +387,8 @@ def ray_cast(geometry: Geometry, origins: torch.Tensor, directions: torch.Tensor
         p_az = torch.atan2(rel[:, 1], rel[:, 0])
         always = dist_xy <= br + 1e-3                         # origin above/below/inside: any azimuth
         p_half = torch.asin((br / dist_xy.clamp_min(1e-6)).clamp(max=1.0))
+        # a primitive whose bounding sphere lies beyond max_range cannot give a kept hit
+        in_range = rel.norm(dim=1) - br <= max_range + 1e-3
         nbox = g.box_center.shape[0]
     else:
         order = torch.arange(m, device=dev)
@@ -387,7 +402,7 @@ def ray_cast(geometry: Geometry, origins: torch.Tensor, directions: torch.Tensor
             a0, a1 = az.min(), az.max()
             mid, half = 0.5 * (a0 + a1), 0.5 * (a1 - a0)
             diff = torch.remainder(p_az - mid + math.pi, 2 * math.pi) - math.pi
-            keep = always | (diff.abs() <= half + p_half + 1e-4)
+            keep = (always | (diff.abs() <= half + p_half + 1e-4)) & in_range
             gg = _subset(g, torch.nonzero(keep[:nbox])[:, 0], torch.nonzero(keep[nbox:])[:, 0])
         bt, bn, bm, bv = _cast_chunk(oc, dc, gg, eps)
         t_all[idx], n_all[idx], mat_all[idx], vel_all[idx] = bt, bn, bm, bv
