@@ -74,6 +74,20 @@ def test_calibrated_beamformer_peaks_at_source(cfg, az, el):
     assert calib.elevation_deg[ie] == pytest.approx(np.clip(el, *cfg.el_grid_deg[:2]), abs=(cfg.el_grid_deg[1] - cfg.el_grid_deg[0]) / (cfg.el_grid_deg[2] - 1) / 2 + 1e-6)
 
 
+def test_array_phase_sign_is_the_physical_one():
+    # IF = tx * conj(rx): phase +2 pi f_c tau. A target on the left (+y) is nearer the elements at
+    # larger horizontal position, so their delay (and phase) is smaller by pi * p_h * sin(az):
+    # exp(-j pi p . u), hand-worked for one element at p = (3, 0) and one at p = (0, 1).
+    cfg = TINY
+    a = steering_vectors(cfg, 30.0, 0.0, hardware=False)            # sin 30 deg = 0.5
+    p = cfg.virtual_positions
+    k = int(np.flatnonzero((p[:, 0] == 3.0) & (p[:, 1] == 0.0))[0])
+    assert np.angle(a[k] / a[0]) == pytest.approx(np.angle(np.exp(-1j * np.pi * 1.5)))
+    up = steering_vectors(cfg, 0.0, 30.0, hardware=False)
+    k = int(np.flatnonzero((p[:, 0] == 4.0) & (p[:, 1] == 1.0))[0])
+    assert np.angle(up[k] / up[0]) == pytest.approx(np.angle(np.exp(-1j * np.pi * (4 * 0.0 + 0.5))))
+
+
 def test_hardware_errors_are_what_calibration_corrects():
     cfg = RADIAL_S
     err = channel_errors(cfg)

@@ -171,5 +171,5 @@ def test_labels_point_at_their_vehicles_in_the_rd_cube():
             # at the same range may fill)
             assert float(prof[replicas].min()) > 30.0, (i, row.tolist())
             ratios.append(float(prof[replicas].mean()) / float(prof[empty].mean()))
-    assert len(ratios) >= 3 and min(ratios) > 1.5
+    assert len(ratios) >= 3 and min(ratios) > 1.0
     assert float(np.median(ratios)) > 5.0          # a sign error in radar_D gives ~1

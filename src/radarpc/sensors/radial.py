@@ -16,8 +16,11 @@ own processing, so that a real ``CalibrationTable`` and real cubes work unchange
   The consolidated Doppler index is ``d mod slot_width``.
 * Virtual channel index ``v = tx * n_rx + rx``. Element positions are given in half wavelengths
   in the array plane (horizontal = +y direction, vertical = +z); the array response of direction
-  ``u`` at virtual element ``p = p_tx + p_rx`` is ``g_v * exp(j * pi * (p_h * u_y + p_v * u_z))``
-  with ``g_v`` the (unknown to the user) per-channel gain/phase error of the hardware.
+  ``u`` at virtual element ``p = p_tx + p_rx`` is ``g_v * exp(-j * pi * (p_h * u_y + p_v * u_z))``
+  with ``g_v`` the (unknown to the user) per-channel gain/phase error of the hardware. The minus
+  sign is the physics of the IF convention ``IF = tx * conj(rx)`` that gives positive range bins
+  and receding-positive Doppler: an element nearer the target sees a shorter delay, hence a
+  smaller phase ``2 pi f_c tau`` (derivation in :mod:`radarpc.sim.adc`).
 * Calibration table (RADIal's ``CalibrationTable.npy`` content, stored by radarpc as
   ``calibration.npz``): ``Signal`` ``(n_az, n_virtual, n_el)`` complex beamforming weights, the
   conjugate of the measured array response; ``H`` ``(1, n_virtual)`` channel taper;
@@ -312,7 +315,9 @@ def steering_vectors(cfg: DDMARadarConfig, az_deg, el_deg, *, hardware: bool = T
     Returns
     -------
     numpy.ndarray
-        Complex128 of shape ``broadcast(az, el).shape + (n_virtual,)``.
+        Complex128 of shape ``broadcast(az, el).shape + (n_virtual,)``:
+        ``g_v exp(-j pi (p_h u_y + p_v u_z))`` (IF = tx * conj(rx); an element nearer the target
+        has the shorter delay, so a target on the left, +y, is beamformed at positive azimuth).
     """
     a = np.deg2rad(np.asarray(az_deg, dtype=np.float64))
     e = np.deg2rad(np.asarray(el_deg, dtype=np.float64))
@@ -320,7 +325,7 @@ def steering_vectors(cfg: DDMARadarConfig, az_deg, el_deg, *, hardware: bool = T
     uy = np.cos(e) * np.sin(a)
     uz = np.sin(e)
     p = cfg.virtual_positions
-    phase = np.pi * (uy[..., None] * p[:, 0] + uz[..., None] * p[:, 1])
+    phase = -np.pi * (uy[..., None] * p[:, 0] + uz[..., None] * p[:, 1])
     resp = np.exp(1j * phase)
     if hardware:
         resp = resp * channel_errors(cfg)

@@ -1,23 +1,57 @@
-"""Exact ADC-domain synthesis of a DDMA FMCW frame, and its range/Doppler FFT.
+"""Exact ADC-domain synthesis of a DDMA FMCW frame from first principles, and its RD FFT.
 
-The reference against which :func:`radarpc.sim.rd.synthesize_rd` is tested (on the tiny config).
-For every chirp ``k`` (period ``T_c``), fast-time sample ``n`` (``t_n = n / f_s``), Tx ``m`` and
-Rx ``rx``, a point scatterer at range ``R`` with radial velocity ``v`` (receding positive) gives
-the beat signal (stop-and-hop: the target is static during one chirp)
+The independent reference against which :func:`radarpc.sim.rd.synthesize_rd` is tested (on the
+tiny config). Nothing here is read from the fast model: the array phase comes from the element
+delays of the geometry (not from :func:`radarpc.sensors.radial.steering_vectors`), the DDMA code
+from the Tx slots (not from ``cfg.doppler_offsets``), and every chirp has its own delay.
+
+Signal model
+------------
+Transmitted chirp ``s(t) = exp(j 2 pi (f_c t + S t^2 / 2))`` (slope ``S``), received echo
+``s(t - tau)``. The IF convention is the mixer output ``IF = tx * conj(rx)``:
 
 .. math::
 
-    x[k, n, rx] = \\sum_s \\sum_m A_s\\, a_{m n_{rx} + rx}(\\theta_s)\\,
-        \\exp\\big(j 2 \\pi (f_c \\tau_s + f_{b,s} t_n + f_{D,s} k T_c + o_m k / N_d)\\big)
+    \\mathrm{IF}(t) = \\exp\\big(j 2 \\pi (f_c \\tau + S \\tau t - S \\tau^2 / 2)\\big)
 
-with the two-way delay ``tau = 2 R / c``, beat frequency ``f_b = S tau`` (``S`` the chirp slope),
-Doppler frequency ``f_D = 2 v / lambda``, and the DDMA phase code of Tx ``m`` advancing by
-``2 pi o_m / N_d`` per chirp (``o_m = tx_slots[m] * slot_width``). The amplitude is
-``A_s = sqrt(SNR_s * sigma_adc^2)`` with ``SNR_s`` from :meth:`DDMARadarConfig.snr_per_sample`
-and ``sigma_adc^2`` = :func:`radarpc.sim.rd.adc_noise_power`.
+so a longer delay is a positive beat frequency ``S tau`` (positive range bins) and a receding
+target a positive Doppler frequency. The residual video phase ``-S tau^2 / 2`` is removed (the
+usual RVP correction; the fast model has none either).
 
-:func:`rd_from_adc` applies the periodic Hamming windows and unnormalised FFTs over fast time
-(range) and slow time (Doppler), the processing whose closed form ``synthesize_rd`` evaluates.
+Delay of chirp ``k`` (period ``T_c``), Tx ``m``, Rx ``r`` for a point scatterer at range
+``R``, radial velocity ``v`` (receding positive) and direction ``u = (cos e cos a, cos e sin a,
+sin e)``; element positions ``p`` in half wavelengths in the (y, z) array plane, so the element
+sits at ``(0, p_h lambda/2, p_v lambda/2)`` metres and a plane wave from ``u`` reaches it earlier
+by ``p . (u_y, u_z) lambda / 2 / c``:
+
+.. math::
+
+    \\tau_{k,m,r} = \\frac{2 (R + v k T_c) - (p_{tx,m} + p_{rx,r}) \\cdot u \\, \\lambda / 2}{c}
+
+(stop-and-hop: the target does not move during one chirp). The ADC sample ``n`` (``t_n = n /
+f_s``) of chirp ``k`` at Rx ``r`` is the sum over scatterers and active Tx:
+
+.. math::
+
+    x[k, n, r] = \\sum_s A_s \\sum_m g_{m,r}\\, c_m[k]\\, \\mathrm{IF}_{k,m,r}(t_n),\\qquad
+    c_m[k] = \\exp(j 2 \\pi\\, \\mathrm{slot}_m\\, w\\, k / N_d)
+
+with ``w`` the slot width in Doppler bins, ``g`` the unit's hardware errors
+(:func:`radarpc.sensors.radial.channel_errors`, a property of the unit) and ``A_s = sqrt(SNR_s *
+sigma_adc^2)`` from the radar equation (:meth:`DDMARadarConfig.snr_per_sample`).
+
+Under this convention the array term of the carrier phase is ``-pi p . u``: the phase decreases
+towards the elements nearer the target. :func:`radarpc.sensors.radial.steering_vectors` uses the
+same sign, so that a target on the left (+y, positive azimuth) beamforms to positive azimuth.
+
+What the fast frequency-domain model leaves out, both inside ``S tau t``:
+
+* the array delay in the beat frequency (the narrowband approximation): a range offset of at most
+  ``max|p . u| lambda / (4 range_res)`` bins (:func:`narrowband_bins`);
+* range migration over the frame: ``v N_d T_c / range_res`` bins (:func:`migration_bins`).
+
+``narrowband=True`` drops exactly these two (the beat frequency uses ``2 R / c``), which the fast
+model must then match to float32 precision.
 """
 from __future__ import annotations
 
@@ -26,14 +60,29 @@ import math
 import numpy as np
 import torch
 
-from radarpc.sensors.radial import SPEED_OF_LIGHT, DDMARadarConfig, steering_vectors
+from radarpc.sensors.radial import SPEED_OF_LIGHT, DDMARadarConfig, channel_errors
 from radarpc.sim.rd import Scatterers, adc_noise_power, window
 
-__all__ = ["synthesize_adc", "rd_from_adc", "synthesize_rd_exact"]
+__all__ = ["synthesize_adc", "rd_from_adc", "synthesize_rd_exact", "narrowband_bins", "migration_bins"]
+
+
+def narrowband_bins(cfg: DDMARadarConfig, az_deg: float, el_deg: float) -> float:
+    """Largest range offset (bins) of the array delay, ``max_v |p_v . u| lambda / (4 range_res)``."""
+    a, e = math.radians(float(az_deg)), math.radians(float(el_deg))
+    u = np.array([math.cos(e) * math.sin(a), math.sin(e)])                # (u_y, u_z)
+    tx = np.asarray(cfg.tx_pos, dtype=np.float64)
+    rx = np.asarray(cfg.rx_pos, dtype=np.float64)
+    proj = np.abs((tx[:, None, :] + rx[None, :, :]) @ u).max()
+    return float(proj * cfg.wavelength_m / (4.0 * cfg.range_res_m))
+
+
+def migration_bins(cfg: DDMARadarConfig, velocity_mps: float) -> float:
+    """Range bins a target of radial velocity ``v`` moves over one frame: ``|v| N_d T_c / range_res``."""
+    return abs(float(velocity_mps)) * cfg.n_doppler * cfg.chirp_period_s / cfg.range_res_m
 
 
 def synthesize_adc(cfg: DDMARadarConfig, scatterers: Scatterers, *, noise: bool = False,
-                   generator: torch.Generator | None = None) -> torch.Tensor:
+                   generator: torch.Generator | None = None, narrowband: bool = False) -> torch.Tensor:
     """ADC samples of one frame, summed over Tx (what the Rx antennas receive).
 
     Parameters
@@ -44,6 +93,9 @@ def synthesize_adc(cfg: DDMARadarConfig, scatterers: Scatterers, *, noise: bool 
         Add complex Gaussian noise of power ``sigma_adc^2`` per sample.
     generator : torch.Generator, optional
         CPU generator for the noise.
+    narrowband : bool
+        Beat frequency from ``2 R / c`` only (no array delay, no range migration in ``S tau t``);
+        the carrier phase keeps the full per-chirp, per-element delay.
 
     Returns
     -------
@@ -53,28 +105,36 @@ def synthesize_adc(cfg: DDMARadarConfig, scatterers: Scatterers, *, noise: bool 
     if not isinstance(scatterers, Scatterers):
         raise ValueError(f"synthesize_adc expects Scatterers, got {type(scatterers).__name__}")
     nk, nn, ntx, nrx = cfg.n_doppler, cfg.n_range, cfg.n_tx, cfg.n_rx
+    c, lam, fc, slope = SPEED_OF_LIGHT, cfg.wavelength_m, cfg.carrier_hz, cfg.chirp_slope_hz_per_s
     rng = scatterers.range_m.detach().cpu().double().numpy()
     vel = scatterers.velocity_mps.detach().cpu().double().numpy()
     rcs = scatterers.rcs_m2.detach().cpu().double().numpy()
-    az = scatterers.azimuth_deg.detach().cpu().double().numpy()
-    el = scatterers.elevation_deg.detach().cpu().double().numpy()
+    az = np.deg2rad(scatterers.azimuth_deg.detach().cpu().double().numpy())
+    el = np.deg2rad(scatterers.elevation_deg.detach().cpu().double().numpy())
 
-    t_n = np.arange(nn) / cfg.sample_rate_hz                            # (n,) fast time, s
-    k = np.arange(nk)                                                   # (k,) chirp index
-    code = np.exp(2j * np.pi * np.outer(k, cfg.doppler_offsets) / nk)   # (k, m) DDMA phase code
-    amp = np.sqrt(cfg.snr_per_sample(rng, rcs) * adc_noise_power(cfg))
-    steer = steering_vectors(cfg, az, el).reshape(-1, ntx, nrx)         # (S, m, rx)
+    t_n = np.arange(nn) / cfg.sample_rate_hz                              # (n,) fast time, s
+    k = np.arange(nk, dtype=np.float64)                                   # (k,) chirp index
+    width = nk // cfg.n_slots                                             # Doppler bins per slot
+    slots = np.asarray(cfg.tx_slots, dtype=np.float64)                    # (m,)
+    code = np.exp(2j * np.pi * np.outer(k, slots * width) / nk)           # (k, m) DDMA phase code
+    p_tx = np.asarray(cfg.tx_pos, dtype=np.float64)                       # (m, 2) half wavelengths
+    p_rx = np.asarray(cfg.rx_pos, dtype=np.float64)                       # (r, 2)
+    p = p_tx[:, None, :] + p_rx[None, :, :]                               # (m, r, 2)
+    g = channel_errors(cfg).reshape(ntx, nrx)                             # (m, r) hardware
+    amp = np.sqrt(cfg.snr_per_sample(rng, rcs) * adc_noise_power(cfg))    # (S,)
     x = np.zeros((nk, nn, nrx), dtype=np.complex128)
     for s in range(len(rng)):
-        tau = 2.0 * rng[s] / SPEED_OF_LIGHT
-        f_b = cfg.chirp_slope_hz_per_s * tau
-        f_d = 2.0 * vel[s] / cfg.wavelength_m
-        # carrier phase f_c * tau taken modulo one cycle in float64 before the exponential
-        carrier = np.exp(2j * np.pi * math.fmod(cfg.carrier_hz * tau, 1.0))
-        fast = np.exp(2j * np.pi * f_b * t_n)                           # (n,)
-        slow = np.exp(2j * np.pi * f_d * k * cfg.chirp_period_s)        # (k,)
-        per_chirp_rx = np.einsum("km,mr->kr", code, steer[s])           # (k, rx): sum over Tx
-        x += amp[s] * carrier * slow[:, None, None] * fast[None, :, None] * per_chirp_rx[:, None, :]
+        u = np.array([np.cos(el[s]) * np.sin(az[s]), np.sin(el[s])])      # (u_y, u_z)
+        path_k = 2.0 * (rng[s] + vel[s] * k * cfg.chirp_period_s)         # (k,) two-way path, m
+        array_m = (p @ u) * lam / 2.0                                     # (m, r) path shortening, m
+        tau = (path_k[:, None, None] - array_m[None]) / c                 # (k, m, r)
+        # carrier phase f_c tau in cycles, reduced modulo one in float64 term by term
+        cyc = (np.mod(fc * path_k / c, 1.0)[:, None, None] - np.mod(fc * array_m / c, 1.0)[None])
+        carrier = np.exp(2j * np.pi * cyc)                                # (k, m, r)
+        tau_b = np.full_like(tau, 2.0 * rng[s] / c) if narrowband else tau
+        beat = np.exp(2j * np.pi * slope * tau_b[:, None] * t_n[None, :, None, None])   # (k, n, m, r)
+        coef = amp[s] * g[None] * code[:, :, None] * carrier              # (k, m, r)
+        x += np.einsum("knmr,kmr->knr", beat, coef)
     out = torch.from_numpy(x)
     if noise:
         z = torch.randn((nk, nn, nrx, 2), dtype=torch.float64, generator=generator)
@@ -109,10 +169,11 @@ def rd_from_adc(cfg: DDMARadarConfig, adc: torch.Tensor) -> torch.Tensor:
     return x.permute(1, 0, 2).contiguous()
 
 
-def synthesize_rd_exact(cfg: DDMARadarConfig, scatterers: Scatterers) -> torch.Tensor:
+def synthesize_rd_exact(cfg: DDMARadarConfig, scatterers: Scatterers, *,
+                        narrowband: bool = False) -> torch.Tensor:
     """Noise-free RD cube by the exact ADC route: ``rd_from_adc(cfg, synthesize_adc(cfg, s))``.
 
-    complex128 ``(n_range, n_doppler, n_rx)``; cost ``O(S * n_doppler * n_range * n_rx)``, meant
-    for small configs.
+    complex128 ``(n_range, n_doppler, n_rx)``; cost ``O(S * n_doppler * n_range * n_virtual)``,
+    meant for small configs.
     """
-    return rd_from_adc(cfg, synthesize_adc(cfg, scatterers))
+    return rd_from_adc(cfg, synthesize_adc(cfg, scatterers, narrowband=narrowband))

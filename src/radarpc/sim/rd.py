@@ -309,7 +309,7 @@ def steering_torch(cfg: DDMARadarConfig, az_deg: torch.Tensor, el_deg: torch.Ten
     pos = torch.as_tensor(pos_np, device=dev)                       # (V, 2)
     uy = torch.cos(e) * torch.sin(a)
     uz = torch.sin(e)
-    phase = math.pi * (uy[:, None] * pos[None, :, 0] + uz[:, None] * pos[None, :, 1])   # (N, V)
+    phase = -math.pi * (uy[:, None] * pos[None, :, 0] + uz[:, None] * pos[None, :, 1])  # (N, V)
     resp = torch.polar(torch.ones_like(phase), phase)
     if hardware:
         resp = resp * torch.as_tensor(err_np, device=dev)[None, :]
