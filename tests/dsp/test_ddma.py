@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from radarpc.dsp.ddma import (check_rd, rd_envelope, replica_bins, resolve_tx0_doppler,
+from radarpc.dsp.ddma import (check_rd, ddma_envelope, rd_envelope, replica_bins, resolve_tx0_doppler,
                               rx_magnitude_sum, virtual_snapshots)
 from radarpc.sensors.radial import RADIAL_S, TINY
 from radarpc.sim.rd import Scatterers, synthesize_rd
@@ -17,9 +17,9 @@ def _random_rd(cfg, b, seed=0):
 
 
 @pytest.mark.parametrize("cfg", [TINY, RADIAL_S])
-def test_envelope_matches_numpy(cfg):
+def test_all_slots_envelope_matches_numpy(cfg):
     rd = _random_rd(cfg, 2)
-    e = rd_envelope(rd, cfg)
+    e = rd_envelope(rd, cfg, envelope="all-slots")
     x = rd.numpy().astype(np.complex128)
     a = np.abs(x).sum(-1)                                            # (B, Nr, Nd)
     ref = np.zeros((2, cfg.n_range, cfg.slot_width))
@@ -28,7 +28,7 @@ def test_envelope_matches_numpy(cfg):
     assert e.shape == (2, cfg.n_range, cfg.slot_width)
     np.testing.assert_allclose(e.numpy(), ref, rtol=1e-5)
     np.testing.assert_allclose(rx_magnitude_sum(rd).numpy(), a, rtol=1e-5)
-    np.testing.assert_allclose(rd_envelope(rd[1], cfg)[0].numpy(), ref[1], rtol=1e-5)
+    np.testing.assert_allclose(rd_envelope(rd[1], cfg, "all-slots")[0].numpy(), ref[1], rtol=1e-5)
 
 
 def _tx0_reference(a_rl: np.ndarray, cfg, l: int) -> int:
@@ -39,6 +39,33 @@ def _tx0_reference(a_rl: np.ndarray, cfg, l: int) -> int:
     c = np.cumsum(ext)
     mean_after = (c[g:] - c[:-g]) / g              # mean of x[s+1..s+g]
     return int(np.argmin(mean_after)) * cfg.slot_width + l
+
+
+@pytest.mark.parametrize("cfg", [TINY, RADIAL_S])
+def test_replica_envelope_is_the_sum_over_the_replica_bins(cfg):
+    # seed eq. 1: for every consolidated cell, sum_rx |R| summed over its n_tx replica bins (12 for
+    # RADIAL_S), the bins of the Tx-0 hypothesis of RADIal's gap rule; the empty slots are left out
+    rd = _random_rd(cfg, 2, seed=3)
+    e = rd_envelope(rd, cfg)                                          # default: replicas
+    a = np.abs(rd.numpy().astype(np.complex128)).sum(-1)              # (B, Nr, Nd)
+    ref = np.zeros((2, cfg.n_range, cfg.slot_width))
+    d0_ref = np.zeros(ref.shape, dtype=np.int64)
+    for b in range(2):
+        for r in range(cfg.n_range):
+            for l in range(cfg.slot_width):
+                d0 = _tx0_reference(a[b, r], cfg, l)
+                bins = [(d0 + int(o)) % cfg.n_doppler for o in cfg.doppler_offsets]
+                assert len(set(bins)) == cfg.n_tx
+                ref[b, r, l] = a[b, r, bins].sum()
+                d0_ref[b, r, l] = d0
+    assert e.shape == ref.shape
+    np.testing.assert_allclose(e.numpy(), ref, rtol=1e-5)
+    # strictly less than the all-slot sum (the noise of the empty slots is not added)
+    assert bool((e < rd_envelope(rd, cfg, envelope="all-slots")).all())
+    env = ddma_envelope(rx_magnitude_sum(rd), cfg)                   # the same search gives d0
+    np.testing.assert_array_equal((env.tx0_slot * cfg.slot_width + torch.arange(cfg.slot_width)).numpy(), d0_ref)
+    with pytest.raises(ValueError, match="envelope must be one of"):
+        rd_envelope(rd, cfg, envelope="sum")
 
 
 @pytest.mark.parametrize("cfg", [TINY, RADIAL_S])

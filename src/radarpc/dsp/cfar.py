@@ -12,7 +12,9 @@ what RADIal's ``convolve2d(..., mode='same') / convolve2d(ones, ...)`` computes)
 
 Note on RADIal's ``rpl.py``: its ``win_param=(9, 9, 3, 3)`` are *half* widths (a 19 x 19 window
 with a 7 x 7 guard). radarpc follows the seed paper's wording ("9 x 9 window with a 3 x 3
-guard") with full widths; pass ``window=(19, 19), guard=(7, 7)`` to reproduce rpl.py exactly.
+guard") with full widths; pass ``window=(19, 19), guard=(7, 7)`` to reproduce rpl.py exactly
+(CLI: ``--cfar radial``, which also selects rpl.py's all-slot envelope). RADIal's threshold
+``tau = 1.585`` (2 dB) was chosen for *that* geometry and envelope.
 
 SNR is the linear ratio of the cell's power to the noise estimate; a cell is detected when
 ``snr > tau`` (RADIal's default threshold 2 dB is ``tau = 10 ** 0.2 = 1.585``).
@@ -28,9 +30,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["CFARResult", "ca_cfar", "os_cfar"]
+__all__ = ["CFARResult", "RADIAL_TAU", "ca_cfar", "os_cfar", "check_window", "check_tau"]
 
 Array = torch.Tensor | np.ndarray
+
+RADIAL_TAU = 10 ** (2 / 10)
+"""RADIal rpl.py's CA-CFAR threshold, 2 dB as a linear SNR (for its 19 x 19 / 7 x 7 geometry)."""
 
 # OS-CFAR sorts every cell's training values: the stacked neighbourhoods are built in blocks of
 # at most this many bytes.
@@ -74,7 +79,20 @@ def _as_sizes(name: str, v: int | Sequence[int]) -> tuple[int, ...]:
     return t
 
 
-def _check_window(window, guard) -> tuple[tuple[int, ...], tuple[int, ...]]:
+def check_tau(tau: float) -> float:
+    """Validate a CFAR threshold: a finite linear SNR ``> 0`` (2 dB = 1.585); returns it as float."""
+    if isinstance(tau, bool) or not isinstance(tau, (int, float, np.integer, np.floating)) \
+            or not (math.isfinite(float(tau)) and float(tau) > 0):
+        raise ValueError(f"tau must be a finite linear SNR threshold > 0 (2 dB = 1.585), got {tau!r}")
+    return float(tau)
+
+
+def check_window(window, guard) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """Validate CFAR ``window`` / ``guard`` (full odd side lengths, 1-3 axes, guard < window).
+
+    Returns both as tuples of int. The one implementation every caller (detectors, point-cloud
+    config, conversion settings, CLI) uses.
+    """
     w = _as_sizes("window", window)
     g = _as_sizes("guard", guard)
     if len(w) != len(g):
@@ -188,7 +206,7 @@ def ca_cfar(power: Array, window: int | Sequence[int] = (9, 9),
     >>> bool((r.snr == 1).all())
     True
     """
-    w, g = _check_window(window, guard)
+    w, g = check_window(window, guard)
     x, is_np = _to_power(power, len(w))
     spatial = tuple(x.shape[x.ndim - len(w):])
     total = _ring_sum(x, w, g)
@@ -229,7 +247,7 @@ def os_cfar(power: Array, window: int | Sequence[int], guard: int | Sequence[int
     -------
     CFARResult
     """
-    w, g = _check_window(window, guard)
+    w, g = check_window(window, guard)
     x, is_np = _to_power(power, len(w))
     offsets = _ring_offsets(w, g)
     n_full = len(offsets)

@@ -5,15 +5,22 @@ Conventions are those of :mod:`radarpc.sensors.radial` (and of RADIal's ``rpl.py
 Tx ``m`` at bin ``(d0 + doppler_offsets[m]) mod N_D``. The seed's quantities become
 
 * ``A(r, d) = sum_rx |R(rx, r, d)|``                       magnitude sum over receivers;
-* ``E(r, l) = sum_{s < n_slots} A(r, s * W + l)``          RD envelope, ``l = d mod W`` (eq. 1);
-* ``T(r, l) = {(d0 + doppler_offsets[m]) mod N_D}_m``      the M = n_tx replica bins of a peak;
+* ``T(r, l) = {(d0 + doppler_offsets[m]) mod N_D}_m``      the M = n_tx replica bins of a cell;
+* ``E(r, l) = sum_{d in T(r, l)} A(r, d)``                 RD envelope, ``l = d mod W`` (eq. 1:
+  power summed over the Rx, then over the Tx-replica bins of the consolidated cell);
+* ``E_all(r, l) = sum_{s < n_slots} A(r, s W + l)``         RADIal ``rpl.py``'s envelope, which also
+  adds the ``n_empty_slots`` noise-only slots (``envelope="all-slots"``);
 * ``v_j = vec(R[r_j, T(r_j, l_j), :])``                    the Tx-major virtual snapshot (eq. 4).
 
 The DDMA hypothesis (which slot holds Tx 0) is resolved from the empty slots: the ``n_slots``
 values ``A(r, l + s W)`` are read circularly and the window of ``n_empty_slots`` consecutive
-slots with the least mean power is the gap; the slot just before it is Tx 0's.
+slots with the least mean power is the gap; the slot just before it is Tx 0's. The replica
+sum is then ``E = E_all - min_s G_s`` with ``G_s`` the window sums of that search
+(:func:`ddma_envelope` computes both at once).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 
@@ -23,12 +30,21 @@ __all__ = [
     "check_rd",
     "rx_magnitude_sum",
     "consolidate",
+    "ENVELOPES",
+    "DDMAEnvelope",
+    "gap_window_sums",
+    "ddma_envelope",
     "rd_envelope",
     "check_finite_envelope",
+    "check_envelope_kind",
     "resolve_tx0_doppler",
     "replica_bins",
     "virtual_snapshots",
 ]
+
+ENVELOPES = ("replicas", "all-slots")
+"""Envelope kinds: the seed's sum over the ``n_tx`` replica bins, or RADIal rpl.py's sum over
+every slot (empty slots included)."""
 
 # Rows of the (B * Nr) axis processed per block on CPU: keeps the |.| intermediates in cache.
 _CPU_BLOCK_BYTES = 1 << 21
@@ -88,20 +104,90 @@ def consolidate(a: torch.Tensor, cfg: DDMARadarConfig) -> torch.Tensor:
     return a.reshape(shape).sum(-2)
 
 
-def rd_envelope(rd: torch.Tensor, cfg: DDMARadarConfig) -> torch.Tensor:
-    """RD envelope ``E(r, l) = sum_s sum_rx |R(rx, r, s W + l)|`` (the seed's consolidated map).
+def check_envelope_kind(envelope: str) -> str:
+    """Validate an envelope kind (one of :data:`ENVELOPES`)."""
+    if envelope not in ENVELOPES:
+        raise ValueError(f"envelope must be one of {ENVELOPES} ('replicas' = seed eq. 1, sum over the "
+                         f"n_tx replica bins; 'all-slots' = RADIal rpl.py, sum over every slot), got {envelope!r}")
+    return envelope
+
+
+def gap_window_sums(x: torch.Tensor, n_gap: int, dim: int = -1) -> torch.Tensor:
+    """``G_s = x_{s+1} + ... + x_{s+n_gap}`` (indices mod ``n_slots``) along the slot axis ``dim``.
+
+    The sums of the circular windows of ``n_gap`` consecutive slots *after* slot ``s``; the gap
+    follows Tx 0, so ``argmin_s G_s`` is Tx 0's slot. One implementation (sequential adds in the
+    same order) serves the whole-map envelope and the per-peak search, so both resolve the same
+    slot bit for bit.
+    """
+    out = x.roll(-1, dims=dim)
+    for k in range(2, n_gap + 1):
+        out = out + x.roll(-k, dims=dim)
+    return out
+
+
+@dataclass
+class DDMAEnvelope:
+    """Consolidated maps of a batch of cubes.
+
+    Attributes
+    ----------
+    mag_sum : Tensor ``(B, Nr, Nd)``      ``A = sum_rx |R|``
+    all_slots : Tensor ``(B, Nr, W)``     ``E_all``: sum over every slot (RADIal rpl.py)
+    replicas : Tensor ``(B, Nr, W)``      ``E``: sum over the ``n_tx`` replica bins (seed eq. 1)
+    tx0_slot : LongTensor ``(B, Nr, W)``  slot of the Tx-0 replica of every cell
+    """
+
+    mag_sum: torch.Tensor
+    all_slots: torch.Tensor
+    replicas: torch.Tensor
+    tx0_slot: torch.Tensor
+
+    def envelope(self, kind: str) -> torch.Tensor:
+        """``replicas`` or ``all_slots`` by kind (:data:`ENVELOPES`)."""
+        return self.replicas if check_envelope_kind(kind) == "replicas" else self.all_slots
+
+    def tx0_doppler(self, batch_idx: torch.Tensor, range_idx: torch.Tensor,
+                    cons_idx: torch.Tensor) -> torch.Tensor:
+        """Full Doppler bin ``d0 = slot * W + l`` of the Tx-0 replica of cells ``(b, r, l)``: ``(P,)``."""
+        w = self.all_slots.shape[-1]
+        return self.tx0_slot[batch_idx, range_idx, cons_idx] * w + cons_idx
+
+
+def ddma_envelope(a: torch.Tensor, cfg: DDMARadarConfig) -> DDMAEnvelope:
+    """Both envelopes and the Tx-0 slot of every consolidated cell from ``A`` ``(B, Nr, Nd)``.
+
+    ``x_s = A(r, s W + l)``, ``G_s`` = :func:`gap_window_sums`, ``s0 = argmin_s G_s`` (first on
+    ties, as :func:`resolve_tx0_doppler`), ``E_all = sum_s x_s`` and ``E = E_all - G_{s0}``: the
+    sum over the ``n_tx`` slots ``s0 + tx_slots`` (the replica bins ``T(r, l)``).
+    """
+    x = a.reshape(a.shape[:-1] + (cfg.n_slots, cfg.slot_width))            # (B, Nr, n_slots, W)
+    e_all = x.sum(-2)                                                       # (B, Nr, W)
+    g = gap_window_sums(x, cfg.n_empty_slots, dim=-2)                       # (B, Nr, n_slots, W)
+    g_min, slot = torch.min(g, dim=-2)                                      # (B, Nr, W) each
+    return DDMAEnvelope(mag_sum=a, all_slots=e_all, replicas=(e_all - g_min).clamp_min_(0.0), tx0_slot=slot)
+
+
+def rd_envelope(rd: torch.Tensor, cfg: DDMARadarConfig, envelope: str = "replicas") -> torch.Tensor:
+    """RD envelope of a cube (batch): the seed's ``E(r, l) = sum_{d in T(r, l)} sum_rx |R(r, d, rx)|``.
 
     Parameters
     ----------
     rd : Tensor, complex, ``(B, Nr, Nd, Nrx)`` or ``(Nr, Nd, Nrx)``
     cfg : DDMARadarConfig
+    envelope : {"replicas", "all-slots"}
+        ``"replicas"`` (default, seed eq. 1): the sum over the ``M = n_tx`` replica bins of each
+        consolidated cell. ``"all-slots"`` = RADIal ``rpl.py``: the sum over all ``n_slots``
+        slots, i.e. plus the ``n_empty_slots`` noise-only slots.
 
     Returns
     -------
     Tensor, real, ``(B, Nr, slot_width)``
     """
+    check_envelope_kind(envelope)
     rd = check_rd(rd, cfg)
-    e = consolidate(rx_magnitude_sum(rd), cfg)
+    a = rx_magnitude_sum(rd)
+    e = consolidate(a, cfg) if envelope == "all-slots" else ddma_envelope(a, cfg).replicas
     check_finite_envelope(e)
     return e
 
@@ -156,9 +242,8 @@ def resolve_tx0_doppler(rd_mag_sum: torch.Tensor, cfg: DDMARadarConfig, range_id
         x = a.view(-1).take((b * a.shape[1] + r).unsqueeze(-1) * a.shape[2] + cols)
     else:
         x = a[b.unsqueeze(-1) if b.ndim else b, r.unsqueeze(-1), cols]  # (P, n_slots)
-    ext = torch.cat([x, x[:, :g]], dim=1)                          # circular continuation
-    m = ext[:, 1:].unfold(1, g, 1).sum(-1)                         # (P, n_slots): sum of x_{s+1..s+G}
-    slot = torch.argmin(m, dim=1)
+    m = gap_window_sums(x, g, dim=1)                               # (P, n_slots): sum of x_{s+1..s+G}
+    slot = torch.min(m, dim=1).indices
     return slot * w + l
 
 

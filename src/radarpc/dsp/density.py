@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 from radarpc.sensors.radial import DDMARadarConfig
 
-__all__ = ["DENSITY_MODES", "density_of_mask", "max_density", "check_density", "check_neighbourhood",
+__all__ = ["DENSITY_MODES", "density_of_mask", "max_density", "check_density_value", "check_density", "check_neighbourhood",
            "neighbourhood_mask", "neighbourhood_snr", "tau_for_density"]
 
 DENSITY_MODES = ("per-frame", "per-dataset")
@@ -38,13 +38,19 @@ def max_density(cfg: DDMARadarConfig) -> float:
     return cfg.n_tx / cfg.n_slots
 
 
-def check_density(target: float, cfg: DDMARadarConfig) -> float:
-    """Validate a target density: in ``(0, 1]`` and reachable by ``cfg`` (``<= n_tx / n_slots``)."""
+def check_density_value(target: float) -> float:
+    """Validate a target density without a sensor: a number in ``(0, 1]``; returns it as float."""
     if isinstance(target, bool) or not isinstance(target, (int, float)):
         raise ValueError(f"density must be a number in (0, 1], got {target!r}")
     t = float(target)
-    if not 0.0 < t <= 1.0:
+    if not 0.0 < t <= 1.0:   # NaN fails too
         raise ValueError(f"density must be in (0, 1] (fraction of RD cells kept), got {target}")
+    return t
+
+
+def check_density(target: float, cfg: DDMARadarConfig) -> float:
+    """Validate a target density: in ``(0, 1]`` and reachable by ``cfg`` (``<= n_tx / n_slots``)."""
+    t = check_density_value(target)
     if t > max_density(cfg) + 1e-12:
         raise ValueError(f"density {target} is unreachable for sensor {cfg.name!r}: at most "
                          f"n_tx / n_slots = {max_density(cfg):.4f} (every consolidated cell detected)")

@@ -2,14 +2,17 @@
 
 For a batch of per-Rx RD cubes ``R`` (complex ``(B, Nr, Nd, Nrx)``), :class:`SpectralPointCloud`
 
-1. forms the envelope ``E(r, l) = sum_s sum_rx |R(r, s W + l, rx)|`` (:mod:`radarpc.dsp.ddma`);
+1. forms the envelope ``E(r, l) = sum_{d in T(r, l)} sum_rx |R(r, d, rx)|`` over the ``M = n_tx``
+   replica bins of each consolidated cell (seed eq. 1; ``envelope="all-slots"`` sums every slot,
+   empty ones included, as RADIal's ``rpl.py``), and each cell's Tx-0 slot (:mod:`radarpc.dsp.ddma`);
 2. runs CA-CFAR on ``|E|^2`` and keeps ``P(tau) = {(r, l) : |E|^2 / mu(r, l) > tau}`` (eq. 1), with
    ``tau`` fixed or chosen per frame / per dataset so that the density of the *encoded* set hits a
    target (eqs. 2-3, :mod:`radarpc.dsp.density`): ``|S(tau)| / (Nr Nd)``, or ``|S*(tau)| / (Nr Nd)``
    with the RD-neighbourhood enrichment;
 3. optionally enlarges ``P`` to ``P*(tau)``, the union of the ``n x n`` neighbourhoods of its peaks
    truncated at the envelope borders (RD-neighbourhood enrichment, eqs. 8-9);
-4. for every kept cell resolves the DDMA hypothesis (Tx-0 Doppler bin ``d0``), gathers the
+4. for every kept cell takes its DDMA hypothesis (Tx-0 Doppler bin ``d0``, from the same gap
+   search that gave the replica envelope), gathers the
    virtual snapshot ``v_j`` (eq. 4), beamforms ``s_j = |B v_j|`` (eq. 5), and takes
    ``k_j = argmax s_j``, ``Ae_j = s_j[k_j]`` (eqs. 6-7), plus optionally the sector
    descriptor (eq. 10, angle-spectrum enrichment).
@@ -25,7 +28,6 @@ point; ``"patchN"`` fills ``rd_patch`` only; ``"sectorA"`` / ``"sectorAxE"`` add
 from __future__ import annotations
 
 import dataclasses
-import math
 import re
 from dataclasses import dataclass
 from typing import Iterable, Sequence
@@ -34,21 +36,21 @@ import torch
 import torch.nn.functional as F
 
 from radarpc.dsp.beamform import beamform_peaks, stack_real
-from radarpc.dsp.cfar import CFARResult, _check_window, ca_cfar
-from radarpc.dsp.ddma import (check_finite_envelope, check_rd, consolidate, resolve_tx0_doppler,
-                              rx_magnitude_sum, virtual_snapshots)
-from radarpc.dsp.density import (DENSITY_MODES, check_density, density_of_mask, neighbourhood_mask,
-                                 tau_for_density)
+from radarpc.dsp.cfar import RADIAL_TAU, CFARResult, ca_cfar, check_tau, check_window
+from radarpc.dsp.ddma import (DDMAEnvelope, check_envelope_kind, check_finite_envelope, check_rd,
+                              ddma_envelope, rx_magnitude_sum, virtual_snapshots)
+from radarpc.dsp.density import (DENSITY_MODES, check_density, check_density_value, density_of_mask,
+                                 neighbourhood_mask, tau_for_density)
 from radarpc.sensors.radial import Calibration, DDMARadarConfig
 
 __all__ = [
     "SpectralPointCloudConfig",
     "PointCloudBatch",
+    "EncodedSet",
     "SpectralPointCloud",
+    "RADIAL_TAU",
     "offset2batch",
 ]
-
-RADIAL_TAU = 10 ** (2 / 10)  # RADIal's CFAR threshold, 2 dB, as a linear SNR
 
 _RD = re.compile(r"rd(\d+)")
 _PATCH = re.compile(r"patch(\d+)")
@@ -60,7 +62,9 @@ class SpectralPointCloudConfig:
     """Settings of a spectral point cloud; the resolved form is what stores and runs record.
 
     ``density`` set -> the threshold is found from it (``tau`` is then ``None``); otherwise the fixed
-    linear SNR threshold ``tau`` is used.
+    linear SNR threshold ``tau`` is used. ``window`` / ``guard`` are *full* odd side lengths:
+    RADIal ``rpl.py``'s ``(9, 9, 3, 3)`` are half widths, i.e. ``window=(19, 19), guard=(7, 7)``,
+    for which its ``tau = 1.585`` (2 dB) was chosen (with ``envelope="all-slots"``).
     """
 
     tau: float | None = RADIAL_TAU          # fixed linear SNR threshold (RADIal: 2 dB)
@@ -69,9 +73,11 @@ class SpectralPointCloudConfig:
     window: tuple[int, int] = (9, 9)        # CA-CFAR full training window (range, Doppler), odd
     guard: tuple[int, int] = (3, 3)         # CA-CFAR full guard window, odd
     enrich: tuple[str, ...] = ()            # "rdN", "patchN", "sectorA", "sectorAxE"
+    envelope: str = "replicas"              # "replicas" (seed eq. 1) or "all-slots" (RADIal rpl.py)
 
     def __post_init__(self) -> None:
-        w, g = _check_window(_seq(self.window), _seq(self.guard))
+        check_envelope_kind(self.envelope)
+        w, g = check_window(_seq(self.window), _seq(self.guard))
         object.__setattr__(self, "window", w)
         object.__setattr__(self, "guard", g)
         enrich = self.enrich.split(",") if isinstance(self.enrich, str) else self.enrich
@@ -81,18 +87,12 @@ class SpectralPointCloudConfig:
         if self.density_mode not in DENSITY_MODES:
             raise ValueError(f"density_mode must be one of {DENSITY_MODES}, got {self.density_mode!r}")
         if self.density is not None:
-            if isinstance(self.density, bool) or not isinstance(self.density, (int, float)) \
-                    or not 0.0 < float(self.density) <= 1.0:
-                raise ValueError(f"density must be in (0, 1] (fraction of RD cells kept), got {self.density!r}")
-            object.__setattr__(self, "density", float(self.density))
+            object.__setattr__(self, "density", check_density_value(self.density))
             object.__setattr__(self, "tau", None)
         else:
             if self.tau is None:
                 raise ValueError("give a threshold tau or a target density")
-            t = self.tau
-            if isinstance(t, bool) or not isinstance(t, (int, float)) or not (t > 0 and math.isfinite(t)):
-                raise ValueError(f"tau must be a finite linear SNR > 0 (2 dB = 1.585), got {t!r}")
-            object.__setattr__(self, "tau", float(t))
+            object.__setattr__(self, "tau", check_tau(self.tau))
         _ = (self.neighbourhood, self.patch, self.sectors)  # parse now: bad names fail at construction
         kinds = [re.match(r"[a-z]+", e).group(0) if re.match(r"[a-z]+", e) else e for e in self.enrich]
         if len(set(kinds)) != len(kinds):
@@ -235,6 +235,31 @@ class PointCloudBatch:
         return PointCloudBatch(**kw)
 
 
+@dataclass
+class EncodedSet:
+    """Detection of a batch: what a point cloud (and the matching sparse RD) encodes.
+
+    Attributes
+    ----------
+    envelope : DDMAEnvelope          both envelopes, ``A`` and every cell's Tx-0 slot
+    cfar : CFARResult                CA-CFAR of ``|E|^2`` (``E`` the configured envelope)
+    tau : Tensor ``(B,)``            threshold of each frame
+    peaks : BoolTensor ``(B, Nr, W)``   ``P(tau)``, the CFAR peaks
+    kept : BoolTensor ``(B, Nr, W)``    the encoded consolidated cells: ``P*(tau)`` with ``rdN``, else ``P(tau)``
+    """
+
+    envelope: DDMAEnvelope
+    cfar: CFARResult
+    tau: torch.Tensor
+    peaks: torch.Tensor
+    kept: torch.Tensor
+
+    def tx0_doppler(self) -> torch.Tensor:
+        """``d0`` of every kept cell in ``torch.nonzero(kept)`` order: ``(N,)`` long."""
+        b, r, l = torch.nonzero(self.kept, as_tuple=True)
+        return self.envelope.tx0_doppler(b, r, l)
+
+
 class SpectralPointCloud(torch.nn.Module):
     """RD cubes -> spectral point clouds (no learnable parameters; the dictionary is a buffer).
 
@@ -256,8 +281,12 @@ class SpectralPointCloud(torch.nn.Module):
         the module with that ``tau``.
     window, guard : (int, int)
         Full odd CA-CFAR window and guard sizes over (range, consolidated Doppler).
+        RADIal ``rpl.py``'s ``(9, 9, 3, 3)`` are half widths: ``window=(19, 19), guard=(7, 7)``.
     enrich : sequence of str
         ``"rdN"``, ``"patchN"``, ``"sectorA"`` / ``"sectorAxE"`` (see the module docstring).
+    envelope : {"replicas", "all-slots"}
+        ``"replicas"`` (default, seed eq. 1): sum over the ``n_tx`` replica bins of each cell;
+        ``"all-slots"`` = RADIal ``rpl.py``: sum over every DDMA slot, empty ones included.
 
     Examples
     --------
@@ -271,10 +300,10 @@ class SpectralPointCloud(torch.nn.Module):
     def __init__(self, sensor: DDMARadarConfig, calibration: Calibration, tau: float | None = RADIAL_TAU, *,
                  density: float | None = None, density_mode: str = "per-frame",
                  window: Sequence[int] = (9, 9), guard: Sequence[int] = (3, 3),
-                 enrich: Sequence[str] = ()) -> None:
+                 enrich: Sequence[str] = (), envelope: str = "replicas") -> None:
         super().__init__()
         self.config = SpectralPointCloudConfig(tau=tau, density=density, density_mode=density_mode,
-                                               window=window, guard=guard, enrich=enrich)
+                                               window=window, guard=guard, enrich=enrich, envelope=envelope)
         if self.config.density is not None:
             check_density(self.config.density, sensor)
         calibration.check_sensor(sensor)
@@ -294,11 +323,12 @@ class SpectralPointCloud(torch.nn.Module):
                              persistent=False)
 
     # ---- detection ---------------------------------------------------------------------------
-    def _envelope(self, rd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        a = rx_magnitude_sum(rd)                                   # (B, Nr, Nd)
-        e = consolidate(a, self.sensor)                            # (B, Nr, W)
+    def _envelope(self, rd: torch.Tensor) -> tuple[DDMAEnvelope, torch.Tensor]:
+        """Both envelopes (and Tx-0 slots) of ``rd`` ``(B, Nr, Nd, Nrx)``, and the configured ``E`` ``(B, Nr, W)``."""
+        env = ddma_envelope(rx_magnitude_sum(rd), self.sensor)
+        e = env.envelope(self.config.envelope)
         check_finite_envelope(e)
-        return a, e
+        return env, e
 
     def _cfar(self, e: torch.Tensor) -> CFARResult:
         return ca_cfar(e.square(), self.config.window, self.config.guard)
@@ -314,12 +344,26 @@ class SpectralPointCloud(torch.nn.Module):
     def detect(self, rd: torch.Tensor) -> tuple[torch.Tensor, CFARResult, torch.Tensor]:
         """Envelope ``E`` ``(B, Nr, W)``, its CA-CFAR result, and the consolidated peaks ``P(tau)``
         as a bool mask ``(B, Nr, W)`` (CFAR peaks only, before any RD-neighbourhood enlargement; a
-        density target with ``rdN`` sets tau on ``S*(tau)``)."""
+        density target with ``rdN`` sets tau on ``S*(tau)``). See :meth:`encode` for the encoded set."""
+        enc = self.encode(rd)
+        return enc.envelope.envelope(self.config.envelope), enc.cfar, enc.peaks
+
+    @torch.no_grad()
+    def encode(self, rd: torch.Tensor) -> EncodedSet:
+        """Detection of RD cubes ``(B, Nr, Nd, Nrx)`` or ``(Nr, Nd, Nrx)``: the envelopes, the
+        CFAR result, each frame's tau, ``P(tau)`` and the encoded cells (``P*(tau)`` with ``rdN``).
+
+        :meth:`forward` makes one point per ``kept`` cell; :func:`radarpc.dsp.sparse_rd.sparse_rd_mask`
+        of ``kept`` and :meth:`EncodedSet.tx0_doppler` is the full-grid set the cloud encodes.
+        """
         rd = check_rd(rd, self.sensor)
-        _, e = self._envelope(rd)
+        env, e = self._envelope(rd)
         res = self._cfar(e)
-        tau = self.thresholds(res.snr)
-        return e, res, res.snr > tau[:, None, None]
+        tau = self.thresholds(res.snr)                             # (B,)
+        peaks = res.snr > tau[:, None, None]                       # P(tau): (B, Nr, W)
+        n = self.config.neighbourhood
+        kept = peaks if n is None else neighbourhood_mask(peaks, n)  # P*(tau), eq. 9
+        return EncodedSet(envelope=env, cfar=res, tau=tau, peaks=peaks, kept=kept)
 
     @torch.no_grad()
     def calibrate_tau(self, frames: Iterable[torch.Tensor], density: float | None = None) -> float:
@@ -348,17 +392,13 @@ class SpectralPointCloud(torch.nn.Module):
         """Spectral point clouds of RD cubes ``(B, Nr, Nd, Nrx)`` or ``(Nr, Nd, Nrx)`` complex."""
         cfg, c = self.sensor, self.config
         rd = check_rd(rd, cfg)                                     # (B, Nr, Nd, Nrx)
-        a, e = self._envelope(rd)
-        res = self._cfar(e)
-        tau = self.thresholds(res.snr)                             # (B,)
-        peaks = res.snr > tau[:, None, None]                       # P(tau): (B, Nr, W)
-        kept = peaks
-        if c.neighbourhood is not None:                            # P*(tau), eq. 9
-            kept = neighbourhood_mask(peaks, c.neighbourhood)
+        enc = self.encode(rd)
+        res, tau, peaks, kept = enc.cfar, enc.tau, enc.peaks, enc.kept
+        e = enc.envelope.envelope(c.envelope)                      # (B, Nr, W)
         b, r, l = torch.nonzero(kept, as_tuple=True)               # (N,) each, frame-major
         offset = torch.cumsum(kept.flatten(1).sum(1), 0)
 
-        d0 = resolve_tx0_doppler(a, cfg, r, l, b)                  # (N,)
+        d0 = enc.envelope.tx0_doppler(b, r, l)                     # (N,) Tx-0 bins of the gap search
         v = virtual_snapshots(rd, cfg, b, r, d0)                   # (N, n_virtual)
         dev = rd.device                                            # tables follow the input's device
         bf = beamform_peaks(v, self.dictionary_t.to(dev), self.grid, c.sectors,
