@@ -43,7 +43,7 @@ def test_baseline_then_evaluate(root, tmp_path, capsys):
     capsys.readouterr()
     assert main(["evaluate-points", str(pred), "--data", str(root), "--split", "test", "--emd-points", "256"]) == 0
     printed = capsys.readouterr().out
-    assert "| hallway |" in printed and "**all**" in printed
+    assert "| hallway |" in printed and "**all**" in printed and "Wasserstein-1" in printed
     metrics = json.loads((pred / "metrics.json").read_text())
     assert metrics["emd_points"] == 256 and (pred / "metrics.md").is_file()
     # the numbers are those of the metric functions on the files and the reader's LiDAR
@@ -54,6 +54,14 @@ def test_baseline_then_evaluate(root, tmp_path, capsys):
         assert f["chamfer"] == pytest.approx(chamfer_distance(p, gt))
         assert f["emd"] == pytest.approx(earth_movers_distance(p, gt, n=256, seed=0))
     assert metrics["overall"]["chamfer_mean"] == pytest.approx(np.mean([f["chamfer"] for f in metrics["frames"]]))
+
+    # the index must name the same root and split
+    assert main(["evaluate-points", str(pred), "--data", str(root), "--split", "val"]) == 2
+    assert "split 'test', but --split is 'val'" in capsys.readouterr().err
+    other = tmp_path / "other_root"
+    other.mkdir()
+    assert main(["evaluate-points", str(pred), "--data", str(other), "--split", "test"]) == 2
+    assert "--data is" in capsys.readouterr().err
 
     # resume: a rerun keeps config.yaml and the existing files
     before = {e["file"]: (pred / e["file"]).stat().st_mtime_ns for e in index["frames"]}
@@ -68,15 +76,20 @@ def test_evaluate_points_names_a_missing_or_bad_prediction(root, tmp_path, capsy
     (pred / "hallway_run2").mkdir(parents=True)
     np.save(pred / "hallway_run2" / f"{frames[0]:06d}.npy", np.ones((5, 3), np.float32))
     missing = pred / "hallway_run2" / f"{frames[1]:06d}.npy"
+    # a hand-made folder has no index.json: refused unless --force
     assert main(["evaluate-points", str(pred), "--data", str(root), "--split", "test"]) == 2
+    err = capsys.readouterr().err
+    assert "index.json" in err and "--force" in err
+    force = ["evaluate-points", str(pred), "--data", str(root), "--split", "test", "--force"]
+    assert main(force) == 2
     err = capsys.readouterr().err
     assert str(missing) in err and "missing" in err
     np.save(missing, np.zeros((0, 3), np.float32))
-    assert main(["evaluate-points", str(pred), "--data", str(root), "--split", "test"]) == 2
+    assert main(force) == 2
     err = capsys.readouterr().err
     assert str(missing) in err and "empty" in err
     np.save(missing, np.zeros((4, 2), np.float32))
-    assert main(["evaluate-points", str(pred), "--data", str(root), "--split", "test"]) == 2
+    assert main(force) == 2
     assert "expected shape *x3" in capsys.readouterr().err
     assert not (pred / "metrics.json").exists()
 

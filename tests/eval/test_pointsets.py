@@ -10,7 +10,10 @@ from radarpc.eval.pointsets import (
     ChamferTarget,
     CloudPair,
     chamfer_distance,
+    chamfer_distance_batch,
     earth_movers_distance,
+    earth_movers_distance_batch,
+    emd_subset,
     evaluate_clouds,
 )
 
@@ -69,19 +72,124 @@ def test_emd_hand_worked_two_points():
     assert earth_movers_distance(p, p + [3.0, 4.0, 0.0], n=64) == pytest.approx(5.0, abs=0.05)
 
 
-def test_emd_subsets_are_seeded_and_sized():
+def _box_surface(n, rng):
+    # points on the surface of an 8 m x 6 m x 4 m box: a LiDAR-like 2-D distribution
+    u = rng.uniform(-1, 1, (n, 3))
+    ax = rng.integers(0, 3, n)
+    u[np.arange(n), ax] = np.sign(u[np.arange(n), ax])
+    return u * [4.0, 3.0, 2.0]
+
+
+def _brute_w1(p, g):
+    # exact transport between uniform masses by linear_sum_assignment on replicated points:
+    # with |p| = a, |g| = b, replicate p b/gcd times and g a/gcd times -> equal sizes, same optimum
+    import math
+    l = math.lcm(len(p), len(g))
+    pp, gg = np.repeat(p, l // len(p), 0), np.repeat(g, l // len(g), 0)
+    return _brute_emd(pp, gg)
+
+
+def test_emd_unequal_sizes_hand_worked_and_brute_force():
+    # 1 point vs 2 points: half the mass travels 1 m, half 3 m -> 2 m (a 1:1 matching would say 1 m)
+    assert earth_movers_distance([[0.0, 0, 0]], [[1.0, 0, 0], [3.0, 0, 0]]) == pytest.approx(2.0)
+    # 2 points vs 3 points on a line, p = {0, 3}, g = {0, 1, 2}: integrating |F_p^-1 - F_g^-1| over
+    # the quantile u gives 1/3 * |0-0| + 1/6 * |0-1| + 1/6 * |3-1| + 1/3 * |3-2| = 5/6 (scipy's 1-D W1 agrees)
+    p, g = np.array([[0.0, 0, 0], [3.0, 0, 0]]), np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])
+    from scipy.stats import wasserstein_distance
+    ref = wasserstein_distance(p[:, 0], g[:, 0])
+    assert ref == pytest.approx(5 / 6)
+    assert earth_movers_distance(p, g) == pytest.approx(ref, abs=1e-12)
+    assert earth_movers_distance(p, g) == pytest.approx(_brute_w1(p, g), abs=1e-12)
+    rng = np.random.default_rng(4)
+    for n, m in [(4, 6), (9, 6), (5, 7)]:
+        p, g = rng.normal(size=(n, 3)), rng.normal(size=(m, 3))
+        assert earth_movers_distance(p, g) == pytest.approx(_brute_w1(p, g), rel=1e-9)
+        assert earth_movers_distance(g, p) == pytest.approx(_brute_w1(p, g), rel=1e-9)
+
+
+def test_emd_of_a_cloud_to_itself_is_zero_beyond_the_subset_size():
+    g = _box_surface(3000, np.random.default_rng(0))
+    perm = np.random.default_rng(1).permutation(3000)
+    assert earth_movers_distance(g, g, n=512) == 0.0
+    assert earth_movers_distance(g[perm], g, n=512) == 0.0          # any point order
+
+
+def test_emd_gt_draw_does_not_depend_on_the_prediction():
+    rng = np.random.default_rng(3)
+    g = _box_surface(5000, rng)
+    sub = emd_subset(g, 1024, seed=7)
+    assert sub.shape == (1024, 3)
+    np.testing.assert_array_equal(sub, emd_subset(g[::-1].copy(), 1024, seed=7))
+    assert not np.array_equal(sub, emd_subset(g, 1024, seed=8))
+    # every point of the subset is a point of g, no point twice
+    assert len(np.unique(sub, axis=0)) == 1024
+    assert set(map(tuple, sub)) <= set(map(tuple, g))
+    # the perfect prediction -- exactly the ground-truth subset -- scores 0 whatever else exists
+    assert earth_movers_distance(sub, g, n=1024, seed=7) == 0.0
+    # predictions of different sizes are all scored against that same subset
+    for m in (300, 2000):
+        p = rng.normal(size=(m, 3))
+        want = _w1_ref(emd_subset(p, 1024, seed=7), sub)
+        assert earth_movers_distance(p, g, n=1024, seed=7) == pytest.approx(want, rel=1e-9)
+    # a cloud no larger than n is used whole
+    np.testing.assert_array_equal(np.sort(emd_subset(g[:100], 1024), 0), np.sort(g[:100], 0))
+
+
+def _w1_ref(p, g):
+    import ot
+    return ot.emd2([], [], np.linalg.norm(p[:, None] - g[None], axis=-1), numItermax=10**8)
+
+
+def test_emd_of_ground_truth_points_does_not_depend_on_prediction_size():
+    # A prediction made of ground-truth points must score about the same at 1000 points as at
+    # 6000: the old equal-size scheme drew k = min(n, |pred|, |gt|) points from *both* clouds,
+    # so the score of a sparse prediction was dominated by the sampling noise of its ground truth.
+    rng = np.random.default_rng(0)
+    g = _box_surface(8000, rng)
+    means = {m: np.mean([earth_movers_distance(g[rng.choice(8000, m, replace=False)], g, n=2048)
+                         for _ in range(2)]) for m in (1000, 2500, 6000)}
+    hi, lo = max(means.values()), min(means.values())
+    assert hi / lo < 1.35, means
+    # and the floor is the one of two independent 2048-point draws of the cloud (~0.27 m here)
+    assert 0.15 < lo < 0.4
+
+
+def test_emd_subsets_are_seeded():
     rng = np.random.default_rng(3)
     p, g = rng.normal(size=(500, 3)), rng.normal(size=(300, 3))
     a = earth_movers_distance(p, g, n=100, seed=7)
     assert a == earth_movers_distance(p, g, n=100, seed=7)
-    # the subsets are those of default_rng(seed): pred first, then gt
-    r = np.random.default_rng(7)
-    ps, gs = p[r.choice(500, 100, replace=False)], g[r.choice(300, 100, replace=False)]
-    assert a == pytest.approx(_brute_emd(ps, gs), rel=1e-12)
-    # n larger than a cloud: k = min(n, N, M) = 300 points
-    r = np.random.default_rng(0)
-    assert earth_movers_distance(p, g, n=10_000, seed=0) == pytest.approx(
-        _brute_emd(p[r.choice(500, 300, replace=False)], g), rel=1e-12)
+    assert a == pytest.approx(_w1_ref(emd_subset(p, 100, 7), emd_subset(g, 100, 7)), rel=1e-9)
+    # n larger than both clouds: the exact EMD of the full clouds
+    assert earth_movers_distance(p, g, n=10_000) == pytest.approx(_w1_ref(p, g), rel=1e-9)
+
+
+def test_batched_metrics_equal_per_pair_results():
+    rng = np.random.default_rng(9)
+    preds = [rng.normal(size=(n, 3)) for n in (5, 40, 300)]
+    gts = [rng.normal(size=(m, 3)) + 0.5 for m in (70, 8, 250)]
+    cd = chamfer_distance_batch(preds, gts, workers=2)
+    emd = earth_movers_distance_batch(preds, gts, n=64, workers=2)
+    for b in range(3):
+        assert cd[b] == pytest.approx(chamfer_distance(preds[b], gts[b]), rel=1e-12)
+        assert emd[b] == pytest.approx(earth_movers_distance(preds[b], gts[b], n=64), rel=1e-12)
+    # concatenated clouds with Pointcept offsets
+    offs = (np.cumsum([len(p) for p in preds]), torch.tensor(np.cumsum([len(g) for g in gts])))
+    np.testing.assert_allclose(chamfer_distance_batch(np.concatenate(preds), np.concatenate(gts), offsets=offs,
+                                                      workers=1), cd, rtol=1e-12)
+    np.testing.assert_allclose(earth_movers_distance_batch(np.concatenate(preds), np.concatenate(gts),
+                                                           offsets=offs, n=64), emd, rtol=1e-12)
+    # the chunked torch.cdist path (used for CUDA tensors) agrees, here on the CPU
+    from radarpc.eval.pointsets import _chamfer_torch
+    for b in range(3):
+        got = _chamfer_torch(torch.from_numpy(preds[b]), torch.from_numpy(gts[b]), chunk=16)
+        assert got == pytest.approx(cd[b], rel=1e-9)
+    with pytest.raises(ValueError, match="pair 1: gt cloud is empty"):
+        chamfer_distance_batch(preds[:2], [gts[0], np.zeros((0, 3))])
+    with pytest.raises(ValueError, match="2 predicted clouds but 3"):
+        earth_movers_distance_batch(preds[:2], gts)
+    with pytest.raises(ValueError, match="offsets end at"):
+        chamfer_distance_batch(np.concatenate(preds), np.concatenate(gts), offsets=([5, 45], [70, 78]))
 
 
 def test_empty_and_bad_clouds_raise_naming_the_cloud():
@@ -118,8 +226,8 @@ def test_evaluate_clouds_per_scene_tables(tmp_path):
     d = json.loads((tmp_path / "m.json").read_text())
     assert d["emd_points"] == 40 and len(d["frames"]) == 3 and d["scenes"][0]["scene"] == "hall"
     md = (tmp_path / "m.md").read_text()
-    assert "| hall | 2 |" in md and "**all**" in md and "mean subset size 40" in md
-    assert d["frames"][0]["emd_k"] == 40
+    assert "| hall | 2 |" in md and "**all**" in md and "gt 40, pred 40" in md and "Wasserstein-1" in md
+    assert d["frames"][0]["emd_gt_k"] == 40 and d["frames"][0]["emd_pred_k"] == 40
     with pytest.raises(ValueError, match="run 'lab_0' frame 0: pred cloud is empty"):
         evaluate_clouds([CloudPair("lab_0", 0, np.zeros((0, 3)), gt)], {"lab_0": "lab"})
     with pytest.raises(ValueError, match="no scene"):

@@ -111,7 +111,8 @@ def run_oscfar(args: argparse.Namespace) -> int:
                       "lidar_time": float(run.lidar_timestamps[li]),
                       "file": str(path.relative_to(out)), "n_points": int(pts.shape[0])})
     with atomic_write(out / "index.json", "w") as f:
-        json.dump({"method": "os-cfar", "root": str(args.root), "split": args.split, "frames": index}, f, indent=1)
+        json.dump({"method": "os-cfar", "root": str(Path(args.root).resolve()), "split": args.split,
+                   "frames": index}, f, indent=1)
     print(f"wrote {n_done} new point clouds ({len(index)} frames) to {out}")
     return 0
 
