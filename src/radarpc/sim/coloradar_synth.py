@@ -291,9 +291,9 @@ def _edge_points(scene: Scene, geom, origin, cfg: RadarSimConfig, dev, dtype):
 
 # ------------------------------------------------------------------------------------------------
 def _unit_phasor(phase: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
-    """``scale * exp(j phase)`` as complex64: float64 ``phase`` reduced to ``[-pi, pi)``, then
+    """``scale * exp(j phase)`` as complex64: float64 ``phase`` reduced to ``[0, 2 pi)``, then
     cos/sin in float32 (``scale`` broadcasts over the last axis)."""
-    ph = (torch.remainder(phase + math.pi, 2 * math.pi) - math.pi).to(torch.float32)
+    ph = torch.remainder(phase, 2 * math.pi).to(torch.float32)
     re, im = torch.cos(ph), torch.sin(ph)
     if scale is not None:
         re, im = re * scale, im * scale
@@ -351,12 +351,12 @@ def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_l
             # With tau = a + b T (a = 2 R / c, b = 2 v / c) and F = f0 + S t_ctr the per-chirp phase is
             #   2 pi (F tau - S tau^2 / 2) = th0 + c1 T + c2 T^2,
             #   th0 = 2 pi (F a - S a^2 / 2),  c1 = 2 pi b (F - S a),  c2 = -pi S b^2,
-            # and T = t T_c + c T_loop splits it into a Tx part and a chirp part (the cross term
-            # 2 c2 t T_c c T_loop, below 1e-8 rad for |v| < 10 m/s, is dropped). The sum over
-            # scatterers is then one complex GEMM:
+            # with T = T_t + T_c (Tx offset t T_chirp, loop start c N_tx T_chirp). Everything but the
+            # sample index sits in a (tx, chirp) factor and the Rx/sample terms in an (rx, sample)
+            # factor, so the sum over scatterers is one complex GEMM:
             #   s[t, r, c, k] = sum_n L[t, c, n] R[n, r, k]
-            #   L = A_n e^{j(phi_n + th0 + arr_tx + c1 t T_c + c2 (t T_c)^2)} e^{j(c1 c T_loop + c2 (c T_loop)^2)}
-            #   R = e^{j arr_rx} e^{j 2 pi S tau_mid (t_k - t_ctr)}
+            #   L = A_n exp(j (phi_n + th0 + arr_tx + c1 T_t + c2 T_t^2 + (c1 + 2 c2 T_t) T_c + c2 T_c^2))
+            #   R = exp(j arr_rx) exp(j 2 pi S tau_mid (t_k - t_ctr))
             # Phases in float64 reduced modulo 2 pi, cos/sin in float32, products and GEMM in complex64.
             a_n, b_n = 2 * rr / SPEED_OF_LIGHT, 2 * vv / SPEED_OF_LIGHT                      # (n,)
             f_c = f0 + slope * t_ctr
@@ -364,13 +364,13 @@ def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_l
             c1 = two_pi * b_n * (f_c - slope * a_n)
             c2 = -math.pi * slope * b_n ** 2
             t_tx, t_loop = t_tx_all[:, None], t_loop_all[:, None]                            # (ntx, 1), (nc, 1)
-            e_t = _unit_phasor(scat.phase[sl].to(f64) + th0 + arr_tx + c1 * t_tx + c2 * t_tx ** 2,
-                               amp[sl].to(torch.float32))                                    # (ntx, n)
-            e_c = _unit_phasor(c1 * t_loop + c2 * t_loop ** 2)                               # (nc, n)
+            base = scat.phase[sl].to(f64) + th0 + arr_tx + c1 * t_tx + c2 * t_tx ** 2           # (ntx, n)
+            ph_l = (c1 + 2 * c2 * t_tx)[:, None, :] * t_loop[None]                           # (ntx, nc, n)
+            ph_l += (c2 * t_loop ** 2)[None] + base[:, None, :]
+            left = _unit_phasor(ph_l, amp[sl].to(torch.float32))                             # (ntx, nc, n)
             tau_mid = a_n + b_n * t_mid
             e_r = _unit_phasor(arr_rx.T)                                                     # (n, nrx)
             e_k = _unit_phasor((two_pi * slope * tau_mid)[:, None] * (t_k - t_ctr)[None, :])  # (n, ns)
-            left = e_t[:, None, :] * e_c[None, :, :]                                         # (ntx, nc, n)
             right = (e_r[:, :, None] * e_k[:, None, :]).reshape(-1, nrx * ns)                # (n, nrx * ns)
             acc += torch.matmul(left, right)                                                 # (ntx, nc, nrx * ns)
     if not exact:
