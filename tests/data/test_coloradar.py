@@ -191,15 +191,42 @@ def test_bad_input_errors(sim_root, tmp_path):
     arr.tofile(hm)
     with pytest.raises(DataFileError, match="heatmap_0.bin.*NaN"):
         run.heatmap(0)
-    run.lidar_path(0).write_bytes(b"")
+    # simulated root: every scan must have the recorded beams x azimuth steps x 16 bytes
+    assert run.lidar_nbytes == 8 * 128 * 16
+    good = run.lidar_path(3).read_bytes()
+    run.lidar_path(3).write_bytes(good[:-32])              # short by two whole points
+    with pytest.raises(DataFileError, match=r"lidar_pointcloud_3\.bin.*expected 16384 bytes.*simulation\.json.*"
+                                            r"found 16352 \(truncated\)"):
+        run.lidar(3)
+    run.lidar_path(3).write_bytes(good)
+    assert run.lidar(3, drop_zeros=False).shape == (8 * 128, 4)
+    # real-data rules (no simulation.json): any whole number of points, empty scans refused
+    real = ColoRadarRun(root / "lab_run0", lidar_nbytes=None)
+    real.lidar_path(0).write_bytes(b"")
     with pytest.raises(DataFileError, match="lidar_pointcloud_0.bin.*empty"):
-        run.lidar(0)
-    np.zeros((10, 4), np.float32).tofile(run.lidar_path(1))
+        real.lidar(0)
+    np.zeros((10, 4), np.float32).tofile(real.lidar_path(1))
     with pytest.raises(DataFileError, match="lidar_pointcloud_1.bin.*empty"):
-        run.lidar(1)
-    run.lidar_path(2).write_bytes(b"\0" * 20)
+        real.lidar(1)
+    real.lidar_path(2).write_bytes(b"\0" * 20)
     with pytest.raises(DataFileError, match="multiple of 16"):
-        run.lidar(2)
+        real.lidar(2)
+    assert real.lidar(3).shape[1] == 4
+    with pytest.raises(ValueError, match="lidar_nbytes"):
+        ColoRadarRun(root / "lab_run0", lidar_nbytes=20)
+    # a NaN ground-truth pose fails the Dataset up front, naming the file
+    gtp = root / "lab_run1" / "groundtruth" / "groundtruth_poses.txt"
+    lines = gtp.read_text().splitlines()
+    lines[2] = " ".join(["nan"] + lines[2].split()[1:])
+    gtp.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataFileError, match=r"lab_run1/groundtruth/groundtruth_poses\.txt.*NaN"):
+        ColoRadar(root, "all", cube_size=None)
+    # broken simulator metadata is named
+    meta = (root / "simulation.json").read_text()
+    (root / "simulation.json").write_text(meta.replace('"beams"', '"nbeams"'))
+    with pytest.raises(DataFileError, match=r"simulation\.json.*lidar\.beams"):
+        ColoRadarRun(root / "lab_run0")
+    (root / "simulation.json").write_text(meta)
     (root / "calib" / "single_chip" / "antenna_cfg.txt").unlink()
     with pytest.raises(DataFileError, match="antenna_cfg.txt.*missing"):
         ColoRadarRun(root / "lab_run0")
@@ -233,7 +260,7 @@ def test_radar_cube_validation_and_upsample():
     torch.testing.assert_close(up[:, -1, -1], one.intensity_db[:, -1, -1])
 
 
-def test_cli_simulate_and_info(sim_root, tmp_path, capsys):
+def test_cli_simulate_and_info(sim_root, tmp_path, capsys, monkeypatch):
     from radarpc.cli import main
 
     out = tmp_path / "cli"
@@ -250,6 +277,13 @@ def test_cli_simulate_and_info(sim_root, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "lab_run2" in text and "test:" in text and "0 bad" in text
     assert png.stat().st_size > 10_000
+    # default plot path: ./info_{root name}.png in the working directory, never inside the root
+    monkeypatch.chdir(tmp_path)
+    assert main(["info", str(sim_root)]) == 0
+    assert main(["info", str(out), "--no-plot"]) == 0
+    assert (tmp_path / f"info_{sim_root.name}.png").stat().st_size > 10_000
+    assert not (tmp_path / f"info_{out.name}.png").exists()
+    assert not list(sim_root.glob("*.png")) and not list(out.glob("*.png"))
 
 
 def test_calib_beside_runs_folder(sim_root, tmp_path):

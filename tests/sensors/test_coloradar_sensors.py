@@ -90,10 +90,45 @@ def test_missing_key_and_file_errors(tmp_path):
 
 
 def test_waveform_validation():
-    with pytest.raises(ValueError, match="ADC window"):
-        WaveformConfig(3, 4, 128, 16, 10e6, 77e9, 1e-5, 7e-6, 10e-6, 1e14)
+    # an ADC window past the ramp end is a warning (recorded files round their timings), not an error
+    with pytest.warns(RuntimeWarning, match="ADC window ends at 1.9800e-05 s, after ramp_end_time=1.0000e-05"):
+        wf = WaveformConfig(3, 4, 128, 16, 10e6, 77e9, 1e-5, 7e-6, 10e-6, 1e14)
+    assert wf.chirp_period_s == pytest.approx(2e-5)
     with pytest.raises(ValueError, match="num_tx"):
         WaveformConfig(0, 4, 128, 16, 10e6, 77e9, 1e-5, 7e-6, 30e-6, 1e14)
+
+
+def test_integer_keys_parse_strictly(tmp_path):
+    write_calib(tmp_path / "calib", DEFAULT_CALIB)
+    wf = tmp_path / "calib" / "single_chip" / "waveform_cfg.txt"
+    wf.write_text(wf.read_text().replace("num_rx 4", "num_rx 4.5"))
+    with pytest.raises(DataFileError, match=r"waveform_cfg.txt.*'num_rx'.*4\.5"):
+        parse_waveform_cfg(wf)
+    with pytest.raises(DataFileError, match="waveform_cfg.txt"):
+        load_calib(tmp_path / "calib")
+    wf.write_text(wf.read_text().replace("num_rx 4.5", "num_rx 4.0"))      # an integral float is fine
+    assert parse_waveform_cfg(wf).num_rx == 4
+    hm = tmp_path / "calib" / "single_chip" / "heatmap_cfg.txt"
+    hm.write_text(hm.read_text().replace("num_range_bins 128", "num_range_bins 1e2.5"))
+    with pytest.raises(DataFileError, match=r"heatmap_cfg.txt.*'num_range_bins'"):
+        parse_heatmap_cfg(hm)
+    ant = tmp_path / "calib" / "single_chip" / "antenna_cfg.txt"
+    ant.write_text(ant.read_text().replace("num_tx 3", "num_tx 2.5"))
+    with pytest.raises(DataFileError, match=r"antenna_cfg.txt.*num_tx 2.5"):
+        parse_antenna_cfg(ant)
+
+
+def test_base_to_cascade_needed_only_for_the_cascade(tmp_path):
+    write_calib(tmp_path / "calib", DEFAULT_CALIB)
+    (tmp_path / "calib" / "transforms" / "base_to_cascade.txt").unlink()
+    calib = load_calib(tmp_path / "calib")                  # single-chip work: fine
+    assert calib.cascade == CASCADE and calib.base_to_cascade is None
+    assert calib.lidar_to_single_chip() == DEFAULT_CALIB.lidar_to_single_chip()
+    with pytest.raises(ValueError, match="base_to_cascade"):
+        calib.lidar_to_cascade()
+    with pytest.raises(DataFileError, match="base_to_cascade.txt.*missing"):
+        load_calib(tmp_path / "calib", cascade=True)
+    assert load_calib(tmp_path / "calib", cascade=False).cascade is None
 
 
 def test_quaternion_matches_scipy():

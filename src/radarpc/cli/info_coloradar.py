@@ -1,7 +1,9 @@
 """``radarpc info ROOT`` on a ColoRadar root: runs, frames, scenes, splits, LiDAR points per frame,
 a summary figure (LiDAR bird's-eye view with the radar frustum, radar cube and cascade heatmap
 slices) and with ``--check`` a scan of every file. Called by :mod:`radarpc.cli.info` when ROOT holds
-``calib/`` and no ``labels.csv``."""
+``calib/`` and no ``labels.csv``. The figure goes to ``--plot PATH``, by default
+``./info_{root name}.png`` in the current directory (never into the dataset root); ``--no-plot``
+skips it."""
 from __future__ import annotations
 
 import argparse
@@ -24,7 +26,7 @@ from radarpc.data.coloradar import (
 from radarpc.io import DataFileError, atomic_write
 from radarpc.sensors.coloradar import AWR1843_FOV, ColoRadarCalib, load_calib
 
-__all__ = ["RunSummary", "summarize_run", "check_run", "plot_coloradar", "info_coloradar"]
+__all__ = ["RunSummary", "summarize_run", "check_run", "plot_coloradar", "default_plot_path", "info_coloradar"]
 
 
 @dataclass(frozen=True)
@@ -133,6 +135,13 @@ def plot_coloradar(root: Path, calib: ColoRadarCalib, run: ColoRadarRun, out: Pa
     plt.close(fig)
 
 
+def default_plot_path(root: str | Path) -> Path:
+    """``./info_{root name}.png`` in the current directory: ``radarpc info`` never writes into a
+    dataset root unless ``--plot`` asks for it."""
+    name = Path(root).resolve().name or "root"
+    return Path.cwd() / f"info_{name}.png"
+
+
 def info_coloradar(args: argparse.Namespace) -> int:
     """``radarpc info`` on a ColoRadar root; returns 1 if ``--check`` found a bad file, else 0."""
     root = Path(args.root)
@@ -167,7 +176,7 @@ def info_coloradar(args: argparse.Namespace) -> int:
         print(f"LiDAR:       {np.mean([p[0] for p in pts]):.0f} points per scan, "
               f"{np.mean([p[1] for p in pts]):.0f} inside the radar frustum (mean of sampled scans)")
     if not getattr(args, "no_plot", False):
-        out = Path(args.plot) if getattr(args, "plot", None) else root / "info.png"
+        out = Path(args.plot) if getattr(args, "plot", None) else default_plot_path(root)
         best = max(runs, key=lambda r: r.num_lidar_frames)
         plot_coloradar(root, calib, best, out)
         print(f"plot:        {out}")

@@ -54,6 +54,7 @@ __all__ = [
     "ColoRadar",
     "find_calib",
     "find_runs",
+    "simulated_lidar_nbytes",
     "scene_of_run",
     "split_runs",
     "read_timestamps",
@@ -186,12 +187,41 @@ def read_poses(path: str | os.PathLike) -> np.ndarray:
     return p
 
 
-def _read_bin(path: Path, dtype, nbytes: int | None, what: str, *, multiple_of: int | None = None) -> np.ndarray:
+def simulated_lidar_nbytes(root: str | os.PathLike) -> int | None:
+    """Bytes of every LiDAR scan of a simulated root, or None for a real dataset root.
+
+    The simulator (:mod:`radarpc.sim.coloradar_writer`) records its LiDAR pattern in
+    ``ROOT/simulation.json`` (``"lidar": {"beams": B, "azimuth_steps": S, ...}``) and writes one
+    float32 ``(x, y, z, intensity)`` row per ray, rays without return as zeros, so each scan is
+    exactly ``B * S * 16`` bytes. Real ColoRadar scans drop empty returns and vary in size.
+
+    Raises
+    ------
+    DataFileError
+        ``simulation.json`` exists but is not JSON or lacks positive integer ``lidar.beams`` /
+        ``lidar.azimuth_steps``.
+    """
+    path = Path(root) / "simulation.json"
+    if not path.is_file():
+        return None
+    import json
+    try:
+        meta = json.loads(path.read_text())
+        beams, steps = meta["lidar"]["beams"], meta["lidar"]["azimuth_steps"]
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as e:
+        raise DataFileError(path, f"expected simulator metadata with lidar.beams and lidar.azimuth_steps ({e})") from e
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in (beams, steps)):
+        raise DataFileError(path, f"lidar.beams={beams!r} and lidar.azimuth_steps={steps!r} must be positive integers")
+    return beams * steps * 16
+
+
+def _read_bin(path: Path, dtype, nbytes: int | None, what: str, *, multiple_of: int | None = None,
+              source: str = "the calibration") -> np.ndarray:
     if not path.is_file():
         raise DataFileError(path, f"{what} file is missing")
     size = path.stat().st_size
     if nbytes is not None and size != nbytes:
-        raise DataFileError(path, f"{what}: expected {nbytes} bytes from the calibration, found {size} "
+        raise DataFileError(path, f"{what}: expected {nbytes} bytes from {source}, found {size} "
                                   f"({'truncated' if size < nbytes else 'too long'})")
     if multiple_of is not None and size % multiple_of:
         raise DataFileError(path, f"{what}: size {size} bytes is not a multiple of {multiple_of} (truncated?)")
@@ -211,13 +241,24 @@ class ColoRadarRun:
         The run folder (``.../12_21_2020_ec_hallways_run0`` or ``.../lab_run0``).
     calib : ColoRadarCalib, optional
         Defaults to the ``calib/`` found by :func:`find_calib` from the run's parent folder.
+    lidar_nbytes : int or "auto" or None
+        Exact size every LiDAR scan must have; ``"auto"`` (default) takes it from the parent
+        root's ``simulation.json`` (:func:`simulated_lidar_nbytes`; None for real data, whose
+        scans vary and are only checked to hold whole 16-byte points).
     """
 
-    def __init__(self, path: str | os.PathLike, calib: ColoRadarCalib | None = None):
+    def __init__(self, path: str | os.PathLike, calib: ColoRadarCalib | None = None, *,
+                 lidar_nbytes: int | str | None = "auto"):
         self.path = Path(path)
         if not self.path.is_dir():
             raise DataFileError(self.path, "run folder is missing")
         self.calib = calib if calib is not None else load_calib(find_calib(self.path.parent))
+        if lidar_nbytes == "auto":
+            lidar_nbytes = simulated_lidar_nbytes(self.path.parent)
+        elif lidar_nbytes is not None and (int(lidar_nbytes) != lidar_nbytes or lidar_nbytes <= 0
+                                           or lidar_nbytes % 16):
+            raise ValueError(f"lidar_nbytes must be 'auto', None or a positive multiple of 16, got {lidar_nbytes!r}")
+        self.lidar_nbytes = lidar_nbytes
         self.name = self.path.name
         self.scene = scene_of_run(self.name)
         self._ts: dict[str, np.ndarray] = {}
@@ -254,6 +295,11 @@ class ColoRadarRun:
             raise DataFileError(self.path / "groundtruth" / "groundtruth_poses.txt",
                                 f"{len(p)} poses but {len(self.pose_timestamps)} timestamps")
         return p
+
+    def check_poses(self) -> None:
+        """Parse and validate the ground-truth poses (NaN/inf, malformed lines, count against the
+        timestamps): :class:`DataFileError` naming ``groundtruth_poses.txt`` otherwise."""
+        self.poses
 
     @property
     def has_adc(self) -> bool:
@@ -299,11 +345,14 @@ class ColoRadarRun:
     def lidar(self, i: int, *, drop_zeros: bool = True) -> np.ndarray:
         """LiDAR scan ``i``: float32 ``(N, 4)`` x y z intensity in the LiDAR frame.
 
-        All-zero points (no return) are dropped unless ``drop_zeros=False``. An empty scan
-        raises :class:`DataFileError`.
+        All-zero points (no return) are dropped unless ``drop_zeros=False``. An empty scan, a
+        size that is not whole points, or (simulated roots) a size other than the recorded
+        pattern's raises :class:`DataFileError`.
         """
         path = self.lidar_path(i)
-        arr = _read_bin(path, np.float32, None, "LiDAR scan", multiple_of=16).reshape(-1, 4)
+        arr = _read_bin(path, np.float32, self.lidar_nbytes, "LiDAR scan", multiple_of=16,
+                        source="the simulator's LiDAR pattern (simulation.json: beams x azimuth steps x 16)"
+                        ).reshape(-1, 4)
         if drop_zeros:
             arr = arr[np.any(arr[:, :3] != 0, axis=1)]
         if arr.shape[0] == 0:
@@ -536,6 +585,12 @@ class ColoRadar(torch.utils.data.Dataset):
         Frustum for the LiDAR crop.
     max_dt : float, optional
         Pairing tolerance (default half the LiDAR period).
+
+    Raises
+    ------
+    DataFileError
+        Missing or malformed calibration, timestamps or ground-truth poses (every run's poses are
+        parsed up front, so a NaN pose fails here, naming the file); frames are checked when read.
     """
 
     def __init__(self, root: str | os.PathLike, split: str = "train", *, runs: Sequence[str] | None = None,
@@ -553,6 +608,8 @@ class ColoRadar(torch.utils.data.Dataset):
         self.cube_size = cube_size
         self.fov = fov
         self.runs = [ColoRadarRun(self.root / n, self.calib) for n in names]
+        for run in self.runs:
+            run.check_poses()
         index = []
         for k, run in enumerate(self.runs):
             for ri, li in pair_radar_lidar(run, max_dt=max_dt):

@@ -22,6 +22,12 @@ File formats (as read by ColoRadar's own tools):
   rotation quaternion ``qx qy qz qw`` (scalar last, Hamilton). The transform maps points of
   sensor ``X``'s frame into the rig ``base`` frame: ``p_base = R(q) p_X + t``.
 
+Validation: integer keys (``num_rx``, bin counts, ...) must be integers (``4`` or ``4.0``; ``4.5``
+is a :class:`radarpc.io.DataFileError` naming the file and key, never truncated); NaN/inf and
+missing keys are errors. An ADC window that ends after ``ramp_end_time`` is only a
+``RuntimeWarning``: recorded configuration files round their timings, and a real ``calib/`` must
+stay readable.
+
 Conventions shared with the simulator and the reader (:mod:`radarpc.data.coloradar`):
 
 * Sensor frame: x forward (boresight), y left, z up. Azimuth ``az = atan2(y, x)`` (left positive),
@@ -42,6 +48,7 @@ import dataclasses
 import json
 import math
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -121,9 +128,14 @@ class WaveformConfig:
                 raise ValueError(f"waveform {k} must be >= 0, got {v!r}")
         end = self.adc_start_time + self.num_adc_samples_per_chirp / self.adc_sample_frequency
         if end > self.ramp_end_time * (1 + 1e-6):
-            raise ValueError(
-                f"waveform: ADC window ends at {end:.3e} s, after ramp_end_time={self.ramp_end_time:.3e} s"
-                " (adc_start_time + num_adc_samples_per_chirp / adc_sample_frequency must fit in the ramp)")
+            # A warning, not an error: recorded configuration files round their timings (TI tools
+            # store 10 ns register steps), and a real calib/ folder must stay readable. The
+            # synthesis and range axis do not depend on the ramp end, only the chirp period does.
+            warnings.warn(
+                f"waveform: ADC window ends at {end:.4e} s, after ramp_end_time={self.ramp_end_time:.4e} s "
+                "(adc_start_time + num_adc_samples_per_chirp / adc_sample_frequency should fit in the ramp); "
+                "samples past the ramp end would not be a linear chirp on real hardware",
+                RuntimeWarning, stacklevel=3)
 
     @property
     def chirp_period_s(self) -> float:
@@ -399,11 +411,22 @@ def _read_key_values(path: Path) -> dict[str, list[str]]:
     return out
 
 
+def _strict_int(token: str) -> int:
+    """``'4'`` or ``'4.0'``/``'4e0'`` -> 4; ``'4.5'`` or ``'nan'`` -> ``ValueError`` (never truncated)."""
+    try:
+        return int(token)
+    except ValueError:
+        v = float(token)
+        if not (math.isfinite(v) and v.is_integer()):
+            raise ValueError(f"{token!r} is not an integer") from None
+        return int(v)
+
+
 def _get(kv: dict[str, list[str]], path: Path, key: str, kind=float, *, many: bool = False):
     if key not in kv or not kv[key]:
         raise DataFileError(path, f"expected a line '{key} <value>' but it is missing or empty")
     try:
-        vals = [kind(float(v)) if kind is int else kind(v) for v in kv[key]]
+        vals = [_strict_int(v) if kind is int else kind(v) for v in kv[key]]
     except ValueError as e:
         raise DataFileError(path, f"key {key!r}: cannot parse {kv[key][:4]} as {kind.__name__}") from e
     if any(not math.isfinite(v) for v in vals):
@@ -444,11 +467,11 @@ def parse_antenna_cfg(path: str | os.PathLike) -> AntennaConfig:
             continue
         try:
             if toks[0] in ("num_rx", "num_tx"):
-                n[toks[0]] = int(float(toks[1]))
+                n[toks[0]] = _strict_int(toks[1])
             elif toks[0].lower() == "f_design":
                 f_design = float(toks[1])
             elif toks[0] in ("rx", "tx"):
-                rows[toks[0]][int(toks[1])] = (float(toks[2]), float(toks[3]))
+                rows[toks[0]][_strict_int(toks[1])] = (float(toks[2]), float(toks[3]))
         except (IndexError, ValueError) as e:
             raise DataFileError(path, f"line {ln} {line.strip()!r} cannot be parsed ({e})") from e
     for k in ("num_rx", "num_tx"):
@@ -623,7 +646,8 @@ class ColoRadarCalib:
 
     def lidar_to_cascade(self) -> Transform:
         if self.base_to_cascade is None:
-            raise ValueError("this calibration has no base_to_cascade transform")
+            raise ValueError("this calibration has no base_to_cascade transform "
+                             "(calib/transforms/base_to_cascade.txt was absent; load_calib(..., cascade=True) requires it)")
         return self.base_to_cascade.inverse() @ self.base_to_lidar
 
 
@@ -635,7 +659,10 @@ def load_calib(calib_dir: str | os.PathLike, *, cascade: bool | None = None) -> 
     calib_dir : path-like
         The ``calib`` folder (``single_chip/``, ``cascade/``, ``transforms/``).
     cascade : bool, optional
-        True: the cascade files are required; False: not read; None (default): read if present.
+        True: the cascade files and ``transforms/base_to_cascade.txt`` are required; False: not
+        read; None (default): the cascade chip config is read if ``cascade/`` exists and its
+        transform if ``base_to_cascade.txt`` exists (single-chip work never needs it;
+        :meth:`ColoRadarCalib.lidar_to_cascade` raises when it is absent).
 
     Raises
     ------
@@ -652,7 +679,8 @@ def load_calib(calib_dir: str | os.PathLike, *, cascade: bool | None = None) -> 
     cc, b_cc = None, None
     if cascade or (cascade is None and (calib_dir / "cascade").is_dir()):
         cc = load_chip_config(calib_dir / "cascade", "cascade")
-        b_cc = read_transform(tdir / "base_to_cascade.txt")
+        if cascade or (tdir / "base_to_cascade.txt").is_file():
+            b_cc = read_transform(tdir / "base_to_cascade.txt")
     return ColoRadarCalib(sc, cc, b_sc, b_l, b_cc)
 
 
