@@ -333,3 +333,41 @@ def test_radar_cube_matches_numpy_reference():
     np.testing.assert_allclose(cube.doppler.numpy(), vel, atol=1e-6)
     agree = (cube.valid.numpy() == valid).mean()
     assert agree > 0.995                                            # ties at float32 precision aside
+
+
+def _point_target(r: float, az_deg: float, el_deg: float):
+    from radarpc.sim.coloradar_synth import Scatterers
+    az, el = math.radians(az_deg), math.radians(el_deg)
+    p = torch.tensor([[r * math.cos(el) * math.cos(az), r * math.cos(el) * math.sin(az), r * math.sin(el)]],
+                     dtype=torch.float64)
+    return Scatterers(p, torch.tensor([1.0]), torch.tensor([0.0]), torch.tensor([0.0]))
+
+
+@pytest.mark.parametrize("el_deg", [15.0, -15.0])
+def test_point_reflector_at_elevation_in_radar_cube(el_deg):
+    # A reflector at +-15 deg elevation, on an azimuth bin centre, noise-free (the simulator's
+    # public beat_signal). The 8 x 2 virtual array has rows 0 and 1 (Tx 2 raised by one unit), so
+    # a zero-padded elevation FFT peaks at f_e = d sin(el): the elevation sign is recoverable
+    # only with n_elevation > 2.
+    from radarpc.sim.coloradar_synth import beat_signal
+    chip = AWR1843.replace(num_chirps_per_frame=8)
+    d = chip.element_spacing
+    az_deg = math.degrees(math.asin(1 / (8 * d)))                   # centre of azimuth bin 5
+    r = 40 * chip.waveform.range_bin_width(128)                     # range bin 40
+    adc = beat_signal(_point_target(r, az_deg, el_deg), chip)
+    cube = radar_cube(adc, chip, n_doppler=8, n_elevation=16)
+    ri, ai, ei = np.unravel_index(int(cube.intensity_db.argmax()), tuple(cube.intensity_db.shape))
+    assert ri == 40 and ai == 5
+    assert cube.azimuth_rad[ai].item() == pytest.approx(math.radians(az_deg), abs=1e-6)
+    el_bins = np.degrees(cube.elevation_rad.numpy())
+    want = int(np.argmin(np.abs(np.sin(np.radians(el_bins)) - math.sin(math.radians(el_deg)))))
+    assert ei == want and np.sign(el_bins[ei]) == np.sign(el_deg)   # up is +z, bins ascend
+    assert abs(el_bins[ei] - el_deg) < 5.0
+    # RaLD's 2-bin elevation FFT: bins f_e = -1/2 (about -79 deg) and 0; at the target's cell the
+    # magnitudes are the same for +el and -el (|a +- b e^{j phi}| = |a +- b e^{-j phi}| for the
+    # real row sums a, b at the azimuth peak), and the 0-deg bin holds most of the energy at 15 deg.
+    two = radar_cube(adc, chip, n_doppler=8, n_elevation=2)
+    mirror = radar_cube(beat_signal(_point_target(r, az_deg, -el_deg), chip), chip, n_doppler=8, n_elevation=2)
+    torch.testing.assert_close(two.intensity_db[40, 5], mirror.intensity_db[40, 5], rtol=1e-3, atol=1e-2)
+    assert np.degrees(two.elevation_rad.numpy())[1] == 0.0
+    assert two.intensity_db[40, 5, 1] > two.intensity_db[40, 5, 0] + 3.0
