@@ -86,8 +86,9 @@ def write_root(root: Path, frames: list[tuple[int, str, list[dict]]], *, simulat
     if simulated:
         d = sensor.to_dict()
         names = {s for _, s, _ in frames}
-        d.update(seed=0, n_sequences=n_sequences if n_sequences is not None else len(names),
-                 frames_per_sequence=1, radarpc_version="0.1.0")
+        n_seq = n_sequences if n_sequences is not None else len(names)
+        d.update(seed=0, n_sequences=n_seq, frames_per_sequence=max(len(frames) // n_seq, 1),
+                 radarpc_version="0.1.0")
         (root / "sensor.json").write_text(json.dumps(d))
         save_calibration(root / "calibration.npz", make_calibration(sensor))
     return root
@@ -425,3 +426,42 @@ def test_reads_what_the_simulator_writes(tmp_path: Path) -> None:
     assert RADIal(root, "test").frame_ids == [4, 5]
     raw = ds.frame_labels(0)
     assert raw and set(raw[0]) == set(LABEL_COLUMNS) and raw[0]["dataset"] == "SIM@s0_q000"
+
+
+# ---- empty splits and check_root contract -----------------------------------------------------
+def test_empty_split_is_a_clear_error(tmp_path: Path) -> None:
+    root = write_root(tmp_path / "two", sim_frames(2, 2))          # 2 sequences: all train
+    assert len(RADIal(root, "train")) == 4
+    for split in ("val", "test"):
+        with pytest.raises(ValueError, match=rf"split '{split}' .* is empty: 2 sequence\(s\).*simulated_split"):
+            RADIal(root, split)
+    real = write_root(tmp_path / "real", [(k, "RECORD@2020-11-21_11.54.31", []) for k in range(3)],
+                      simulated=False)
+    with pytest.raises(ValueError, match=r"split 'test' .* 1 sequence\(s\).*OFFICIAL_SPLITS"):
+        RADIal(real, "test", sensor=TINY)
+    with pytest.raises(ValueError, match=r"split 'val' .*random_split"):
+        RADIal(root, "val", random_split=(1.0, 0.0, 0.0))
+
+
+def test_check_root_reports_a_wrong_explicit_sensor(sim_root: Path) -> None:
+    from radarpc.sensors.radial import RADIAL_S
+    r = check_root(sim_root, RADIAL_S)                               # never raises
+    assert [p.path.name for p in r.problems] == ["sensor.json"]
+    assert "RD shape" in r.problems[0].reason and r.sensor == TINY   # cubes checked with sensor.json's
+    assert r.n_frames == 18
+
+
+def test_check_root_flags_missing_calibration_with_unreadable_sensor_json(sim_root: Path) -> None:
+    (sim_root / "sensor.json").write_text("{not json")
+    (sim_root / "calibration.npz").unlink()
+    names = sorted(p.path.name for p in check_root(sim_root).problems)
+    assert names == ["calibration.npz", "sensor.json"]
+
+
+def test_check_root_flags_a_truncated_labels_csv(sim_root: Path) -> None:
+    lines = (sim_root / "labels.csv").read_text().splitlines()
+    keep = [ln for ln in lines if not ln.startswith(("50,", "51,", "52,"))]   # drop sequence 5
+    (sim_root / "labels.csv").write_text("\n".join(keep) + "\n")
+    r = check_root(sim_root)
+    assert [p.path.name for p in r.problems] == ["labels.csv"]
+    assert "15 frames" in r.problems[0].reason and "6 x 3 = 18" in r.problems[0].reason

@@ -95,12 +95,104 @@ def test_refuses_a_non_empty_folder_unless_overwrite(root, tmp_path):
     assert (other / "notes.txt").read_text() == "mine" and fft_path(other, 0).is_file()
 
 
+def _count_synth(monkeypatch):
+    calls = []
+    real = radial_writer.synthesize_rd
+    monkeypatch.setattr(radial_writer, "synthesize_rd", lambda *a, **k: calls.append(1) or real(*a, **k))
+    return calls
+
+
+def test_resume_regenerates_damaged_frames(root, tmp_path, monkeypatch):
+    ref = all_files(root)
+    part = tmp_path / "damaged"
+    shutil.copytree(root, part)
+    # truncated cube (header intact, data cut), a cube with a NaN, a truncated PNG
+    b = fft_path(part, 0).read_bytes()
+    fft_path(part, 0).write_bytes(b[: len(b) // 2])
+    bad = np.load(fft_path(part, 2), allow_pickle=False)
+    bad[3, 4, 1] = np.nan
+    np.save(fft_path(part, 2), bad)
+    p = freespace_path(part, 5).read_bytes()
+    freespace_path(part, 5).write_bytes(p[: len(p) // 2])
+    calls = _count_synth(monkeypatch)
+    write_radial_dataset(part, TINY, N_SEQ, N_FR, SEED, progress=False)
+    assert len(calls) == 3                                 # frames 0, 2 and 5 regenerated
+    assert all_files(part) == ref
+
+
+def test_version_bump_still_resumes(root, tmp_path, monkeypatch):
+    ref = all_files(root)
+    part = tmp_path / "old"
+    shutil.copytree(root, part)
+    meta = json.loads((part / "sensor.json").read_text())
+    meta["radarpc_version"] = "0.0.0-older"
+    (part / "sensor.json").write_text(json.dumps(meta))
+    fft_path(part, 1).unlink()
+    calls = _count_synth(monkeypatch)
+    write_radial_dataset(part, TINY, N_SEQ, N_FR, SEED, progress=False)   # no FileExistsError
+    assert len(calls) == 1
+    assert all_files(part) == ref                          # sensor.json rewritten with this version
+
+
+def test_overwrite_starts_over_even_on_a_matching_root(root, tmp_path, monkeypatch):
+    ref = all_files(root)
+    again = tmp_path / "again"
+    shutil.copytree(root, again)
+    (again / "radar_FFT" / "fft_000099.npy").write_bytes(b"stale")      # output of an older run
+    calls = _count_synth(monkeypatch)
+    write_radial_dataset(again, TINY, N_SEQ, N_FR, SEED, overwrite=True, progress=False)
+    assert len(calls) == N_SEQ * N_FR                      # every frame synthesised again
+    assert all_files(again) == ref                         # the stale cube is gone
+
+
+def test_empty_split_of_the_on_the_fly_dataset_is_a_clear_error():
+    with pytest.raises(ValueError, match=r"split 'val' .* is empty: 2 sequence\(s\).*simulated_split"):
+        SimulatedRADIal(TINY, 2, 1, SEED, split="val")
+    assert len(SimulatedRADIal(TINY, 2, 1, SEED, split="train")) == 2
+
+
+def _summary(ds):
+    """A consumer written once against the common interface (RADIal or SimulatedRADIal)."""
+    out = []
+    for i in range(len(ds)):
+        rd = ds.cube(i)                                   # (R, D, Rx) complex64
+        peak = (rd.abs() ** 2).sum(-1)                    # (R, D)
+        _, labels, fs = ds[i]
+        out.append((ds.frame_ids[i], ds.sequences[i], int(peak.argmax()), float(peak.max()),
+                    labels.numpy().tobytes(), int(fs.sum()), len(ds.frame_labels(i)),
+                    ds.index_of(ds.frame_ids[i])))
+    return out, ds.split, ds.sensor, ds.calibration.signal.tobytes(), str(ds.cube(0).device)
+
+
+@pytest.mark.parametrize("kw", [dict(), dict(difficult=False), dict(skip=[1, 4]),
+                                dict(random_split=(0.5, 0.25, 0.25))])
+def test_same_code_path_on_both_datasets(root, kw):
+    disk_kw = dict(kw, seed=7) if "random_split" in kw else kw
+    fly_kw = dict(kw, split_seed=7) if "random_split" in kw else kw
+    disk = RADIal(root, "train", **disk_kw)
+    fly = SimulatedRADIal(TINY, N_SEQ, N_FR, SEED, "train", **fly_kw)
+    assert _summary(disk) == _summary(fly)
+    assert torch.equal(disk.cube(0), fly.cube(0)) and fly.cube(0).dtype == torch.complex64
+
+
+def test_radial_s_on_disk_equals_on_the_fly(tmp_path):
+    from radarpc.sensors.radial import RADIAL_S
+    out = write_radial_dataset(tmp_path / "s", RADIAL_S, 1, 2, 5, progress=False)
+    disk = RADIal(out, "all")
+    fly = SimulatedRADIal(RADIAL_S, 1, 2, 5, "all")
+    assert len(disk) == len(fly) == 2
+    for i in range(2):
+        for x, y in zip(disk[i], fly[i]):
+            assert x.dtype == y.dtype and torch.equal(x, y)
+        assert disk.frame_labels(i) == fly.frame_labels(i)
+
+
 @pytest.mark.parametrize("split", ["train", "val", "test", "all"])
 def test_on_the_fly_equals_on_disk(root, split):
     disk = RADIal(root, split=split)
     fly = SimulatedRADIal(TINY, N_SEQ, N_FR, SEED, split=split)
     assert fly.frame_ids == disk.frame_ids and len(fly) == len(disk) > 0
-    assert fly.sequence_names == disk.sequences
+    assert fly.sequences == disk.sequences
     assert fly.sensor == disk.sensor
     np.testing.assert_array_equal(fly.calibration.signal, disk.calibration.signal)
     for i in range(len(fly)):

@@ -21,6 +21,7 @@ Examples
 """
 from __future__ import annotations
 
+import abc
 import csv
 import json
 import math
@@ -55,6 +56,8 @@ __all__ = [
     "SimulatedMeta",
     "FileProblem",
     "CheckReport",
+    "FrameSelection",
+    "RadialFrames",
     "RADIal",
     "read_labels",
     "read_sensor_json",
@@ -67,6 +70,8 @@ __all__ = [
     "freespace_to_model",
     "split_of_sequence",
     "random_split_indices",
+    "select_frames",
+    "check_cube",
     "check_root",
     "radial_collate",
 ]
@@ -121,6 +126,29 @@ class LabelTable:
 
     def __len__(self) -> int:
         return int(self.num_sample.shape[0])
+
+    @classmethod
+    def from_rows(cls, rows: Sequence[Sequence], path: str | os.PathLike = "<rows>") -> "LabelTable":
+        """The table of ``labels.csv`` rows given in memory (tuples in :data:`LABEL_COLUMNS` order).
+
+        Values are converted as :func:`read_labels` converts the text the simulator writes
+        (``repr`` of a float parses back to the same float64), so a table built from the rows
+        equals the one read back from the written file.
+        """
+        pos = {c: i for i, c in enumerate(LABEL_COLUMNS)}
+        for k, r in enumerate(rows):
+            if len(r) != len(LABEL_COLUMNS):
+                raise ValueError(f"label row {k} has {len(r)} fields, expected {len(LABEL_COLUMNS)}")
+        n = len(rows)
+        vals = np.asarray([[float(r[pos[c]]) for c in _FLOAT_COLUMNS] for r in rows],
+                          dtype=np.float64).reshape(n, len(_FLOAT_COLUMNS))
+        if not np.isfinite(vals).all():
+            raise ValueError("label rows contain NaN or infinite values")
+        ints = np.asarray([[int(r[pos[c]]) for c in _INT_COLUMNS] for r in rows],
+                          dtype=np.int64).reshape(n, len(_INT_COLUMNS))
+        return cls(path=Path(path), num_sample=ints[:, 0].copy(), values=vals,
+                   dataset=tuple(str(r[pos["dataset"]]) for r in rows),
+                   dataset_index=ints[:, 1].copy(), difficult=ints[:, 2].copy())
 
     def column(self, name: str) -> np.ndarray:
         """Column ``name`` (any of :data:`LABEL_COLUMNS`) as an array of length ``len(self)``."""
@@ -492,8 +520,199 @@ def random_split_indices(n: int, fractions: tuple[float, float, float], seed: in
     return {s: np.sort(p) for s, p in zip(("train", "val", "test"), parts)}
 
 
-# ---- the Dataset --------------------------------------------------------------------------------
-class RADIal(torch.utils.data.Dataset):
+# ---- frame selection (shared by the on-disk and the on-the-fly datasets) -----------------------
+_SIM_SPLIT_RULE = ("simulated sequences are assigned by radarpc.data.radial_format.simulated_split: "
+                   "the last sequence is test and the one before it val when there are at least 3, "
+                   "and with 6 or more every 6k+4 / 6k+5 pair is also val / test; write at least 3 "
+                   "sequences, or use random_split")
+_REAL_SPLIT_RULE = ("real sequences are assigned by RADIal's official lists OFFICIAL_SPLITS (every "
+                    "sequence not listed is train)")
+
+
+@dataclass(frozen=True)
+class FrameSelection:
+    """The frames of a split, as :func:`select_frames` chooses them.
+
+    Attributes
+    ----------
+    frame_ids : list of int           numSample of each item, ascending
+    sequences : list of str           sequence name (``dataset`` column) of each item
+    all_rows : list of ndarray        indices into the label table of every row of the item
+    vehicle_rows : list of ndarray    the rows returned as the item's ``labels`` tensor
+    """
+
+    frame_ids: list[int]
+    sequences: list[str]
+    all_rows: list[np.ndarray]
+    vehicle_rows: list[np.ndarray]
+
+
+def select_frames(labels: LabelTable, split: str, *, difficult: bool = True,
+                  skip: Iterable[int] | str | os.PathLike | None = None,
+                  random_split: tuple[float, float, float] | None = None, seed: int = 0,
+                  n_sequences: int | None = None, source: str = "the dataset") -> FrameSelection:
+    """Choose the frames of ``split`` from a label table: split, ``difficult`` and ``skip`` rules.
+
+    The one implementation behind :class:`RADIal` and the on-the-fly
+    :class:`radarpc.sim.radial_writer.SimulatedRADIal`.
+
+    Parameters
+    ----------
+    labels : LabelTable
+        Every row of the root (or of the simulated run).
+    split : {"train", "val", "test", "all"}
+    difficult, skip, random_split, seed :
+        As for :class:`RADIal`.
+    n_sequences : int, optional
+        Number of simulated sequences of the run (``sensor.json``), for :func:`split_of_sequence`.
+    source : str
+        Named in error messages.
+
+    Raises
+    ------
+    ValueError
+        Unknown split, or a split without any frame (naming the split, the number of sequences
+        and how splits are assigned).
+    """
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    frames = _group_frames(labels, difficult=difficult)                 # [(numSample, seq, rows)]
+    all_names = sorted({seq for _, seq, _ in frames})
+    if random_split is not None:
+        pos = random_split_indices(len(frames), random_split, seed)
+        keep = set(range(len(frames))) if split == "all" else set(pos[split].tolist())
+        rule = (f"random_split={tuple(random_split)} of {len(frames)} frames takes int(fraction * n) "
+                "frames for train and val and the rest for test")
+    else:
+        split_of = {s: split_of_sequence(s, all_names, n_sequences=n_sequences) for s in all_names}
+        keep = {k for k, (_, seq, _) in enumerate(frames) if split == "all" or split_of[seq] == split}
+        simulated = any(_SIM_NAME.match(s) for s in all_names)
+        rule = _SIM_SPLIT_RULE if simulated else _REAL_SPLIT_RULE
+    if not keep:
+        raise ValueError(f"split {split!r} of {source} is empty: {len(all_names)} sequence(s) with "
+                         f"{len(frames)} frame(s), none in {split!r}; {rule}")
+    skipped = _skip_set(skip)
+    chosen = [frames[k] for k in sorted(keep) if frames[k][0] not in skipped]
+    has_vehicle = labels.has_vehicle
+    easy = labels.difficult != 1
+    all_rows = [r for _, _, r in chosen]
+    return FrameSelection(
+        frame_ids=[n for n, _, _ in chosen],
+        sequences=[s for _, s, _ in chosen],
+        all_rows=all_rows,
+        vehicle_rows=[r[has_vehicle[r] & (easy[r] | bool(difficult))] for r in all_rows],
+    )
+
+
+def check_cube(rd: torch.Tensor, sensor: DDMARadarConfig, what: str = "RD cube") -> torch.Tensor:
+    """Validate an RD cube tensor: complex64 ``sensor.rd_shape``, finite. Returns it.
+
+    Raises
+    ------
+    ValueError
+        Naming ``what``, the bad shape / dtype, or the presence of NaN/inf.
+    """
+    if not isinstance(rd, torch.Tensor):
+        raise ValueError(f"{what}: expected a torch.Tensor, got {type(rd).__name__}")
+    if tuple(rd.shape) != tuple(sensor.rd_shape):
+        raise ValueError(f"{what}: expected shape {sensor.rd_shape} (n_range, n_doppler, n_rx) of sensor "
+                         f"{sensor.name!r}, got {tuple(rd.shape)}")
+    if rd.dtype != torch.complex64:
+        raise ValueError(f"{what}: expected complex64, got {rd.dtype}")
+    if not bool(torch.isfinite(torch.view_as_real(rd)).all()):
+        raise ValueError(f"{what}: contains NaN or infinite values")
+    return rd
+
+
+# ---- the Datasets -------------------------------------------------------------------------------
+class RadialFrames(torch.utils.data.Dataset, abc.ABC):
+    """Common interface of RADIal-format datasets, on disk (:class:`RADIal`) or generated on the
+    fly (:class:`radarpc.sim.radial_writer.SimulatedRADIal`): code written against it runs on
+    either.
+
+    Subclasses set the attributes below and implement :meth:`cube` and :meth:`freespace_mask`.
+
+    Attributes
+    ----------
+    sensor : DDMARadarConfig
+    split : str
+    difficult : bool
+    device : torch.device
+    labels : LabelTable
+        Every label row of the root or run.
+    frame_ids : list of int
+        numSample of each item, ascending.
+    sequences : list of str
+        Sequence name of each item.
+    """
+
+    sensor: DDMARadarConfig
+    split: str
+    difficult: bool
+    device: torch.device
+    labels: LabelTable
+    frame_ids: list[int]
+    sequences: list[str]
+
+    def _set_selection(self, sel: FrameSelection) -> None:
+        self.frame_ids = sel.frame_ids
+        self.sequences = sel.sequences
+        self._all_rows = sel.all_rows
+        self._vehicle_rows = sel.vehicle_rows
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    def _index(self, i: int) -> int:
+        n = len(self)
+        if not -n <= int(i) < n:
+            raise IndexError(f"index {i} out of range for {type(self).__name__} split {self.split!r} of "
+                             f"{n} frames")
+        return int(i) % n
+
+    @property
+    @abc.abstractmethod
+    def calibration(self) -> Calibration:
+        """The sensor's calibration table (``calibration.npz`` content)."""
+
+    @abc.abstractmethod
+    def cube(self, i: int) -> torch.Tensor:
+        """RD cube of item ``i``: validated complex64 ``(n_range, n_doppler, n_rx)`` on :attr:`device`."""
+
+    @abc.abstractmethod
+    def freespace_mask(self, i: int) -> np.ndarray:
+        """Full freespace mask of item ``i``: uint8 ``FREESPACE_SHAPE`` (255 = free)."""
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(rd, labels, freespace)`` of item ``i``.
+
+        Returns
+        -------
+        rd : complex64 ``(n_range, n_doppler, n_rx)``
+        labels : float32 ``(n_vehicles, 14)``, columns ``LABEL_TENSOR_COLUMNS``
+        freespace : bool ``(256, 224)``
+        """
+        i = self._index(i)
+        rd = self.cube(i)
+        fs = freespace_to_model(self.freespace_mask(i))
+        lab = self.labels.tensor_rows(self._vehicle_rows[i])
+        return (rd,
+                torch.from_numpy(lab).to(self.device),
+                torch.from_numpy(np.ascontiguousarray(fs)).to(self.device))
+
+    def frame_labels(self, i: int) -> list[dict[str, int | float | str]]:
+        """The raw ``labels.csv`` rows (all :data:`LABEL_COLUMNS`) of item ``i``, -1 rows included."""
+        return [self.labels.row(int(k)) for k in self._all_rows[self._index(i)]]
+
+    def index_of(self, num_sample: int) -> int:
+        """Position of frame ``num_sample`` in this split."""
+        try:
+            return self.frame_ids.index(int(num_sample))
+        except ValueError:
+            raise KeyError(f"frame {num_sample} is not in the {self.split!r} split of {self!r}") from None
+
+
+class RADIal(RadialFrames):
     """Frames of a RADIal-layout root (real or simulated) as ``(rd, labels, freespace)`` tensors.
 
     Parameters
@@ -501,7 +720,8 @@ class RADIal(torch.utils.data.Dataset):
     root : path-like
         Folder holding ``labels.csv``, ``radar_FFT/`` and ``radar_Freespace/``.
     split : {"train", "val", "test", "all"}
-        Which frames: by sequence (see :func:`split_of_sequence`) unless ``random_split``.
+        Which frames: by sequence (see :func:`split_of_sequence`) unless ``random_split``. An
+        empty split raises ``ValueError``.
     sensor : DDMARadarConfig, optional
         Defaults to the root's ``sensor.json`` (simulated data) or :data:`RADIAL` (real data).
     difficult : bool
@@ -530,15 +750,9 @@ class RADIal(torch.utils.data.Dataset):
     Attributes
     ----------
     root : Path
-    sensor : DDMARadarConfig
     meta : SimulatedMeta or None
         Run keys of ``sensor.json`` (None on a real root).
-    labels : LabelTable
-        Every row of ``labels.csv``.
-    frame_ids : list of int
-        numSample of each item, ascending.
-    sequences : list of str
-        Sequence name of each item.
+    and those of :class:`RadialFrames`.
     """
 
     def __init__(
@@ -568,60 +782,21 @@ class RADIal(torch.utils.data.Dataset):
         self.sensor, self.meta = root_sensor(self.root, sensor)
         self.labels = read_labels(self.root / "labels.csv")
         self._calibration: Calibration | None = None
-
-        frames = _group_frames(self.labels, difficult=self.difficult)       # [(numSample, seq, rows)]
-        all_names = sorted({seq for _, seq, _ in frames})
         n_seq = self.meta.n_sequences if self.meta is not None else None
-        if random_split is not None:
-            pos = random_split_indices(len(frames), random_split, seed)
-            keep = set(range(len(frames))) if split == "all" else set(pos[split].tolist())
-        else:
-            split_of = {s: split_of_sequence(s, all_names, n_sequences=n_seq) for s in all_names}
-            keep = {k for k, (_, seq, _) in enumerate(frames) if split == "all" or split_of[seq] == split}
-        skipped = _skip_set(skip)
-        chosen = [frames[k] for k in sorted(keep) if frames[k][0] not in skipped]
-        self.frame_ids: list[int] = [n for n, _, _ in chosen]
-        self.sequences: list[str] = [s for _, s, _ in chosen]
-        self._all_rows: list[np.ndarray] = [r for _, _, r in chosen]      # every raw row of the frame
-        has_vehicle = self.labels.has_vehicle
-        easy = self.labels.difficult != 1
-        self._vehicle_rows: list[np.ndarray] = [
-            r[has_vehicle[r] & (easy[r] | self.difficult)] for r in self._all_rows]
+        self._set_selection(select_frames(self.labels, split, difficult=self.difficult, skip=skip,
+                                          random_split=random_split, seed=seed, n_sequences=n_seq,
+                                          source=str(self.root)))
 
-    def __len__(self) -> int:
-        return len(self.frame_ids)
-
-    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``(rd, labels, freespace)`` of item ``i``.
-
-        Returns
-        -------
-        rd : complex64 ``(n_range, n_doppler, n_rx)``
-        labels : float32 ``(n_vehicles, 14)``, columns ``LABEL_TENSOR_COLUMNS``
-        freespace : bool ``(256, 224)``
-        """
-        n = len(self)
-        if not -n <= int(i) < n:
-            raise IndexError(f"index {i} out of range for a RADIal split of {n} frames")
-        i = int(i) % n
-        num = self.frame_ids[i]
+    def cube(self, i: int) -> torch.Tensor:
+        """RD cube of item ``i`` from its file (validated unless ``validate=False``), on :attr:`device`."""
+        num = self.frame_ids[self._index(i)]
         rd = load_rd(find_fft_file(self.root, num), self.sensor, validate=self.validate)
-        fs = freespace_to_model(load_freespace(freespace_path(self.root, num), validate=self.validate))
-        lab = self.labels.tensor_rows(self._vehicle_rows[i])
-        return (torch.from_numpy(rd).to(self.device),
-                torch.from_numpy(lab).to(self.device),
-                torch.from_numpy(np.ascontiguousarray(fs)).to(self.device))
+        return torch.from_numpy(rd).to(self.device)
 
-    def frame_labels(self, i: int) -> list[dict[str, int | float | str]]:
-        """The raw ``labels.csv`` rows (all :data:`LABEL_COLUMNS`) of item ``i``, -1 rows included."""
-        return [self.labels.row(int(k)) for k in self._all_rows[i]]
-
-    def index_of(self, num_sample: int) -> int:
-        """Position of frame ``num_sample`` in this split."""
-        try:
-            return self.frame_ids.index(int(num_sample))
-        except ValueError:
-            raise KeyError(f"frame {num_sample} is not in this {self.split!r} split of {self.root}") from None
+    def freespace_mask(self, i: int) -> np.ndarray:
+        """The item's ``radar_Freespace`` PNG as uint8 ``FREESPACE_SHAPE``."""
+        num = self.frame_ids[self._index(i)]
+        return load_freespace(freespace_path(self.root, num), validate=self.validate)
 
     @property
     def calibration(self) -> Calibration:
@@ -722,7 +897,10 @@ def check_root(root: str | os.PathLike, sensor: DDMARadarConfig | None = None, *
     Checks ``sensor.json`` (if present), ``labels.csv``, ``calibration.npz`` (required when the
     root is simulated, checked when present), and for every frame its RD cube (missing,
     truncated, wrong shape, not complex, NaN/inf) and freespace PNG (missing, truncated, wrong
-    size, values other than 0/255). Never raises for a bad file: each one is listed.
+    size, values other than 0/255). On a simulated root ``labels.csv`` must list
+    ``n_sequences * frames_per_sequence`` frames of ``sensor.json`` (a truncated ``labels.csv``
+    is listed). Never raises for a bad file or a mismatching ``sensor``: each
+    problem is listed.
 
     Parameters
     ----------
@@ -742,14 +920,19 @@ def check_root(root: str | os.PathLike, sensor: DDMARadarConfig | None = None, *
         report.add(DataFileError(root, "RADIal root folder is missing"))
         return report
     meta: SimulatedMeta | None = None
+    sensor_json = root / "sensor.json"
     try:
         sensor, meta = root_sensor(root, sensor)
     except DataFileError as e:  # unreadable sensor.json: still check that cubes load as 3-D complex
         report.add(e)
+        sensor = None
+    except ValueError as e:     # explicit sensor of the wrong shape: report, check with the stored one
+        report.add(DataFileError(sensor_json, str(e)))
+        sensor, meta = read_sensor_json(sensor_json)
     report.sensor = sensor
-    # calibration
+    # calibration: required on a simulated root (sensor.json present, even if unreadable)
     npz = root / "calibration.npz"
-    if npz.is_file() or meta is not None:
+    if npz.is_file() or sensor_json.exists():
         try:
             calib = load_calibration(npz)
             if sensor is not None:
@@ -765,6 +948,12 @@ def check_root(root: str | os.PathLike, sensor: DDMARadarConfig | None = None, *
         return report
     ids = np.unique(labels.num_sample).tolist()
     report.n_frames = len(ids)
+    if meta is not None and meta.n_sequences is not None and meta.frames_per_sequence is not None:
+        want = meta.n_sequences * meta.frames_per_sequence
+        if len(ids) != want:
+            report.add(DataFileError(labels.path, (
+                f"lists {len(ids)} frames, but sensor.json describes n_sequences * frames_per_sequence = "
+                f"{meta.n_sequences} x {meta.frames_per_sequence} = {want} frames (truncated labels.csv?)")))
     it: Iterable[int] = ids
     if progress:
         from tqdm import tqdm

@@ -10,8 +10,8 @@ from the written root.
 
 Root layout: see :mod:`radarpc.data.radial_format`. ``sensor.json`` holds ``cfg.to_dict()`` plus
 ``seed``, ``n_sequences``, ``frames_per_sequence`` and ``radarpc_version``; ``scene.json`` holds
-the :class:`RoadSceneConfig`. Both are written first and identify a partial run that may be
-resumed.
+the :class:`RoadSceneConfig`. Both are written first; all their keys but ``radarpc_version`` (a
+package upgrade does not change the frames) identify a partial run that may be resumed.
 """
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 import torch
@@ -30,17 +31,17 @@ from PIL import Image
 from tqdm import tqdm
 
 from radarpc import __version__
-from radarpc.data.radial import freespace_to_model
-from radarpc.data.radial_format import (
-    FREESPACE_SHAPE,
-    LABEL_COLUMNS,
-    LABEL_TENSOR_COLUMNS,
-    fft_path,
-    freespace_path,
-    simulated_sequence_name,
-    simulated_split,
+from radarpc.data.radial import (
+    SPLITS,
+    LabelTable,
+    RadialFrames,
+    check_cube,
+    load_freespace,
+    load_rd,
+    select_frames,
 )
-from radarpc.io import atomic_write, save_npy_atomic
+from radarpc.data.radial_format import LABEL_COLUMNS, fft_path, freespace_path
+from radarpc.io import DataFileError, atomic_write, save_npy_atomic
 from radarpc.sensors.radial import Calibration, DDMARadarConfig, make_calibration, save_calibration
 from radarpc.sim.radial_labels import frame_label_rows, freespace_mask
 from radarpc.sim.rd import synthesize_rd
@@ -53,12 +54,6 @@ __all__ = [
     "write_radial_dataset",
     "SimulatedRADIal",
 ]
-
-_SPLITS = ("train", "val", "test", "all")
-# a row is a vehicle unless all of these are -1 (RADIal's row for a frame without vehicles)
-_EMPTY_MARKER_COLUMNS = ("laser_X_m", "laser_Y_m", "laser_Z_m", "radar_X_m", "radar_Y_m",
-                         "radar_R_m", "radar_A_deg", "radar_D", "radar_P_db")
-
 
 def frame_noise_seed(seed: int, sequence: int, index: int) -> int:
     """63-bit seed of the noise generator of frame ``index`` of sequence ``sequence``."""
@@ -137,15 +132,29 @@ class RadialSimulator:
                                         self.cfg.max_range_m)
         return self._scenes[q]
 
-    def geometry(self, sequence: int, index: int) -> tuple[RoadFrame, list[tuple], np.ndarray]:
-        """Scene frame, label rows and freespace mask of a frame (no RD synthesis: cheap)."""
+    def scene_frame(self, sequence: int, index: int) -> RoadFrame:
+        """The scene (scatterers and objects) of frame ``index`` of ``sequence``."""
         if not 0 <= int(index) < self.frames_per_sequence:
             raise ValueError(f"frame index {index} outside [0, {self.frames_per_sequence})")
         scene = self.scene(sequence)
-        fr = scene.frame(scene.frame_time(index))
-        rows = frame_label_rows(self.cfg, fr, seed=self.seed, sequence=sequence, index=index,
+        return scene.frame(scene.frame_time(index))
+
+    def label_rows(self, sequence: int, index: int, fr: RoadFrame | None = None) -> list[tuple]:
+        """``labels.csv`` rows of a frame (from its scene frame ``fr`` if given)."""
+        fr = fr if fr is not None else self.scene_frame(sequence, index)
+        return frame_label_rows(self.cfg, fr, seed=self.seed, sequence=sequence, index=index,
                                 frames_per_sequence=self.frames_per_sequence)
-        return fr, rows, freespace_mask(self.cfg, fr)
+
+    def geometry(self, sequence: int, index: int) -> tuple[RoadFrame, list[tuple], np.ndarray]:
+        """Scene frame, label rows and freespace mask of a frame (no RD synthesis: cheap)."""
+        fr = self.scene_frame(sequence, index)
+        return fr, self.label_rows(sequence, index, fr), freespace_mask(self.cfg, fr)
+
+    def rd(self, sequence: int, index: int, fr: RoadFrame | None = None) -> torch.Tensor:
+        """RD cube of a frame, complex64 ``cfg.rd_shape`` on :attr:`device`, noise included."""
+        fr = fr if fr is not None else self.scene_frame(sequence, index)
+        return synthesize_rd(self.cfg, fr.scatterers, generator=self.noise_generator(sequence, index),
+                             device=self.device)
 
     def noise_generator(self, sequence: int, index: int) -> torch.Generator:
         """The noise generator of a frame, on the synthesis device."""
@@ -154,8 +163,7 @@ class RadialSimulator:
     def frame(self, sequence: int, index: int) -> SimulatedFrame:
         """Everything of frame ``index`` of ``sequence``."""
         fr, rows, fs = self.geometry(sequence, index)
-        rd = synthesize_rd(self.cfg, fr.scatterers, generator=self.noise_generator(sequence, index),
-                           device=self.device)
+        rd = self.rd(sequence, index, fr)
         return SimulatedFrame(num_sample=int(sequence) * self.frames_per_sequence + int(index),
                               rd=rd, label_rows=rows, freespace=fs, scene=fr)
 
@@ -189,31 +197,27 @@ def _png_bytes(mask: np.ndarray) -> bytes:
 
 
 def _fft_complete(path: Path, cfg: DDMARadarConfig) -> bool:
-    # writes are atomic, so a file under its final name is whole unless damaged afterwards:
-    # check the header (shape, dtype) and the size without reading the data.
-    if not path.is_file():
-        return False
+    # a frame is complete only if its cube loads and validates fully (shape, complex, finite):
+    # a file damaged after its atomic write is regenerated
     try:
-        arr = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (OSError, ValueError, EOFError):
+        load_rd(path, cfg, validate=True)
+    except DataFileError:
         return False
-    ok = arr.shape == cfg.rd_shape and arr.dtype == np.complex64
-    del arr
-    return ok
+    return True
 
 
 def _png_complete(path: Path) -> bool:
-    if not path.is_file():
-        return False
     try:
-        with Image.open(path) as im:
-            im.load()
-            return im.size == (FREESPACE_SHAPE[1], FREESPACE_SHAPE[0]) and im.mode == "L"
-    except (OSError, ValueError, SyntaxError):
+        load_freespace(path, validate=True)                 # decodes; 512 x 900, values 0 / 255
+    except DataFileError:
         return False
+    return True
 
 
 _OUTPUTS = ("radar_FFT", "radar_Freespace", "labels.csv", "calibration.npz", "sensor.json", "scene.json")
+
+
+_NOT_RESUME_KEYS = ("radarpc_version",)  # sensor.json keys that do not identify the run's frames
 
 
 def _read_json(path: Path):
@@ -221,6 +225,13 @@ def _read_json(path: Path):
         return json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return None
+
+
+def _resume_key(d) -> dict | None:
+    """``sensor.json`` content without the keys that do not change the frames."""
+    if not isinstance(d, dict):
+        return None
+    return {k: v for k, v in d.items() if k not in _NOT_RESUME_KEYS}
 
 
 def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequences: int,
@@ -232,13 +243,17 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
     Parameters
     ----------
     out : path-like
-        Root folder. If it is not empty it must be a partial run of the same sensor, seed,
-        sizes and scene config (its ``sensor.json`` and ``scene.json`` match), which is then completed; otherwise ``overwrite=True``
-        deletes the dataset files in it (``radar_FFT/``, ``radar_Freespace/``, ``labels.csv``,
-        ``calibration.npz``, ``sensor.json``, ``scene.json``) and starts again.
+        Root folder. Without ``overwrite``, a non-empty folder must be a partial run of the same
+        sensor, seed, sizes and scene config (its ``sensor.json`` and ``scene.json`` match, the
+        package version aside), which is then completed: a frame is kept only if its cube loads
+        and validates fully (shape, complex, finite) and its PNG decodes as a valid mask; any
+        other frame is regenerated. ``overwrite=True`` always starts over: it deletes the dataset
+        files (``radar_FFT/``, ``radar_Freespace/``, ``labels.csv``, ``calibration.npz``,
+        ``sensor.json``, ``scene.json``), even of a matching run.
     cfg : DDMARadarConfig
     n_sequences, frames_per_sequence, seed : int
     overwrite : bool
+        Start over (see ``out``).
     progress : bool
         Show a tqdm progress bar.
     device : torch.device or str, optional
@@ -264,14 +279,14 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
     scene_meta = dataclasses.asdict(sim.scene_config)
     sensor_path, scene_path = root / "sensor.json", root / "scene.json"
     if root.is_dir() and any(root.iterdir()):
-        matching = (_read_json(sensor_path) == json.loads(json.dumps(meta))
+        matching = (_resume_key(_read_json(sensor_path)) == _resume_key(json.loads(json.dumps(meta)))
                     and _read_json(scene_path) == json.loads(json.dumps(scene_meta)))
-        if not matching:
-            if not overwrite:
-                raise FileExistsError(
-                    f"{root} is not empty and is not a partial run of this simulation (sensor "
-                    f"{cfg.name!r}, seed {seed}, {n_sequences} x {frames_per_sequence} frames); "
-                    "pass --overwrite (overwrite=True) to replace it")
+        if not matching and not overwrite:
+            raise FileExistsError(
+                f"{root} is not empty and is not a partial run of this simulation (sensor "
+                f"{cfg.name!r}, seed {seed}, {n_sequences} x {frames_per_sequence} frames); "
+                "pass --overwrite (overwrite=True) to replace it")
+        if overwrite:
             for name in _OUTPUTS:
                 p = root / name
                 if p.is_dir():
@@ -294,9 +309,7 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
                 rows.extend(frame_rows)
                 fpath, ppath = fft_path(root, num), freespace_path(root, num)
                 if not (_fft_complete(fpath, cfg) and _png_complete(ppath)):
-                    rd = synthesize_rd(cfg, fr.scatterers, generator=sim.noise_generator(q, i),
-                                       device=sim.device)
-                    save_npy_atomic(fpath, rd.cpu().numpy())
+                    save_npy_atomic(fpath, sim.rd(q, i, fr).cpu().numpy())
                     with atomic_write(ppath, "wb") as f:
                         f.write(_png_bytes(fs))
                 bar.update(1)
@@ -306,61 +319,60 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
 
 
 # ---- on the fly ---------------------------------------------------------------------------------
-def _rows_to_tensor(rows: list[tuple]) -> np.ndarray:
-    """Vehicle rows as float32 ``(n, 14)`` in :data:`LABEL_TENSOR_COLUMNS` order (no -1 row)."""
-    pos = {c: k for k, c in enumerate(LABEL_COLUMNS)}
-    veh = [r for r in rows if any(float(r[pos[c]]) != -1.0 for c in _EMPTY_MARKER_COLUMNS)]
-    out = np.empty((len(veh), len(LABEL_TENSOR_COLUMNS)), dtype=np.float32)
-    for j, c in enumerate(LABEL_TENSOR_COLUMNS):
-        out[:, j] = np.asarray([float(r[pos[c]]) for r in veh], dtype=np.float64)
-    return out
-
-
-class SimulatedRADIal(torch.utils.data.Dataset):
+class SimulatedRADIal(RadialFrames):
     """Simulated RADIal frames generated on the fly, interchangeable with the on-disk reader.
 
-    ``ds[i]`` is ``(rd, labels, freespace)`` exactly as :class:`radarpc.data.radial.RADIal`
-    returns it for the root that :func:`write_radial_dataset` writes with the same arguments on
-    the same device: ``rd`` complex64 ``(n_range, n_doppler, n_rx)`` on ``device``, ``labels``
-    float32 ``(n_vehicles, 14)`` with columns :data:`LABEL_TENSOR_COLUMNS` (``(0, 14)`` when none),
-    ``freespace`` bool ``(256, 224)``. Every vehicle row is kept (the reader's default
-    ``difficult=True``).
+    The same public interface as :class:`radarpc.data.radial.RADIal` (both are
+    :class:`radarpc.data.radial.RadialFrames`): ``cube(i)``, ``frame_ids``, ``sequences``,
+    ``sensor``, ``calibration``, ``split``, ``labels``, ``frame_labels(i)``, ``index_of(n)``,
+    and ``ds[i] = (rd, labels, freespace)``, with the frames chosen by the same
+    :func:`radarpc.data.radial.select_frames`. For the same arguments on the same device it
+    returns bit-identical items to ``RADIal`` on the root :func:`write_radial_dataset` writes.
 
     Parameters
     ----------
     cfg : DDMARadarConfig
     n_sequences, frames_per_sequence, seed : int
+        The run (``seed`` is the simulator seed).
     split : {"train", "val", "test", "all"}
-        Sequences by :func:`radarpc.data.radial_format.simulated_split`.
+        As for ``RADIal``; an empty split raises ``ValueError``.
     device : torch.device or str, optional
         Synthesis device and device of the returned tensors (default CPU).
     scene_config : RoadSceneConfig, optional
+    difficult, skip, random_split :
+        As for ``RADIal``.
+    split_seed : int
+        Seed of ``random_split`` (``RADIal``'s ``seed`` argument).
 
-    Attributes
-    ----------
-    frame_ids : list of int         numSample of each item
-    sequence_names : list of str    sequence name (``dataset`` column) of each item
-    sensor : DDMARadarConfig
-    calibration : Calibration
+    Notes
+    -----
+    The label rows of every frame of the run are computed at construction (scene geometry
+    only, about 1 ms a frame), since the split, ``difficult`` and ``random_split`` rules need
+    them; cubes and freespace masks are generated per item.
     """
 
     def __init__(self, cfg: DDMARadarConfig, n_sequences: int, frames_per_sequence: int, seed: int,
                  split: str = "train", device: torch.device | str | None = None, *,
-                 scene_config: RoadSceneConfig | None = None) -> None:
-        if split not in _SPLITS:
-            raise ValueError(f"split must be one of {_SPLITS}, got {split!r}")
+                 scene_config: RoadSceneConfig | None = None, difficult: bool = True,
+                 skip: Iterable[int] | str | os.PathLike | None = None,
+                 random_split: tuple[float, float, float] | None = None,
+                 split_seed: int = 0) -> None:
+        if split not in SPLITS:
+            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
         self.sim = RadialSimulator(cfg, n_sequences, frames_per_sequence, seed,
                                    scene_config=scene_config, device=device)
         self.split = split
         self.sensor = cfg
+        self.difficult = bool(difficult)
         self.device = self.sim.device
-        seqs = [q for q in range(self.sim.n_sequences)
-                if split == "all" or simulated_split(q, self.sim.n_sequences) == split]
-        f = self.sim.frames_per_sequence
-        self.frame_ids: list[int] = [q * f + i for q in seqs for i in range(f)]
-        self.sequence_names: list[str] = [simulated_sequence_name(seed, q) for q in seqs for _ in range(f)]
-        self.sequences = self.sequence_names
+        rows = [r for q in range(self.sim.n_sequences) for i in range(self.sim.frames_per_sequence)
+                for r in self.sim.label_rows(q, i)]
+        self.labels = LabelTable.from_rows(rows, path=f"<simulated {cfg.name} seed {seed}>")
+        self._set_selection(select_frames(
+            self.labels, split, difficult=self.difficult, skip=skip, random_split=random_split,
+            seed=split_seed, n_sequences=self.sim.n_sequences, source=repr(self)))
         self._calibration: Calibration | None = None
+        self._last: tuple[int, RoadFrame] | None = None        # scene frame of the last item
 
     @property
     def calibration(self) -> Calibration:
@@ -369,31 +381,25 @@ class SimulatedRADIal(torch.utils.data.Dataset):
             self._calibration = make_calibration(self.sensor)
         return self._calibration
 
-    def __len__(self) -> int:
-        return len(self.frame_ids)
+    def _scene_frame(self, i: int) -> tuple[int, int, RoadFrame]:
+        num = self.frame_ids[self._index(i)]
+        q, k = self.sim.locate(num)
+        if self._last is None or self._last[0] != num:
+            self._last = (num, self.sim.scene_frame(q, k))
+        return q, k, self._last[1]
 
-    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        n = len(self)
-        if not -n <= int(i) < n:
-            raise IndexError(f"index {i} out of range for a simulated RADIal split of {n} frames")
-        q, k = self.sim.locate(self.frame_ids[int(i) % n])
-        fr = self.sim.frame(q, k)
-        labels = torch.from_numpy(_rows_to_tensor(fr.label_rows)).to(self.device)
-        fs = torch.from_numpy(np.ascontiguousarray(freespace_to_model(fr.freespace))).to(self.device)
-        return fr.rd, labels, fs
+    def cube(self, i: int) -> torch.Tensor:
+        """RD cube of item ``i``, synthesised on :attr:`device` (complex64, validated)."""
+        q, k, fr = self._scene_frame(i)
+        return check_cube(self.sim.rd(q, k, fr), self.sensor,
+                          f"simulated frame {self.frame_ids[self._index(i)]}")
 
-    def frame_labels(self, i: int) -> list[dict[str, int | float | str]]:
-        """The raw ``labels.csv`` rows (all :data:`LABEL_COLUMNS`) of item ``i``, -1 row included."""
-        q, k = self.sim.locate(self.frame_ids[int(i)])
-        return [dict(zip(LABEL_COLUMNS, r)) for r in self.sim.geometry(q, k)[1]]
-
-    def index_of(self, num_sample: int) -> int:
-        """Position of frame ``num_sample`` in this split."""
-        try:
-            return self.frame_ids.index(int(num_sample))
-        except ValueError:
-            raise KeyError(f"frame {num_sample} is not in this {self.split!r} split") from None
+    def freespace_mask(self, i: int) -> np.ndarray:
+        """Freespace mask of item ``i`` from the scene geometry, uint8 512 x 900."""
+        _, _, fr = self._scene_frame(i)
+        return freespace_mask(self.sensor, fr)
 
     def __repr__(self) -> str:
-        return (f"SimulatedRADIal(sensor={self.sensor.name!r}, split={self.split!r}, frames={len(self)}, "
-                f"seed={self.sim.seed})")
+        n = len(self.frame_ids) if hasattr(self, "frame_ids") else "?"
+        return (f"SimulatedRADIal(sensor={self.sensor.name!r}, split={self.split!r}, frames={n}, "
+                f"seed={self.sim.seed}, {self.sim.n_sequences} x {self.sim.frames_per_sequence})")
