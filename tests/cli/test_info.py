@@ -62,7 +62,12 @@ def root(tmp_path: Path) -> Path:
     return write_root(tmp_path / "sim")
 
 
-def test_info_summary_and_plot(root: Path, capsys: pytest.CaptureFixture) -> None:
+def test_info_summary_and_plot(root: Path, tmp_path: Path, capsys: pytest.CaptureFixture,
+                               monkeypatch: pytest.MonkeyPatch) -> None:
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    before = sorted(p.relative_to(root) for p in root.rglob("*"))
     assert run([str(root)]) == 0
     out = capsys.readouterr().out
     # 4 sequences: q0, q1 train, q2 val, q3 test (simulated_split with n = 4)
@@ -74,11 +79,24 @@ def test_info_summary_and_plot(root: Path, capsys: pytest.CaptureFixture) -> Non
     assert "azimuth:     -20.00 .. 40.00 deg" in out
     assert "velocity:    -1.00 .. 2.00 m/s" in out
     assert "sensor:      tiny" in out
-    with Image.open(root / "info.png") as im:
+    assert "warning" not in out
+    with Image.open(cwd / "info_sim.png") as im:                 # default: ./info_{root name}.png
         assert im.format == "PNG" and im.size[0] > 400
+    assert f"plot:        {cwd / 'info_sim.png'}" in out
+    assert sorted(p.relative_to(root) for p in root.rglob("*")) == before   # root untouched
     custom = root.parent / "plots" / "s.png"
     assert run([str(root), "--plot", str(custom)]) == 0 and custom.is_file()
     assert not list(custom.parent.glob(".*.tmp"))  # atomic write left no temp file
+
+
+def test_empty_split_warning(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from radarpc.sim.radial_writer import write_radial_dataset
+
+    out = write_radial_dataset(tmp_path / "two", TINY, 2, 1, 0, progress=False)   # 2 sequences: train only
+    assert run([str(out), "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert "warning:     split 'val' is empty (2 sequence(s);" in text
+    assert "warning:     split 'test' is empty" in text and "split 'train' is empty" not in text
 
 
 def test_summary_object(root: Path) -> None:
@@ -95,7 +113,9 @@ def test_check_clean_root(root: Path, capsys: pytest.CaptureFixture) -> None:
     assert not (root / "info.png").exists()
 
 
-def test_check_lists_missing_and_corrupt(root: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_check_lists_missing_and_corrupt(root: Path, tmp_path: Path, capsys: pytest.CaptureFixture,
+                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
     fft_path(root, 11).unlink()                                  # missing cube
     b = freespace_path(root, 20).read_bytes()
     freespace_path(root, 20).write_bytes(b[: len(b) // 3])       # corrupt PNG
@@ -140,9 +160,11 @@ def test_neither_root_and_coloradar_dispatch(tmp_path: Path, monkeypatch: pytest
     assert run([str(tmp_path)]) == 7 and seen == [str(tmp_path)]
 
 
-def test_through_radarpc_main(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_through_radarpc_main(tmp_path: Path, capsys: pytest.CaptureFixture,
+                              monkeypatch: pytest.MonkeyPatch) -> None:
     from radarpc.cli import main
 
+    monkeypatch.chdir(tmp_path)
     out = tmp_path / "sim"
     assert main(["simulate", "radial", "--out", str(out), "--sequences", "3", "--frames-per-sequence", "2",
                  "--sensor", "tiny", "--no-progress"]) == 0
@@ -151,7 +173,7 @@ def test_through_radarpc_main(tmp_path: Path, capsys: pytest.CaptureFixture) -> 
     text = capsys.readouterr().out
     assert "frames:      6" in text and "sequences:   3" in text and "0 problem(s)" in text
     assert "train 2 frames / 1 seq, val 2 frames / 1 seq, test 2 frames / 1 seq" in text
-    assert (out / "info.png").is_file()
+    assert (tmp_path / "info_sim.png").is_file() and not (out / "info.png").exists()
     fft_path(out, 3).write_bytes(b"\x93NUMPY garbage")
     assert main(["info", str(out), "--check", "--no-plot"]) == 1
     assert "frame 3:" in capsys.readouterr().out

@@ -1,5 +1,8 @@
 """``radarpc info ROOT``: what a dataset root holds (frames, sequences, splits, labels), a summary
-plot, and with ``--check`` a scan of every file for missing or corrupt ones."""
+plot, and with ``--check`` a scan of every file for missing or corrupt ones.
+
+Nothing is written into the dataset root: the plot goes to ``./info_{root name}.png`` in the
+current directory unless ``--plot PATH`` chooses another path or ``--no-plot`` skips it."""
 from __future__ import annotations
 
 import argparse
@@ -9,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from radarpc.data.radial import (
+    SPLITS,
     CheckReport,
     LabelTable,
     check_root,
@@ -23,9 +27,9 @@ from radarpc.io import DataFileError, atomic_write
 from radarpc.sensors.radial import DDMARadarConfig
 
 __all__ = ["RadialSummary", "add_parser", "run", "summarize_radial", "format_summary", "plot_summary",
-           "info_radial"]
+           "info_radial", "default_plot_path"]
 
-_SPLITS = ("train", "val", "test")
+_SPLITS = tuple(s for s in SPLITS if s != "all")   # the three disjoint splits
 
 
 @dataclass(frozen=True)
@@ -97,6 +101,12 @@ def format_summary(s: RadialSummary) -> str:
         f"azimuth:     {rng(s.azimuth_deg, 'deg')}",
         f"velocity:    {rng(s.doppler_mps, 'm/s')}",
     ]
+    for k in _SPLITS:
+        if s.split_frames[k] == 0:
+            rule = ("simulated sequences: the last is test and the one before it val when there are at "
+                    "least 3" if s.simulated else "real sequences: RADIal's official val/test lists")
+            lines.append(f"warning:     split {k!r} is empty ({s.n_sequences} sequence(s); {rule}); "
+                         f"RADIal(root, split={k!r}) raises, use random_split or more sequences")
     return "\n".join(lines)
 
 
@@ -156,6 +166,11 @@ def _print_check(report: CheckReport, write_skip: str | None) -> int:
     return 0 if report.ok else 1
 
 
+def default_plot_path(root: str | Path) -> Path:
+    """``./info_{root name}.png`` in the current directory (the dataset root is never written)."""
+    return Path.cwd() / f"info_{Path(root).resolve().name}.png"
+
+
 def info_radial(args: argparse.Namespace) -> int:
     """``radarpc info`` on a RADIal root. Returns 1 if ``--check`` found a bad file, else 0."""
     root = Path(args.root)
@@ -169,7 +184,7 @@ def info_radial(args: argparse.Namespace) -> int:
         return _print_check(check_root(root), args.write_skip)  # lists the bad labels.csv / sensor.json
     print(format_summary(summary))
     if not args.no_plot:
-        out = Path(args.plot) if args.plot else root / "info.png"
+        out = Path(args.plot) if args.plot else default_plot_path(root)
         plot_summary(root, labels, summary.sensor, out)
         print(f"plot:        {out}")
     if check:
@@ -200,6 +215,8 @@ def add_parser(sub) -> None:
     p.add_argument("--write-skip", metavar="FILE", default=None,
                    help="write the numSample of every bad frame to FILE, one per line (implies --check); "
                         "pass it to RADIal(skip=FILE)")
-    p.add_argument("--plot", metavar="PNG", default=None, help="summary plot path (default ROOT/info.png)")
+    p.add_argument("--plot", metavar="PATH", default=None,
+                   help="summary plot path (default ./info_{root name}.png in the current directory; "
+                        "nothing is written into the dataset root)")
     p.add_argument("--no-plot", action="store_true", help="do not write the summary plot")
     p.set_defaults(func=run)
