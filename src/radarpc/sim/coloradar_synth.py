@@ -450,9 +450,9 @@ def cascade_heatmap(scat: Scatterers, chip: ColoRadarChipConfig = CASCADE, *,
     # Beamformer of the unique virtual elements (p_h, p_v), grouped in rows of equal p_v:
     #   AF(n, a, e) = sum_k g_k(n, a) exp(-j 2 pi d p_v,k sin el_e)
     #   g_k(n, a)  = sum_{h in row k} exp(j 2 pi d (p_h u_y,n + p_v,k u_z,n)) exp(-j 2 pi d p_h sin az_a)
-    # g_k by a real GEMM per row on [cos | sin] of the element phases, scaled by sqrt(SNR_n) / V so
-    # that |AF|^2 is already SNR_n |AF|^2 / V^2; [Re AF | Im AF] by one GEMM with the 2K x 2E
-    # elevation steering; then both[r, (a, e)] = sum_n [w_r; w_r v_n] |AF|^2 (one GEMM).
+    # g_k by a real GEMM per row on [cos | sin] of the element phases; [Re AF | Im AF] by one GEMM
+    # with the 2K x 2E elevation steering; then one GEMM sums over scatterers:
+    #   both[r, (a, e)] = sum_n [w_rn; w_rn v_n] SNR_n |AF_n(a, e)|^2 / V^2.
     d = chip.element_spacing
     two_pi_d = 2 * math.pi * d
     s_az = torch.sin(torch.as_tensor(hm.azimuth_bins, dtype=f32, device=dev))
@@ -476,22 +476,22 @@ def cascade_heatmap(scat: Scatterers, chip: ColoRadarChipConfig = CASCADE, *,
     ce, se = torch.cos(th_e), torch.sin(th_e)
     # rows 2k, 2k+1 of y multiply Re g_k, Im g_k: AF_re = sum Re g ce - Im g se, AF_im = sum Re g se + Im g ce
     y = torch.stack([torch.cat([ce, se], 1), torch.cat([-se, ce], 1)], 1).reshape(2 * nk, 2 * ne)   # (2K, 2E)
-    scale = p_snr.sqrt() / vpos.shape[0]                                              # (N,)
+    wr.mul_(p_snr[None, :] / vpos.shape[0] ** 2)                                      # w_r SNR_n / V^2
     w2 = torch.cat([wr, wr * vel[None, :]], 0)                                        # (2R, N)
     hp_d, pv_d = two_pi_d * hp_all, two_pi_d * pv_all
     both = torch.zeros((2 * nr, na * ne), dtype=f32, device=dev)
     # work buffers allocated once (fresh large allocations cost page faults on every block)
-    bf_buf = torch.empty((min(chunk, u.shape[0]), na, ne), dtype=f32, device=dev)    # SNR |AF|^2 / V^2
+    bf_buf = torch.empty((min(chunk, u.shape[0]), na, ne), dtype=f32, device=dev)    # |AF|^2
     x_buf = torch.empty((_HM_BLOCK, na, 2 * nk), dtype=f32, device=dev)               # Re, Im g_k
     af_buf = torch.empty((_HM_BLOCK * na, 2 * ne), dtype=f32, device=dev)             # Re, Im AF
     for c0 in range(0, u.shape[0], chunk):                     # chunks bound memory to ~chunk * A * E
         n_c = min(chunk, u.shape[0] - c0)
-        bf = bf_buf[:n_c]
+        bf = bf_buf[:n_c]                                                             # |AF|^2
         for b0 in range(0, n_c, _HM_BLOCK):                    # blocks small enough to stay in cache
-            uc, sc = u[c0 + b0:c0 + b0 + _HM_BLOCK], scale[c0 + b0:c0 + b0 + _HM_BLOCK]
+            uc = u[c0 + b0:c0 + b0 + _HM_BLOCK]
             n = uc.shape[0]
             ph = torch.addcmul(uc[:, 1:2] * hp_d, uc[:, 2:3], pv_d)                   # (n, V) element phases
-            cs = torch.cat([torch.cos(ph), torch.sin(ph)], 1)[:, perm] * sc[:, None]  # (n, 2V)
+            cs = torch.cat([torch.cos(ph), torch.sin(ph)], 1)[:, perm]                # (n, 2V)
             g = [(cs[:, 2 * st:2 * (st + c)] @ stk).reshape(n, 2, na).transpose(1, 2)  # (n, A, 2) Re, Im g_k
                  for st, c, stk in zip(starts, counts, steer)]
             x = torch.cat(g, 2, out=x_buf[:n])                                        # (n, A, 2K)
