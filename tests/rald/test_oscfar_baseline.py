@@ -38,13 +38,31 @@ def _xyz(r, az_deg, el_deg):
 def test_point_reflector_detected_at_its_cell():
     cube = _noise_cube(0)
     cube[30, 5, 1] = 35.0                      # 35 dB above the noise at (3.75 m, az bin 5, +10 deg)
-    cfg = OSCFARConfig(tau_db=20.0, refine=False)
+    cfg = OSCFARConfig(tau_db=20.0, refine=False, elevation_deg=None)   # bin-centre elevations
     mask, _, _ = detect_cells(cube, AXES, cfg)
     assert mask.nonzero().tolist() == [[30, 5, 1]]
     pts = detect_points(cube, AXES, cfg)
     assert pts.shape == (1, 3) and pts.dtype == torch.float32
     np.testing.assert_allclose(pts[0].numpy(), _xyz(3.75, AXES.azimuth_deg[5], 10.0), atol=1e-5)
+    # default: the elevation axis is collapsed, the point lies in the horizontal plane
+    flat = detect_points(cube, AXES, OSCFARConfig(tau_db=20.0, refine=False))
+    np.testing.assert_allclose(flat[0].numpy(), _xyz(3.75, AXES.azimuth_deg[5], 0.0), atol=1e-5)
 
+
+def test_default_elevation_merges_the_elevation_bins():
+    # one target seen in both elevation bins of a (range, azimuth) cell: one point at 0 deg, not two
+    cube = _noise_cube(5)
+    cube[30, 5, :] = 35.0
+    cube[44, 2, 0] = 35.0
+    pts = detect_points(cube, AXES, OSCFARConfig(tau_db=20.0, refine=False))
+    assert pts.shape == (2, 3)
+    np.testing.assert_allclose(pts.numpy(), [_xyz(3.75, AXES.azimuth_deg[5], 0.0),
+                                             _xyz(5.5, AXES.azimuth_deg[2], 0.0)], atol=1e-5)
+    pts = detect_points(cube, AXES, OSCFARConfig(tau_db=20.0, refine=False, elevation_deg=5.0))
+    np.testing.assert_allclose(np.degrees(np.arcsin(pts[:, 2].numpy() / np.linalg.norm(pts.numpy(), axis=1))),
+                               [5.0, 5.0], atol=1e-4)
+    with pytest.raises(ValueError, match="elevation_deg"):
+        OSCFARConfig(elevation_deg=120.0)
 
 def test_refinement_moves_a_straddling_target_between_bins():
     cube = torch.full((R, A, E), -50.0, dtype=torch.float64)
@@ -97,7 +115,7 @@ def test_tuning_prefers_the_threshold_that_isolates_the_reflectors():
                           _xyz(0.125 * 50, AXES.azimuth_deg[6], 10.0)])
         frames.append((cube, lidar))
     grid = TuningGrid(windows=((9, 3, 3),), guards=((3, 1, 1),), ranks=(0.75,), taus_db=(3.0, 20.0),
-                      angle_bins=(None,), base=OSCFARConfig(refine=False))
+                      angle_bins=(None,), base=OSCFARConfig(refine=False, elevation_deg=None))
     res = tune_oscfar(frames, AXES, grid)
     assert len(res.table) == 2 and res.n_frames == 3
     assert res.best.tau_db == 20.0
@@ -144,8 +162,12 @@ def test_angles_outside_the_frustum_are_clipped_and_radian_axes():
     assert axes.elevation_deg[0] == pytest.approx(-79.99, abs=0.01)
     cube = _noise_cube(4)
     cube[40, 0, 0] = 40.0
-    pts = detect_points(cube, axes, OSCFARConfig(tau_db=20.0, refine=False))
+    pts = detect_points(cube, axes, OSCFARConfig(tau_db=20.0, refine=False, elevation_deg=None))
     assert pts.shape == (1, 3)
     np.testing.assert_allclose(pts[0].numpy(), _xyz(5.0, -np.rad2deg(1.2), -20.0), atol=1e-5)
-    free = detect_points(cube, axes, OSCFARConfig(tau_db=20.0, refine=False, clip_angles_deg=None))
+    # the default places the difference-channel (-80 deg bin) detection at 0 deg, not on the -20 deg floor
+    pts0 = detect_points(cube, axes, OSCFARConfig(tau_db=20.0, refine=False))
+    np.testing.assert_allclose(pts0[0].numpy(), _xyz(5.0, -np.rad2deg(1.2), 0.0), atol=1e-5)
+    free = detect_points(cube, axes, OSCFARConfig(tau_db=20.0, refine=False, clip_angles_deg=None,
+                                                  elevation_deg=None))
     np.testing.assert_allclose(free[0].numpy(), _xyz(5.0, -np.rad2deg(1.2), -np.rad2deg(1.396)), atol=1e-5)
