@@ -214,7 +214,7 @@ def test_torchrun_ranks_shard_chunks_and_rank0_merges(root, tmp_path, monkeypatc
     monkeypatch.setenv("WORLD_SIZE", "2")
     monkeypatch.setenv("RANK", "0")
     monkeypatch.setenv("LOCAL_RANK", "0")
-    with pytest.raises(TimeoutError, match="waiting for"):
+    with pytest.raises(TimeoutError, match=r"waiting for 2 of 5 file\(s\).*part-00001.parquet \(from rank 1, chunk 1\)"):
         convert_dataset(root, out, tau=3.0, chunk_frames=2, progress=False, wait_timeout_s=0.0)
     assert sorted(p.name for p in parts_dir(out).glob("part-*")) == [part_path(out, k).name for k in (0, 2, 4)]
     monkeypatch.setenv("RANK", "1")
@@ -283,17 +283,62 @@ def test_corrupt_cube_names_the_file_and_keeps_finished_parts(root, tmp_path):
 
 
 def test_bad_settings(root, tmp_path):
-    with pytest.raises(ValueError, match=r"density must be a fraction of RD cells in \(0, 1\], got 1.5"):
+    with pytest.raises(ValueError, match=r"density must be in \(0, 1\] \(fraction of RD cells kept\), got 1.5"):
         convert_dataset(root, tmp_path / "a.parquet", density=1.5, progress=False)
     with pytest.raises(ValueError, match="exactly one of tau"):
         convert_dataset(root, tmp_path / "a.parquet", density=0.1, tau=2.0, progress=False)
     with pytest.raises(ValueError, match="exactly one of tau"):
         ConvertSettings()
-    with pytest.raises(ValueError, match="tau must be a positive"):
+    with pytest.raises(ValueError, match="tau must be a finite linear SNR threshold > 0"):
         ConvertSettings(tau=-1.0)
     with pytest.raises(ValueError, match="positive odd"):
         ConvertSettings(tau=2.0, window=(8, 9))
+    with pytest.raises(ValueError, match="two positive odd integers"):
+        ConvertSettings(tau=2.0, window=(9, 9, 9), guard=(3, 3, 3))
+    with pytest.raises(ValueError, match="envelope must be one of"):
+        ConvertSettings(tau=2.0, envelope="sum")
+    with pytest.raises(ValueError, match="wait_timeout_s must be >= 0"):
+        convert_dataset(root, tmp_path / "a.parquet", tau=2.0, wait_timeout_s=-1.0, progress=False)
+    with pytest.raises(ValueError, match="lacks"):
+        convert_dataset(object(), tmp_path / "a.parquet", tau=2.0, progress=False)
     with pytest.raises(ValueError, match="workers must be >= 1"):
         convert_dataset(root, tmp_path / "a.parquet", tau=2.0, workers=0, progress=False)
     with pytest.raises(ValueError, match="must differ from the source root"):
         write_sparse_rd(root, root, tau=2.0, progress=False)
+
+
+def test_changed_calibration_frames_is_a_new_conversion(root, tmp_path):
+    # reviewer's case: per-dataset mode, a second run with other calibration frames must not return
+    # the old store; every output-shaping setting is in the metadata and compared
+    out = tmp_path / "pd.parquet"
+    first = convert_dataset(root, out, density=0.1, density_mode="per-dataset", chunk_frames=4, progress=False)
+    assert PointStore(out).metadata.settings["calibration_frames"] is None
+    same = convert_dataset(root, out, density=0.1, density_mode="per-dataset", chunk_frames=4, progress=False)
+    assert same.chunks_converted == 0 and same.tau == first.tau
+    two = convert_dataset(root, out, density=0.1, density_mode="per-dataset", chunk_frames=4,
+                          calibration_frames=2, progress=False)
+    assert two.chunks_converted == 3 and two.chunks_skipped == 0
+    m = PointStore(out).metadata
+    assert m.settings["calibration_frames"] == 2 and m.tau == two.tau
+    # independent: tau on the pooled SNR of the first 2 train frames only
+    train = RADIal(root, split="train")
+    spc = build_point_cloud(train, ConvertSettings(tau=1.0), 1.0, "cpu")
+    with torch.no_grad():
+        snr = spc.detect(torch.stack([train[i][0] for i in range(2)]))[1].snr
+    assert two.tau == pytest.approx(float(tau_for_density(snr, TINY, 0.1, mode="per-dataset")))
+    assert two.tau != first.tau
+    # the envelope is recorded and compared too
+    env = convert_dataset(root, out, density=0.1, density_mode="per-dataset", chunk_frames=4,
+                          calibration_frames=2, envelope="all-slots", progress=False)
+    assert env.chunks_converted == 3 and PointStore(out).metadata.envelope == "all-slots"
+
+
+def test_workers_shrink_chunks_so_each_gets_work(root, tmp_path):
+    out = tmp_path / "w.parquet"
+    ref = tmp_path / "ref.parquet"
+    convert_dataset(root, ref, tau=3.0, progress=False)                       # one chunk of 9 frames
+    res = convert_dataset(root, out, tau=3.0, chunk_frames=64, workers=2, progress=False)
+    assert res.chunk_frames == 5 and res.chunks_converted == 2               # 9 frames -> 5 + 4
+    t1, m1, f1 = read_all(ref)
+    t2, m2, f2 = read_all(out)
+    assert t1.to_pylist() == t2.to_pylist() and f1 == f2                    # same rows, other row groups

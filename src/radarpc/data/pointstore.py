@@ -51,6 +51,7 @@ import pyarrow.parquet as pq
 import torch
 
 from radarpc import __version__
+from radarpc.dsp.ddma import check_envelope_kind
 from radarpc.io import DataFileError, temp_file_beside
 from radarpc.sensors.radial import DDMARadarConfig
 
@@ -142,8 +143,16 @@ class PointStoreMetadata:
     split: str                               # split converted ("train", "val", "test", "all")
     radarpc_version: str = __version__       # package version that wrote the store
     created: str = ""                        # ISO-8601 UTC creation time
+    envelope: str = "replicas"               # RD envelope: "replicas" (seed eq. 1) or "all-slots" (RADIal rpl.py)
+    settings: dict = dataclasses.field(default_factory=dict)
+    # ^ every setting that shapes the output, as resolved by the writer (``ConvertSettings.to_dict()``
+    #   for :func:`radarpc.dsp.convert.convert_dataset`: threshold/density, mode, enrichments,
+    #   CFAR geometry, envelope, split, calibration frames and source); compared on resume
 
     def __post_init__(self) -> None:
+        check_envelope_kind(self.envelope)
+        if not isinstance(self.settings, dict):
+            raise ValueError(f"settings must be a dict of conversion settings, got {type(self.settings).__name__}")
         if self.density_mode not in DENSITY_MODES:
             raise ValueError(f"density_mode must be one of {DENSITY_MODES}, got {self.density_mode!r}")
         if self.density_mode in ("fixed-tau", "per-dataset") and self.tau is None:
@@ -162,6 +171,7 @@ class PointStoreMetadata:
         d["enrich"] = list(self.enrich)
         d["window"] = list(self.window)
         d["guard"] = list(self.guard)
+        d["settings"] = json.loads(json.dumps(self.settings))   # plain JSON types (tuples -> lists)
         return d
 
     @classmethod
@@ -173,6 +183,8 @@ class PointStoreMetadata:
         if unknown or missing:
             raise ValueError(f"point store metadata: unknown keys {sorted(unknown)}, missing keys {sorted(missing)}")
         kw = dict(d)
+        # stores written before the envelope option existed summed every slot (RADIal rpl.py)
+        kw.setdefault("envelope", "all-slots")
         kw["sensor"] = DDMARadarConfig.from_dict(d["sensor"])
         kw["enrich"] = tuple(str(e) for e in d["enrich"])
         kw["window"] = tuple(int(v) for v in d["window"])

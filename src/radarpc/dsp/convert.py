@@ -1,7 +1,10 @@
 """Dataset conversion drivers: a RADIal root -> a Parquet point store, or -> a sparse-RD root.
 
 :func:`convert_dataset` runs :class:`~radarpc.dsp.pointcloud.SpectralPointCloud` over every
-frame of a split and writes a :mod:`radarpc.data.pointstore` file. The work is cut into chunks
+frame of a split and writes a :mod:`radarpc.data.pointstore` file. The source is a RADIal-layout
+root (read with :class:`~radarpc.data.radial.RADIal`) or any dataset object with ``frame_ids``,
+``sequences``, ``sensor``, ``calibration`` and ``cube(i)`` (or ``ds[i][0]``) such as
+:class:`~radarpc.sim.radial_writer.SimulatedRADIal`, which simulates the same frames on the fly. The work is cut into chunks
 of ``chunk_frames`` frames; chunk ``k`` is written atomically to ``OUT.parts/part-{k:05d}.parquet``
 and a finished chunk is never recomputed, so a killed conversion resumes where it stopped and
 gives the same final file. At the end the parts are merged into ``OUT`` (atomically) and the
@@ -12,7 +15,14 @@ parts folder is removed. Chunks can be spread over
 * ``torchrun`` ranks (``RANK``/``WORLD_SIZE``/``LOCAL_RANK`` set): rank ``r`` converts the chunks
   ``k % WORLD_SIZE == r`` on ``cuda:LOCAL_RANK`` when CUDA is available; rank 0 merges once every
   part exists (``torch.distributed`` barrier when a process group is initialised, else polling
-  the parts folder, which must then be on a shared file system).
+  the parts folder, which must then be on a shared file system; ``wait_timeout_s``, 2 h by default,
+  bounds the wait and the error names the missing parts and their ranks).
+
+When there are fewer chunks than processes (``workers x WORLD_SIZE``) the chunks are shrunk so that
+every process gets work; the chunk size is fixed by the first run (its manifest) so a resumed run
+with another ``workers`` reuses the parts. Every setting that shapes the output
+(:meth:`ConvertSettings.to_dict`, the source, the frames) is stored in the manifest and in the
+store metadata and compared on resume and by the "already finished" check.
 
 Density control (seed Sec. 3.2): the detected set is ``S(tau) = {(r, l) : E(r, l) / mu(r, l) >
 tau}`` expanded to the ``M`` Tx replicas, density ``|S(tau)| / (Nr * ND)``. A target density
@@ -21,7 +31,8 @@ enrichment. Give either a fixed linear SNR threshold ``tau`` or a target ``densi
 ``per-frame`` picks a tau for every frame, ``per-dataset`` calibrates one tau on the *training*
 split (stored in the metadata) and applies it to the requested split.
 
-:func:`write_sparse_rd` writes the RD cubes masked to ``S(tau)`` as a new RADIal-layout root
+:func:`write_sparse_rd` writes the RD cubes masked to the set the matching point store encodes
+(``S(tau)``, or ``S*(tau)`` with ``rdN``; same envelope, CFAR and per-frame taus) as a new RADIal-layout root
 (labels, freespace, calibration and sensor description linked or copied) that the unchanged
 :class:`~radarpc.data.radial.RADIal` reader and the dense FFTRadNet read: the sparse-RD baseline.
 """
@@ -40,7 +51,7 @@ import traceback
 from dataclasses import dataclass
 from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Protocol, Sequence, Union
 
 import numpy as np
 import torch
@@ -49,9 +60,16 @@ from radarpc import __version__
 from radarpc.data.pointstore import PointStore, PointStoreMetadata, PointStoreWriter
 from radarpc.data.radial import RADIal, find_fft_file, load_rd
 from radarpc.data.radial_format import LABEL_COLUMNS, fft_path, freespace_path
+from radarpc.dsp.density import check_density
+from radarpc.dsp.pointcloud import SpectralPointCloud, SpectralPointCloudConfig
 from radarpc.io import DataFileError, atomic_write, save_npy_atomic
+from radarpc.sensors.radial import Calibration, DDMARadarConfig, save_calibration
 
 __all__ = [
+    "RadarDataset",
+    "Source",
+    "open_source",
+    "read_cube",
     "ConvertSettings",
     "ConvertResult",
     "SparseRDResult",
@@ -66,49 +84,122 @@ __all__ = [
 ]
 
 _MANIFEST = "manifest.json"
+DEFAULT_WAIT_S = 2 * 3600.0
+"""Default time torchrun ranks wait for each other's files (without a process group)."""
+
+
+class RadarDataset(Protocol):
+    """What the converters need from a dataset object (RADIal, SimulatedRADIal, ...).
+
+    ``cube(i)`` -> complex64 ``(Nr, Nd, Nrx)`` tensor of item ``i`` (``ds[i][0]`` is used when
+    the object has no ``cube``); ``frame_labels(i)`` (raw ``labels.csv`` rows) is needed only
+    by :func:`write_sparse_rd` for an object without a ``root`` folder.
+    """
+
+    frame_ids: list[int]
+    sequences: list[str]
+    sensor: DDMARadarConfig
+
+    @property
+    def calibration(self) -> Calibration: ...
+
+    def __len__(self) -> int: ...
+
+
+Source = Union[str, os.PathLike, RadarDataset]
+"""A RADIal-layout root folder or a :class:`RadarDataset` object."""
+
+
+def open_source(source: Source, split: str = "all") -> tuple[Any, str, str]:
+    """``(dataset, source_id, split)`` for a root path or a dataset object.
+
+    A path opens ``RADIal(root, split=split)``; its id is the resolved path. A dataset object is
+    used as given (it *is* the split: ``split`` must be ``"all"`` or the object's ``split``); its
+    id is its resolved ``root`` when it has one, else its ``repr`` (SimulatedRADIal: sensor,
+    split, frames and seed). Raises ``ValueError`` for an object lacking the interface.
+    """
+    if isinstance(source, (str, os.PathLike)):
+        root = Path(source)
+        return RADIal(root, split=split), str(root.resolve()), split
+    missing = [a for a in ("frame_ids", "sequences", "sensor", "calibration", "__len__") if not hasattr(source, a)]
+    if not hasattr(source, "cube") and not hasattr(source, "__getitem__"):
+        missing.append("cube (or __getitem__)")
+    if missing:
+        raise ValueError(f"source must be a RADIal root path or a dataset with frame_ids, sequences, sensor, "
+                         f"calibration and cube(i); {type(source).__name__} lacks {missing}")
+    own = getattr(source, "split", None)
+    if split != "all" and own is not None and own != split:
+        raise ValueError(f"split={split!r} does not match the dataset object's split {own!r}; pass the "
+                         f"dataset of that split (or split='all')")
+    resolved = own if (split == "all" and own in ("train", "val", "test", "all")) else split
+    root = getattr(source, "root", None)
+    sid = str(Path(root).resolve()) if root is not None else repr(source)
+    return source, sid, resolved
+
+
+def read_cube(ds: Any, i: int) -> torch.Tensor:
+    """RD cube of item ``i``: ``ds.cube(i)``, else (a RADIal reader) the FFT file alone, else ``ds[i][0]``.
+
+    Returns a complex ``(Nr, Nd, Nrx)`` tensor.
+    """
+    cube = getattr(ds, "cube", None)
+    if callable(cube):
+        return cube(i)
+    if isinstance(ds, RADIal):
+        return torch.from_numpy(load_rd(find_fft_file(ds.root, ds.frame_ids[i]), ds.sensor,
+                                        validate=ds.validate))
+    return ds[i][0]
 
 
 # ---- settings -------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ConvertSettings:
-    """What to compute: threshold or density, enrichments, CFAR geometry, split and chunking.
+    """What to compute: threshold or density, enrichments, CFAR geometry, envelope, split, chunking.
 
-    Exactly one of ``tau`` and ``density`` is given.
+    Exactly one of ``tau`` and ``density`` is given. Threshold, density, window, guard, enrichment
+    and envelope checks are those of :class:`~radarpc.dsp.pointcloud.SpectralPointCloudConfig`
+    (one implementation). ``window``/``guard`` are full odd side lengths: RADIal rpl.py's
+    ``(9, 9, 3, 3)`` half widths are ``window=(19, 19), guard=(7, 7)`` (with ``envelope="all-slots"``
+    and ``tau=1.585``, RADIal's processing).
     """
 
     tau: float | None = None                 # fixed linear SNR threshold (RADIal default 1.585 = 2 dB)
     density: float | None = None             # target density of the encoded set (S*, with rdN, else S), in (0, 1]
     density_mode: str = "per-frame"          # "per-frame" or "per-dataset" (only with density)
     enrich: tuple[str, ...] = ()             # e.g. ("rd3", "sector32"); () = plain spectral points
-    window: tuple[int, int] = (9, 9)         # CA-CFAR window (range, Doppler), cells
-    guard: tuple[int, int] = (3, 3)          # CA-CFAR guard (range, Doppler), cells
+    window: tuple[int, int] = (9, 9)         # CA-CFAR window (range, Doppler), full odd sizes
+    guard: tuple[int, int] = (3, 3)          # CA-CFAR guard (range, Doppler), full odd sizes
     split: str = "all"                       # "train", "val", "test" or "all"
     chunk_frames: int = 64                   # frames per part file (the unit of resume and sharding)
     calibration_frames: int | None = None    # train frames used to calibrate per-dataset tau (None: all)
+    envelope: str = "replicas"               # "replicas" (seed eq. 1) or "all-slots" (RADIal rpl.py)
 
     def __post_init__(self) -> None:
         if (self.tau is None) == (self.density is None):
             raise ValueError(f"give exactly one of tau (a linear SNR threshold) and density (a target "
                              f"fraction of RD cells), got tau={self.tau}, density={self.density}")
-        if self.tau is not None and not (math.isfinite(self.tau) and self.tau > 0):
-            raise ValueError(f"tau must be a positive finite linear SNR threshold, got {self.tau}")
-        if self.density is not None and not (math.isfinite(self.density) and 0.0 < self.density <= 1.0):
-            raise ValueError(f"density must be a fraction of RD cells in (0, 1], got {self.density}")
-        if self.density_mode not in ("per-frame", "per-dataset"):
-            raise ValueError(f"density_mode must be 'per-frame' or 'per-dataset', got {self.density_mode!r}")
+        cfg = self.point_cloud_config()          # validates tau/density/window/guard/enrich/envelope
+        object.__setattr__(self, "window", cfg.window)
+        object.__setattr__(self, "guard", cfg.guard)
+        object.__setattr__(self, "enrich", cfg.enrich)
         if self.split not in ("train", "val", "test", "all"):
             raise ValueError(f"split must be one of train, val, test, all; got {self.split!r}")
-        for name in ("window", "guard"):
-            v = getattr(self, name)
-            if len(v) != 2 or any(int(x) != x or int(x) < 1 or int(x) % 2 == 0 for x in v):
-                raise ValueError(f"CFAR {name} must be two positive odd integers (full side lengths "
-                                 f"along range and Doppler), got {v}")
-        if any(g >= w for g, w in zip(self.guard, self.window)):
-            raise ValueError(f"guard {self.guard} must be smaller than window {self.window} on both axes")
-        if int(self.chunk_frames) < 1:
+        if isinstance(self.chunk_frames, bool) or int(self.chunk_frames) < 1:
             raise ValueError(f"chunk_frames must be >= 1, got {self.chunk_frames}")
-        if self.calibration_frames is not None and int(self.calibration_frames) < 1:
-            raise ValueError(f"calibration_frames must be >= 1, got {self.calibration_frames}")
+        object.__setattr__(self, "chunk_frames", int(self.chunk_frames))
+        if self.calibration_frames is not None:
+            if int(self.calibration_frames) < 1:
+                raise ValueError(f"calibration_frames must be >= 1, got {self.calibration_frames}")
+            object.__setattr__(self, "calibration_frames", int(self.calibration_frames))
+
+    def point_cloud_config(self) -> SpectralPointCloudConfig:
+        """The :class:`SpectralPointCloudConfig` of these settings (per-dataset: the target density)."""
+        if len(tuple(self.window)) != 2 or len(tuple(self.guard)) != 2:
+            raise ValueError(f"CFAR window and guard must be two positive odd integers (full side lengths "
+                             f"along range and Doppler), got window={self.window}, guard={self.guard}")
+        return SpectralPointCloudConfig(tau=self.tau, density=self.density, density_mode=self.density_mode,
+                                        window=tuple(self.window), guard=tuple(self.guard),
+                                        enrich=tuple(self.enrich), envelope=self.envelope)
 
     @property
     def mode(self) -> str:
@@ -116,8 +207,15 @@ class ConvertSettings:
         return "fixed-tau" if self.tau is not None else self.density_mode
 
     def to_dict(self) -> dict:
+        """Plain JSON-able dict (lists for tuples)."""
         d = dataclasses.asdict(self)
         d["enrich"], d["window"], d["guard"] = list(self.enrich), list(self.window), list(self.guard)
+        return d
+
+    def output_key(self) -> dict:
+        """:meth:`to_dict` without ``chunk_frames`` (which changes the part files, not the store)."""
+        d = self.to_dict()
+        d.pop("chunk_frames")
         return d
 
 
@@ -133,6 +231,7 @@ class ConvertResult:
     tau: float | None                # the fixed or calibrated threshold (None in per-frame mode)
     chunks_converted: int            # chunks computed by this process (and its workers)
     chunks_skipped: int              # chunks found complete from an earlier run
+    chunk_frames: int = 0            # frames per chunk actually used (shrunk for many processes; from the manifest on resume)
 
 
 @dataclass(frozen=True)
@@ -144,6 +243,8 @@ class SparseRDResult:
     frames_written: int              # cubes computed in this call (the others existed)
     achieved_density: float          # mean density of the frames written in this call (nan if none)
     tau: float | None                # fixed or calibrated threshold (None in per-frame mode)
+    frame_tau: dict[int, float] = dataclasses.field(default_factory=dict)      # per frame (numSample), all recorded frames
+    frame_density: dict[int, float] = dataclasses.field(default_factory=dict)  # per frame, density of the kept set
 
 
 @dataclass(frozen=True)
@@ -191,16 +292,15 @@ def _default_device(device: torch.device | str | None, env: DistEnv) -> torch.de
 
 
 # ---- DSP ----------------------------------------------------------------------------------------
-def build_point_cloud(ds: RADIal, settings: ConvertSettings, tau: float | None,
-                      device: torch.device | str) -> torch.nn.Module:
+def build_point_cloud(ds: Any, settings: ConvertSettings, tau: float | None,
+                      device: torch.device | str) -> SpectralPointCloud:
     """The :class:`SpectralPointCloud` for ``settings`` on ``ds``'s sensor and calibration.
 
     ``tau`` is the fixed or calibrated threshold (fixed-tau and per-dataset modes); in
     per-frame mode the module picks a tau per frame for ``settings.density``.
     """
-    from radarpc.dsp.pointcloud import SpectralPointCloud
-
-    common = dict(window=tuple(settings.window), guard=tuple(settings.guard), enrich=tuple(settings.enrich))
+    common = dict(window=tuple(settings.window), guard=tuple(settings.guard), enrich=tuple(settings.enrich),
+                  envelope=settings.envelope)
     if settings.mode == "per-frame":
         spc = SpectralPointCloud(ds.sensor, ds.calibration, density=settings.density,
                                  density_mode="per-frame", **common)
@@ -211,26 +311,20 @@ def build_point_cloud(ds: RADIal, settings: ConvertSettings, tau: float | None,
     return spc.to(device).eval()
 
 
-def _check_dsp_settings(settings: ConvertSettings, ds: RADIal) -> None:
-    """Fail before any file is written: enrichment names, CFAR sizes, a reachable density."""
-    from radarpc.dsp.density import check_density
-    from radarpc.dsp.pointcloud import SpectralPointCloudConfig
-
-    SpectralPointCloudConfig(tau=settings.tau, density=settings.density, density_mode=settings.density_mode,
-                             window=settings.window, guard=settings.guard, enrich=settings.enrich)
+def _check_dsp_settings(settings: ConvertSettings, ds: Any, source_id: str) -> None:
+    """Fail before any file is written: a reachable density, a non-empty split."""
     if settings.density is not None:
         check_density(settings.density, ds.sensor)
     if len(ds) == 0:
-        raise ValueError(f"{ds.root}: the {settings.split!r} split has no frames")
+        raise ValueError(f"{source_id}: the {settings.split!r} split has no frames")
 
 
-def _load_batch(ds: RADIal, positions: Sequence[int], device: torch.device) -> torch.Tensor:
+def _load_batch(ds: Any, positions: Sequence[int], device: torch.device) -> torch.Tensor:
     """RD cubes of items ``positions`` as complex64 ``(B, Nr, Nd, Nrx)`` on ``device``."""
-    cubes = [torch.from_numpy(load_rd(find_fft_file(ds.root, ds.frame_ids[p]), ds.sensor)) for p in positions]
-    return torch.stack(cubes).to(device)
+    return torch.stack([read_cube(ds, p).to(device) for p in positions])
 
 
-def _prefetched(ds: RADIal, batches: Sequence[Sequence[int]], device: torch.device
+def _prefetched(ds: Any, batches: Sequence[Sequence[int]], device: torch.device
                 ) -> Iterator[tuple[list[int], torch.Tensor]]:
     """Yield ``(positions, rd)`` per batch, reading the next batch in a thread meanwhile (file reads
     and validation overlap the DSP)."""
@@ -249,21 +343,24 @@ def _batches(positions: Sequence[int], batch_size: int) -> list[list[int]]:
     return [list(positions[i:i + batch_size]) for i in range(0, len(positions), batch_size)]
 
 
-def calibrate_tau(root: str | os.PathLike, settings: ConvertSettings, *, batch_size: int = 8,
+def calibrate_tau(source: Source, settings: ConvertSettings, *, batch_size: int = 8,
                   device: torch.device | str = "cpu", progress: bool = False) -> float:
     """One tau for the whole dataset: the mean density over the *training* split hits the target.
 
-    The density is that of the encoded set (``S*(tau)`` when ``settings.enrich`` has ``rdN``, else
-    ``S(tau)``). :meth:`SpectralPointCloud.calibrate_tau` (pooled CFAR SNR maps, see
+    ``source`` is a RADIal root (its ``train`` split is opened) or a dataset object holding the
+    training frames (used as given, e.g. ``SimulatedRADIal(..., split="train")``). The density is
+    that of the encoded set (``S*(tau)`` when ``settings.enrich`` has ``rdN``, else ``S(tau)``),
+    on ``settings.envelope``. :meth:`SpectralPointCloud.calibrate_tau` (pooled CFAR SNR maps, see
     :func:`radarpc.dsp.density.tau_for_density`) over the first ``settings.calibration_frames``
     training frames (all of them by default).
     """
     if settings.density is None:
         raise ValueError("calibrate_tau needs settings.density")
-    train = RADIal(root, split="train")
+    train, sid, _ = open_source(source, "train") if isinstance(source, (str, os.PathLike)) \
+        else open_source(source, "all")
     n = len(train) if settings.calibration_frames is None else min(len(train), int(settings.calibration_frames))
     if n == 0:
-        raise ValueError(f"{root}: the training split has no frames to calibrate a per-dataset tau on")
+        raise ValueError(f"{sid}: the training split has no frames to calibrate a per-dataset tau on")
     dev = torch.device(device)
     spc = build_point_cloud(train, dataclasses.replace(settings, density_mode="per-dataset"), 1.0, dev)
     batches = _batches(list(range(n)), batch_size)
@@ -274,10 +371,30 @@ def calibrate_tau(root: str | os.PathLike, settings: ConvertSettings, *, batch_s
     return spc.calibrate_tau(it, density=settings.density)
 
 
+def _calibration_source(source: Source, ds: Any, calibration_source: Source | None) -> tuple[Source, str]:
+    """The training frames of a per-dataset tau, and their id (recorded and compared on resume)."""
+    if calibration_source is not None:
+        cal = calibration_source
+    elif isinstance(source, (str, os.PathLike)):
+        cal = source
+    elif getattr(ds, "split", None) == "train":
+        cal = ds
+    else:
+        raise ValueError("per-dataset density mode with a dataset object needs calibration_source= its "
+                         "training split (e.g. SimulatedRADIal(..., split='train')) or a root path")
+    if isinstance(cal, (str, os.PathLike)):
+        return cal, str(Path(cal).resolve()) + ":train"
+    return cal, open_source(cal)[1]
+
+
 # ---- manifest -----------------------------------------------------------------------------------
-def _manifest_key(root: Path, settings: ConvertSettings, frames: Sequence[int]) -> dict:
-    # What must match for parts of an earlier run to be reused.
-    return {"root": str(root.resolve()), "settings": settings.to_dict(), "frames": [int(f) for f in frames]}
+def _manifest_key(source_id: str, settings: ConvertSettings, frames: Sequence[int],
+                  calibration_id: str | None) -> dict:
+    """What must match for parts (or a finished store) of an earlier run to be reused: every
+    setting that shapes the output (not ``chunk_frames``), the source, its frames and, in
+    per-dataset mode, the training frames tau was calibrated on."""
+    return {"source": source_id, "settings": settings.output_key(), "frames": [int(f) for f in frames],
+            "calibration_source": calibration_id}
 
 
 def _read_manifest(d: Path) -> dict | None:
@@ -304,23 +421,32 @@ def _remove_parts_dir(d: Path) -> None:
         raise FileExistsError(f"{d} holds files that a conversion did not write; not removing it ({e})") from e
 
 
-def _wait_for(pred: Callable[[], bool], what: str, timeout_s: float, poll_s: float = 1.0) -> None:
+def _wait_for_files(files: Sequence[Path], owners: Sequence[str], timeout_s: float, poll_s: float = 1.0) -> None:
+    """Wait until every file exists; on timeout a ``TimeoutError`` names the missing ones and who writes them."""
     t0 = time.monotonic()
-    while not pred():
+    while True:
+        missing = [(f, o) for f, o in zip(files, owners) if not f.is_file()]
+        if not missing:
+            return
         if time.monotonic() - t0 > timeout_s:
-            raise TimeoutError(f"gave up after {timeout_s:.0f} s waiting for {what}")
+            shown = "; ".join(f"{f} (from {o})" for f, o in missing[:8])
+            more = f"; ... {len(missing) - 8} more" if len(missing) > 8 else ""
+            raise TimeoutError(f"gave up after {timeout_s:.0f} s waiting for {len(missing)} of {len(files)} "
+                               f"file(s): {shown}{more}. Is that rank still running (or did it fail)? "
+                               f"Raise wait_timeout_s (CLI --wait-timeout) for slow ranks")
         time.sleep(poll_s)
 
 
 # ---- chunk conversion (runs in the main process, in spawned workers, or on a torchrun rank) -----
 @dataclass(frozen=True)
 class _ChunkJob:
-    root: str
+    dataset: Any                     # the source dataset (pickled to spawned workers)
     out: str
     settings: ConvertSettings
     tau: float | None
     meta: dict                       # PointStoreMetadata.to_dict() of the parts
     chunks: tuple[int, ...]          # chunk indices this job converts
+    chunk_frames: int                # frames per chunk (from the manifest)
     batch_size: int
     device: str
     threads: int | None              # torch threads of a spawned worker (None: leave as is)
@@ -334,14 +460,14 @@ def _run_chunks(job: _ChunkJob, on_done: Callable[[int, int], None]) -> int:
     """Convert ``job.chunks`` whose part file is missing; ``on_done(k, n_frames)`` after each."""
     if job.threads is not None:
         torch.set_num_threads(job.threads)
-    ds = RADIal(job.root, split=job.settings.split)
+    ds = job.dataset
     dev = torch.device(job.device)
     spc = build_point_cloud(ds, job.settings, job.tau, dev)
     meta = PointStoreMetadata.from_dict(job.meta)
     done = 0
     for k in job.chunks:
         path = part_path(job.out, k)
-        pos = _chunk_positions(len(ds), job.settings.chunk_frames, k)
+        pos = _chunk_positions(len(ds), job.chunk_frames, k)
         if path.is_file():
             continue
         with PointStoreWriter(path, meta, row_group_frames=max(len(pos), 1)) as w, torch.no_grad():
@@ -411,7 +537,7 @@ def _run_workers(job: _ChunkJob, workers: int, on_done: Callable[[int, int], Non
 
 # ---- the driver ---------------------------------------------------------------------------------
 def convert_dataset(
-    root: str | os.PathLike,
+    source: Source,
     out: str | os.PathLike,
     *,
     tau: float | None = None,
@@ -420,23 +546,26 @@ def convert_dataset(
     enrich: Sequence[str] = (),
     window: tuple[int, int] = (9, 9),
     guard: tuple[int, int] = (3, 3),
+    envelope: str = "replicas",
     split: str = "all",
     batch_size: int = 8,
     chunk_frames: int = 64,
     calibration_frames: int | None = None,
+    calibration_source: Source | None = None,
     workers: int = 1,
     device: torch.device | str | None = None,
     resume: bool = True,
     progress: bool = True,
-    wait_timeout_s: float = 24 * 3600.0,
+    wait_timeout_s: float = DEFAULT_WAIT_S,
     on_chunk_done: Callable[[int], None] | None = None,
 ) -> ConvertResult:
-    """Convert the frames of a RADIal root into a Parquet point store.
+    """Convert the frames of a RADIal root (or dataset object) into a Parquet point store.
 
     Parameters
     ----------
-    root : path-like
-        RADIal-layout root (real or simulated).
+    source : path-like or dataset
+        RADIal-layout root (real or simulated), or a dataset object (:class:`RadarDataset`, e.g.
+        :class:`~radarpc.sim.radial_writer.SimulatedRADIal`): its frames are converted as given.
     out : path-like
         The ``.parquet`` store to write (atomically, at the very end).
     tau, density : float
@@ -446,18 +575,25 @@ def convert_dataset(
     enrich : sequence of str
         Enrichments passed to :class:`SpectralPointCloud` (e.g. ``("rd3", "sector32")``).
     window, guard : (int, int)
-        CA-CFAR window and guard (range, Doppler).
+        CA-CFAR window and guard (range, Doppler), full odd sizes (RADIal rpl.py: 19,19 and 7,7).
+    envelope : {"replicas", "all-slots"}
+        Seed eq. 1 (sum over the ``n_tx`` replica bins) or RADIal rpl.py's sum over every slot.
     split : {"all", "train", "val", "test"}
+        With a root path: the split to convert. A dataset object is its own split.
     batch_size : int
         Frames per forward pass.
     chunk_frames : int
-        Frames per part file (unit of resume and sharding).
+        Frames per part file (unit of resume and sharding); shrunk when there are fewer chunks
+        than processes; a resumed run keeps the first run's size.
     calibration_frames : int, optional
         Training frames used for the per-dataset tau (default all).
+    calibration_source : path-like or dataset, optional
+        Per-dataset mode: the training frames (default the root's train split, or the dataset
+        object itself if its ``split`` is ``"train"``).
     workers : int
         Local processes (spawned) sharing the chunks; 1 runs in this process. A script that
         calls this with ``workers > 1`` needs the usual ``if __name__ == "__main__":`` guard
-        (spawned workers import the main module).
+        (spawned workers import the main module; a dataset object must be picklable).
     device : torch.device or str, optional
         Default ``cuda:LOCAL_RANK`` when CUDA is available, else CPU.
     resume : bool
@@ -466,7 +602,8 @@ def convert_dataset(
     progress : bool
         tqdm progress bar over frames.
     wait_timeout_s : float
-        Under torchrun without a process group: how long ranks wait for each other's files.
+        Under torchrun without a process group: how long ranks wait for each other's files
+        (default 2 h); the error names the missing parts and the ranks that own them.
     on_chunk_done : callable, optional
         Called with the chunk index after each chunk finished in this call (in this process).
 
@@ -475,71 +612,83 @@ def convert_dataset(
     ConvertResult
     """
     settings = ConvertSettings(tau=tau, density=density, density_mode=density_mode, enrich=tuple(enrich),
-                               window=tuple(int(v) for v in window), guard=tuple(int(v) for v in guard),
-                               split=split, chunk_frames=int(chunk_frames), calibration_frames=calibration_frames)
+                               window=tuple(window), guard=tuple(guard), envelope=envelope,
+                               split=split, chunk_frames=chunk_frames, calibration_frames=calibration_frames)
     if int(batch_size) < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     if int(workers) < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    root, out = Path(root), Path(out)
+    if not (wait_timeout_s >= 0):
+        raise ValueError(f"wait_timeout_s must be >= 0 seconds, got {wait_timeout_s}")
+    out = Path(out)
     env = dist_env()
     dev = _default_device(device, env)
-    ds = RADIal(root, split=settings.split)
-    _check_dsp_settings(settings, ds)
+    ds, source_id, split_used = open_source(source, settings.split)
+    settings = dataclasses.replace(settings, split=split_used)
+    _check_dsp_settings(settings, ds, source_id)
+    cal_src, cal_id = (None, None)
+    if settings.mode == "per-dataset":
+        cal_src, cal_id = _calibration_source(source, ds, calibration_source)
     n = len(ds)
-    key = _manifest_key(root, settings, ds.frame_ids)
-    n_chunks = -(-n // settings.chunk_frames)
+    key = _manifest_key(source_id, settings, ds.frame_ids, cal_id)
     pdir = parts_dir(out)
 
     # A finished conversion with these settings: nothing to do.
     if resume and out.is_file() and not pdir.exists():
         store = PointStore(out)
         m = store.metadata
-        if (m.source_root == key["root"] and m.split == settings.split and store.frames == key["frames"]
-                and m.enrich == settings.enrich and m.window == settings.window and m.guard == settings.guard
-                and m.density_mode == settings.mode and m.target_density == settings.density
-                and (settings.tau is None or m.tau == settings.tau)):
+        if m.settings.get("key") == key:
+            chunk = int(m.settings.get("chunk_frames") or settings.chunk_frames)
             return ConvertResult(out, n, int(store.frame_table.n_points.sum()), m.achieved_density,
-                                 m.peak_density, m.tau, 0, n_chunks)
+                                 m.peak_density, m.tau, 0, -(-n // chunk), chunk)
 
-    # The manifest fixes the settings, the frames, the calibrated tau and the creation date.
+    # The manifest fixes the settings, the frames, the chunk size, the calibrated tau and the date.
     if env.rank == 0:
         if not resume:
             _remove_parts_dir(pdir)
         manifest = _read_manifest(pdir)
-        if manifest is not None and {k: manifest.get(k) for k in key} != key:
-            raise ValueError(f"{pdir} holds parts of a conversion with other settings or frames; "
+        if manifest is not None and manifest.get("key") != key:
+            raise ValueError(f"{pdir} holds parts of a conversion with other settings or frames "
+                             f"(recorded {manifest.get('key')}, now {key}); "
                              f"delete it or pass resume=False (CLI: --no-resume) to start over")
         if manifest is None:
+            chunk = settings.chunk_frames
+            procs = int(workers) * env.world_size
+            if procs > 1 and -(-n // chunk) < procs:          # share the work: at least one chunk each
+                chunk = max(1, -(-n // procs))
             cal_tau = settings.tau
             if settings.mode == "per-dataset":
-                cal_tau = calibrate_tau(root, settings, batch_size=int(batch_size), device=dev, progress=progress)
+                cal_tau = calibrate_tau(cal_src, settings, batch_size=int(batch_size), device=dev, progress=progress)
             meta = PointStoreMetadata(
                 sensor=ds.sensor, density_mode=settings.mode, tau=cal_tau, target_density=settings.density,
-                achieved_density=0.0, peak_density=0.0, enrich=settings.enrich, window=settings.window, guard=settings.guard,
-                source_root=key["root"], split=settings.split, radarpc_version=__version__,
-                created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
-            manifest = dict(key, tau=cal_tau, meta=meta.to_dict(), n_chunks=n_chunks)
+                achieved_density=0.0, peak_density=0.0, enrich=settings.enrich, window=settings.window,
+                guard=settings.guard, source_root=source_id, split=settings.split, radarpc_version=__version__,
+                created=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                envelope=settings.envelope,
+                settings=dict(dataclasses.replace(settings, chunk_frames=chunk).to_dict(), key=key))
+            manifest = dict(key=key, tau=cal_tau, meta=meta.to_dict(), chunk_frames=chunk)
             pdir.mkdir(parents=True, exist_ok=True)
             with atomic_write(pdir / _MANIFEST, "w") as f:
                 json.dump(manifest, f)
-    _barrier(env, pdir / _MANIFEST, wait_timeout_s)
+    _barrier(env, [pdir / _MANIFEST], ["rank 0 (manifest)"], wait_timeout_s)
     if env.rank != 0:
         manifest = _read_manifest(pdir)
-        if manifest is None or {k: manifest.get(k) for k in key} != key:
+        if manifest is None or manifest.get("key") != key:
             raise ValueError(f"rank {env.rank}: {pdir / _MANIFEST} does not match this rank's settings")
+    chunk = int(manifest["chunk_frames"])
+    n_chunks = -(-n // chunk)
 
     mine = tuple(k for k in range(n_chunks) if k % env.world_size == env.rank)
     todo = tuple(k for k in mine if not part_path(out, k).is_file())
     skipped = len(mine) - len(todo)
-    job = _ChunkJob(root=str(root), out=str(out), settings=settings, tau=manifest["tau"], meta=manifest["meta"],
-                    chunks=todo, batch_size=int(batch_size), device=str(dev), threads=None)
+    job = _ChunkJob(dataset=ds, out=str(out), settings=settings, tau=manifest["tau"], meta=manifest["meta"],
+                    chunks=todo, chunk_frames=chunk, batch_size=int(batch_size), device=str(dev), threads=None)
     bar = None
     if progress:
         from tqdm import tqdm
-        done_frames = sum(len(_chunk_positions(n, settings.chunk_frames, k)) for k in mine if k not in todo)
-        bar = tqdm(total=sum(len(_chunk_positions(n, settings.chunk_frames, k)) for k in mine),
-                   initial=done_frames, desc=f"pointcloud {root.name}", unit="frame")
+        done_frames = sum(len(_chunk_positions(n, chunk, k)) for k in mine if k not in todo)
+        bar = tqdm(total=sum(len(_chunk_positions(n, chunk, k)) for k in mine),
+                   initial=done_frames, desc=f"pointcloud {Path(source_id).name or source_id}", unit="frame")
 
     def on_done(k: int, n_frames: int) -> None:
         if bar is not None:
@@ -561,33 +710,30 @@ def convert_dataset(
 
     # Every part exists -> rank 0 merges.
     all_parts = [part_path(out, k) for k in range(n_chunks)]
-    _barrier(env, None, wait_timeout_s, wait_files=all_parts)
     if env.rank != 0:
-        return ConvertResult(None, n, 0, float("nan"), float("nan"), manifest["tau"], converted, skipped)
+        _barrier(env, [], [], wait_timeout_s)
+        return ConvertResult(None, n, 0, float("nan"), float("nan"), manifest["tau"], converted, skipped, chunk)
+    _barrier(env, all_parts, [f"rank {k % env.world_size}, chunk {k}" for k in range(n_chunks)], wait_timeout_s)
     meta = PointStoreMetadata.from_dict(manifest["meta"])
-    with PointStoreWriter(out, meta, row_group_frames=settings.chunk_frames) as w:
+    with PointStoreWriter(out, meta, row_group_frames=chunk) as w:
         for p in all_parts:
             w.append_store(PointStore(p))
     _remove_parts_dir(pdir)
     store = PointStore(out)
     return ConvertResult(out, n, int(store.frame_table.n_points.sum()), store.metadata.achieved_density,
-                         store.metadata.peak_density,
-                         manifest["tau"], converted, skipped)
+                         store.metadata.peak_density, manifest["tau"], converted, skipped, chunk)
 
 
-def _barrier(env: DistEnv, wait_file: Path | None, timeout_s: float, wait_files: Sequence[Path] = ()) -> None:
-    """Synchronise torchrun ranks: a process-group barrier if one is initialised, else wait for files."""
+def _barrier(env: DistEnv, files: Sequence[Path], owners: Sequence[str], timeout_s: float) -> None:
+    """Synchronise torchrun ranks: a process-group barrier if one is initialised, else wait for
+    ``files`` (written by ``owners``) to exist. Nothing to wait for outside torchrun."""
     if env.world_size == 1:
         return
     if torch.distributed.is_available() and torch.distributed.is_initialized():
         torch.distributed.barrier()
         return
-    files = list(wait_files) + ([wait_file] if wait_file is not None else [])
-    if env.rank == 0 and wait_file is not None:
-        return  # rank 0 wrote the manifest itself
-    if env.rank != 0 and wait_file is None:
-        return  # only rank 0 waits for the parts
-    _wait_for(lambda: all(f.is_file() for f in files), f"{len(files)} file(s) such as {files[0]}", timeout_s)
+    if files:
+        _wait_for_files(files, owners, timeout_s)
 
 
 # ---- sparse RD root -----------------------------------------------------------------------------
@@ -619,32 +765,60 @@ def _write_split_labels(src: Path, dst: Path, keep: set[int]) -> None:
                 w.writerow(r)
 
 
+def _write_labels_from_dataset(ds: Any, dst: Path) -> None:
+    """``labels.csv`` from a dataset object's raw rows (``frame_labels(i)``), atomic."""
+    if not hasattr(ds, "frame_labels"):
+        raise ValueError(f"{type(ds).__name__} has neither a root folder nor frame_labels(i): cannot write "
+                         f"the sparse root's labels.csv")
+    with atomic_write(dst, "w") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(LABEL_COLUMNS)
+        for i in range(len(ds)):
+            for row in ds.frame_labels(i):
+                w.writerow([row[c] for c in LABEL_COLUMNS])
+
+
 def write_sparse_rd(
-    root: str | os.PathLike,
+    source: Source,
     out_root: str | os.PathLike,
     *,
     tau: float | None = None,
     density: float | None = None,
     density_mode: str = "per-frame",
+    enrich: Sequence[str] = (),
     window: tuple[int, int] = (9, 9),
     guard: tuple[int, int] = (3, 3),
+    envelope: str = "replicas",
     split: str = "all",
     batch_size: int = 8,
     calibration_frames: int | None = None,
+    calibration_source: Source | None = None,
+    calibrated_tau: float | None = None,
     device: torch.device | str | None = None,
     resume: bool = True,
     progress: bool = True,
 ) -> SparseRDResult:
-    """Write a RADIal-layout root whose RD cubes are masked to the detected set ``S(tau)``.
+    """Write a RADIal-layout root whose RD cubes are masked to the set the point store encodes.
 
-    ``R_sparse[r, d, c] = R[r, d, c]`` if ``(r, d) in S(tau)`` else 0 (all Rx channels kept).
-    ``labels.csv`` (restricted to the split's frames), the freespace PNGs, ``calibration.npz`` /
-    ``CalibrationTable.npy`` and ``sensor.json`` are hard-linked (or copied); each cube is
-    written atomically and existing cubes are kept when ``resume`` (so a killed run resumes).
+    ``R_sparse[r, d, c] = R[r, d, c]`` if ``(r, d)`` is in the encoded set else 0 (all Rx
+    channels kept). The encoded set is exactly the one :func:`convert_dataset` with the same
+    arguments turns into points: ``S(tau)`` (the ``n_tx`` replica bins of every CFAR peak), or
+    with an ``rdN`` enrichment ``S*(tau)`` (the replica bins of every cell of the ``n x n``
+    neighbourhoods), with the same envelope, CFAR and per-frame (or calibrated) taus; a density
+    target applies to that set. ``labels.csv`` (restricted to the split's frames), the freespace
+    PNGs, ``calibration.npz`` / ``CalibrationTable.npy`` and ``sensor.json`` are hard-linked (or
+    copied) from the source root; for a dataset object without a ``root`` (SimulatedRADIal),
+    ``labels.csv`` is written from ``frame_labels(i)``, ``calibration.npz`` and ``sensor.json``
+    from its calibration and sensor, and no freespace PNG is written. Each cube is written
+    atomically and existing cubes are kept when ``resume`` (so a killed run resumes).
+
     ``sparse_rd.json`` records the source, the settings and the tau (a resumed run must match
-    them), whether the run completed and the mean density of the frames it wrote.
+    them), every frame's tau and achieved density (``frames``: numSample -> ``{"tau",
+    "density", "peak_density"}``), their mean, and whether the run completed.
 
-    Parameters are those of :func:`convert_dataset`.
+    Parameters are those of :func:`convert_dataset`, plus ``calibrated_tau``: in per-dataset mode,
+    the tau already calibrated for the matching store (``ConvertResult.tau``), used instead of
+    calibrating again.
 
     Returns
     -------
@@ -652,19 +826,24 @@ def write_sparse_rd(
     """
     from radarpc.dsp.sparse_rd import sparse_rd, sparse_rd_mask
 
-    settings = ConvertSettings(tau=tau, density=density, density_mode=density_mode,
-                               window=tuple(int(v) for v in window), guard=tuple(int(v) for v in guard),
+    settings = ConvertSettings(tau=tau, density=density, density_mode=density_mode, enrich=tuple(enrich),
+                               window=tuple(window), guard=tuple(guard), envelope=envelope,
                                split=split, calibration_frames=calibration_frames)
     if int(batch_size) < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-    root, out_root = Path(root), Path(out_root)
-    if root.resolve() == out_root.resolve():
+    out_root = Path(out_root)
+    ds, source_id, split_used = open_source(source, settings.split)
+    settings = dataclasses.replace(settings, split=split_used)
+    root = Path(ds.root) if getattr(ds, "root", None) is not None else None
+    if root is not None and root.resolve() == out_root.resolve():
         raise ValueError(f"the sparse-RD root must differ from the source root {root}")
     dev = _default_device(device, DistEnv())
-    ds = RADIal(root, split=settings.split)
-    _check_dsp_settings(settings, ds)
+    _check_dsp_settings(settings, ds, source_id)
+    cal_src, cal_id = (None, None)
+    if settings.mode == "per-dataset" and calibrated_tau is None:
+        cal_src, cal_id = _calibration_source(source, ds, calibration_source)
     info_path = out_root / "sparse_rd.json"
-    key = {"source_root": str(root.resolve()), "settings": settings.to_dict()}
+    key = {"source_root": source_id, "settings": settings.output_key()}
     prev = None
     if resume and info_path.is_file():
         try:
@@ -676,42 +855,70 @@ def write_sparse_rd(
                              f"{info_path}); write to another folder or pass resume=False (CLI: --no-resume)")
     cal_tau = settings.tau
     if settings.mode == "per-dataset":
-        cal_tau = prev["tau"] if prev is not None else calibrate_tau(
-            root, settings, batch_size=int(batch_size), device=dev, progress=progress)
+        if prev is not None:
+            cal_tau = prev["tau"]
+        elif calibrated_tau is not None:
+            cal_tau = float(calibrated_tau)
+        else:
+            cal_tau = calibrate_tau(cal_src, settings, batch_size=int(batch_size), device=dev, progress=progress)
+        if calibrated_tau is not None and cal_tau != float(calibrated_tau):
+            raise ValueError(f"calibrated_tau={calibrated_tau} differs from the tau {cal_tau} of the existing "
+                             f"sparse root {out_root}; pass resume=False to rewrite it")
     spc = build_point_cloud(ds, settings, cal_tau, dev)
 
     out_root.mkdir(parents=True, exist_ok=True)
-    info = dict(key, tau=cal_tau, mode=settings.mode, radarpc_version=__version__, complete=False)
+    frames: dict[str, dict] = dict(prev.get("frames") or {}) if prev is not None else {}
+    info = dict(key, tau=cal_tau, mode=settings.mode, radarpc_version=__version__, complete=False,
+                frames=frames)
     with atomic_write(info_path, "w") as f:
         json.dump(info, f, indent=1)
-    for name in ("calibration.npz", "CalibrationTable.npy", "sensor.json"):
-        if (root / name).is_file():
-            _link_or_copy(root / name, out_root / name, overwrite=not resume)
-    if not resume or not (out_root / "labels.csv").is_file():
-        _write_split_labels(root / "labels.csv", out_root / "labels.csv", set(ds.frame_ids))
+    if root is not None:
+        for name in ("calibration.npz", "CalibrationTable.npy", "sensor.json"):
+            if (root / name).is_file():
+                _link_or_copy(root / name, out_root / name, overwrite=not resume)
+        if not resume or not (out_root / "labels.csv").is_file():
+            _write_split_labels(root / "labels.csv", out_root / "labels.csv", set(ds.frame_ids))
+    else:
+        if not resume or not (out_root / "calibration.npz").is_file():
+            save_calibration(out_root / "calibration.npz", ds.calibration)
+        if not resume or not (out_root / "sensor.json").is_file():
+            with atomic_write(out_root / "sensor.json", "w") as f:
+                json.dump(ds.sensor.to_dict(), f, indent=1)
+        if not resume or not (out_root / "labels.csv").is_file():
+            _write_labels_from_dataset(ds, out_root / "labels.csv")
 
     todo = [p for p in range(len(ds)) if not (resume and fft_path(out_root, ds.frame_ids[p]).is_file())]
     it = _prefetched(ds, _batches(todo, int(batch_size)), dev)
     if progress:
         from tqdm import tqdm
-        it = tqdm(it, total=-(-len(todo) // int(batch_size)), desc=f"sparse RD {root.name}", unit="batch")
-    densities: list[torch.Tensor] = []
+        it = tqdm(it, total=-(-len(todo) // int(batch_size)), desc=f"sparse RD {Path(source_id).name}", unit="batch")
+    written: list[float] = []
     with torch.no_grad():
         for pos, rd in it:                                                 # rd: (B, Nr, Nd, Nrx)
-            _, cfar, mask = spc.detect(rd)
-            mask_full = sparse_rd_mask(mask, ds.sensor, rd)                  # (B, Nr, Nd) bool
+            enc = spc.encode(rd)                                           # the point cloud's detection
+            mask_full = sparse_rd_mask(enc.kept, ds.sensor, enc.tx0_doppler())   # (B, Nr, Nd) bool
             sparse = sparse_rd(rd, mask_full)                              # (B, Nr, Nd, Nrx)
-            densities.append(mask_full.float().mean(dim=(1, 2)).cpu())
+            dens = mask_full.double().mean(dim=(1, 2)).cpu()               # (B,) encoded-set density
+            peak = enc.peaks.flatten(1).double().sum(1).cpu() * ds.sensor.n_tx / (
+                ds.sensor.n_range * ds.sensor.n_doppler)                   # (B,) |S(tau)| / (Nr ND)
             for b, p in enumerate(pos):
                 num = ds.frame_ids[p]
                 save_npy_atomic(fft_path(out_root, num), sparse[b].cpu().numpy().astype(np.complex64))
-    for num in ds.frame_ids:
-        fs = freespace_path(root, num)
-        if fs.is_file():
-            _link_or_copy(fs, freespace_path(out_root, num), overwrite=not resume)
-    dens = torch.cat(densities) if densities else torch.zeros(0)
+                frames[str(num)] = {"tau": float(enc.tau[b]), "density": float(dens[b]),
+                                    "peak_density": float(peak[b])}
+                written.append(float(dens[b]))
+    if root is not None:
+        for num in ds.frame_ids:
+            fs = freespace_path(root, num)
+            if fs.is_file():
+                _link_or_copy(fs, freespace_path(out_root, num), overwrite=not resume)
+    recorded = [frames[str(num)] for num in ds.frame_ids if str(num) in frames]
     info.update(complete=True, frames_written_last_run=len(todo),
-                mean_density_last_run=float(dens.mean()) if dens.numel() else None)
+                mean_density_last_run=float(np.mean(written)) if written else None,
+                mean_density=float(np.mean([r["density"] for r in recorded])) if recorded else None,
+                freespace=root is not None)
     with atomic_write(info_path, "w") as f:
         json.dump(info, f, indent=1)
-    return SparseRDResult(out_root, len(ds), len(todo), float(dens.mean()) if dens.numel() else float("nan"), cal_tau)
+    return SparseRDResult(out_root, len(ds), len(todo), float(np.mean(written)) if written else float("nan"),
+                          cal_tau, frame_tau={int(k): v["tau"] for k, v in frames.items()},
+                          frame_density={int(k): v["density"] for k, v in frames.items()})
