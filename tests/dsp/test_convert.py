@@ -342,3 +342,70 @@ def test_workers_shrink_chunks_so_each_gets_work(root, tmp_path):
     t1, m1, f1 = read_all(ref)
     t2, m2, f2 = read_all(out)
     assert t1.to_pylist() == t2.to_pylist() and f1 == f2                    # same rows, other row groups
+
+
+@pytest.mark.parametrize("mode", ["per-frame", "per-dataset"])
+def test_sparse_rd_masks_exactly_the_encoded_set_of_the_store(root, tmp_path, mode):
+    # --density 0.1 --enrich rd3: the store picks tau on S*(tau); the sparse RD must keep S*(tau),
+    # the n_tx replica bins of every point (peaks and neighbours), with the same per-frame taus
+    out = tmp_path / "pc.parquet"
+    res = convert_dataset(root, out, density=0.1, density_mode=mode, enrich=("rd3",), progress=False)
+    srd_root = tmp_path / "srd"
+    srd = write_sparse_rd(root, srd_root, density=0.1, density_mode=mode, enrich=("rd3",), progress=False,
+                          calibrated_tau=res.tau if mode == "per-dataset" else None)
+    store = PointStore(out)
+    info = json.loads((srd_root / "sparse_rd.json").read_text())
+    src, dst = RADIal(root, split="all"), RADIal(srd_root, split="all")
+    offsets = torch.as_tensor(TINY.doppler_offsets)
+    for i in range(len(src)):
+        cloud = store[i]
+        assert bool(cloud.is_neighbour.any()) or i == ZERO_FRAME
+        mask = torch.zeros(TINY.n_range, TINY.n_doppler, dtype=torch.bool)
+        bins = (cloud.doppler_full[:, None].long() + offsets[None, :]) % TINY.n_doppler
+        mask[cloud.range_bin[:, None].long().expand_as(bins), bins] = True
+        rd = src[i][0]
+        assert torch.equal(dst[i][0], torch.where(mask[..., None], rd, torch.zeros((), dtype=rd.dtype))), i
+        num = str(src.frame_ids[i])
+        assert info["frames"][num]["tau"] == pytest.approx(float(store.frame_table.tau[i]), rel=1e-6)
+        assert info["frames"][num]["density"] == pytest.approx(float(store.frame_table.density[i]), rel=1e-6)
+        assert srd.frame_density[src.frame_ids[i]] == pytest.approx(float(mask.double().mean()))
+    assert info["tau"] == (None if mode == "per-frame" else pytest.approx(res.tau))
+    assert info["settings"]["enrich"] == ["rd3"]
+    assert info["mean_density"] == pytest.approx(float(store.frame_table.density.mean()), rel=1e-6)
+
+
+def test_simulated_dataset_object_converts_like_its_written_root(tmp_path):
+    from radarpc.sim.radial_writer import SimulatedRADIal, write_radial_dataset
+
+    sim_root = write_radial_dataset(tmp_path / "sim", TINY, 3, 2, 0, progress=False)
+    kw = dict(density=0.1, enrich=("rd3", "sector4"), chunk_frames=4, progress=False)
+    a, b = tmp_path / "root.parquet", tmp_path / "object.parquet"
+    convert_dataset(sim_root, a, **kw)
+    convert_dataset(SimulatedRADIal(TINY, 3, 2, 0, split="all"), b, **kw)
+    ta, ma, fa = read_all(a)
+    tb, mb, fb = read_all(b)
+    assert ta.equals(tb) and fa == fb
+    assert ma["source_root"] != mb["source_root"] and "SimulatedRADIal" in mb["source_root"]
+    # per-dataset mode: the object is its split, the train split object calibrates tau
+    c, d = tmp_path / "root_pd.parquet", tmp_path / "object_pd.parquet"
+    rc = convert_dataset(sim_root, c, density=0.1, density_mode="per-dataset", split="test", progress=False)
+    with pytest.raises(ValueError, match="calibration_source"):
+        convert_dataset(SimulatedRADIal(TINY, 3, 2, 0, split="test"), d, density=0.1,
+                        density_mode="per-dataset", progress=False)
+    rd_ = convert_dataset(SimulatedRADIal(TINY, 3, 2, 0, split="test"), d, density=0.1, density_mode="per-dataset",
+                          calibration_source=SimulatedRADIal(TINY, 3, 2, 0, split="train"), progress=False)
+    assert rd_.tau == rc.tau and read_all(c)[0].equals(read_all(d)[0])
+    assert PointStore(d).metadata.split == "test"
+    with pytest.raises(ValueError, match="does not match the dataset object's split"):
+        convert_dataset(SimulatedRADIal(TINY, 3, 2, 0, split="test"), d, tau=2.0, split="val", progress=False)
+    # the sparse-RD writer takes the object too (labels from frame_labels, no freespace PNGs)
+    s1, s2 = tmp_path / "srd_root", tmp_path / "srd_object"
+    write_sparse_rd(sim_root, s1, tau=3.0, progress=False)
+    write_sparse_rd(SimulatedRADIal(TINY, 3, 2, 0, split="all"), s2, tau=3.0, progress=False)
+    for num in range(6):
+        assert np.array_equal(np.load(fft_path(s1, num)), np.load(fft_path(s2, num))), num
+    r1, r2 = RADIal(s1, split="all"), RADIal(s2, split="all")
+    assert r1.frame_ids == r2.frame_ids and r1.sequences == r2.sequences and r2.sensor == TINY
+    np.testing.assert_array_equal(r1.labels.values, r2.labels.values)
+    assert np.array_equal(r1.calibration.signal, r2.calibration.signal)
+    assert json.loads((s2 / "sparse_rd.json").read_text())["freespace"] is False
