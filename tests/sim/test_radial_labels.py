@@ -154,3 +154,49 @@ def test_curved_road_lateral_offset_and_freespace():
     x, y = math.cos(th) * rel[0] + math.sin(th) * rel[1], -math.sin(th) * rel[0] + math.cos(th) * rel[1]
     col = int(np.argmin(np.abs(az - math.degrees(math.atan2(y, x)))))
     assert fs[int(round(math.hypot(x, y) / pitch)), col] == 255
+
+
+def _in_footprint(xy, veh, grow=0.0):
+    """(..., V) bool: ground points xy (..., 2) inside each vehicle's footprint grown by ``grow`` m."""
+    d = xy[..., None, :] - veh.center_xyz[:, :2]                             # (..., V, 2)
+    c, s = np.cos(veh.yaw_rad), np.sin(veh.yaw_rad)
+    along = d[..., 0] * c + d[..., 1] * s                                    # body x
+    across = -d[..., 0] * s + d[..., 1] * c                                  # body y
+    return (np.abs(along) <= veh.size_lwh[:, 0] / 2 + grow) & (np.abs(across) <= veh.size_lwh[:, 1] / 2 + grow)
+
+
+def test_freespace_of_real_road_scene_frames():
+    # frames of the procedural scene (not hand-made geometry), checked by brute force: pixels in
+    # a vehicle's footprint are 0; road pixels ahead with no footprint (grown by 0.15 m) on the
+    # segment from the radar are 255; pixels behind a footprint (shrunk by 0.15 m) are 0.
+    from radarpc.sim.road import RoadScene, RoadSceneConfig
+
+    cfg = RADIAL
+    n_r, n_a = FREESPACE_SHAPE
+    pitch = cfg.max_range_m / n_r
+    cols = np.arange(0, n_a, 3)
+    az = np.deg2rad(freespace_azimuth_deg(cols))                             # (C,)
+    rows = np.arange(n_r)
+    pix = (rows * pitch)[:, None, None] * np.stack([np.cos(az), np.sin(az)], -1)[None]  # (R, C, 2)
+    steps = np.arange(0.0, cfg.max_range_m, 0.05)                            # ray samples, m
+    ray = steps[:, None, None] * np.stack([np.cos(az), np.sin(az)], -1)[None]           # (K, C, 2)
+    counts = np.zeros(3, int)
+    for seq, t in ((0, 0.0), (1, 0.3), (2, 0.6)):
+        fr = RoadScene(RoadSceneConfig(), 7, seq, 10, cfg.max_range_m).frame(t)
+        veh = fr.vehicles
+        assert len(veh) > 0
+        fs = freespace_mask(cfg, fr)[:, cols]                                # (R, C)
+
+        def first_entry(grow):
+            hit = _in_footprint(ray, veh, grow).any(-1)                      # (K, C)
+            return np.where(hit.any(0), steps[np.argmax(hit, 0)], np.inf)    # (C,)
+
+        inside = _in_footprint(pix, veh).any(-1)                             # (R, C)
+        r = (rows * pitch)[:, None]
+        clear = (r < first_entry(0.15)[None] - 0.05) & fr.road.on_road(pix) & (pix[..., 0] > 0)
+        shadow = r > first_entry(-0.15)[None] + 0.05
+        assert np.all(fs[inside] == 0)
+        assert np.all(fs[clear] == 255)
+        assert np.all(fs[shadow] == 0)
+        counts += [inside.sum(), clear.sum(), shadow.sum()]
+    assert counts[0] > 50 and counts[1] > 5000 and counts[2] > 500, counts

@@ -245,9 +245,55 @@ class _Body:
     omega: np.ndarray = field(default_factory=lambda: np.zeros(0))
     phase0: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
+    @classmethod
+    def of_one(cls, local, normal, rcs, kind, amp, omega, phase0) -> "_Body":
+        """The scatterers of a single body (owner 0) from per-scatterer sequences."""
+        local = np.asarray(local, float).reshape(-1, 3)
+        n = local.shape[0]
+        return cls(owner=np.zeros(n, np.int64), local=local, normal=np.asarray(normal, float).reshape(n, 2),
+                   rcs=np.asarray(rcs, float).reshape(n), kind=np.asarray(kind, np.int64).reshape(n),
+                   amp=np.asarray(amp, float).reshape(n), omega=np.asarray(omega, float).reshape(n),
+                   phase0=np.asarray(phase0, float).reshape(n))
+
+    @classmethod
+    def stack(cls, bodies: "list[_Body]") -> "_Body":
+        """Concatenate bodies; body ``i`` of the list becomes owner ``i``."""
+        if not bodies:
+            return cls.of_one(np.zeros((0, 3)), np.zeros((0, 2)), [], [], [], [], [])
+        owner = np.concatenate([np.full(len(b.rcs), i, np.int64) for i, b in enumerate(bodies)])
+        return cls(owner=owner,
+                   local=np.concatenate([b.local for b in bodies]),
+                   normal=np.concatenate([b.normal for b in bodies]),
+                   rcs=np.concatenate([b.rcs for b in bodies]),
+                   kind=np.concatenate([b.kind for b in bodies]),
+                   amp=np.concatenate([b.amp for b in bodies]),
+                   omega=np.concatenate([b.omega for b in bodies]),
+                   phase0=np.concatenate([b.phase0 for b in bodies]))
+
+
+@dataclass(frozen=True)
+class _VehicleSpawn:
+    """A vehicle placed on the road at t = 0 (road coordinates)."""
+
+    s0: float                              # arc length of the footprint centre, m
+    l: float                               # lateral offset, m (left positive)
+    yaw: float                             # 0 = along the road, pi = oncoming
+    speed: float                           # m/s along its heading
+    size: tuple[float, float, float]       # length, width, height, m
+    kind: int                              # CAR or TRUCK
+
+
+@dataclass(frozen=True)
+class _PersonSpawn:
+    """A pedestrian or cyclist on a sidewalk at t = 0."""
+
+    s0: float                              # arc length, m
+    l: float                               # lateral offset, m
+    vs: float                              # speed along the road, m/s (signed)
+
 
 def _vehicle_template(rng: np.random.Generator, length: float, width: float, height: float,
-                      truck: bool, speed: float) -> dict[str, np.ndarray]:
+                      truck: bool, speed: float) -> _Body:
     """Scatterers of one vehicle in its body frame (origin: footprint centre on the ground)."""
     hl, hw = length / 2, width / 2
     pts, nrm, rcs, kind, amp, omg, ph = [], [], [], [], [], [], []
@@ -280,12 +326,10 @@ def _vehicle_template(rng: np.random.Generator, length: float, width: float, hei
             for k in range(3):
                 add((ax, sy * hw, radius), (0.0, sy), rng.uniform(0.05, 0.15),
                     1, radius, spin * omega, ph0 + 2 * math.pi * k / 3)
-    return dict(local=np.asarray(pts, float), normal=np.asarray(nrm, float), rcs=np.asarray(rcs, float),
-                kind=np.asarray(kind, np.int64), amp=np.asarray(amp, float),
-                omega=np.asarray(omg, float), phase0=np.asarray(ph, float))
+    return _Body.of_one(pts, nrm, rcs, kind, amp, omg, ph)
 
 
-def _person_template(rng: np.random.Generator, cyclist: bool) -> dict[str, np.ndarray]:
+def _person_template(rng: np.random.Generator, cyclist: bool) -> _Body:
     """A pedestrian (torso, two swinging legs, arm) or a cyclist (rider, bike, pedalling legs)."""
     if cyclist:
         pts = [(0.0, 0.0, 1.3), (0.0, 0.0, 0.6), (0.5, 0.0, 0.35), (-0.5, 0.0, 0.35), (0.0, 0.1, 0.5), (0.0, -0.1, 0.5)]
@@ -302,9 +346,8 @@ def _person_template(rng: np.random.Generator, cyclist: bool) -> dict[str, np.nd
     n = len(pts)
     ph0 = rng.uniform(0, 2 * math.pi)
     phase = [ph0 + (math.pi if (k % 2) else 0.0) for k in range(n)]     # legs in antiphase
-    return dict(local=np.asarray(pts, float), normal=np.zeros((n, 2)), rcs=np.asarray(rcs, float) * rng.uniform(0.7, 1.3),
-                kind=np.asarray(kind, np.int64), amp=np.asarray(amp, float),
-                omega=np.full(n, 2 * math.pi * f), phase0=np.asarray(phase, float))
+    return _Body.of_one(pts, np.zeros((n, 2)), np.asarray(rcs, float) * rng.uniform(0.7, 1.3),
+                        kind, amp, np.full(n, 2 * math.pi * f), phase)
 
 
 class RoadScene:
@@ -365,8 +408,8 @@ class RoadScene:
         s_lo, s_hi = -40.0, ego_s_end + self.max_range_m + 40.0
 
         # ---- vehicles -----------------------------------------------------------------------
-        veh = dict(s0=[], l=[], yaw=[], speed=[], size=[], kind=[])
-        bodies: list[dict[str, np.ndarray]] = []
+        veh: list[_VehicleSpawn] = []
+        bodies: list[_Body] = []
         lanes = [(-(k + 0.5) * w, 0.0) for k in range(self.n_same)] + \
                 [((k + 0.5) * w, math.pi) for k in range(self.n_opp)]
         for y_lane, yaw in lanes:
@@ -387,54 +430,41 @@ class RoadScene:
                 truck = bool(rng.random() < c.truck_fraction)
                 sz = c.truck_size_m if truck else c.car_size_m
                 length, width, height = (float(rng.uniform(*r)) for r in sz)
-                veh["s0"].append(x + length / 2)
-                veh["l"].append(y_lane + float(rng.uniform(-0.25, 0.25)))
-                veh["yaw"].append(yaw)
-                veh["speed"].append(speed)
-                veh["size"].append((length, width, height))
-                veh["kind"].append(TRUCK if truck else CAR)
+                veh.append(_VehicleSpawn(s0=x + length / 2, l=y_lane + float(rng.uniform(-0.25, 0.25)),
+                                         yaw=yaw, speed=speed, size=(length, width, height),
+                                         kind=TRUCK if truck else CAR))
                 bodies.append(_vehicle_template(rng, length, width, height, truck, speed))
                 x += length + float(rng.uniform(*c.vehicle_gap_m))
-        self.n_vehicles = len(veh["s0"])
-        self.veh_s0 = np.asarray(veh["s0"], float)
-        self.veh_l = np.asarray(veh["l"], float)
-        self.veh_yaw = np.asarray(veh["yaw"], float)
-        self.veh_speed = np.asarray(veh["speed"], float)
-        self.veh_size = np.asarray(veh["size"], float).reshape(-1, 3)
-        self.veh_kind = np.asarray(veh["kind"], np.int64)
+        self.n_vehicles = len(veh)
+        self.veh_s0 = np.asarray([v.s0 for v in veh], float)                 # (V,)
+        self.veh_l = np.asarray([v.l for v in veh], float)
+        self.veh_yaw = np.asarray([v.yaw for v in veh], float)
+        self.veh_speed = np.asarray([v.speed for v in veh], float)
+        self.veh_size = np.asarray([v.size for v in veh], float).reshape(-1, 3)  # (V, 3)
+        self.veh_kind = np.asarray([v.kind for v in veh], np.int64)
 
         # ---- people (sidewalks) ---------------------------------------------------------------
-        ppl = dict(s0=[], l=[], vs=[])
+        ppl: list[_PersonSpawn] = []
         n_ped = int(rng.integers(c.pedestrians[0], c.pedestrians[1] + 1))
         n_cyc = int(rng.integers(c.cyclists[0], c.cyclists[1] + 1))
         for k in range(n_ped + n_cyc):
             cyc = k >= n_ped
             side = 1.0 if rng.random() < 0.5 else -1.0
             edge = self.road_left if side > 0 else self.road_right
-            ppl["l"].append(edge + side * float(rng.uniform(2.0, 4.5)))
-            ppl["s0"].append(float(rng.uniform(5.0, s_hi - 40.0)))
+            lat = edge + side * float(rng.uniform(2.0, 4.5))          # draw order kept: l, s0, speed, sign
+            s_at = float(rng.uniform(5.0, s_hi - 40.0))
             sp = float(rng.uniform(3.5, 7.0) if cyc else rng.uniform(0.8, 1.8))
-            ppl["vs"].append(sp if rng.random() < 0.5 else -sp)
+            ppl.append(_PersonSpawn(s0=s_at, l=lat, vs=sp if rng.random() < 0.5 else -sp))
             bodies.append(_person_template(rng, cyc))
-        self.ppl_s0 = np.asarray(ppl["s0"], float)
-        self.ppl_l = np.asarray(ppl["l"], float)
-        self.ppl_vs = np.asarray(ppl["vs"], float)
-        self._body = self._stack_bodies(bodies)
+        self.ppl_s0 = np.asarray([p.s0 for p in ppl], float)
+        self.ppl_l = np.asarray([p.l for p in ppl], float)
+        self.ppl_vs = np.asarray([p.vs for p in ppl], float)
+        self._body = _Body.stack(bodies)
 
         # ---- static world ---------------------------------------------------------------------
         self._static_xyz, self._static_rcs = self._static_world(rng, s_lo, s_hi)
 
     # ---- construction helpers -------------------------------------------------------------------
-    @staticmethod
-    def _stack_bodies(bodies: list[dict[str, np.ndarray]]) -> _Body:
-        if not bodies:
-            z = np.zeros(0)
-            return _Body(owner=np.zeros(0, np.int64), local=np.zeros((0, 3)), normal=np.zeros((0, 2)),
-                         rcs=z, kind=np.zeros(0, np.int64), amp=z, omega=z, phase0=z)
-        owner = np.concatenate([np.full(len(b["rcs"]), i, np.int64) for i, b in enumerate(bodies)])
-        cat = {k: np.concatenate([b[k] for b in bodies]) for k in bodies[0]}
-        return _Body(owner=owner, **cat)
-
     def _static_world(self, rng: np.random.Generator, s_lo: float, s_hi: float
                       ) -> tuple[np.ndarray, np.ndarray]:
         c = self.config
