@@ -19,14 +19,19 @@ One scene (:mod:`radarpc.sim.indoor`) feeds every sensor:
   time and ``t_k = t_adc + k / f_s``; ``A_n = g sqrt(sigma_n) / R_n^2`` (radar equation, ``g`` in
   ADC LSB). ``exact=True`` evaluates this phase for every (t, r, c, k). The default splits
   ``S tau t_k = S tau t_ctr + S tau (t_k - t_ctr)`` (``t_ctr`` the centre of the ADC window) and
-  uses the frame-centre delay in the second term only, which makes the sum over scatterers a
-  matrix product; it drops just the range migration across one frame (tested against ``exact``). Then complex Gaussian noise and int16 I/Q quantization.
+  uses the frame-centre delay in the second term only; it drops just the range migration across
+  one frame (tested against ``exact``). The phase then separates into a (Tx, chirp) factor and an
+  (Rx, sample) factor, so the sum over scatterers is one complex GEMM
+  ``(tx chirps x N) @ (N x rx samples)`` (phases in float64, reduced modulo 2 pi, cos/sin in
+  float32). Then complex Gaussian noise and int16 I/Q quantization.
 * :func:`cascade_heatmap` -- ColoRadar cascade heatmaps computed in the frequency domain: for each
   scatterer the Hann-windowed range-FFT response ``|W(r - R_n / dr)|^2`` times the beamformer
   power ``|AF(az, el)|^2`` of the cascade's unique virtual elements steered at the heatmap's bin
   angles, summed incoherently over scatterers, plus exponential noise; intensity is SNR per cell
   (linear), the Doppler channel is the power-weighted radial velocity quantized to Doppler bins
-  (a random bin where noise dominates). Layout float32 ``[elevation, azimuth, range, 2]``.
+  (a random bin where noise dominates). Layout float32 ``[elevation, azimuth, range, 2]``. The
+  beamformer is factorized over the array's rows (real GEMMs on small cache-sized blocks of
+  scatterers) and the sum over scatterers of range response x beam power is one float32 GEMM.
 * :func:`lidar_scan` -- a spinning multi-beam LiDAR (OS1-64-like: 64 beams over +-16.6 deg, 1024
   azimuth steps) ray cast against the same geometry; range noise, intensity from reflectivity and
   incidence; rays without return are written as all-zero points (organized scan, as in ColoRadar).
@@ -304,8 +309,10 @@ def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_l
                 exact: bool = False, chunk: int = 1024) -> torch.Tensor:
     """Noise-free complex beat signal ``(tx, rx, chirps, samples)`` (complex64, LSB units).
 
-    See the module docstring for the formula. Computed in float64 phases on the scatterers'
-    device, chunked over scatterers.
+    See the module docstring for the formula. Computed on the scatterers' device, chunked over
+    ``chunk`` scatterers: ``exact=True`` sums float64 phases of every (tx, rx, chirp, sample); the
+    default builds a ``(tx, chirp, n)`` and an ``(n, rx, sample)`` phasor factor and multiplies
+    them (one complex64 GEMM per chunk).
     """
     dev = scat.points.device
     w, ant = chip.waveform, chip.antenna

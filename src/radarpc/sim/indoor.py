@@ -340,7 +340,8 @@ def ray_cast(geometry: Geometry, origins: torch.Tensor, directions: torch.Tensor
 
     With a shared origin (``origins`` of shape ``(3,)``) rays are processed in azimuth-sorted
     chunks and each chunk is tested only against primitives whose bounding sphere overlaps the
-    chunk's azimuth wedge (exact culling, large speed-up for wide scenes).
+    chunk's azimuth wedge and starts within ``max_range`` (exact culling, large speed-up for wide
+    scenes); origin-only terms of the slab test are then computed once per primitive.
 
     Parameters
     ----------
