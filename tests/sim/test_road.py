@@ -130,3 +130,23 @@ def test_bad_scene_parameters_are_rejected():
         RoadScene(CFG, -1, 0, 5, MAX_R)
     with pytest.raises(ValueError, match="finite"):
         RoadScene(CFG, 0, 0, 5, MAX_R).frame(math.nan)
+
+
+def test_bodies_stack_by_field_with_their_owner():
+    from radarpc.sim.road import _Body
+
+    a = _Body.of_one([(1.0, 0.0, 0.5), (2.0, 0.0, 0.5)], [(1.0, 0.0), (0.0, 0.0)], [1.0, 2.0], [0, 1],
+                     [0.0, 0.3], [0.0, 9.0], [0.0, 1.5])
+    b = _Body.of_one([(0.0, 0.0, 1.2)], [(0.0, 0.0)], [0.4], [2], [0.2], [6.0], [3.0])
+    s = _Body.stack([a, b])
+    np.testing.assert_array_equal(s.owner, [0, 0, 1])
+    np.testing.assert_array_equal(s.local[:, 0], [1.0, 2.0, 0.0])
+    np.testing.assert_array_equal(s.rcs, [1.0, 2.0, 0.4])
+    np.testing.assert_array_equal(s.kind, [0, 1, 2])
+    np.testing.assert_array_equal(s.omega, [0.0, 9.0, 6.0])
+    assert s.normal.shape == (3, 2) and s.phase0.tolist() == [0.0, 1.5, 3.0]
+    empty = _Body.stack([])
+    assert empty.local.shape == (0, 3) and empty.owner.dtype == np.int64
+    # a scene's vehicle bodies own exactly their vehicles' scatterers
+    sc = RoadScene(CFG, 3, 0, 5, MAX_R)
+    assert set(np.unique(sc._body.owner).tolist()) == set(range(sc.n_vehicles + len(sc.ppl_s0)))

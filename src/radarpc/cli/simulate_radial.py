@@ -13,7 +13,9 @@ def add_parser(kinds) -> argparse.ArgumentParser:
     p = kinds.add_parser(
         "radial", help="RADIal layout: radar_FFT, radar_Freespace, labels.csv (resumable)",
         description="Simulate procedural road sequences seen by the RADIal-like DDMA radar and write "
-                    "them in RADIal's layout. Rerunning on a partial output resumes it.")
+                    "them in RADIal's layout. Rerunning on a partial output of the same sensor, seed, "
+                    "sizes and scene resumes it: frames whose cube or freespace PNG does not load and "
+                    "validate are regenerated; --overwrite starts over.")
     p.add_argument("--out", required=True, help="dataset root to write")
     p.add_argument("--sequences", type=int, default=6, help="number of sequences (default 6)")
     p.add_argument("--frames-per-sequence", type=int, default=50, help="frames per sequence (default 50)")
@@ -21,7 +23,8 @@ def add_parser(kinds) -> argparse.ArgumentParser:
     p.add_argument("--sensor", choices=sorted(RADIAL_SENSORS), default="radial",
                    help="sensor config (default radial: 512 x 256 x 16 cubes)")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace the dataset files of a non-empty folder that is not a matching partial run")
+                   help="start over: delete the dataset files of a non-empty folder (even a matching "
+                        "partial run) and simulate every frame again")
     p.add_argument("--device", default="cpu", help="synthesis device, e.g. cpu or cuda (default cpu)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
