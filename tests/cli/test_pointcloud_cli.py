@@ -76,6 +76,44 @@ def test_pointcloud_snr_and_sparse_rd(root, tmp_path, capsys):
         assert torch.equal(sp, torch.where(kept[..., None], rd, torch.zeros((), dtype=rd.dtype)))
 
 
+def test_cfar_radial_preset_reproduces_rpl_settings(root, tmp_path, capsys):
+    # one flag = RADIal rpl.py: 19 x 19 window, 7 x 7 guard (its (9, 9, 3, 3) half widths), all-slot envelope
+    out, ref = tmp_path / "rpl.parquet", tmp_path / "explicit.parquet"
+    assert run_cli(["pointcloud", str(root), "--snr", "1.585", "--cfar", "radial", "--out", str(out), "--quiet"]) == 0
+    m = PointStore(out).metadata
+    assert m.window == (19, 19) and m.guard == (7, 7) and m.envelope == "all-slots"
+    assert m.settings["envelope"] == "all-slots" and m.settings["window"] == [19, 19]
+    assert run_cli(["pointcloud", str(root), "--snr", "1.585", "--window", "19,19", "--guard", "7,7",
+                    "--envelope", "all-slots", "--out", str(ref), "--quiet"]) == 0
+    assert PointStore(ref).read_frames(range(6)).x.tolist() == PointStore(out).read_frames(range(6)).x.tolist()
+    # the default envelope is the seed's replica sum
+    default = tmp_path / "default.parquet"
+    run_cli(["pointcloud", str(root), "--snr", "1.585", "--out", str(default), "--quiet"])
+    assert PointStore(default).metadata.envelope == "replicas" and PointStore(default).metadata.window == (9, 9)
+    # the --snr help documents the half-width reading of rpl.py's defaults
+    parser = argparse.ArgumentParser(prog="radarpc")
+    sub = parser.add_subparsers(dest="command")
+    pointcloud.add_parser(sub)
+    helptext = " ".join(sub.choices["pointcloud"].format_help().split())
+    assert "half widths" in helptext and "--window 19,19 --guard 7,7" in helptext
+
+
+def test_pointcloud_rd3_density_sparse_rd_matches_store(root, tmp_path, capsys):
+    out, srd = tmp_path / "pc.parquet", tmp_path / "srd"
+    assert run_cli(["pointcloud", str(root), "--density", "0.1", "--enrich", "rd3", "--out", str(out),
+                    "--sparse-rd-out", str(srd), "--quiet"]) == 0
+    store, sparse, src = PointStore(out), RADIal(srd, split="all"), RADIal(root, split="all")
+    offsets = torch.as_tensor(TINY.doppler_offsets)
+    for i in range(len(src)):
+        cloud = store[i]
+        kept = torch.zeros(TINY.n_range, TINY.n_doppler, dtype=torch.bool)
+        bins = (cloud.doppler_full[:, None] + offsets) % TINY.n_doppler
+        kept[cloud.range_bin[:, None].expand_as(bins), bins] = True
+        rd = src[i][0]
+        assert torch.equal(sparse[i][0], torch.where(kept[..., None], rd, torch.zeros((), dtype=rd.dtype))), i
+    assert "per-frame taus and densities in sparse_rd.json" in capsys.readouterr().out
+
+
 def test_show_writes_a_png(root, tmp_path, capsys):
     png = tmp_path / "frame1.png"
     assert run_cli(["show", str(root), "--frame", "1", "--density", "0.1", "--out", str(png)]) == 0
@@ -95,11 +133,36 @@ def test_show_writes_a_png(root, tmp_path, capsys):
     assert f"{n} points" in capsys.readouterr().out and png2.is_file()
 
 
+def test_show_geometry_and_encoded_density(root, tmp_path):
+    # the RD image rows, the peak markers and the points' range_m agree (no half-bin offset)
+    x0, x1, y0, y1 = show.rd_extent(TINY, TINY.slot_width)
+    row_h = (y1 - y0) / TINY.n_range
+    r = np.arange(TINY.n_range)
+    centres = y0 + (r + 0.5) * row_h
+    np.testing.assert_allclose(centres, show.peak_marker_range_m(TINY, r), atol=1e-9)
+    cloud = PointStore(_store(root, tmp_path))[1]
+    np.testing.assert_allclose(show.peak_marker_range_m(TINY, cloud.range_bin.numpy()), cloud.range_m.numpy(),
+                               rtol=1e-6)
+    assert (x0, x1) == (-0.5, TINY.slot_width - 0.5)
+    # FramePlot.density is the encoded set's (S* with rd3), the CFAR peaks' S apart
+    from radarpc.dsp.convert import ConvertSettings
+
+    res = show.plot_frame(root, 1, tmp_path / "f.png", ConvertSettings(density=0.1, enrich=("rd3",)))
+    assert res.density == pytest.approx(0.1, rel=0.1) and res.peak_density < res.density
+    assert res.peak_density == pytest.approx(res.n_peaks * TINY.n_tx / (TINY.n_range * TINY.n_doppler))
+
+
+def _store(root, tmp_path):
+    out = tmp_path / "geo.parquet"
+    run_cli(["pointcloud", str(root), "--snr", "2", "--out", str(out), "--quiet"])
+    return out
+
+
 def test_bad_input(root, tmp_path):
     out = str(tmp_path / "pc.parquet")
-    with pytest.raises(ValueError, match=r"--density must be a fraction of RD cells in \(0, 1\], got 1.5"):
+    with pytest.raises(ValueError, match=r"--density: density must be in \(0, 1\] \(fraction of RD cells kept\), got 1.5"):
         run_cli(["pointcloud", str(root), "--density", "1.5", "--out", out])
-    with pytest.raises(ValueError, match="--snr must be a positive"):
+    with pytest.raises(ValueError, match="--snr: tau must be a finite linear SNR threshold > 0"):
         run_cli(["pointcloud", str(root), "--snr", "0", "--out", out])
     with pytest.raises(SystemExit):                      # --density and --snr are exclusive
         run_cli(["pointcloud", str(root), "--density", "0.1", "--snr", "2", "--out", out])
@@ -119,4 +182,8 @@ def test_bad_input(root, tmp_path):
         run_cli(["show", str(root), "--frame", "0", "--store", str(bad), "--out", str(tmp_path / "f.png")])
     with pytest.raises(ValueError, match="unreachable for sensor 'tiny'"):
         run_cli(["pointcloud", str(root), "--density", "0.9", "--out", out, "--quiet"])
+    with pytest.raises(ValueError, match=r"--cfar radial sets window \(19, 19\).*contradicts --window \(9, 9\)"):
+        run_cli(["pointcloud", str(root), "--snr", "2", "--cfar", "radial", "--window", "9,9", "--out", out])
+    with pytest.raises(SystemExit):
+        run_cli(["pointcloud", str(root), "--snr", "2", "--envelope", "sum", "--out", out])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.parquet"]     # nothing half-written

@@ -5,6 +5,7 @@ Examples::
 
     radarpc pointcloud data/sim_radial --density 0.057 --enrich rd3,sector32 --out data/pc057.parquet
     radarpc pointcloud data/sim_radial --snr 1.585 --out data/pc_2db.parquet
+    radarpc pointcloud data/radial --snr 1.585 --cfar radial --out data/pc_rpl.parquet   # RADIal rpl.py
     radarpc pointcloud data/sim_radial --density 0.057 --density-mode per-dataset \\
         --sparse-rd-out data/sim_radial_srd057
     torchrun --nproc-per-node 4 "$(which radarpc)" pointcloud data/radial --density 0.057 --out pc.parquet
@@ -12,15 +13,40 @@ Examples::
 A killed conversion resumes when the same command is run again (``--no-resume`` starts over).
 Under torchrun each rank converts its share of the chunks (on ``cuda:LOCAL_RANK`` when CUDA is
 available) and rank 0 merges; ``--sparse-rd-out`` is written by rank 0 alone.
+
+CFAR geometry: ``--window`` / ``--guard`` are *full* odd side lengths (seed: 9 x 9 window, 3 x 3
+guard). RADIal's ``rpl.py`` writes ``(9, 9, 3, 3)`` as *half* widths, i.e. ``--window 19,19 --guard
+7,7``, sums every DDMA slot into its envelope (``--envelope all-slots``) and thresholds at 2 dB
+(``--snr 1.585``), a value chosen for that geometry; ``--cfar radial`` selects the first two.
 """
 from __future__ import annotations
 
 import argparse
 import math
+from dataclasses import dataclass
 
-from radarpc.dsp.convert import convert_dataset, dist_env, write_sparse_rd
+from radarpc.dsp.cfar import check_tau
+from radarpc.dsp.convert import DEFAULT_WAIT_S, convert_dataset, dist_env, write_sparse_rd
+from radarpc.dsp.ddma import ENVELOPES
+from radarpc.dsp.density import check_density_value
 
-__all__ = ["add_parser", "run", "parse_pair", "parse_enrich"]
+__all__ = ["add_parser", "run", "parse_pair", "parse_enrich", "add_density_args", "check_density_args",
+           "CFARChoice", "CFAR_PRESETS", "resolve_cfar_args"]
+
+
+@dataclass(frozen=True)
+class CFARChoice:
+    """CFAR geometry and envelope of a command line (a preset, explicit flags, or the defaults)."""
+
+    window: tuple[int, int] = (9, 9)        # full odd sizes (range, Doppler)
+    guard: tuple[int, int] = (3, 3)
+    envelope: str = "replicas"
+
+
+CFAR_PRESETS: dict[str, CFARChoice] = {
+    # RADIal rpl.py: win_param (9, 9, 3, 3) are half widths; its envelope sums every slot
+    "radial": CFARChoice(window=(19, 19), guard=(7, 7), envelope="all-slots"),
+}
 
 
 def parse_pair(text: str) -> tuple[int, int]:
@@ -51,58 +77,89 @@ def _fraction(text: str) -> float:
 
 
 def add_density_args(p: argparse.ArgumentParser):
-    """Add the threshold options shared by ``pointcloud`` and ``show``; returns the required
-    mutually exclusive group (``--density`` | ``--snr``) so that a command can add to it."""
+    """Add the threshold and CFAR options shared by ``pointcloud`` and ``show``; returns the
+    required mutually exclusive group (``--density`` | ``--snr``) so that a command can add to it."""
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--density", type=_fraction, metavar="D",
                    help="target density |S(tau)| / (Nr * ND) in (0, 1], e.g. 0.057 (RADIal's default); "
                         "with an rdN enrichment the density of the enlarged set |S*(tau)| / (Nr * ND)")
     g.add_argument("--snr", type=_fraction, metavar="TAU",
-                   help="fixed linear CFAR SNR threshold tau (> 0), e.g. 1.585 (= 2 dB)")
+                   help="fixed linear CFAR SNR threshold tau (> 0), e.g. 1.585 (= 2 dB, RADIal rpl.py's "
+                        "threshold, chosen for its CFAR geometry: rpl.py's (9,9,3,3) are half widths, i.e. "
+                        "--window 19,19 --guard 7,7, with the all-slot envelope; --cfar radial sets both)")
     p.add_argument("--density-mode", choices=("per-frame", "per-dataset"), default="per-frame",
                    help="with --density: a tau per frame, or one tau calibrated on the train split "
                         "(default per-frame)")
-    p.add_argument("--window", type=parse_pair, default=(9, 9), metavar="R,D",
-                   help="CA-CFAR window, full odd side lengths (default 9,9)")
-    p.add_argument("--guard", type=parse_pair, default=(3, 3), metavar="R,D",
-                   help="CA-CFAR guard, full odd side lengths (default 3,3)")
+    p.add_argument("--window", type=parse_pair, default=None, metavar="R,D",
+                   help="CA-CFAR training window, full odd side lengths (default 9,9; RADIal rpl.py: 19,19)")
+    p.add_argument("--guard", type=parse_pair, default=None, metavar="R,D",
+                   help="CA-CFAR guard window, full odd side lengths (default 3,3; RADIal rpl.py: 7,7)")
+    p.add_argument("--envelope", choices=ENVELOPES, default=None,
+                   help="RD envelope: 'replicas' = sum over the n_tx replica bins of each consolidated cell "
+                        "(seed eq. 1, default); 'all-slots' = RADIal rpl.py, sum over every DDMA slot "
+                        "including the empty ones")
+    p.add_argument("--cfar", choices=tuple(CFAR_PRESETS), default=None,
+                   help="preset: 'radial' = RADIal rpl.py's processing, --window 19,19 --guard 7,7 "
+                        "--envelope all-slots (use with --snr 1.585)")
     return g
 
 
+def resolve_cfar_args(args: argparse.Namespace) -> CFARChoice:
+    """``--cfar`` preset, overridden by nothing: explicit ``--window/--guard/--envelope`` that
+    contradict the preset are an error; without a preset the explicit values or the defaults."""
+    base = CFAR_PRESETS[args.cfar] if getattr(args, "cfar", None) is not None else CFARChoice()
+    explicit = {k: getattr(args, k, None) for k in ("window", "guard", "envelope")}
+    if getattr(args, "cfar", None) is not None:
+        clash = [f"--{k} {v}" for k, v in explicit.items() if v is not None and v != getattr(base, k)]
+        if clash:
+            raise ValueError(f"--cfar {args.cfar} sets window {base.window}, guard {base.guard}, envelope "
+                             f"{base.envelope!r}; it contradicts {', '.join(clash)}")
+    return CFARChoice(window=tuple(explicit["window"] or base.window), guard=tuple(explicit["guard"] or base.guard),
+                      envelope=explicit["envelope"] or base.envelope)
+
+
 def check_density_args(args: argparse.Namespace) -> None:
-    """Range checks of ``--density`` / ``--snr`` with messages naming the flag."""
-    if getattr(args, "density", None) is not None and not (math.isfinite(args.density) and 0.0 < args.density <= 1.0):
-        raise ValueError(f"--density must be a fraction of RD cells in (0, 1], got {args.density}")
-    if getattr(args, "snr", None) is not None and not (math.isfinite(args.snr) and args.snr > 0.0):
-        raise ValueError(f"--snr must be a positive linear SNR threshold, got {args.snr}")
+    """Range checks of ``--density`` / ``--snr`` (the library's checks), messages naming the flag."""
+    for flag, attr, check in (("--density", "density", check_density_value), ("--snr", "snr", check_tau)):
+        v = getattr(args, attr, None)
+        if v is not None:
+            try:
+                check(v)
+            except ValueError as e:
+                raise ValueError(f"{flag}: {e}") from None
 
 
 def run(args: argparse.Namespace) -> int:
     check_density_args(args)
+    cfar = resolve_cfar_args(args)
     if args.out is None and args.sparse_rd_out is None:
         raise ValueError("nothing to write: give --out FILE.parquet and/or --sparse-rd-out DIR")
-    common = dict(tau=args.snr, density=args.density, density_mode=args.density_mode, window=args.window,
-                  guard=args.guard, split=args.split, batch_size=args.batch_size, device=args.device,
-                  resume=not args.no_resume, progress=not args.quiet,
-                  calibration_frames=args.calibration_frames)
+    enrich = parse_enrich(args.enrich)
+    common = dict(tau=args.snr, density=args.density, density_mode=args.density_mode, window=cfar.window,
+                  guard=cfar.guard, envelope=cfar.envelope, enrich=enrich, split=args.split,
+                  batch_size=args.batch_size, device=args.device, resume=not args.no_resume,
+                  progress=not args.quiet, calibration_frames=args.calibration_frames)
+    calibrated = None
     if args.out is not None:
-        res = convert_dataset(args.root, args.out, enrich=parse_enrich(args.enrich), workers=args.workers,
-                              chunk_frames=args.chunk_frames, **common)
+        res = convert_dataset(args.root, args.out, workers=args.workers, chunk_frames=args.chunk_frames,
+                              wait_timeout_s=args.wait_timeout, **common)
+        calibrated = res.tau if args.density is not None and args.density_mode == "per-dataset" else None
         if res.path is not None:
             tau = "per frame" if res.tau is None else f"{res.tau:.6g}"
-            rd = next((e for e in parse_enrich(args.enrich) if e.startswith("rd")), None)
+            rd = next((e for e in enrich if e.startswith("rd")), None)
             # the achieved (and target) density is that of the encoded set: S*(tau) with rdN, else S(tau)
             extra = "" if rd is None else \
                 f" of S*(tau) with {rd} neighbourhoods; CFAR peaks S(tau) alone {res.peak_density:.5f}"
             print(f"wrote {res.path}: {res.n_frames} frames, {res.n_points} points, tau {tau}, "
                   f"achieved density {res.achieved_density:.5f}"
                   + (f" (target {args.density})" if args.density is not None else "") + extra
-                  + f"; {res.chunks_converted} chunk(s) converted, {res.chunks_skipped} resumed")
+                  + f"; {res.chunks_converted} chunk(s) of {res.chunk_frames} frames converted, "
+                  f"{res.chunks_skipped} resumed")
     if args.sparse_rd_out is not None and dist_env().rank == 0:
-        srd = write_sparse_rd(args.root, args.sparse_rd_out, **common)
+        srd = write_sparse_rd(args.root, args.sparse_rd_out, calibrated_tau=calibrated, **common)
         dens = "n/a (all frames existed)" if math.isnan(srd.achieved_density) else f"{srd.achieved_density:.5f}"
         print(f"wrote sparse-RD root {srd.root}: {srd.n_frames} frames ({srd.frames_written} written now), "
-              f"achieved density {dens}")
+              f"achieved density {dens} (per-frame taus and densities in sparse_rd.json)")
     return 0
 
 
@@ -112,7 +169,10 @@ def add_parser(sub) -> None:
     p.add_argument("root", help="RADIal-layout root (real or simulated)")
     p.add_argument("--out", metavar="FILE.parquet", default=None, help="point store to write")
     p.add_argument("--sparse-rd-out", metavar="DIR", default=None,
-                   help="also write a RADIal-layout root whose RD cubes are masked to S(tau)")
+                   help="also write a RADIal-layout root whose RD cubes are masked to exactly the set the "
+                        "point store encodes: S(tau), or S*(tau) with an rdN enrichment (the replica bins of "
+                        "the n x n neighbourhoods), with the same envelope, CFAR and per-frame taus "
+                        "(recorded with the achieved densities in DIR/sparse_rd.json)")
     add_density_args(p)
     p.add_argument("--enrich", default="none", metavar="LIST",
                    help="comma-separated enrichments, e.g. rd3,sector32 (default none)")
@@ -123,7 +183,12 @@ def add_parser(sub) -> None:
                    help="frames per part file, the unit of resume and sharding (default 64)")
     p.add_argument("--calibration-frames", type=int, default=None,
                    help="per-dataset mode: train frames used to calibrate tau (default all)")
-    p.add_argument("--workers", type=int, default=1, help="local processes sharing the chunks (default 1)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="local processes sharing the chunks (default 1); chunks are shrunk when there are "
+                        "fewer than processes")
+    p.add_argument("--wait-timeout", type=float, default=DEFAULT_WAIT_S, metavar="SECONDS",
+                   help="under torchrun without a process group: how long ranks wait for each other's "
+                        f"files (default {DEFAULT_WAIT_S:.0f} s)")
     p.add_argument("--device", default=None,
                    help="torch device (default cuda:LOCAL_RANK if CUDA is available, else cpu)")
     p.add_argument("--no-resume", action="store_true", help="discard finished parts of an earlier run")

@@ -5,10 +5,14 @@ Example::
 
     radarpc show data/sim_radial --frame 10 --density 0.057 --out frame10.png
 
-Panels: (a) ``A(r, d) = sum_rx |R|`` in dB on the full Doppler axis with the detected set
-``S(tau)`` marked, (b) the consolidated envelope ``E(r, l)`` in dB with the CFAR peaks
-``P(tau)``, (c) the points in BEV (x forward, y left; drawn with left on the left) coloured by
-radial velocity or by angle-spectrum amplitude, with the labelled vehicle centres.
+Panels: (a) ``A(r, d) = sum_rx |R|`` in dB on the full Doppler axis with the encoded set marked
+(``S(tau)``, or ``S*(tau)`` with an ``rdN`` enrichment: the replica bins of every point), (b) the
+consolidated envelope ``E(r, l)`` in dB with the CFAR peaks ``P(tau)``, (c) the points in BEV (x forward, y left; drawn with left on the left) coloured by
+radial velocity or by angle-spectrum amplitude, with the labelled vehicle centres. Range bin ``r``
+is drawn centred on ``r * range_res_m`` (the points' ``range_m``) in both RD panels.
+
+With ``--density-mode per-dataset`` tau is calibrated on the training split at every call (one
+pass over the train cubes); :func:`plot_frame` takes ``tau=`` to reuse a calibrated value.
 """
 from __future__ import annotations
 
@@ -21,14 +25,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from radarpc.cli.pointcloud import add_density_args, check_density_args, parse_enrich
+from radarpc.cli.pointcloud import add_density_args, check_density_args, parse_enrich, resolve_cfar_args
 from radarpc.data.pointstore import PointStore
 from radarpc.data.radial import RADIal
 from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS
 from radarpc.dsp.convert import ConvertSettings, build_point_cloud, calibrate_tau
 from radarpc.io import atomic_write
 
-__all__ = ["FramePlot", "plot_frame", "add_parser", "run"]
+__all__ = ["FramePlot", "plot_frame", "rd_extent", "peak_marker_range_m", "add_parser", "run"]
 
 COLOR_BY = ("velocity", "amplitude")
 
@@ -41,14 +45,27 @@ class FramePlot:
     frame: int               # RADIal numSample
     n_points: int            # points of the cloud
     n_peaks: int             # consolidated CFAR peaks |P(tau)|
-    density: float           # |S(tau)| / (Nr * ND)
+    density: float           # density of the encoded set: |S*(tau)| / (Nr * ND) with rdN, else |S(tau)| / (Nr * ND)
     tau: float               # threshold used
     n_vehicles: int          # labelled vehicles drawn
+    peak_density: float = float("nan")   # |S(tau)| / (Nr * ND), CFAR peaks alone
+
+
+def rd_extent(cfg, n_cols: int) -> tuple[float, float, float, float]:
+    """``imshow`` extent of an ``(Nr, n_cols)`` RD image (origin lower): row ``r`` spans
+    ``[(r - 0.5) res, (r + 0.5) res]``, centred on ``r * res`` = the points' ``range_m``."""
+    res = cfg.range_res_m
+    return (-0.5, n_cols - 0.5, -0.5 * res, (cfg.n_range - 0.5) * res)
+
+
+def peak_marker_range_m(cfg, range_bin: np.ndarray) -> np.ndarray:
+    """Vertical position of the CFAR-peak markers: ``r * res``, as ``range_m`` and :func:`rd_extent`."""
+    return np.asarray(range_bin, dtype=np.float64) * cfg.range_res_m
 
 
 def plot_frame(root: str | Path, frame: int, out: str | Path, settings: ConvertSettings | None = None, *,
                store: str | Path | None = None, color_by: str = "velocity",
-               device: torch.device | str = "cpu") -> FramePlot:
+               device: torch.device | str = "cpu", tau: float | None = None) -> FramePlot:
     """Draw frame ``frame`` (numSample) of ``root`` to ``out`` (PNG, atomic, matplotlib Agg).
 
     Parameters
@@ -61,12 +78,16 @@ def plot_frame(root: str | Path, frame: int, out: str | Path, settings: ConvertS
         PNG to write.
     settings : ConvertSettings, optional
         Threshold or density, enrichments and CFAR geometry (``split`` is ignored: any frame of
-        the root can be shown; per-dataset mode calibrates on the training split).
+        the root can be shown; per-dataset mode calibrates on the training split at every call
+        unless ``tau`` is given).
     store : path-like, optional
         Instead of ``settings``: a point store made from ``root``; the points are read from it
         and the CFAR panels use its CFAR geometry and the frame's stored threshold.
     color_by : {"velocity", "amplitude"}
     device : torch.device or str
+    tau : float, optional
+        Per-dataset mode: the tau already calibrated (e.g. ``ConvertResult.tau`` or a store's
+        ``metadata.tau``), so that plotting many frames does not recalibrate each time.
     """
     if color_by not in COLOR_BY:
         raise ValueError(f"color_by must be one of {COLOR_BY}, got {color_by!r}")
@@ -93,21 +114,27 @@ def plot_frame(root: str | Path, frame: int, out: str | Path, settings: ConvertS
         if stored is None:
             raise ValueError(f"frame {frame} is not in the point store {store}")
         m = pstore.metadata
-        settings = ConvertSettings(tau=float(stored.tau[0]), enrich=m.enrich, window=m.window, guard=m.guard)
-    tau = settings.tau
+        settings = ConvertSettings(tau=float(stored.tau[0]), enrich=m.enrich, window=m.window, guard=m.guard,
+                                   envelope=m.envelope)
     if settings.mode == "per-dataset":
-        tau = calibrate_tau(root, settings, device=dev)
+        tau = calibrate_tau(root, settings, device=dev) if tau is None else float(tau)
+    else:
+        tau = settings.tau
     spc = build_point_cloud(ds, settings, tau, dev)
     cfg = ds.sensor
     rd_b = rd.unsqueeze(0).to(dev)                                          # (1, Nr, Nd, Nrx)
     with torch.no_grad():
         env, cfar, peaks = spc.detect(rd_b)                                 # (1, Nr, W) each
         cloud = spc(rd_b) if stored is None else stored
-    from radarpc.dsp.ddma import rx_magnitude_sum
-    from radarpc.dsp.sparse_rd import sparse_rd_mask
+    from radarpc.dsp.ddma import replica_bins, rx_magnitude_sum
 
     full = rx_magnitude_sum(rd_b)[0].cpu().numpy()                          # (Nr, Nd)
-    mask_full = sparse_rd_mask(peaks, cfg, rd_b)[0].cpu().numpy()                 # (Nr, Nd) bool
+    # the encoded set: every point's range bin x the n_tx replica bins of its Tx-0 Doppler bin
+    mask_t = torch.zeros(cfg.n_range, cfg.n_doppler, dtype=torch.bool)
+    bins = replica_bins(cfg, cloud.doppler_full.cpu())                      # (N, n_tx)
+    mask_t[cloud.range_bin.cpu().long()[:, None].expand_as(bins), bins] = True
+    mask_full = mask_t.numpy()                                              # (Nr, Nd) bool
+    set_name = "S*(tau)" if settings.point_cloud_config().neighbourhood is not None else "S(tau)"
     e = env[0].cpu().numpy()                                                # (Nr, W)
     pk = peaks[0].cpu().numpy()                                             # (Nr, W) bool
     tau_used = float(cloud.tau[0])
@@ -127,23 +154,23 @@ def plot_frame(root: str | Path, frame: int, out: str | Path, settings: ConvertS
     fig, ax = plt.subplots(1, 3, figsize=(17, 6.5), gridspec_kw={"width_ratios": [1.4, 0.8, 1.4]})
     rmax = cfg.max_range_m
     im0 = ax[0].imshow(db(full), aspect="auto", origin="lower", cmap="viridis",
-                       extent=(-0.5, cfg.n_doppler - 0.5, 0.0, rmax))
+                       extent=rd_extent(cfg, cfg.n_doppler))
     # S(tau) as an exact per-cell overlay (markers would hide the spectrum on a 512 x 256 grid)
     from matplotlib.colors import ListedColormap
     from matplotlib.patches import Patch
 
     ax[0].imshow(np.ma.masked_where(~mask_full, mask_full.astype(float)), aspect="auto", origin="lower",
                  cmap=ListedColormap(["red"]), alpha=0.85, interpolation="nearest",
-                 extent=(-0.5, cfg.n_doppler - 0.5, 0.0, rmax))
-    ax[0].legend(handles=[Patch(color="red", label=f"S(tau): {int(mask_full.sum())} cells")],
+                 extent=rd_extent(cfg, cfg.n_doppler))
+    ax[0].legend(handles=[Patch(color="red", label=f"{set_name}: {int(mask_full.sum())} cells")],
                  loc="upper right", fontsize=8)
     ax[0].set(xlabel="Doppler bin (full axis)", ylabel="range [m]",
               title=f"sum_rx |R| [dB], frame {frame}")
     fig.colorbar(im0, ax=ax[0], label="dB")
     im1 = ax[1].imshow(db(e), aspect="auto", origin="lower", cmap="magma",
-                       extent=(-0.5, cfg.slot_width - 0.5, 0.0, rmax))
+                       extent=rd_extent(cfg, cfg.slot_width))
     pr, pl = np.nonzero(pk)
-    ax[1].scatter(pl, (pr + 0.5) * cfg.range_res_m, s=8, marker="x", c="cyan", linewidths=0.6,
+    ax[1].scatter(pl, peak_marker_range_m(cfg, pr), s=8, marker="x", c="cyan", linewidths=0.6,
                   label=f"P(tau): {int(pk.sum())} peaks")
     ax[1].set(xlabel="consolidated Doppler l", ylabel="range [m]", title="envelope E(r, l) [dB] + CFAR")
     ax[1].legend(loc="upper right", fontsize=8)
@@ -169,16 +196,19 @@ def plot_frame(root: str | Path, frame: int, out: str | Path, settings: ConvertS
     with atomic_write(out, "wb") as f:
         fig.savefig(f, format="png", dpi=80)
     plt.close(fig)
+    peak_density = float(pk.sum()) * cfg.n_tx / (cfg.n_range * cfg.n_doppler)
     return FramePlot(path=out, frame=int(frame), n_points=int(len(x)), n_peaks=int(pk.sum()),
-                     density=density, tau=tau_used, n_vehicles=int(len(gx)))
+                     density=density, tau=tau_used, n_vehicles=int(len(gx)), peak_density=peak_density)
 
 
 def run(args: argparse.Namespace) -> int:
     check_density_args(args)
     settings = None
     if args.store is None:
+        cfar = resolve_cfar_args(args)
         settings = ConvertSettings(tau=args.snr, density=args.density, density_mode=args.density_mode,
-                                   enrich=parse_enrich(args.enrich), window=args.window, guard=args.guard)
+                                   enrich=parse_enrich(args.enrich), window=cfar.window, guard=cfar.guard,
+                                   envelope=cfar.envelope)
     out = args.out if args.out is not None else f"frame{args.frame}.png"
     res = plot_frame(args.root, args.frame, out, settings, store=args.store, color_by=args.color,
                      device=args.device if args.device is not None else "cpu")
