@@ -225,3 +225,22 @@ def test_bad_files_name_the_file(tmp_path):
     trunc.write_bytes(good.read_bytes()[:-40])
     with pytest.raises(DataFileError, match="trunc.parquet"):
         PointStore(trunc)
+
+
+def test_metadata_records_envelope_and_settings(tmp_path):
+    settings = {"tau": None, "density": 0.05, "calibration_frames": 2, "envelope": "all-slots", "window": [19, 19]}
+    meta = make_meta(envelope="all-slots", settings=settings)
+    path = tmp_path / "s.parquet"
+    with PointStoreWriter(path, meta) as w:
+        w.write(make_batch([2, 1]), [0, 1], ["s", "s"])
+    back = PointStore(path).metadata
+    assert back.envelope == "all-slots" and back.settings == settings
+    d = make_meta().to_dict()
+    assert d["envelope"] == "replicas" and d["settings"] == {}
+    # a store written before the envelope option summed every slot (RADIal rpl.py)
+    del d["envelope"], d["settings"]
+    assert PointStoreMetadata.from_dict(d).envelope == "all-slots"
+    with pytest.raises(ValueError, match="envelope must be one of"):
+        make_meta(envelope="sum")
+    with pytest.raises(ValueError, match="settings must be a dict"):
+        make_meta(settings=[1])

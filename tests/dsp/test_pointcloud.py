@@ -286,3 +286,20 @@ def test_angle_spectrum_and_real_gemm_form():
     res = beamform_peaks(torch.from_numpy(v), bt, calib.grid_shape)
     np.testing.assert_array_equal(res.index.numpy(), ref.argmax(1))
     np.testing.assert_allclose(res.amplitude.numpy(), ref.max(1), rtol=1e-5)
+
+
+def test_envelope_option_selects_the_cfar_input():
+    cfg = TINY
+    calib = make_calibration(cfg)
+    rd = synthesize_rd(cfg, [_scene(cfg, TARGETS["tiny"])], noise=True, generator=torch.Generator().manual_seed(4))
+    a = np.abs(rd[0].numpy().astype(np.complex128)).sum(-1)                  # (Nr, Nd)
+    all_slots = a.reshape(cfg.n_range, cfg.n_slots, cfg.slot_width).sum(1)  # RADIal rpl.py
+    e_all, _, _ = SpectralPointCloud(cfg, calib, envelope="all-slots").detect(rd)
+    e_rep, _, _ = SpectralPointCloud(cfg, calib).detect(rd)
+    np.testing.assert_allclose(e_all[0].numpy(), all_slots, rtol=1e-5)
+    # replicas: the all-slot sum minus the (noise-only) empty slots of each cell's DDMA hypothesis
+    assert bool((e_rep < e_all).all())
+    c = SpectralPointCloud(cfg, calib, tau=10.0, envelope="all-slots", window=(19, 19), guard=(7, 7)).config
+    assert c.envelope == "all-slots" and c.to_dict()["envelope"] == "all-slots" and c.window == (19, 19)
+    with pytest.raises(ValueError, match="envelope must be one of"):
+        SpectralPointCloudConfig(envelope="rpl")

@@ -42,6 +42,24 @@ def test_sparse_rd_keeps_exactly_s_tau(cfg):
     assert int((sp[~s_mask] != 0).sum()) == 0
 
 
+def test_sparse_rd_of_rd_neighbourhood_cloud_is_s_star():
+    # with rd3 the cloud encodes S*(tau): one point per kept cell of P*, each with its own d0
+    cfg = RADIAL_S
+    g = torch.Generator().manual_seed(2)
+    sc = Scatterers(torch.tensor([20.0, 40.0]), torch.tensor([-10.0, 20.0]), torch.zeros(2),
+                    torch.tensor([3.0, -6.0]), torch.tensor([10.0, 10.0]))
+    rd = synthesize_rd(cfg, [sc], noise=True, generator=g)
+    spc = SpectralPointCloud(cfg, make_calibration(cfg), density=0.05, enrich=("rd3",))
+    enc = spc.encode(rd)
+    clouds = spc(rd)
+    assert int(enc.kept.sum()) > int(enc.peaks.sum()) and clouds.num_points == int(enc.kept.sum())
+    s_star = sparse_rd_mask(enc.kept, cfg, enc.tx0_doppler())
+    torch.testing.assert_close(density_of_mask(s_star, cfg), clouds.density)
+    # the per-cell gap search on the cube resolves the same d0 as the envelope's map
+    assert torch.equal(sparse_rd_mask(enc.kept, cfg, rd), s_star)
+    assert torch.equal(enc.tx0_doppler(), clouds.doppler_full)
+
+
 def test_single_frame_and_bad_input():
     cfg = TINY
     rd = torch.randn(cfg.rd_shape, dtype=torch.complex64, generator=torch.Generator().manual_seed(1))

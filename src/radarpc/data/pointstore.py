@@ -179,7 +179,7 @@ class PointStoreMetadata:
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(d) - names
         missing = {f.name for f in dataclasses.fields(cls)
-                   if f.default is dataclasses.MISSING} - set(d)
+                   if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING} - set(d)
         if unknown or missing:
             raise ValueError(f"point store metadata: unknown keys {sorted(unknown)}, missing keys {sorted(missing)}")
         kw = dict(d)

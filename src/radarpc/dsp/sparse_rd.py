@@ -2,6 +2,10 @@
 
 ``S(tau) = U_{(r, l) in P(tau)} {(r, d) : d in T(r, l)}`` with ``T(r, l)`` the ``n_tx`` replica bins of
 the peak's resolved Tx-0 Doppler bin (see :mod:`radarpc.dsp.ddma`). ``|S(tau)| = n_tx |P(tau)|``.
+
+The mask of a point cloud with the RD-neighbourhood enrichment ``rdN`` is ``S*(tau)``: pass
+``P*(tau)`` (``SpectralPointCloud.encode(rd).kept``) with its ``d0`` (``EncodedSet.tx0_doppler()``),
+the set the cloud encodes and the one :func:`radarpc.dsp.convert.write_sparse_rd` writes.
 """
 from __future__ import annotations
 
