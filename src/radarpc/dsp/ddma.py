@@ -120,9 +120,11 @@ def gap_window_sums(x: torch.Tensor, n_gap: int, dim: int = -1) -> torch.Tensor:
     same order) serves the whole-map envelope and the per-peak search, so both resolve the same
     slot bit for bit.
     """
-    out = x.roll(-1, dims=dim)
+    n = x.shape[dim]
+    ext = torch.cat([x, x.narrow(dim, 0, n_gap)], dim=dim)                # circular continuation
+    out = ext.narrow(dim, 1, n).clone()
     for k in range(2, n_gap + 1):
-        out = out + x.roll(-k, dims=dim)
+        out += ext.narrow(dim, k, n)
     return out
 
 
