@@ -390,7 +390,7 @@ def test_simulated_dataset_object_converts_like_its_written_root(tmp_path):
     assert PointStore(d).metadata.split == "test"
     with pytest.raises(ValueError, match="does not match the dataset object's split"):
         convert_dataset(SimulatedRADIal(TINY, 3, 2, 0, split="test"), d, tau=2.0, split="val", progress=False)
-    # the sparse-RD writer takes the object too (labels from frame_labels, no freespace PNGs)
+    # the sparse-RD writer takes the object too (labels from frame_labels, freespace from freespace_mask)
     s1, s2 = tmp_path / "srd_root", tmp_path / "srd_object"
     write_sparse_rd(sim_root, s1, tau=3.0, progress=False)
     write_sparse_rd(SimulatedRADIal(TINY, 3, 2, 0, split="all"), s2, tau=3.0, progress=False)
@@ -400,4 +400,7 @@ def test_simulated_dataset_object_converts_like_its_written_root(tmp_path):
     assert r1.frame_ids == r2.frame_ids and r1.sequences == r2.sequences and r2.sensor == TINY
     np.testing.assert_array_equal(r1.labels.values, r2.labels.values)
     assert np.array_equal(r1.calibration.signal, r2.calibration.signal)
-    assert json.loads((s2 / "sparse_rd.json").read_text())["freespace"] is False
+    assert json.loads((s2 / "sparse_rd.json").read_text())["freespace"] is True
+    for i in range(6):
+        a_, b_ = r1[i], r2[i]
+        assert all(torch.equal(x, y) for x, y in zip(a_, b_)), i

@@ -58,7 +58,7 @@ import torch
 
 from radarpc import __version__
 from radarpc.data.pointstore import PointStore, PointStoreMetadata, PointStoreWriter
-from radarpc.data.radial import RADIal, find_fft_file, load_rd
+from radarpc.data.radial import RADIal
 from radarpc.data.radial_format import LABEL_COLUMNS, fft_path, freespace_path
 from radarpc.dsp.density import check_density
 from radarpc.dsp.pointcloud import SpectralPointCloud, SpectralPointCloudConfig
@@ -92,8 +92,10 @@ class RadarDataset(Protocol):
     """What the converters need from a dataset object (RADIal, SimulatedRADIal, ...).
 
     ``cube(i)`` -> complex64 ``(Nr, Nd, Nrx)`` tensor of item ``i`` (``ds[i][0]`` is used when
-    the object has no ``cube``); ``frame_labels(i)`` (raw ``labels.csv`` rows) is needed only
-    by :func:`write_sparse_rd` for an object without a ``root`` folder.
+    the object has no ``cube``); ``frame_labels(i)`` (raw ``labels.csv`` rows) and
+    ``freespace_mask(i)`` (uint8 PNG content) are used only by :func:`write_sparse_rd` for an
+    object without a ``root`` folder. :class:`radarpc.data.radial.RadialFrames` (RADIal,
+    SimulatedRADIal) provides all of them.
     """
 
     frame_ids: list[int]
@@ -138,17 +140,10 @@ def open_source(source: Source, split: str = "all") -> tuple[Any, str, str]:
 
 
 def read_cube(ds: Any, i: int) -> torch.Tensor:
-    """RD cube of item ``i``: ``ds.cube(i)``, else (a RADIal reader) the FFT file alone, else ``ds[i][0]``.
-
-    Returns a complex ``(Nr, Nd, Nrx)`` tensor.
-    """
+    """RD cube of item ``i``: ``ds.cube(i)`` (RADIal, SimulatedRADIal: the cube alone, without
+    labels and freespace), else ``ds[i][0]``. Returns a complex ``(Nr, Nd, Nrx)`` tensor."""
     cube = getattr(ds, "cube", None)
-    if callable(cube):
-        return cube(i)
-    if isinstance(ds, RADIal):
-        return torch.from_numpy(load_rd(find_fft_file(ds.root, ds.frame_ids[i]), ds.sensor,
-                                        validate=ds.validate))
-    return ds[i][0]
+    return cube(i) if callable(cube) else ds[i][0]
 
 
 # ---- settings -------------------------------------------------------------------------------------
@@ -765,6 +760,15 @@ def _write_split_labels(src: Path, dst: Path, keep: set[int]) -> None:
                 w.writerow(r)
 
 
+def _write_png(path: Path, mask: np.ndarray) -> None:
+    """A 2-D uint8 mask as a greyscale PNG, atomically."""
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path, "wb") as f:
+        Image.fromarray(np.ascontiguousarray(mask, dtype=np.uint8)).save(f, format="PNG")
+
+
 def _write_labels_from_dataset(ds: Any, dst: Path) -> None:
     """``labels.csv`` from a dataset object's raw rows (``frame_labels(i)``), atomic."""
     if not hasattr(ds, "frame_labels"):
@@ -809,7 +813,8 @@ def write_sparse_rd(
     PNGs, ``calibration.npz`` / ``CalibrationTable.npy`` and ``sensor.json`` are hard-linked (or
     copied) from the source root; for a dataset object without a ``root`` (SimulatedRADIal),
     ``labels.csv`` is written from ``frame_labels(i)``, ``calibration.npz`` and ``sensor.json``
-    from its calibration and sensor, and no freespace PNG is written. Each cube is written
+    from its calibration and sensor, and the freespace PNGs from ``freespace_mask(i)`` (when the
+    object has it; ``sparse_rd.json`` records ``"freespace"``). Each cube is written
     atomically and existing cubes are kept when ``resume`` (so a killed run resumes).
 
     ``sparse_rd.json`` records the source, the settings and the tau (a resumed run must match
@@ -907,16 +912,19 @@ def write_sparse_rd(
                 frames[str(num)] = {"tau": float(enc.tau[b]), "density": float(dens[b]),
                                     "peak_density": float(peak[b])}
                 written.append(float(dens[b]))
-    if root is not None:
-        for num in ds.frame_ids:
-            fs = freespace_path(root, num)
-            if fs.is_file():
-                _link_or_copy(fs, freespace_path(out_root, num), overwrite=not resume)
+    has_freespace = root is not None or callable(getattr(ds, "freespace_mask", None))
+    for i, num in enumerate(ds.frame_ids):
+        dst = freespace_path(out_root, num)
+        if root is not None:
+            if freespace_path(root, num).is_file():
+                _link_or_copy(freespace_path(root, num), dst, overwrite=not resume)
+        elif has_freespace and (not resume or not dst.is_file()):
+            _write_png(dst, ds.freespace_mask(i))
     recorded = [frames[str(num)] for num in ds.frame_ids if str(num) in frames]
     info.update(complete=True, frames_written_last_run=len(todo),
                 mean_density_last_run=float(np.mean(written)) if written else None,
                 mean_density=float(np.mean([r["density"] for r in recorded])) if recorded else None,
-                freespace=root is not None)
+                freespace=has_freespace)
     with atomic_write(info_path, "w") as f:
         json.dump(info, f, indent=1)
     return SparseRDResult(out_root, len(ds), len(todo), float(np.mean(written)) if written else float("nan"),
