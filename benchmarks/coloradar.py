@@ -6,7 +6,11 @@ Usage::
 
 * ``chamfer_s``: :func:`radarpc.eval.pointsets.chamfer_distance` on two clouds of ``--points``
   points (best of ``--repeat``), KD-tree queries on all threads.
-* ``emd_s``: :func:`radarpc.eval.pointsets.earth_movers_distance` with subsets of ``--emd-points``.
+* ``emd_s``: :func:`radarpc.eval.pointsets.earth_movers_distance` (exact W1 by POT's network
+  simplex) with subsets of ``--emd-points`` of both clouds; ``emd_sparse_pred_s`` with a 300-point
+  prediction against the ``--emd-points`` ground-truth subset (the OS-CFAR case).
+* ``chamfer_batch_s`` / ``emd_batch_s``: the batched API (:func:`chamfer_distance_batch`,
+  :func:`earth_movers_distance_batch`) on ``--batch`` pairs in a pool of ``--threads`` threads.
 * ``frustum_*``: voxelizing one cloud into RaLD's 316 x 720 x 80 grid and drawing 10,000 queries.
 * ``sim_frames_per_s``: frames written per second by
   :func:`radarpc.sim.coloradar_writer.write_coloradar` (one scene, one run, ``--frames`` frames,
@@ -28,7 +32,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from radarpc.eval.pointsets import chamfer_distance, earth_movers_distance
+from radarpc.eval.pointsets import (
+    chamfer_distance,
+    chamfer_distance_batch,
+    earth_movers_distance,
+    earth_movers_distance_batch,
+)
 from radarpc.rald.frustum import RALD_GRID, polar_to_cartesian, sample_queries, voxelize
 
 
@@ -94,6 +103,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--emd-points", type=int, default=2048, help="EMD subset size")
     ap.add_argument("--frames", type=int, default=4, help="simulated frames to time (0: skip)")
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--batch", type=int, default=8, help="pairs of the batched CD/EMD timings")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
 
@@ -112,7 +122,14 @@ def main(argv: list[str] | None = None) -> dict:
         "emd_s": _best(lambda: earth_movers_distance(pred, gt, n=args.emd_points), args.repeat),
         "chamfer_m": chamfer_distance(pred, gt),
         "emd_m": earth_movers_distance(pred, gt, n=args.emd_points),
+        "emd_sparse_pred_s": _best(lambda: earth_movers_distance(pred[:300], gt, n=args.emd_points), args.repeat),
     }
+    preds = [_room_cloud(args.points, 10 + b) for b in range(args.batch)]
+    gts = [_room_cloud(args.points, 100 + b) for b in range(args.batch)]
+    res["batch"] = args.batch
+    res["chamfer_batch_s"] = _best(lambda: chamfer_distance_batch(preds, gts, workers=args.threads), 1)
+    res["emd_batch_s"] = _best(lambda: earth_movers_distance_batch(preds, gts, n=args.emd_points,
+                                                                   workers=args.threads), 1)
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     for dev in devices:
         p = torch.from_numpy(gt).to(dev)

@@ -37,8 +37,10 @@ floor of a few decimetres on 30k-point LiDAR scans; compare methods only at the 
 ``seed``.
 
 Batched API: :func:`chamfer_distance_batch` and :func:`earth_movers_distance_batch` score lists of
-(prediction, ground truth) pairs in a thread pool (the KD-tree queries and the network simplex
-release the GIL); Chamfer on CUDA tensors runs as chunked ``torch.cdist`` on the GPU.
+(prediction, ground truth) pairs, or concatenated clouds with Pointcept ``offsets``, in a thread
+pool. The KD-tree queries release the GIL, so Chamfer pairs run in parallel; POT's network
+simplex (POT 0.9.x) holds it, so the EMD batch is a convenience that runs at the serial speed.
+Chamfer on CUDA tensors runs as chunked ``torch.cdist`` on the GPU.
 """
 from __future__ import annotations
 
