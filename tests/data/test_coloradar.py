@@ -198,6 +198,9 @@ def test_bad_input_errors(sim_root, tmp_path):
     with pytest.raises(DataFileError, match=r"lidar_pointcloud_3\.bin.*expected 16384 bytes.*simulation\.json.*"
                                             r"found 16352 \(truncated\)"):
         run.lidar(3)
+    from radarpc.cli.info_coloradar import check_run
+    bad = check_run(ColoRadarRun(root / "lab_run0"))                  # what `radarpc info --check` lists
+    assert any("lidar_pointcloud_3.bin" in line and "16352" in line for line in bad)
     run.lidar_path(3).write_bytes(good)
     assert run.lidar(3, drop_zeros=False).shape == (8 * 128, 4)
     # real-data rules (no simulation.json): any whole number of points, empty scans refused
