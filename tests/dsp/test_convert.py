@@ -296,7 +296,7 @@ def test_bad_settings(root, tmp_path):
         ConvertSettings(tau=-1.0)
     with pytest.raises(ValueError, match="positive odd"):
         ConvertSettings(tau=2.0, window=(8, 9))
-    with pytest.raises(ValueError, match="two positive odd integers"):
+    with pytest.raises(ValueError, match="CFAR is 2-D"):
         ConvertSettings(tau=2.0, window=(9, 9, 9), guard=(3, 3, 3))
     with pytest.raises(ValueError, match="envelope must be one of"):
         ConvertSettings(tau=2.0, envelope="sum")

@@ -189,9 +189,6 @@ class ConvertSettings:
 
     def point_cloud_config(self) -> SpectralPointCloudConfig:
         """The :class:`SpectralPointCloudConfig` of these settings (per-dataset: the target density)."""
-        if len(tuple(self.window)) != 2 or len(tuple(self.guard)) != 2:
-            raise ValueError(f"CFAR window and guard must be two positive odd integers (full side lengths "
-                             f"along range and Doppler), got window={self.window}, guard={self.guard}")
         return SpectralPointCloudConfig(tau=self.tau, density=self.density, density_mode=self.density_mode,
                                         window=tuple(self.window), guard=tuple(self.guard),
                                         enrich=tuple(self.enrich), envelope=self.envelope)
