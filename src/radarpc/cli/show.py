@@ -213,7 +213,8 @@ def run(args: argparse.Namespace) -> int:
     res = plot_frame(args.root, args.frame, out, settings, store=args.store, color_by=args.color,
                      device=args.device if args.device is not None else "cpu")
     print(f"wrote {res.path}: frame {res.frame}, {res.n_peaks} CFAR peaks, {res.n_points} points, "
-          f"tau {res.tau:.4g}, achieved density {res.density:.5f}, {res.n_vehicles} labelled vehicles")
+          f"tau {res.tau:.4g}, achieved density {res.density:.5f} (CFAR peaks S(tau) alone "
+          f"{res.peak_density:.5f}), {res.n_vehicles} labelled vehicles")
     return 0
 
 

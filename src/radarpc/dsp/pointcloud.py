@@ -270,7 +270,8 @@ class SpectralPointCloud(torch.nn.Module):
     calibration : Calibration
         Beamforming table; ``B = calibration.dictionary()`` and its azimuth/elevation tables.
     tau : float or None
-        Fixed linear CA-CFAR threshold (default RADIal's 2 dB = 1.585); ignored if ``density`` is set.
+        Fixed linear CA-CFAR threshold (default RADIal's 2 dB = 1.585, chosen by RADIal for its
+        19 x 19 / 7 x 7 window and all-slot envelope); ignored if ``density`` is set.
     density : float, optional
         Target density in ``(0, n_tx / n_slots]`` instead of a fixed tau, of the set the cloud
         encodes: ``|S(tau)| / (Nr Nd)``, or ``|S*(tau)| / (Nr Nd)`` with ``rdN`` (the threshold is
