@@ -17,8 +17,6 @@ pass over the train cubes); :func:`plot_frame` takes ``tau=`` to reuse a calibra
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import math
 from dataclasses import dataclass
 from pathlib import Path
 

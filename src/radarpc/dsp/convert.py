@@ -42,7 +42,6 @@ import csv
 import dataclasses
 import datetime as _dt
 import json
-import math
 import os
 import queue as _queue
 import shutil
