@@ -8,7 +8,10 @@ from radarpc.eval.pointsets import (
     PointSetReport,
     SceneSummary,
     chamfer_distance,
+    chamfer_distance_batch,
     earth_movers_distance,
+    earth_movers_distance_batch,
+    emd_subset,
     evaluate_clouds,
 )
 
@@ -21,6 +24,9 @@ __all__ = [
     "PointSetReport",
     "SceneSummary",
     "chamfer_distance",
+    "chamfer_distance_batch",
     "earth_movers_distance",
+    "earth_movers_distance_batch",
+    "emd_subset",
     "evaluate_clouds",
 ]
