@@ -6,9 +6,11 @@ device, threads, the frames/s of two numpy baselines on the same frames and the 
 the process's peak RSS.
 
 The numpy baseline follows RADIal's ``SignalProcessing/rpl.py`` (one frame at a time:
-``np.abs`` sum over Rx, slot sum, CA-CFAR with ``scipy.signal.convolve2d``, the Tx-0 search with a
-cumulative sum, a Python loop over peaks building their Doppler index lists, one complex matmul
-with the calibration matrix, argmax), with the same window/guard convention and per-frame density
+``np.abs`` sum over Rx, CA-CFAR with ``scipy.signal.convolve2d``, a Python loop over peaks
+building their Doppler index lists, one complex matmul with the calibration matrix, argmax), with
+radarpc's default envelope (the seed's sum over the ``n_tx`` replica bins of each consolidated
+cell, after a whole-map Tx-0 gap search, instead of rpl.py's sum over every slot), the same
+window/guard convention and per-frame density
 control as radarpc (tau chosen on the CFAR peaks ``S(tau)``, or with ``rd3`` on the encoded
 neighbourhood set ``S*(tau)`` through a scipy max filter, see :func:`numpy_tau`), so that both
 produce the same points (checked and reported as ``agree``).
@@ -62,7 +64,7 @@ from scipy.ndimage import binary_dilation, maximum_filter  # noqa: E402
 from radarpc.dsp import SpectralPointCloud  # noqa: E402
 from radarpc.dsp.beamform import beamform_peaks  # noqa: E402
 from radarpc.dsp.cfar import ca_cfar  # noqa: E402
-from radarpc.dsp.ddma import consolidate, resolve_tx0_doppler, rx_magnitude_sum, virtual_snapshots  # noqa: E402
+from radarpc.dsp.ddma import ddma_envelope, rx_magnitude_sum, virtual_snapshots  # noqa: E402
 from radarpc.dsp.density import neighbourhood_mask  # noqa: E402
 from radarpc.sensors.radial import RADIAL, Calibration, DDMARadarConfig, make_calibration  # noqa: E402
 
@@ -110,25 +112,32 @@ class NumpyPointCloud:
         self.n_el = len(calib.elevation_deg)
         self.dividend = np.arange(0, cfg.n_doppler, cfg.slot_width)
 
-    def __call__(self, rd: np.ndarray) -> dict[str, np.ndarray]:
+    def envelope(self, rd: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``A = sum_rx |R|`` ``(Nr, Nd)``, the Tx-0 bin ``d0`` of every consolidated cell
+        ``(Nr, W)`` (the slot after which the ``n_empty_slots`` slots have the least power) and the
+        CA-CFAR SNR of the seed's envelope ``E(r, l) = sum_m A(r, d0 + doppler_offsets[m])``."""
         cfg = self.cfg
         power_spectrum = np.sum(np.abs(rd), axis=2)                                    # (Nr, Nd)
-        reduced = np.sum(power_spectrum.reshape(cfg.n_range, cfg.n_slots, cfg.slot_width), axis=1)
+        slots = power_spectrum.reshape(cfg.n_range, cfg.n_slots, cfg.slot_width)      # (Nr, n_slots, W)
+        gap = sum(np.roll(slots, -k, axis=1) for k in range(1, cfg.n_empty_slots + 1))  # slots s+1..s+g
+        d0 = np.argmin(gap, axis=1) * cfg.slot_width + np.arange(cfg.slot_width)       # (Nr, W)
+        cols = (d0[:, :, None] + np.asarray(cfg.doppler_offsets)) % cfg.n_doppler      # (Nr, W, n_tx)
+        reduced = np.take_along_axis(power_spectrum, cols.reshape(cfg.n_range, -1), axis=1) \
+            .reshape(cols.shape).sum(-1)                                               # E: (Nr, W)
         p = reduced ** 2
         snr = p / (signal.convolve2d(p, self.mask, mode="same") / self.count)
+        return power_spectrum, d0, snr
+
+    def __call__(self, rd: np.ndarray) -> dict[str, np.ndarray]:
+        cfg = self.cfg
+        power_spectrum, d0_map, snr = self.envelope(rd)
         tau = numpy_tau(snr, cfg, self.density, self.rd_n)           # on S, or on S* with rdN
         peaks = snr > tau
         kept = peaks
         if self.rd_n is not None:
             kept = binary_dilation(peaks, np.ones((self.rd_n, self.rd_n), dtype=bool))
         range_bins, doppler_conv = np.where(kept)
-        # Tx-0 position: rpl.py's cumulative-sum search over the slots (+ wrapped empty slots)
-        g = cfg.n_empty_slots
-        idx = doppler_conv[:, None] + self.dividend[None, :]
-        idx = np.concatenate([idx, idx[:, :g]], axis=1)
-        cums = np.cumsum(power_spectrum[range_bins[:, None], idx], axis=1)
-        section = np.argmin((cums[:, g:] - cums[:, :-g]) / g, axis=1)
-        d0 = section * cfg.slot_width + doppler_conv
+        d0 = d0_map[range_bins, doppler_conv]                        # Tx-0 bins from the envelope's search
         doppler_indexes = []
         for d in d0:                                                                     # per-peak loop
             seq = np.remainder(d + self.dividend, cfg.n_doppler)
@@ -154,10 +163,7 @@ class NumpyLoopPointCloud(NumpyPointCloud):
 
     def __call__(self, rd: np.ndarray) -> dict[str, np.ndarray]:
         cfg = self.cfg
-        power_spectrum = np.sum(np.abs(rd), axis=2)
-        reduced = np.sum(power_spectrum.reshape(cfg.n_range, cfg.n_slots, cfg.slot_width), axis=1)
-        p = reduced ** 2
-        snr = p / (signal.convolve2d(p, self.mask, mode="same") / self.count)
+        power_spectrum, _, snr = self.envelope(rd)
         kept = snr > numpy_tau(snr, cfg, self.density, self.rd_n)
         if self.rd_n is not None:
             kept = binary_dilation(kept, np.ones((self.rd_n, self.rd_n), dtype=bool))
@@ -167,8 +173,8 @@ class NumpyLoopPointCloud(NumpyPointCloud):
         n_az = len(self.az)
         for r, l in zip(*np.nonzero(kept)):
             x = power_spectrum[r, l::cfg.slot_width]
-            means = [np.mean([x[(s + 1 + i) % cfg.n_slots] for i in range(g)]) for s in range(cfg.n_slots)]
-            d0 = int(np.argmin(means)) * cfg.slot_width + l
+            sums = [sum(x[(s + 1 + i) % cfg.n_slots] for i in range(g)) for s in range(cfg.n_slots)]
+            d0 = int(np.argmin(sums)) * cfg.slot_width + l
             v = np.concatenate([rd[r, (d0 + off) % cfg.n_doppler] for off in cfg.doppler_offsets]) * self.window
             spec = np.abs(self.calib_mat @ v)
             k = int(np.argmax(spec))
@@ -248,8 +254,10 @@ def stage_times(spc: SpectralPointCloud, batch: torch.Tensor, repeats: int) -> d
     for _ in range(repeats + 1):                                   # first pass: warm-up, overwritten
         t = time.perf_counter()
         a = rx_magnitude_sum(batch)                                # (B, Nr, Nd)
-        e = consolidate(a, cfg)                                    # (B, Nr, W)
-        t = tick("envelope sum_rx |RD| + slot sum", t)
+        t = tick("sum_rx |RD| (whole cube)", t)
+        env = ddma_envelope(a, cfg)
+        e = env.envelope(c.envelope)                               # (B, Nr, W)
+        t = tick("Tx-0 gap search + replica envelope", t)
         snr = ca_cfar(e.square(), c.window, c.guard).snr
         tau = spc.thresholds(snr)
         kept = snr > tau[:, None, None]
@@ -257,9 +265,9 @@ def stage_times(spc: SpectralPointCloud, batch: torch.Tensor, repeats: int) -> d
             kept = neighbourhood_mask(kept, c.neighbourhood)
         t = tick("CA-CFAR + density threshold (+ rdN mask)", t)
         b, r, l = torch.nonzero(kept, as_tuple=True)
-        d0 = resolve_tx0_doppler(a, cfg, r, l, b)
+        d0 = env.tx0_doppler(b, r, l)
         v = virtual_snapshots(batch, cfg, b, r, d0)                # (P, n_virtual)
-        t = tick("Tx-0 search + snapshot gather", t)
+        t = tick("snapshot gather", t)
         beamform_peaks(v, dict_t, spc.grid, None, stacked=stacked)
         t = tick("beamforming GEMM + argmax", t)
         if c.sectors is not None:
