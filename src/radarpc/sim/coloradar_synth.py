@@ -18,12 +18,24 @@ One scene (:mod:`radarpc.sim.indoor`) feeds every sensor:
   with ``tau_n(t, c) = 2 (R_n + v_n T(t, c)) / c``, ``T(t, c) = (c N_tx + t) T_c`` the chirp start
   time and ``t_k = t_adc + k / f_s``; ``A_n = g sqrt(sigma_n) / R_n^2`` (radar equation, ``g`` in
   ADC LSB). ``exact=True`` evaluates this phase for every (t, r, c, k). The default splits
-  ``S tau t_k = S tau t_ctr + S tau (t_k - t_ctr)`` (``t_ctr`` the centre of the ADC window) and
-  uses the frame-centre delay in the second term only; it drops just the range migration across
-  one frame (tested against ``exact``). The phase then separates into a (Tx, chirp) factor and an
-  (Rx, sample) factor, so the sum over scatterers is one complex GEMM
-  ``(tx chirps x N) @ (N x rx samples)`` (phases in float64, reduced modulo 2 pi, cos/sin in
-  float32). Then complex Gaussian noise and int16 I/Q quantization.
+  ``S tau t_k = S tau t_ctr + S tau (t_k - t_ctr)`` (``t_ctr`` the centre of the ADC window).
+  With ``tau = a + b T`` the second term is ``S (a + b T_g)(t_k - t_ctr) + S b (T - T_g)(t_k - t_ctr)``;
+  the last (range-migration) coupling is the only non-separable factor. The (tx, chirp) slots are
+  split, in time order, into ``G`` groups of ``L`` consecutive slots with reference times ``T_g``
+  (group centres); within a group the coupling ``exp(j eps)``,
+  ``eps = 2 pi S b_n (T - T_g)(t_k - t_ctr)``, is replaced by its first-order expansion
+  ``1 + j eps``, whose error per scatterer (relative to its amplitude) is at most::
+
+      eps^2 / 2,   |eps| <= 2 pi S max|b_n| ((L - 1) / 2) T_c max|t_k - t_ctr|,   eps^2 / 2 <= coupling_tol
+
+  ``L`` is chosen per chunk of scatterers from the largest ``|v_n|`` (:func:`coupling_group_size`;
+  ``L`` = all slots, ``G = 1`` and no correction for a static chunk; ``L = 1`` is exact in this
+  term). ``T - T_g`` does not depend on the scatterer, so within a group everything separates into a
+  (slot, Rx) factor and an (n, sample) factor ``[K_g | K_g D]``, ``D = j 2 pi S b_n (t_k - t_ctr)``,
+  and the sum over scatterers is one complex GEMM per group ``(slots_g rx x N) @ (N x 2 samples)``
+  (twice the flops of a single uncorrected GEMM; phases in float64, reduced modulo 2 pi, cos/sin in
+  float32; the group sample phasors ``K_g`` are stepped from group to group by a per-scatterer step
+  phasor and re-anchored every 32 groups). Then complex Gaussian noise and int16 I/Q quantization.
 * :func:`cascade_heatmap` -- ColoRadar cascade heatmaps computed in the frequency domain: for each
   scatterer the Hann-windowed range-FFT response ``|W(r - R_n / dr)|^2`` times the beamformer
   power ``|AF(az, el)|^2`` of the cascade's unique virtual elements steered at the heatmap's bin
@@ -61,6 +73,7 @@ __all__ = [
     "Scatterers",
     "SimFrame",
     "radar_scatterers",
+    "coupling_group_size",
     "beat_signal",
     "synthesize_adc",
     "cascade_heatmap",
@@ -305,18 +318,48 @@ def _unit_phasor(phase: torch.Tensor, scale: torch.Tensor | None = None) -> torc
     return torch.complex(re, im)
 
 
+def coupling_group_size(max_speed_mps: float, chip: ColoRadarChipConfig = AWR1843, *,
+                        coupling_tol: float = 1e-3) -> int:
+    """Slots ``L`` per group of the fast beat-signal model (see the module docstring).
+
+    The largest ``L`` in ``[1, N_tx N_chirps]`` with ``eps_max^2 / 2 <= coupling_tol``,
+    ``eps_max = 2 pi S (2 v_max / c) ((L - 1) / 2) T_c max|t_k - t_ctr|`` (radians): the error bound
+    of the first-order coupling correction relative to a scatterer's amplitude. All slots (one group)
+    when ``max_speed_mps == 0``.
+    """
+    if not math.isfinite(max_speed_mps) or max_speed_mps < 0:
+        raise ValueError(f"max_speed_mps must be finite and >= 0, got {max_speed_mps}")
+    if not (coupling_tol > 0 and math.isfinite(coupling_tol)):
+        raise ValueError(f"coupling_tol must be a positive finite phase in radians, got {coupling_tol}")
+    w = chip.waveform
+    m = w.num_tx * w.num_chirps_per_frame
+    half_k = 0.5 * (w.num_adc_samples_per_chirp - 1) / w.adc_sample_frequency      # max |t_k - t_ctr|
+    rate = 2 * math.pi * w.frequency_slope * (2 * max_speed_mps / SPEED_OF_LIGHT) * w.chirp_period_s * half_k
+    if rate <= 0:
+        return m
+    return int(min(m, 1 + math.floor(2 * math.sqrt(2 * coupling_tol) / rate)))
+
+
+_REANCHOR = 32   # groups between direct (float64) evaluations of the stepped sample phasors
+
+
 def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_lsb: float = 1000.0,
-                exact: bool = False, chunk: int = 1024) -> torch.Tensor:
+                exact: bool = False, chunk: int = 1024, coupling_tol: float = 1e-3) -> torch.Tensor:
     """Noise-free complex beat signal ``(tx, rx, chirps, samples)`` (complex64, LSB units).
 
     See the module docstring for the formula. Computed on the scatterers' device, chunked over
     ``chunk`` scatterers: ``exact=True`` sums float64 phases of every (tx, rx, chirp, sample); the
-    default builds a ``(tx, chirp, n)`` and an ``(n, rx, sample)`` phasor factor and multiplies
-    them (one complex64 GEMM per chunk).
+    default builds a ``(slot, rx, n)`` and per slot group an ``(n, 2 samples)`` phasor factor and
+    multiplies them (one complex64 GEMM per group), with the range-migration error bounded by
+    ``coupling_tol`` times each scatterer's amplitude (groups from :func:`coupling_group_size` on
+    the chunk's largest ``|v|``; the RMS error is about ``coupling_tol / 9`` of it).
     """
+    if not (coupling_tol > 0 and math.isfinite(coupling_tol)):
+        raise ValueError(f"coupling_tol must be a positive finite phase in radians, got {coupling_tol}")
     dev = scat.points.device
     w, ant = chip.waveform, chip.antenna
     ntx, nrx, nc, ns = w.num_tx, w.num_rx, w.num_chirps_per_frame, w.num_adc_samples_per_chirp
+    m_slots = ntx * nc
     f64 = torch.float64
     p = scat.points.to(f64)
     r0 = p.norm(dim=1).clamp_min(1e-3)
@@ -329,14 +372,14 @@ def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_l
     t_chirp = ((torch.arange(nc, device=dev, dtype=f64)[None, :] * ntx
                 + torch.arange(ntx, device=dev, dtype=f64)[:, None]) * tc)          # (ntx, nc)
     t_k = w.adc_start_time + torch.arange(ns, device=dev, dtype=f64) / w.adc_sample_frequency
-    t_mid = 0.5 * nc * ntx * tc
     t_tx_all = torch.arange(ntx, device=dev, dtype=f64) * tc                         # (ntx,) Tx offset in a loop
     t_loop_all = torch.arange(nc, device=dev, dtype=f64) * (ntx * tc)                  # (nc,) loop start
     t_ctr = float(t_k.mean())
+    k_off = t_k - t_ctr                                                              # (ns,)
     if exact:
         out = torch.zeros((ntx, nrx, nc, ns), dtype=torch.complex128, device=dev)
     else:
-        acc = torch.zeros((ntx, nc, nrx * ns), dtype=torch.complex64, device=dev)
+        acc = torch.zeros((m_slots * nrx, ns), dtype=torch.complex64, device=dev)     # rows (c, t, r)
     two_pi = 2 * math.pi
     if exact:   # the exact path materialises (tx, rx, chirps, samples, n): bound it to ~2e7 elements
         chunk = max(1, min(chunk, int(2e7 // (ntx * nrx * nc * ns))))
@@ -353,19 +396,19 @@ def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_l
                   + two_pi * slope * tau[:, None, :, None, :] * t_k[None, None, None, :, None])
             out += (coef * torch.exp(1j * ph)).sum(-1)
         else:
-            # S tau t_k = S tau t_ctr + S tau (t_k - t_ctr): the first part is exact per chirp, the
-            # second uses the frame-centre delay (drops only the range migration across the frame).
+            # S tau t_k = S tau t_ctr + S tau (t_k - t_ctr): the first part is exact per chirp.
             # With tau = a + b T (a = 2 R / c, b = 2 v / c) and F = f0 + S t_ctr the per-chirp phase is
             #   2 pi (F tau - S tau^2 / 2) = th0 + c1 T + c2 T^2,
             #   th0 = 2 pi (F a - S a^2 / 2),  c1 = 2 pi b (F - S a),  c2 = -pi S b^2,
-            # with T = T_t + T_c (Tx offset t T_chirp, loop start c N_tx T_chirp). Everything but the
-            # sample index sits in a (tx, chirp) factor and the Rx/sample terms in an (rx, sample)
-            # factor, so the sum over scatterers is one complex GEMM:
-            #   s[t, r, c, k] = sum_n L[t, c, n] R[n, r, k]
-            #   L = A_n exp(j (phi_n + th0 + arr_tx + c1 T_t + c2 T_t^2 + (c1 + 2 c2 T_t) T_c + c2 T_c^2))
-            #   R = exp(j arr_rx) exp(j 2 pi S tau_mid (t_k - t_ctr))
-            # Phases in float64 reduced modulo 2 pi, cos/sin in float32, products and GEMM in complex64.
+            # with T = T_t + T_c (Tx offset t T_chirp, loop start c N_tx T_chirp). The second part uses
+            # the delay at the reference time T_g of the slot's group g plus the first-order coupling
+            # correction (error <= coupling_tol of the amplitude):
+            #   s[(c, t), r, k] = sum_n L[(c, t), r, n] K_g[n, k] (1 + (T - T_g) D[n, k])
+            #   L = A_n exp(j (phi_n + th0 + arr_tx + arr_rx + c1 T + c2 T^2))
+            #   K_g = exp(j 2 pi S (a + b T_g) (t_k - t_ctr)),  D = j 2 pi S b (t_k - t_ctr)
+            # Phases in float64 reduced modulo 2 pi, cos/sin in float32, products and GEMMs in complex64.
             a_n, b_n = 2 * rr / SPEED_OF_LIGHT, 2 * vv / SPEED_OF_LIGHT                      # (n,)
+            n_c = a_n.shape[0]
             f_c = f0 + slope * t_ctr
             th0 = two_pi * (f_c * a_n - 0.5 * slope * a_n ** 2)
             c1 = two_pi * b_n * (f_c - slope * a_n)
@@ -374,14 +417,37 @@ def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_l
             base = scat.phase[sl].to(f64) + th0 + arr_tx + c1 * t_tx + c2 * t_tx ** 2           # (ntx, n)
             ph_l = (c1 + 2 * c2 * t_tx)[:, None, :] * t_loop[None]                           # (ntx, nc, n)
             ph_l += (c2 * t_loop ** 2)[None] + base[:, None, :]
-            left = _unit_phasor(ph_l, amp[sl].to(torch.float32))                             # (ntx, nc, n)
-            tau_mid = a_n + b_n * t_mid
-            e_r = _unit_phasor(arr_rx.T)                                                     # (n, nrx)
-            e_k = _unit_phasor((two_pi * slope * tau_mid)[:, None] * (t_k - t_ctr)[None, :])  # (n, ns)
-            right = (e_r[:, :, None] * e_k[:, None, :]).reshape(-1, nrx * ns)                # (n, nrx * ns)
-            acc += torch.matmul(left, right)                                                 # (ntx, nc, nrx * ns)
+            left_s = _unit_phasor(ph_l.permute(1, 0, 2), amp[sl].to(torch.float32))          # (nc, ntx, n)
+            left = (left_s.reshape(m_slots, 1, n_c) * _unit_phasor(arr_rx)[None]).reshape(m_slots * nrx, n_c)
+            v_max = float(vv.abs().max()) if n_c else 0.0
+            grp = coupling_group_size(v_max, chip, coupling_tol=coupling_tol)                # slots per group
+            n_grp = -(-m_slots // grp)
+            ref0 = 0.5 * (grp - 1) * tc                                                      # T_0
+            step = None
+            if n_grp > 1:
+                step = _unit_phasor((two_pi * slope * b_n * (grp * tc))[:, None] * k_off[None, :])  # (n, ns)
+            e_k = step
+            corr = v_max > 0
+            if corr:
+                d_nk = torch.complex(torch.zeros((), dtype=torch.float32, device=dev),
+                                     ((two_pi * slope * b_n)[:, None] * k_off[None, :]).to(torch.float32))  # (n, ns)
+                slot_t = torch.arange(m_slots, device=dev, dtype=f64) * tc
+                dt_row = (slot_t - (ref0 + (torch.arange(m_slots, device=dev) // grp) * (grp * tc)))
+                dt_row = dt_row.repeat_interleave(nrx).to(torch.float32)[:, None]          # (slots rx, 1) T - T_g
+            for gi in range(n_grp):
+                if gi % _REANCHOR == 0:                                                      # direct K_g
+                    t_ref = ref0 + gi * grp * tc
+                    e_k = _unit_phasor((two_pi * slope * (a_n + b_n * t_ref))[:, None] * k_off[None, :])
+                else:                                                                        # K_g = K_{g-1} step
+                    e_k = e_k * step
+                rows = slice(gi * grp * nrx, min((gi + 1) * grp, m_slots) * nrx)
+                if corr:
+                    prod = torch.matmul(left[rows], torch.cat([e_k, e_k * d_nk], 1))          # (slots_g rx, 2 ns)
+                    acc[rows] += prod[:, :ns] + dt_row[rows] * prod[:, ns:]
+                else:
+                    acc[rows] += torch.matmul(left[rows], e_k)                               # (slots_g rx, ns)
     if not exact:
-        out = acc.reshape(ntx, nc, nrx, ns).permute(0, 2, 1, 3).contiguous()
+        out = acc.reshape(nc, ntx, nrx, ns).permute(1, 2, 0, 3).contiguous()
     return out.to(torch.complex64)
 
 
