@@ -26,6 +26,11 @@ an interrupted job resumes (existing files of the right size are kept) when call
 the same settings; a non-empty folder written with other settings is refused unless
 ``overwrite=True``. Each frame draws its randomness from a generator seeded by
 ``(seed, scene, run, frame, sensor)``, so resumed output is identical to an uninterrupted one.
+
+Held-out scenes: each run ``{scene}_run{k}`` is its own seeded layout of the scene kind
+(:func:`radarpc.sim.indoor.make_scene` with ``(seed, scene, k)``), not another path through one
+shared layout, so the run-level splits of :func:`radarpc.data.coloradar.split_runs` (last run of a
+kind ``test``, the one before ``val``) test on geometry never seen in training.
 """
 from __future__ import annotations
 
@@ -200,7 +205,8 @@ def write_coloradar(out: str | os.PathLike, scenes: Sequence[str], runs_per_scen
     runs_per_scene, frames : int
         Runs per scene (folders ``{scene}_run{k}``) and radar frames per run.
     seed : int
-        Master seed; the environment of a scene depends on it, runs vary the path and people.
+        Master seed; run ``k`` of scene kind ``s`` is ``make_scene(s, seed, k)``: its own layout,
+        path and people (held-out layouts under the run-level splits).
     overwrite : bool
         Allow writing into a non-empty folder made with other settings (files are rewritten).
     lidar_beams, lidar_azimuth_steps : int
@@ -225,7 +231,7 @@ def write_coloradar(out: str | os.PathLike, scenes: Sequence[str], runs_per_scen
         raise ValueError(f"lidar_beams and lidar_azimuth_steps must be >= 1, got {lidar_beams}, {lidar_azimuth_steps}")
     out = Path(out)
     lidar = LidarConfig(beams=int(lidar_beams), azimuth_steps=int(lidar_azimuth_steps))
-    settings = {"format": "coloradar", "generator": "radarpc.sim.coloradar_writer", "version": 1,
+    settings = {"format": "coloradar", "generator": "radarpc.sim.coloradar_writer", "version": 2,
                 "scenes": scenes, "runs_per_scene": int(runs_per_scene), "frames": int(frames),
                 "seed": int(seed), "lidar": dataclasses.asdict(lidar), "radar": dataclasses.asdict(radar),
                 "single_chip": calib.single_chip.name,

@@ -631,9 +631,12 @@ def _outdoor(rng, rr):
 def make_scene(kind: str, seed: int, run: int = 0) -> Scene:
     """Build a seeded scene of ``kind`` (one of :data:`SCENE_KINDS`).
 
-    The environment (walls, furniture, vegetation) depends on ``(seed, kind)`` only; the rig
-    trajectory and the people depend on ``run`` as well, so runs of one scene revisit the same
-    place along different paths, like ColoRadar's runs.
+    Every run is its own seeded instance of the scene kind: the environment layout (walls,
+    furniture, vegetation) is drawn from a generator seeded by ``(seed, kind, run, 1)`` and the rig
+    trajectory and the people from one seeded by ``(seed, kind, run, 2)``. Different runs of a kind
+    are therefore different places, so a split by run (:func:`radarpc.data.coloradar.split_runs`)
+    holds out whole layouts (held-out scenes); the same ``(seed, kind, run)`` always gives the same
+    scene.
 
     Examples
     --------
@@ -645,8 +648,9 @@ def make_scene(kind: str, seed: int, run: int = 0) -> Scene:
         raise ValueError(f"unknown scene kind {kind!r}; expected one of {SCENE_KINDS}")
     if int(run) < 0:
         raise ValueError(f"run must be >= 0, got {run}")
-    rng = np.random.default_rng([int(seed), SCENE_KINDS.index(kind)])
-    rr = np.random.default_rng([int(seed), SCENE_KINDS.index(kind), int(run) + 1])
+    key = [int(seed), SCENE_KINDS.index(kind), int(run)]
+    rng = np.random.default_rng(key + [1])            # layout of this run's instance of the kind
+    rr = np.random.default_rng(key + [2])              # rig path and people
     if kind == "hallway":
         b, traj, people, mirrors = _hallway(rng, rr)
     elif kind == "outdoor":
