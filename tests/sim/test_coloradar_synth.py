@@ -124,6 +124,13 @@ def test_lidar_pattern():
     el = torch.rad2deg(torch.asin(d[:, 2]))
     assert float(el.max()) == pytest.approx(16.6, abs=1e-4) and float(el.min()) == pytest.approx(-16.6, abs=1e-4)
     torch.testing.assert_close(d.norm(dim=1), torch.ones(64 * 32))
+    # row beam * steps + j: beam elevations evenly spaced from +16.6 deg (top first) down to -16.6 deg,
+    # azimuth j * 360 / steps counter-clockwise from +x
+    want_el = np.repeat(np.linspace(16.6, -16.6, 64), 32)
+    want_az = np.tile(np.arange(32) * 360.0 / 32, 64)
+    np.testing.assert_allclose(el.double().numpy(), want_el, atol=1e-4)
+    az = np.degrees(np.arctan2(d[:, 1].double().numpy(), d[:, 0].double().numpy())) % 360.0
+    np.testing.assert_allclose(az, want_az, atol=1e-4)
 
 
 def test_static_scatterers_doppler_is_ego_motion():
@@ -152,6 +159,39 @@ def test_simulate_frame_shapes():
     assert f.adc.dtype == np.int16 and f.adc.shape == AWR1843.adc_shape
     assert f.heatmap.shape == CASCADE.heatmap.shape and np.isfinite(f.heatmap).all()
     assert f.lidar.shape == (4 * 64, 4) and f.lidar.dtype == np.float32
+
+
+def test_simulate_frame_values_on_a_wall():
+    # a single wall (face at world y = 2.9) ahead of a rig driving along +y: LiDAR hits lie on the
+    # wall, and the ADC range spectrum and the cascade heatmap peak at the wall's distance
+    from radarpc.sensors.coloradar import DEFAULT_CALIB as calib
+
+    boxes = np.array([[0.0, 3.0, 1.5, 12.0, 0.1, 1.5, 0.0, 3]])
+    traj = Trajectory(((0.0, -3.0), (0.0, 3.0)), speed=1.0, height=1.0, handheld=False)
+    scene = Scene("lab", 0, boxes, np.zeros((0, 6)), (), traj)
+    t = 1.0
+    lid = LidarConfig(beams=16, azimuth_steps=128, range_noise_m=0.0, dropout=0.0)
+    f = simulate_frame(scene, t, lidar=lid, radar=RadarSimConfig(edges=False, multipath=False), seed=1)
+    # LiDAR: every return, taken to the world frame, lies on the near face of the wall
+    pose_l, _ = sensor_pose(scene, t, calib.base_to_lidar)
+    hit = np.abs(f.lidar[:, :3]).sum(1) > 0
+    assert hit.sum() > 20
+    world = f.lidar[hit, :3].astype(np.float64) @ pose_l.rotation.T + np.asarray(pose_l.translation)
+    np.testing.assert_allclose(world[:, 1], 2.9, atol=1e-3)
+    assert (np.abs(world[:, 2] - 1.5) <= 1.5 + 1e-3).all()
+    # single-chip ADC: the range FFT's strongest bin is the perpendicular distance to the wall
+    pose_r, _ = sensor_pose(scene, t, calib.base_to_single_chip)
+    dist = 2.9 - pose_r.translation[1]
+    w = AWR1843.waveform
+    rbw = SPEED_OF_LIGHT * w.adc_sample_frequency / (2 * w.frequency_slope * w.num_adc_samples_per_chirp)
+    iq = f.adc[..., 0].astype(np.float64) + 1j * f.adc[..., 1]
+    spec = (np.abs(np.fft.fft(iq * np.hanning(w.num_adc_samples_per_chirp), axis=-1)) ** 2).sum((0, 1, 2))
+    assert abs(int(spec.argmax()) - dist / rbw) <= 1.0                  # complex I/Q: all bins are ranges
+    # cascade heatmap: the strongest range bin (summed over angles) is the wall distance too
+    pose_c, _ = sensor_pose(scene, t, calib.base_to_cascade)
+    hm_rbw = CASCADE.heatmap.range_bin_width
+    prof = f.heatmap[..., 0].sum((0, 1))
+    assert abs(int(prof.argmax()) - (2.9 - pose_c.translation[1]) / hm_rbw) <= 1.0
 
 
 def test_scatterers_validation():
