@@ -31,12 +31,12 @@ class DemoConfig:
     out: Path = Path("demo")                # run folder
     sensor: str = "radial-s"                # RADIal-like sensor: radial-s (fast) or radial (full size)
     sequences: int = 6                      # simulated RADIal sequences (4 train, 1 val, 1 test)
-    frames_per_sequence: int = 8            # frames per sequence
+    frames_per_sequence: int = 16           # frames per sequence
     density: float = 0.057                  # RADIal's default point-cloud density
     enrich: str = "rd3,sector32"            # SpectralPillars enrichments
     colo_scenes: str = "hallway,outdoor"     # ColoRadar scenes (3 runs each: train, val, test)
     colo_runs_per_scene: int = 3            # runs per scene
-    colo_frames: int = 4                    # frames per run
+    colo_frames: int = 6                    # frames per run
     colo_lidar_beams: int = 32              # LiDAR beams (64 for the real sensor's pattern)
     seed: int = 0                           # simulator seed
     device: str = "cpu"                     # torch device for synthesis and DSP
