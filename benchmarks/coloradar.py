@@ -39,16 +39,7 @@ from radarpc.eval.pointsets import (
     earth_movers_distance_batch,
 )
 from radarpc.rald.frustum import RALD_GRID, polar_to_cartesian, sample_queries, voxelize
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+from radarpc.machine import cpu_model
 
 
 def _best(fn, repeat: int) -> float:
@@ -113,7 +104,7 @@ def main(argv: list[str] | None = None) -> dict:
         "python": platform.python_version(),
         "torch": torch.__version__,
         "device": "cpu",
-        "cpu": _cpu_model(),
+        "cpu": cpu_model(),
         "cpu_count": os.cpu_count(),
         "threads": torch.get_num_threads(),
         "points": args.points,

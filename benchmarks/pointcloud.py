@@ -51,7 +51,6 @@ if ARGS is not None:  # BLAS threads must be fixed before numpy/torch load their
         os.environ[var] = str(ARGS.threads)
 
 import json  # noqa: E402
-import platform  # noqa: E402
 import resource  # noqa: E402
 import statistics  # noqa: E402
 import time  # noqa: E402
@@ -67,6 +66,7 @@ from radarpc.dsp.cfar import ca_cfar  # noqa: E402
 from radarpc.dsp.ddma import ddma_envelope, rx_magnitude_sum, virtual_snapshots  # noqa: E402
 from radarpc.dsp.density import neighbourhood_mask  # noqa: E402
 from radarpc.sensors.radial import RADIAL, Calibration, DDMARadarConfig, make_calibration  # noqa: E402
+from radarpc.machine import cpu_model  # noqa: E402
 
 
 # ---- the straightforward numpy implementation (rpl.py style) ---------------------------------------
@@ -283,17 +283,6 @@ def stage_times(spc: SpectralPointCloud, batch: torch.Tensor, repeats: int) -> d
         out["sector pooling"] = round(out.pop("beamforming with sectors") - out["beamforming GEMM + argmax"], 2)
     out["points_per_frame"] = round(int(kept.sum()) / n, 1)
     return out
-
-
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 def main(args: argparse.Namespace) -> None:

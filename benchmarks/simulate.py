@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import time
 
 import numpy as np
@@ -28,23 +27,12 @@ import torch
 from radarpc.sensors.radial import radial_sensor
 from radarpc.sim.radial_writer import RadialSimulator
 from radarpc.sim.rd import synthesize_rd
+from radarpc.machine import cpu_model
 
 
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-
-
-def cpu_model() -> str:
-    """``model name`` of ``/proc/cpuinfo`` (what ``lscpu`` shows), else the platform's processor."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def bench(sensor: str, device: torch.device, n_frames: int, seed: int) -> dict:

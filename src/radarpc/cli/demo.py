@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import shlex
 import time
 from dataclasses import dataclass, field
@@ -20,6 +19,7 @@ import torch
 
 from radarpc import __version__
 from radarpc.io import atomic_write
+from radarpc.machine import cpu_model
 
 __all__ = ["DemoConfig", "run_demo", "add_parser"]
 
@@ -106,7 +106,7 @@ def run_demo(cfg: DemoConfig) -> Path:
     lines = [
         "# radarpc demo report", "",
         f"radarpc {__version__}, torch {torch.__version__}, device {cfg.device}, "
-        f"{torch.get_num_threads()} threads, {platform.processor() or platform.machine()}, "
+        f"{torch.get_num_threads()} threads, {cpu_model()}, "
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}", "",
         "| step | command | seconds |", "|---|---|---|",
     ]
