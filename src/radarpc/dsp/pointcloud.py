@@ -35,7 +35,8 @@ from typing import Iterable, Sequence
 import torch
 import torch.nn.functional as F
 
-from radarpc.dsp.beamform import beamform_peaks, stack_real
+from radarpc.dsp.beamform import (REFINE_CANDIDATES, beamform_peaks, beamform_peaks_refined,
+                                  check_beamforming, stack_real)
 from radarpc.dsp.cfar import RADIAL_TAU, CFARResult, ca_cfar, check_tau, check_window
 from radarpc.dsp.ddma import (DDMAEnvelope, check_envelope_kind, check_finite_envelope, check_rd,
                               ddma_envelope, rx_magnitude_sum, virtual_snapshots)
@@ -74,9 +75,11 @@ class SpectralPointCloudConfig:
     guard: tuple[int, int] = (3, 3)         # CA-CFAR full guard window, odd
     enrich: tuple[str, ...] = ()            # "rdN", "patchN", "sectorA", "sectorAxE"
     envelope: str = "replicas"              # "replicas" (seed eq. 1) or "all-slots" (RADIal rpl.py)
+    beamforming: str = "exact"              # "exact" (float32) or "bf16-refine" (approximate sectors)
 
     def __post_init__(self) -> None:
         check_envelope_kind(self.envelope)
+        check_beamforming(self.beamforming)
         w, g = check_window(_seq(self.window), _seq(self.guard))
         object.__setattr__(self, "window", w)
         object.__setattr__(self, "guard", g)
@@ -288,6 +291,15 @@ class SpectralPointCloud(torch.nn.Module):
     envelope : {"replicas", "all-slots"}
         ``"replicas"`` (default, seed eq. 1): sum over the ``n_tx`` replica bins of each cell;
         ``"all-slots"`` = RADIal ``rpl.py``: sum over every DDMA slot, empty ones included.
+    beamforming : {"exact", "bf16-refine"}
+        ``"exact"`` (default): the angle spectrum of every point in float32 (complex64).
+        ``"bf16-refine"`` (opt-in, faster where bfloat16 GEMMs are, e.g. AMX CPUs and CUDA): the
+        spectrum from a bfloat16 GEMM, its top ``REFINE_CANDIDATES = 4`` directions recomputed
+        exactly, AoA = their argmax and ``Ae`` its exact amplitude
+        (:func:`radarpc.dsp.beamform.beamform_peaks_refined`). Directions can differ from
+        ``"exact"`` only when the true peak is not among the bfloat16 top 4 (rare: see
+        ``docs/results/pointcloud.md``); sector descriptors then come from the bfloat16 spectrum and
+        are approximate (bfloat16 has 8 significant bits, unit roundoff ~0.4 %).
 
     Examples
     --------
@@ -301,10 +313,11 @@ class SpectralPointCloud(torch.nn.Module):
     def __init__(self, sensor: DDMARadarConfig, calibration: Calibration, tau: float | None = RADIAL_TAU, *,
                  density: float | None = None, density_mode: str = "per-frame",
                  window: Sequence[int] = (9, 9), guard: Sequence[int] = (3, 3),
-                 enrich: Sequence[str] = (), envelope: str = "replicas") -> None:
+                 enrich: Sequence[str] = (), envelope: str = "replicas", beamforming: str = "exact") -> None:
         super().__init__()
         self.config = SpectralPointCloudConfig(tau=tau, density=density, density_mode=density_mode,
-                                               window=window, guard=guard, enrich=enrich, envelope=envelope)
+                                               window=window, guard=guard, enrich=enrich, envelope=envelope,
+                                               beamforming=beamforming)
         if self.config.density is not None:
             check_density(self.config.density, sensor)
         calibration.check_sensor(sensor)
@@ -402,8 +415,12 @@ class SpectralPointCloud(torch.nn.Module):
         d0 = enc.envelope.tx0_doppler(b, r, l)                     # (N,) Tx-0 bins of the gap search
         v = virtual_snapshots(rd, cfg, b, r, d0)                   # (N, n_virtual)
         dev = rd.device                                            # tables follow the input's device
-        bf = beamform_peaks(v, self.dictionary_t.to(dev), self.grid, c.sectors,
-                            stacked=self.dictionary_stacked.to(dev))
+        if c.beamforming == "bf16-refine":
+            bf = beamform_peaks_refined(v, self.dictionary_t.to(dev), self.grid, c.sectors,
+                                        stacked=self.dictionary_stacked.to(dev), candidates=REFINE_CANDIDATES)
+        else:
+            bf = beamform_peaks(v, self.dictionary_t.to(dev), self.grid, c.sectors,
+                                stacked=self.dictionary_stacked.to(dev))
         n_el = self.grid[1]
         az = self.azimuth_table.to(dev)[bf.index // n_el]
         el = self.elevation_table.to(dev)[bf.index % n_el]
