@@ -3,7 +3,9 @@
 Prints one JSON object per target density (0.007, 0.057, 0.56 by default) with, for the plain
 cloud and for ``enrich=("rd3", "sector32")``: frames/s, ms/frame, points/frame, achieved density,
 device, threads, the frames/s of two numpy baselines on the same frames and the speed ratios; plus
-the process's peak RSS.
+the process's peak RSS. Each configuration is timed with the default exact float32 beamforming
+and with the opt-in ``beamforming="bf16-refine"`` (rows ``".../bf16-refine"``, which also report
+``agree_with_exact``, the fraction of points whose direction equals the exact mode's).
 
 The numpy baseline follows RADIal's ``SignalProcessing/rpl.py`` (one frame at a time:
 ``np.abs`` sum over Rx, CA-CFAR with ``scipy.signal.convolve2d``, a Python loop over peaks
@@ -61,7 +63,7 @@ from scipy import signal  # noqa: E402
 from scipy.ndimage import binary_dilation, maximum_filter  # noqa: E402
 
 from radarpc.dsp import SpectralPointCloud  # noqa: E402
-from radarpc.dsp.beamform import beamform_peaks  # noqa: E402
+from radarpc.dsp.beamform import BEAMFORMING_MODES, beamform_peaks  # noqa: E402
 from radarpc.dsp.cfar import ca_cfar  # noqa: E402
 from radarpc.dsp.ddma import ddma_envelope, rx_magnitude_sum, virtual_snapshots  # noqa: E402
 from radarpc.dsp.density import neighbourhood_mask  # noqa: E402
@@ -312,8 +314,8 @@ def main(args: argparse.Namespace) -> None:
             ref_loop = [loop(f) for f in frames_np[:n_loop]]
             loop_fps = n_loop / (time.perf_counter() - t0)
             assert np.array_equal(ref_loop[0]["doppler_full"], ref[0]["doppler_full"])
-            for device in devices:
-                spc = SpectralPointCloud(cfg, calib, density=density, enrich=enrich).to(device)
+            for device, mode in ((d, m) for d in devices for m in BEAMFORMING_MODES):
+                spc = SpectralPointCloud(cfg, calib, density=density, enrich=enrich, beamforming=mode).to(device)
                 batches = [frames[i:i + args.batch].to(device) for i in range(0, args.frames, args.batch)]
                 times, out = time_torch(spc, batches, args.repeats, device)
                 best, med = min(times), statistics.median(times)
@@ -333,15 +335,24 @@ def main(args: argparse.Namespace) -> None:
                     agree += len(mine & theirs)
                     total += max(len(mine), len(theirs))
                 fps_best = args.frames / best
+                extra = {}
+                if mode == "exact":
+                    exact_clouds = clouds
+                else:  # same cells by construction; fraction of points whose direction matches exact
+                    ea = torch.cat([c.azimuth_deg for c in exact_clouds])
+                    ee = torch.cat([c.elevation_deg for c in exact_clouds])
+                    fa = torch.cat([c.azimuth_deg for c in clouds])
+                    fe = torch.cat([c.elevation_deg for c in clouds])
+                    extra["agree_with_exact"] = round(float(((ea == fa) & (ee == fe)).double().mean()), 5)
                 report["results"].append({
-                    "config": name, "device": str(device),
+                    "config": name if mode == "exact" else f"{name}/{mode}", "device": str(device),
                     "frames_per_s": round(fps_best, 1), "frames_per_s_median": round(args.frames / med, 1),
                     "ms_per_frame": round(1e3 * best / args.frames, 2),
                     "points_per_frame": round(pts, 1), "density_achieved": round(dens, 5),
                     "numpy_frames_per_s": round(np_fps, 2), "speedup_vs_numpy": round(fps_best / np_fps, 1),
                     "numpy_loop_frames_per_s": round(loop_fps, 2),
                     "speedup_vs_numpy_loop": round(fps_best / loop_fps, 1),
-                    "agree_with_numpy": round(agree / max(total, 1), 4)})
+                    "agree_with_numpy": round(agree / max(total, 1), 4), **extra})
         report["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
         print(json.dumps(report), flush=True)
     if args.stages:

@@ -195,7 +195,7 @@ def beamform_peaks_refined(snapshots: torch.Tensor, dictionary_t: torch.Tensor, 
     if stacked is None:
         stacked = stack_real(dictionary_t.to(snapshots.dtype))
     w16 = stacked.to(torch.bfloat16)                                # (2N, 2K)
-    b_rows = dictionary_t.to(snapshots.dtype).transpose(0, 1)       # (K, N): row k is B[k]
+    b_rows = dictionary_t.to(snapshots.dtype).transpose(0, 1).contiguous()  # (K, N): row k is B[k]
     p = snapshots.shape[0]
     dev = snapshots.device
     v = snapshots.resolve_conj().contiguous()
@@ -206,10 +206,17 @@ def beamform_peaks_refined(snapshots: torch.Tensor, dictionary_t: torch.Tensor, 
     if sectors is not None:
         sec = torch.empty(p, sectors[0] * sectors[1], dtype=real, device=dev)
     blk = min(_BLOCK, max(p, 1))
+    # preallocated block buffers (fresh large allocations per block cost more than the bf16 GEMM)
+    x16 = torch.empty(blk, x.shape[1], dtype=torch.bfloat16, device=dev)
+    y16 = torch.empty(blk, 2 * k_dir, dtype=torch.bfloat16, device=dev)
+    y32 = torch.empty(blk, 2 * k_dir, dtype=torch.float32, device=dev)
+    pw_buf = torch.empty(blk, k_dir, dtype=torch.float32, device=dev)
     for i in range(0, p, blk):
         m = min(blk, p - i)
-        y = torch.mm(x[i:i + m].to(torch.bfloat16), w16).to(torch.float32)     # (m, 2K) [Re | Im]
-        pw = y[:, :k_dir].square().addcmul_(y[:, k_dir:], y[:, k_dir:])       # (m, K) ~|B v|^2
+        x16[:m].copy_(x[i:i + m])
+        torch.mm(x16[:m], w16, out=y16[:m])
+        y = y32[:m].copy_(y16[:m])                                             # (m, 2K) [Re | Im], float32
+        pw = torch.mul(y[:, :k_dir], y[:, :k_dir], out=pw_buf[:m]).addcmul_(y[:, k_dir:], y[:, k_dir:])
         cand = torch.topk(pw, kc, dim=1, sorted=False).indices                 # (m, kc)
         s = torch.einsum("mcn,mn->mc", b_rows[cand], v[i:i + m])              # (m, kc) exact B[k] v
         a, j = torch.max(s.abs(), dim=1)                                       # (m,)
