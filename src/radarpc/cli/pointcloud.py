@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 from radarpc.dsp.cfar import check_tau
 from radarpc.dsp.convert import DEFAULT_WAIT_S, convert_dataset, dist_env, write_sparse_rd
+from radarpc.dsp.beamform import BEAMFORMING_MODES
 from radarpc.dsp.ddma import ENVELOPES
 from radarpc.dsp.density import check_density_value
 
@@ -94,6 +95,9 @@ def add_density_args(p: argparse.ArgumentParser):
                    help="CA-CFAR training window, full odd side lengths (default 9,9; RADIal rpl.py: 19,19)")
     p.add_argument("--guard", type=parse_pair, default=None, metavar="R,D",
                    help="CA-CFAR guard window, full odd side lengths (default 3,3; RADIal rpl.py: 7,7)")
+    p.add_argument("--beamforming", choices=BEAMFORMING_MODES, default="exact",
+                   help="angle spectra: 'exact' float32 (default) or 'bf16-refine' (bf16 GEMM, top-4 "
+                        "directions re-checked exactly; sector descriptors approximate to bf16)")
     p.add_argument("--envelope", choices=ENVELOPES, default=None,
                    help="RD envelope: 'replicas' = sum over the n_tx replica bins of each consolidated cell "
                         "(seed eq. 1, default); 'all-slots' = RADIal rpl.py, sum over every DDMA slot "
@@ -142,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
     calibrated = None
     if args.out is not None:
         res = convert_dataset(args.root, args.out, workers=args.workers, chunk_frames=args.chunk_frames,
-                              wait_timeout_s=args.wait_timeout, **common)
+                              wait_timeout_s=args.wait_timeout, beamforming=args.beamforming, **common)
         calibrated = res.tau if args.density is not None and args.density_mode == "per-dataset" else None
         if res.path is not None:
             tau = "per frame" if res.tau is None else f"{res.tau:.6g}"

@@ -167,6 +167,7 @@ class ConvertSettings:
     chunk_frames: int = 64                   # frames per part file (the unit of resume and sharding)
     calibration_frames: int | None = None    # train frames used to calibrate per-dataset tau (None: all)
     envelope: str = "replicas"               # "replicas" (seed eq. 1) or "all-slots" (RADIal rpl.py)
+    beamforming: str = "exact"               # "exact" (float32) or "bf16-refine" (see SpectralPointCloud)
 
     def __post_init__(self) -> None:
         if (self.tau is None) == (self.density is None):
@@ -190,7 +191,8 @@ class ConvertSettings:
         """The :class:`SpectralPointCloudConfig` of these settings (per-dataset: the target density)."""
         return SpectralPointCloudConfig(tau=self.tau, density=self.density, density_mode=self.density_mode,
                                         window=tuple(self.window), guard=tuple(self.guard),
-                                        enrich=tuple(self.enrich), envelope=self.envelope)
+                                        enrich=tuple(self.enrich), envelope=self.envelope,
+                                        beamforming=self.beamforming)
 
     @property
     def mode(self) -> str:
@@ -291,7 +293,7 @@ def build_point_cloud(ds: Any, settings: ConvertSettings, tau: float | None,
     per-frame mode the module picks a tau per frame for ``settings.density``.
     """
     common = dict(window=tuple(settings.window), guard=tuple(settings.guard), enrich=tuple(settings.enrich),
-                  envelope=settings.envelope)
+                  envelope=settings.envelope, beamforming=settings.beamforming)
     if settings.mode == "per-frame":
         spc = SpectralPointCloud(ds.sensor, ds.calibration, density=settings.density,
                                  density_mode="per-frame", **common)
@@ -538,6 +540,7 @@ def convert_dataset(
     window: tuple[int, int] = (9, 9),
     guard: tuple[int, int] = (3, 3),
     envelope: str = "replicas",
+    beamforming: str = "exact",
     split: str = "all",
     batch_size: int = 8,
     chunk_frames: int = 64,
@@ -569,6 +572,9 @@ def convert_dataset(
         CA-CFAR window and guard (range, Doppler), full odd sizes (RADIal rpl.py: 19,19 and 7,7).
     envelope : {"replicas", "all-slots"}
         Seed eq. 1 (sum over the ``n_tx`` replica bins) or RADIal rpl.py's sum over every slot.
+    beamforming : {"exact", "bf16-refine"}
+        Angle spectra in float32, or the faster bf16 GEMM with an exact re-check of the top
+        candidates (approximate sector descriptors), see :class:`SpectralPointCloud`.
     split : {"all", "train", "val", "test"}
         With a root path: the split to convert. A dataset object is its own split.
     batch_size : int
@@ -604,7 +610,8 @@ def convert_dataset(
     """
     settings = ConvertSettings(tau=tau, density=density, density_mode=density_mode, enrich=tuple(enrich),
                                window=tuple(window), guard=tuple(guard), envelope=envelope,
-                               split=split, chunk_frames=chunk_frames, calibration_frames=calibration_frames)
+                               beamforming=beamforming, split=split, chunk_frames=chunk_frames,
+                               calibration_frames=calibration_frames)
     if int(batch_size) < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     if int(workers) < 1:
