@@ -63,7 +63,7 @@ from scipy import signal  # noqa: E402
 from scipy.ndimage import binary_dilation, maximum_filter  # noqa: E402
 
 from radarpc.dsp import SpectralPointCloud  # noqa: E402
-from radarpc.dsp.beamform import BEAMFORMING_MODES, beamform_peaks  # noqa: E402
+from radarpc.dsp.beamform import beamform_peaks, beamform_peaks_screened  # noqa: E402
 from radarpc.dsp.cfar import ca_cfar  # noqa: E402
 from radarpc.dsp.ddma import ddma_envelope, rx_magnitude_sum, virtual_snapshots  # noqa: E402
 from radarpc.dsp.density import neighbourhood_mask  # noqa: E402
@@ -245,7 +245,7 @@ def stage_times(spc: SpectralPointCloud, batch: torch.Tensor, repeats: int) -> d
     rebuilt from the same public functions; ``sector pooling`` is the beamforming time with sectors
     minus the time without."""
     cfg, c = spc.sensor, spc.config
-    dict_t, stacked = spc.dictionary_t, spc.dictionary_stacked
+    tables = spc.tables(batch.device)
     best: dict[str, float] = {}
 
     def tick(name: str, t0: float) -> float:
@@ -270,11 +270,14 @@ def stage_times(spc: SpectralPointCloud, batch: torch.Tensor, repeats: int) -> d
         d0 = env.tx0_doppler(b, r, l)
         v = virtual_snapshots(batch, cfg, b, r, d0)                # (P, n_virtual)
         t = tick("snapshot gather", t)
-        beamform_peaks(v, dict_t, spc.grid, None, stacked=stacked)
+        beamform_peaks(v, tables, spc.grid, None)
         t = tick("beamforming GEMM + argmax", t)
         if c.sectors is not None:
-            beamform_peaks(v, dict_t, spc.grid, c.sectors, stacked=stacked)
+            beamform_peaks(v, tables, spc.grid, c.sectors)
             t = tick("beamforming with sectors", t)
+        else:
+            beamform_peaks_screened(v, tables, spc.grid)
+            t = tick("screened beamforming", t)
         spc(batch)
         tick("whole forward", t)
         if _ == 0:
@@ -314,7 +317,7 @@ def main(args: argparse.Namespace) -> None:
             ref_loop = [loop(f) for f in frames_np[:n_loop]]
             loop_fps = n_loop / (time.perf_counter() - t0)
             assert np.array_equal(ref_loop[0]["doppler_full"], ref[0]["doppler_full"])
-            for device, mode in ((d, m) for d in devices for m in BEAMFORMING_MODES):
+            for device, mode in ((d, m) for d in devices for m in ("exact", "screened")):
                 spc = SpectralPointCloud(cfg, calib, density=density, enrich=enrich, beamforming=mode).to(device)
                 batches = [frames[i:i + args.batch].to(device) for i in range(0, args.frames, args.batch)]
                 times, out = time_torch(spc, batches, args.repeats, device)

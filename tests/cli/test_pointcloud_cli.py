@@ -189,20 +189,20 @@ def test_bad_input(root, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.parquet"]     # nothing half-written
 
 
-def test_pointcloud_bf16_refine_flag(root, tmp_path, capsys):
+def test_pointcloud_beamforming_flag(root, tmp_path, capsys):
     exact, fast = tmp_path / "exact.parquet", tmp_path / "fast.parquet"
-    for out, mode in ((exact, "exact"), (fast, "bf16-refine")):
+    for out, mode in ((exact, "exact"), (fast, "screened")):
         assert run_cli(["pointcloud", str(root), "--snr", "1.585", "--out", str(out), "--quiet",
                         "--beamforming", mode]) == 0
     a, b = PointStore(exact), PointStore(fast)
-    assert a.metadata.settings["beamforming"] == "exact" and b.metadata.settings["beamforming"] == "bf16-refine"
+    assert a.metadata.settings["beamforming"] == "exact" and b.metadata.settings["beamforming"] == "screened"
     for i in range(len(a)):
         ca, cb = a[i], b[i]
-        # detection is identical; the refined direction and its exact amplitude agree on this tiny array
+        # detection is identical; the screened direction is the exact argmax, its amplitude the exact one
         assert torch.equal(ca.range_bin, cb.range_bin) and torch.equal(ca.doppler_full, cb.doppler_full)
         assert torch.equal(ca.azimuth_deg, cb.azimuth_deg)
         torch.testing.assert_close(ca.amplitude, cb.amplitude, rtol=1e-5, atol=1e-6)
     # changing the mode is an output-shaping setting: the old store is not reused
     assert run_cli(["pointcloud", str(root), "--snr", "1.585", "--out", str(exact), "--quiet",
-                    "--beamforming", "bf16-refine"]) == 0
-    assert PointStore(exact).metadata.settings["beamforming"] == "bf16-refine"
+                    "--beamforming", "screened"]) == 0
+    assert PointStore(exact).metadata.settings["beamforming"] == "screened"

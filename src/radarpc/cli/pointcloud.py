@@ -95,9 +95,11 @@ def add_density_args(p: argparse.ArgumentParser):
                    help="CA-CFAR training window, full odd side lengths (default 9,9; RADIal rpl.py: 19,19)")
     p.add_argument("--guard", type=parse_pair, default=None, metavar="R,D",
                    help="CA-CFAR guard window, full odd side lengths (default 3,3; RADIal rpl.py: 7,7)")
-    p.add_argument("--beamforming", choices=BEAMFORMING_MODES, default="exact",
-                   help="angle spectra: 'exact' float32 (default) or 'bf16-refine' (bf16 GEMM, top-4 "
-                        "directions re-checked exactly; sector descriptors approximate to bf16)")
+    p.add_argument("--beamforming", choices=BEAMFORMING_MODES, default="auto",
+                   help="how each point's direction is found; all give the same points: 'exact' "
+                        "(whole float32 spectrum), 'screened' (bf16 GEMM screen with a rigorous error "
+                        "bound, survivors evaluated exactly; fast on AMX CPUs and CUDA), 'auto' "
+                        "(default: screened where bf16 is fast and no sector descriptor is asked for)")
     p.add_argument("--envelope", choices=ENVELOPES, default=None,
                    help="RD envelope: 'replicas' = sum over the n_tx replica bins of each consolidated cell "
                         "(seed eq. 1, default); 'all-slots' = RADIal rpl.py, sum over every DDMA slot "

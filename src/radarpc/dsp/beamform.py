@@ -4,24 +4,44 @@
 :meth:`radarpc.sensors.radial.Calibration.dictionary` (taper folded in, row ``k = az * n_el + el``);
 ``k_j = argmax_k s_j[k]`` (eq. 6) and ``Ae_j = s_j[k_j]`` (eq. 7); the sector descriptor of
 eq. 10 max-pools ``s_j`` reshaped to ``(n_az, n_el)`` into ``n_az_sec x n_el_sec`` sectors.
+
+Two ways to the same ``k_j`` and ``Ae_j`` (:data:`BEAMFORMING_MODES`):
+
+* ``"exact"``: the whole spectrum of every snapshot in float32, the complex product as three real
+  GEMMs (Gauss's trick, :func:`beamform_peaks`);
+* ``"screened"``: a bfloat16 GEMM screens the grid, a rigorous bound on its error leaves the few
+  directions that can still hold the maximum, and those are evaluated exactly
+  (:func:`beamform_peaks_screened`). The result is the exact argmax (up to float32 rounding of
+  near-ties), not an approximation; it is faster where bfloat16 GEMMs are (AMX CPUs, CUDA).
+
+``"auto"`` picks ``"screened"`` when the device has fast bfloat16 GEMMs and no sector
+descriptor is asked for (sectors need the whole spectrum), else ``"exact"``.
 """
 from __future__ import annotations
 
+import contextlib
+import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
-__all__ = ["angle_spectrum", "BeamformResult", "beamform_peaks", "beamform_peaks_refined", "sector_pool",
-           "stack_real", "BEAMFORMING_MODES", "REFINE_CANDIDATES", "check_beamforming"]
+__all__ = ["angle_spectrum", "BeamformResult", "DictionaryTables", "dictionary_tables", "beamform",
+           "beamform_peaks", "beamform_peaks_screened", "screen_bound", "sector_pool", "stack_real",
+           "fast_bf16", "resolve_beamforming", "check_beamforming", "BEAMFORMING_MODES",
+           "MAX_SCREEN_CANDIDATES"]
 
-# "exact": float32 GEMM over the whole grid; "bf16-refine": bfloat16 GEMM, then the top
-# REFINE_CANDIDATES directions of each snapshot recomputed exactly (:func:`beamform_peaks_refined`).
-BEAMFORMING_MODES = ("exact", "bf16-refine")
-REFINE_CANDIDATES = 4
+BEAMFORMING_MODES = ("auto", "exact", "screened")
 
-# Snapshots per GEMM block: the (block, 2 n_az n_el) float32 buffer stays ~7 MB for RADIal.
+# Snapshots per GEMM block: the (block, n_az n_el) float32 buffers stay a few MB for RADIal.
 _BLOCK = 1024
+
+# A snapshot whose screen leaves more candidates than this is beamformed exactly over the whole
+# grid instead (e.g. an all-zero snapshot, whose spectrum is flat).
+MAX_SCREEN_CANDIDATES = 64
+
+_BF16_UNIT_ROUNDOFF = 2.0 ** -8     # round-to-nearest to 8 significant bits
+_FP32_UNIT_ROUNDOFF = 2.0 ** -24
 
 
 def _check(snapshots: torch.Tensor, dictionary: torch.Tensor) -> None:
@@ -52,7 +72,7 @@ def angle_spectrum(snapshots: torch.Tensor, dictionary: torch.Tensor) -> torch.T
 
 @dataclass
 class BeamformResult:
-    """Per-snapshot outputs of :func:`beamform_peaks`.
+    """Per-snapshot outputs of :func:`beamform`.
 
     Attributes
     ----------
@@ -101,51 +121,236 @@ def stack_real(dictionary_t: torch.Tensor) -> torch.Tensor:
     return w.reshape(2 * n, 2 * k)
 
 
-def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor, grid: tuple[int, int],
-                   sectors: tuple[int, int] | None = None, *,
-                   stacked: torch.Tensor | None = None) -> BeamformResult:
-    """Dominant direction, its amplitude and optional sector maxima, without keeping spectra.
+@dataclass
+class DictionaryTables:
+    """The forms of ``B^T`` the beamformers use, computed once (:func:`dictionary_tables`).
 
-    Works on the power ``|B v|^2 = Re^2 + Im^2`` block by block in preallocated buffers (argmax
-    and max-pooling commute with the monotone square root), taking the square root only of the
-    kept values. The complex product is one real GEMM (:func:`stack_real`).
+    Attributes
+    ----------
+    rows : complex ``(K, N)``        ``B``, row ``k`` = direction ``k`` (exact dot products)
+    re, im, gauss : real ``(N, K)``  ``Re B^T``, ``Im B^T`` and ``Re B^T + Im B^T`` (Gauss's trick)
+    stacked_bf16 : bfloat16 ``(2N, 2K)``   :func:`stack_real` of ``B^T`` rounded to bfloat16
+    row_norm_max : float             ``max_k ||B[k]||_2``, for the screen's error bound
+    """
+
+    rows: torch.Tensor
+    re: torch.Tensor
+    im: torch.Tensor
+    gauss: torch.Tensor
+    stacked_bf16: torch.Tensor
+    row_norm_max: float
+
+    @property
+    def n_dir(self) -> int:
+        return int(self.rows.shape[0])
+
+    def to(self, device: torch.device | str) -> "DictionaryTables":
+        return DictionaryTables(rows=self.rows.to(device), re=self.re.to(device), im=self.im.to(device),
+                                gauss=self.gauss.to(device), stacked_bf16=self.stacked_bf16.to(device),
+                                row_norm_max=self.row_norm_max)
+
+
+def dictionary_tables(dictionary_t: torch.Tensor, dtype: torch.dtype = torch.complex64) -> DictionaryTables:
+    """:class:`DictionaryTables` of ``B^T`` ``(n_virtual, n_dir)`` complex, in ``dtype``."""
+    if not dictionary_t.is_complex() or dictionary_t.ndim != 2:
+        raise ValueError(f"dictionary_t must be a complex (n_virtual, n_dir) matrix, got "
+                         f"{dictionary_t.dtype} {tuple(dictionary_t.shape)}")
+    bt = dictionary_t.to(dtype)
+    re, im = bt.real.contiguous(), bt.imag.contiguous()
+    rows = bt.transpose(0, 1).contiguous()
+    norm = float(torch.linalg.vector_norm(rows.to(torch.complex128), dim=1).max()) if rows.numel() else 0.0
+    return DictionaryTables(rows=rows, re=re, im=im, gauss=(re + im).contiguous(),
+                            stacked_bf16=stack_real(bt).to(torch.bfloat16), row_norm_max=norm)
+
+
+def _tables_for(snapshots: torch.Tensor, dictionary_t: torch.Tensor | DictionaryTables) -> DictionaryTables:
+    if isinstance(dictionary_t, DictionaryTables):
+        t = dictionary_t
+    else:
+        t = dictionary_tables(dictionary_t, snapshots.dtype if snapshots.is_complex() else torch.complex64)
+    _check(snapshots, t.rows)
+    if t.rows.dtype != snapshots.dtype:
+        raise ValueError(f"snapshots are {snapshots.dtype} but the dictionary tables are {t.rows.dtype}")
+    return t
+
+
+def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | DictionaryTables,
+                   grid: tuple[int, int], sectors: tuple[int, int] | None = None) -> BeamformResult:
+    """Dominant direction, its amplitude and optional sector maxima from the exact spectra.
+
+    With ``v = a + ib`` and ``B^T = C + iD`` the product needs three real GEMMs (Gauss):
+    ``T1 = a C``, ``T2 = b D``, ``T3 = (a + b)(C + D)``; ``Re = T1 - T2``, ``Im = T3 - T1 - T2``.
+    The power ``|B v|^2 = Re^2 + Im^2`` is formed block by block in preallocated buffers (argmax
+    and max-pooling commute with the monotone square root) and only kept values are rooted.
 
     Parameters
     ----------
     snapshots : Tensor, complex, ``(P, n_virtual)``
-    dictionary_t : Tensor, complex, ``(n_virtual, n_az * n_el)``
+    dictionary_t : Tensor, complex, ``(n_virtual, n_az * n_el)``, or its :class:`DictionaryTables`
         ``B`` transposed, as stored by :class:`~radarpc.dsp.pointcloud.SpectralPointCloud`.
     grid : (n_az, n_el)
     sectors : (n_az_sec, n_el_sec), optional
-    stacked : Tensor, real, ``(2 n_virtual, 2 n_az n_el)``, optional
-        ``stack_real(dictionary_t)`` precomputed (in the snapshots' real dtype).
     """
-    _check(snapshots, dictionary_t.transpose(0, 1))
-    real = snapshots.real.dtype
-    if stacked is None or stacked.dtype != real:
-        stacked = stack_real(dictionary_t.to(snapshots.dtype))
-    k_dir = dictionary_t.shape[1]
+    t = _tables_for(snapshots, dictionary_t)
+    real = t.re.dtype
+    k_dir = t.n_dir
     p = snapshots.shape[0]
     dev = snapshots.device
-    x = torch.view_as_real(snapshots.resolve_conj().contiguous()).reshape(p, 2 * snapshots.shape[1])  # (P, 2N)
+    a = snapshots.real.contiguous()                                   # (P, N)
+    b = snapshots.imag.contiguous()
     index = torch.empty(p, dtype=torch.long, device=dev)
     power = torch.empty(p, dtype=real, device=dev)
     sec = None
     if sectors is not None:
         sec = torch.empty(p, sectors[0] * sectors[1], dtype=real, device=dev)
     blk = min(_BLOCK, max(p, 1))
-    y = torch.empty(blk, 2 * k_dir, dtype=real, device=dev)       # [Re s | Im s]
-    pw = torch.empty(blk, k_dir, dtype=real, device=dev)           # |s|^2
+    t1, t2, t3 = (torch.empty(blk, k_dir, dtype=real, device=dev) for _ in range(3))
+    ab = torch.empty(blk, a.shape[1], dtype=real, device=dev)
     for i in range(0, p, blk):
         m = min(blk, p - i)
-        yi, pi = y[:m], pw[:m]
-        torch.mm(x[i:i + m], stacked, out=yi)
-        torch.mul(yi[:, :k_dir], yi[:, :k_dir], out=pi).addcmul_(yi[:, k_dir:], yi[:, k_dir:])
-        torch.max(pi, dim=1, out=(power[i:i + m], index[i:i + m]))
+        ai, bi = a[i:i + m], b[i:i + m]
+        re, im, pw = t1[:m], t3[:m], t2[:m]
+        torch.mm(ai, t.re, out=t1[:m])                                # T1 = a C
+        torch.mm(bi, t.im, out=t2[:m])                                # T2 = b D
+        torch.mm(torch.add(ai, bi, out=ab[:m]), t.gauss, out=t3[:m])  # T3 = (a + b)(C + D)
+        im.sub_(t1[:m]).sub_(t2[:m])                                  # Im = T3 - T1 - T2
+        re.sub_(t2[:m])                                               # Re = T1 - T2
+        torch.mul(re, re, out=pw).addcmul_(im, im)                    # |s|^2
+        torch.max(pw, dim=1, out=(power[i:i + m], index[i:i + m]))
         if sec is not None:
-            sec[i:i + m] = sector_pool(pi, grid, sectors)
+            sec[i:i + m] = sector_pool(pw, grid, sectors)
     return BeamformResult(index=index, amplitude=power.sqrt(),
                           sectors=None if sec is None else sec.sqrt())
+
+
+def screen_bound(snapshots: torch.Tensor, row_norm_max: float) -> tuple[float, torch.Tensor]:
+    """Error bound of the bfloat16 screen: ``| |s^_k| - |s_k| | <= alpha |s^_k| + beta_j``.
+
+    ``s^ = B v`` computed from ``v`` and ``B`` rounded to bfloat16 (unit roundoff ``u = 2^-8``),
+    products accumulated in float32 (``gamma_n = n 2^-24 / (1 - n 2^-24)``, ``n = 2 n_virtual``
+    terms) and the sum rounded to bfloat16. Per real output ``y`` (``Re`` or ``Im`` of ``s_k``)::
+
+        |y^ - y| <= u / (1 - u) |y^| + c sum_p |x_p| |W_pk|,   c = 2u + u^2 + gamma_n (1 + u)^2,
+
+    and ``sum_p |x_p| |W_pk| <= ||v_j||_2 ||B[k]||_2`` (Cauchy-Schwarz; each real column of the
+    stacked form has the norm of ``B[k]``). Over the two components,
+    ``alpha = u / (1 - u)`` and ``beta_j = sqrt(2) c ||v_j|| max_k ||B[k]||``; both are inflated
+    by ``1e-5`` (relative) for the float32 evaluation of ``|s^|`` and of the norms, and ``beta``
+    gets an absolute ``2^-120 n max_k ||B[k]||`` for bfloat16's flush of subnormals.
+
+    Returns
+    -------
+    alpha : float
+    beta : Tensor ``(P,)`` in the snapshots' real dtype
+    """
+    u = _BF16_UNIT_ROUNDOFF
+    n = 2 * snapshots.shape[1]
+    gamma = n * _FP32_UNIT_ROUNDOFF / (1.0 - n * _FP32_UNIT_ROUNDOFF)
+    c = 2.0 * u + u * u + gamma * (1.0 + u) ** 2
+    safety = 1.0 + 1e-5
+    alpha = u / (1.0 - u) * safety
+    # norm of the interleaved real view: the complex-input norm is ~100x slower on CPU
+    vnorm = torch.linalg.vector_norm(torch.view_as_real(snapshots.resolve_conj()).flatten(1), dim=1)
+    beta = vnorm * (math.sqrt(2.0) * c * row_norm_max * safety) + 2.0 ** -120 * n * row_norm_max
+    return alpha, beta
+
+
+@contextlib.contextmanager
+def _fp32_accumulation(device: torch.device):
+    """cuBLAS may reduce bfloat16 products in reduced precision unless told not to; the screen's
+    bound assumes float32 accumulation."""
+    if device.type != "cuda":
+        yield
+        return
+    prev = torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction
+    torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction = False
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction = prev
+
+
+def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor | DictionaryTables,
+                            grid: tuple[int, int], *,
+                            max_candidates: int = MAX_SCREEN_CANDIDATES) -> BeamformResult:
+    """``k_j`` and ``Ae_j`` of :func:`beamform_peaks`, screened by a bfloat16 GEMM and certified.
+
+    1. ``s^_j = B v_j`` over the whole grid from one bfloat16 GEMM (:func:`stack_real` form);
+    2. with the rigorous error bound of :func:`screen_bound`, ``|s_k|`` lies in
+       ``[(1 - alpha)|s^_k| - beta_j, (1 + alpha)|s^_k| + beta_j]``, so the exact maximum is among
+       ``C_j = {k : (1 + alpha)|s^_k| + beta_j >= max_k' (1 - alpha)|s^_k'| - beta_j}``;
+    3. ``|B[k] v_j|`` is evaluated exactly (snapshot dtype) for ``k in C_j`` only, and
+       ``k_j = argmax_{k in C_j}``, ``Ae_j`` its value (ties to the smaller ``k``);
+    4. a snapshot with more than ``max_candidates`` candidates (a flat spectrum, e.g. zeros) is
+       beamformed over the whole grid by :func:`beamform_peaks`.
+
+    The result is therefore the exact argmax and maximum, up to the float32 rounding of the
+    dot products (directions whose exact amplitudes tie to ~1e-7 may be ordered differently
+    than by the GEMM of :func:`beamform_peaks`). No sector descriptor: it needs every direction.
+    """
+    if snapshots.dtype != torch.complex64:
+        raise ValueError(f"the screened beamformer works on complex64 snapshots, got {snapshots.dtype}; "
+                         f"use beamform_peaks for other precisions")
+    t = _tables_for(snapshots, dictionary_t)
+    if isinstance(max_candidates, bool) or int(max_candidates) < 1:
+        raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
+    real = t.re.dtype
+    k_dir = t.n_dir
+    p = snapshots.shape[0]
+    dev = snapshots.device
+    v = snapshots.resolve_conj().contiguous()
+    x = torch.view_as_real(v).reshape(p, 2 * v.shape[1])            # (P, 2N) interleaved
+    alpha, beta = screen_bound(v, t.row_norm_max)
+    index = torch.empty(p, dtype=torch.long, device=dev)
+    amplitude = torch.empty(p, dtype=real, device=dev)
+    heavy_rows = []
+    blk = min(_BLOCK, max(p, 1))
+    x16 = torch.empty(blk, x.shape[1], dtype=torch.bfloat16, device=dev)
+    y16 = torch.empty(blk, 2 * k_dir, dtype=torch.bfloat16, device=dev)
+    y32 = torch.empty(blk, 2 * k_dir, dtype=torch.float32, device=dev)
+    pw_buf = torch.empty(blk, k_dir, dtype=torch.float32, device=dev)
+    kk = torch.arange(k_dir - 1, -1, -1, device=dev, dtype=torch.long)   # K-1-k: ties -> smaller k
+    with _fp32_accumulation(dev):
+        for i in range(0, p, blk):
+            m = min(blk, p - i)
+            x16[:m].copy_(x[i:i + m])
+            torch.mm(x16[:m], t.stacked_bf16, out=y16[:m])
+            y = y32[:m].copy_(y16[:m])                                       # (m, 2K) [Re | Im]
+            pw = torch.mul(y[:, :k_dir], y[:, :k_dir], out=pw_buf[:m]).addcmul_(y[:, k_dir:], y[:, k_dir:])
+            bj = beta[i:i + m].to(torch.float32)
+            lower = (1.0 - alpha) * pw.amax(dim=1).sqrt() - bj                # max_k lower bound
+            need = (lower - bj) / (1.0 + alpha)                               # |s^_k| >= need
+            need2 = torch.where(need > 0, need.square() * (1.0 - 1e-6), torch.full_like(need, -1.0))
+            cand = pw >= need2[:, None]                                       # (m, K) C_j
+            heavy = cand.sum(dim=1) > max_candidates
+            if bool(heavy.any()):
+                cand &= ~heavy[:, None]
+                heavy_rows.append(torch.nonzero(heavy).flatten() + i)
+            j, k = torch.nonzero(cand, as_tuple=True)                         # pairs, row-major
+            s = torch.mul(t.rows[k], v[i + j]).sum(dim=1).abs()               # exact |B[k] v_j|
+            key = (s.to(torch.float32).view(torch.int32).to(torch.long) << 32) | kk[k]
+            best = torch.full((m,), -1, dtype=torch.long, device=dev)
+            best.scatter_reduce_(0, j, key, reduce="amax", include_self=True)
+            index[i:i + m] = (k_dir - 1) - (best & 0xFFFFFFFF)
+            amplitude[i:i + m] = (best >> 32).to(torch.int32).view(torch.float32).to(real)
+    if heavy_rows:
+        rows = torch.cat(heavy_rows)
+        full = beamform_peaks(v[rows], t, grid)
+        index[rows] = full.index
+        amplitude[rows] = full.amplitude
+    return BeamformResult(index=index, amplitude=amplitude, sectors=None)
+
+
+def fast_bf16(device: torch.device | str) -> bool:
+    """True where bfloat16 GEMMs are much faster than float32 ones: CUDA devices with native
+    bfloat16 (compute capability >= 8.0) and CPUs with AMX tiles."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        return torch.cuda.is_available() and torch.cuda.get_device_capability(device)[0] >= 8
+    if device.type == "cpu":
+        probe = getattr(torch.cpu, "_is_amx_tile_supported", None)
+        return bool(probe()) if probe is not None else False
+    return False
 
 
 def check_beamforming(mode: str) -> str:
@@ -155,73 +360,23 @@ def check_beamforming(mode: str) -> str:
     return mode
 
 
-def beamform_peaks_refined(snapshots: torch.Tensor, dictionary_t: torch.Tensor, grid: tuple[int, int],
-                           sectors: tuple[int, int] | None = None, *, stacked: torch.Tensor | None = None,
-                           candidates: int = REFINE_CANDIDATES) -> BeamformResult:
-    """:func:`beamform_peaks` with a bfloat16 spectrum and an exact re-ranking of its top candidates.
+def resolve_beamforming(mode: str, device: torch.device | str, sectors: tuple[int, int] | None) -> str:
+    """The beamformer that runs: ``"exact"`` or ``"screened"``.
 
-    1. ``p_j ~ |B v_j|^2`` over the whole grid from one bfloat16 GEMM (inputs rounded to bfloat16,
-       8 significant bits, unit roundoff ``2^-8 ~ 0.4 %``; the product is converted to float32
-       before squaring);
-    2. ``C_j`` = the ``candidates`` directions of largest ``p_j``;
-    3. ``s_j[k] = |B[k] v_j|`` recomputed exactly (snapshot dtype, e.g. complex64) for ``k in C_j``
-       only (a gather of ``candidates`` dictionary columns and as many dot products per snapshot);
-    4. ``k_j = argmax_{k in C_j} s_j[k]`` and ``Ae_j = s_j[k_j]`` (eqs. 6-7).
-
-    ``k_j`` equals the exact argmax whenever the exact maximum is among the bfloat16 top
-    ``candidates`` (it is unless the peak is within the bfloat16 error of ``candidates`` other
-    directions), and then ``Ae_j`` equals the exact amplitude to float32 rounding. The sector
-    descriptor (eq. 10), if asked for, is max-pooled from the *bfloat16* spectrum and is therefore
-    approximate: a relative error of a few 1e-3 on the strong sectors, larger on weak sidelobe
-    sectors (the rounding error scales with ``sum |v| |B|``, not with ``|B v|``).
-
-    Parameters
-    ----------
-    snapshots : Tensor, complex, ``(P, n_virtual)``
-    dictionary_t : Tensor, complex, ``(n_virtual, n_az * n_el)``
-    grid : (n_az, n_el)
-    sectors : (n_az_sec, n_el_sec), optional
-    stacked : Tensor, real, ``(2 n_virtual, 2 n_az n_el)``, optional
-        ``stack_real(dictionary_t)`` precomputed, any real dtype (cast to bfloat16 here).
-    candidates : int
-        Number of bfloat16 candidates re-ranked exactly per snapshot (>= 1; clipped to the grid).
+    Sector descriptors need the whole spectrum, so they always run ``"exact"``; ``"auto"`` runs
+    ``"screened"`` where :func:`fast_bf16` holds.
     """
-    _check(snapshots, dictionary_t.transpose(0, 1))
-    if isinstance(candidates, bool) or int(candidates) < 1:
-        raise ValueError(f"candidates must be an integer >= 1, got {candidates!r}")
-    real = snapshots.real.dtype
-    k_dir = dictionary_t.shape[1]
-    kc = min(int(candidates), k_dir)
-    if stacked is None:
-        stacked = stack_real(dictionary_t.to(snapshots.dtype))
-    w16 = stacked.to(torch.bfloat16)                                # (2N, 2K)
-    b_rows = dictionary_t.to(snapshots.dtype).transpose(0, 1).contiguous()  # (K, N): row k is B[k]
-    p = snapshots.shape[0]
-    dev = snapshots.device
-    v = snapshots.resolve_conj().contiguous()
-    x = torch.view_as_real(v).reshape(p, 2 * snapshots.shape[1])   # (P, 2N)
-    index = torch.empty(p, dtype=torch.long, device=dev)
-    amplitude = torch.empty(p, dtype=real, device=dev)
-    sec = None
-    if sectors is not None:
-        sec = torch.empty(p, sectors[0] * sectors[1], dtype=real, device=dev)
-    blk = min(_BLOCK, max(p, 1))
-    # preallocated block buffers (fresh large allocations per block cost more than the bf16 GEMM)
-    x16 = torch.empty(blk, x.shape[1], dtype=torch.bfloat16, device=dev)
-    y16 = torch.empty(blk, 2 * k_dir, dtype=torch.bfloat16, device=dev)
-    y32 = torch.empty(blk, 2 * k_dir, dtype=torch.float32, device=dev)
-    pw_buf = torch.empty(blk, k_dir, dtype=torch.float32, device=dev)
-    for i in range(0, p, blk):
-        m = min(blk, p - i)
-        x16[:m].copy_(x[i:i + m])
-        torch.mm(x16[:m], w16, out=y16[:m])
-        y = y32[:m].copy_(y16[:m])                                             # (m, 2K) [Re | Im], float32
-        pw = torch.mul(y[:, :k_dir], y[:, :k_dir], out=pw_buf[:m]).addcmul_(y[:, k_dir:], y[:, k_dir:])
-        cand = torch.topk(pw, kc, dim=1, sorted=False).indices                 # (m, kc)
-        s = torch.einsum("mcn,mn->mc", b_rows[cand], v[i:i + m])              # (m, kc) exact B[k] v
-        a, j = torch.max(s.abs(), dim=1)                                       # (m,)
-        amplitude[i:i + m] = a
-        index[i:i + m] = cand.gather(1, j.unsqueeze(1)).squeeze(1)
-        if sec is not None:
-            sec[i:i + m] = sector_pool(pw, grid, sectors).sqrt().to(real)
-    return BeamformResult(index=index, amplitude=amplitude, sectors=sec)
+    check_beamforming(mode)
+    if sectors is not None or mode == "exact":
+        return "exact"
+    if mode == "screened":
+        return "screened"
+    return "screened" if fast_bf16(device) else "exact"
+
+
+def beamform(snapshots: torch.Tensor, tables: torch.Tensor | DictionaryTables, grid: tuple[int, int],
+             sectors: tuple[int, int] | None = None, mode: str = "auto") -> BeamformResult:
+    """:func:`beamform_peaks` or :func:`beamform_peaks_screened`, as :func:`resolve_beamforming` picks."""
+    if resolve_beamforming(mode, snapshots.device, sectors) == "screened" and snapshots.dtype == torch.complex64:
+        return beamform_peaks_screened(snapshots, tables, grid)
+    return beamform_peaks(snapshots, tables, grid, sectors)

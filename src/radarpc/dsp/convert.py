@@ -167,7 +167,7 @@ class ConvertSettings:
     chunk_frames: int = 64                   # frames per part file (the unit of resume and sharding)
     calibration_frames: int | None = None    # train frames used to calibrate per-dataset tau (None: all)
     envelope: str = "replicas"               # "replicas" (seed eq. 1) or "all-slots" (RADIal rpl.py)
-    beamforming: str = "exact"               # "exact" (float32) or "bf16-refine" (see SpectralPointCloud)
+    beamforming: str = "auto"                # "auto", "exact" or "screened": same points (see SpectralPointCloud)
 
     def __post_init__(self) -> None:
         if (self.tau is None) == (self.density is None):
@@ -572,9 +572,9 @@ def convert_dataset(
         CA-CFAR window and guard (range, Doppler), full odd sizes (RADIal rpl.py: 19,19 and 7,7).
     envelope : {"replicas", "all-slots"}
         Seed eq. 1 (sum over the ``n_tx`` replica bins) or RADIal rpl.py's sum over every slot.
-    beamforming : {"exact", "bf16-refine"}
-        Angle spectra in float32, or the faster bf16 GEMM with an exact re-check of the top
-        candidates (approximate sector descriptors), see :class:`SpectralPointCloud`.
+    beamforming : {"auto", "exact", "screened"}
+        How each point's direction is found (the same points either way, only the speed differs),
+        see :class:`SpectralPointCloud` and :mod:`radarpc.dsp.beamform`.
     split : {"all", "train", "val", "test"}
         With a root path: the split to convert. A dataset object is its own split.
     batch_size : int

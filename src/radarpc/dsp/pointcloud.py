@@ -35,8 +35,7 @@ from typing import Iterable, Sequence
 import torch
 import torch.nn.functional as F
 
-from radarpc.dsp.beamform import (REFINE_CANDIDATES, beamform_peaks, beamform_peaks_refined,
-                                  check_beamforming, stack_real)
+from radarpc.dsp.beamform import DictionaryTables, beamform, check_beamforming, dictionary_tables
 from radarpc.dsp.cfar import RADIAL_TAU, CFARResult, ca_cfar, check_tau, check_window
 from radarpc.dsp.ddma import (DDMAEnvelope, check_envelope_kind, check_finite_envelope, check_rd,
                               ddma_envelope, rx_magnitude_sum, virtual_snapshots)
@@ -75,7 +74,7 @@ class SpectralPointCloudConfig:
     guard: tuple[int, int] = (3, 3)         # CA-CFAR full guard window, odd
     enrich: tuple[str, ...] = ()            # "rdN", "patchN", "sectorA", "sectorAxE"
     envelope: str = "replicas"              # "replicas" (seed eq. 1) or "all-slots" (RADIal rpl.py)
-    beamforming: str = "exact"              # "exact" (float32) or "bf16-refine" (approximate sectors)
+    beamforming: str = "auto"               # "auto", "exact" or "screened": the same points (see beamform)
 
     def __post_init__(self) -> None:
         check_envelope_kind(self.envelope)
@@ -291,15 +290,14 @@ class SpectralPointCloud(torch.nn.Module):
     envelope : {"replicas", "all-slots"}
         ``"replicas"`` (default, seed eq. 1): sum over the ``n_tx`` replica bins of each cell;
         ``"all-slots"`` = RADIal ``rpl.py``: sum over every DDMA slot, empty ones included.
-    beamforming : {"exact", "bf16-refine"}
-        ``"exact"`` (default): the angle spectrum of every point in float32 (complex64).
-        ``"bf16-refine"`` (opt-in, faster where bfloat16 GEMMs are, e.g. AMX CPUs and CUDA): the
-        spectrum from a bfloat16 GEMM, its top ``REFINE_CANDIDATES = 4`` directions recomputed
-        exactly, AoA = their argmax and ``Ae`` its exact amplitude
-        (:func:`radarpc.dsp.beamform.beamform_peaks_refined`). Directions can differ from
-        ``"exact"`` only when the true peak is not among the bfloat16 top 4 (rare: see
-        ``docs/results/pointcloud.md``); sector descriptors then come from the bfloat16 spectrum and
-        are approximate (bfloat16 has 8 significant bits, unit roundoff ~0.4 %).
+    beamforming : {"auto", "exact", "screened"}
+        How ``k_j`` and ``Ae_j`` are found; all three give the same points (up to float32 rounding
+        of near-ties), only the speed differs (:mod:`radarpc.dsp.beamform`). ``"exact"``: the
+        whole float32 spectrum of every point. ``"screened"``: a bfloat16 GEMM with a rigorous
+        error bound leaves a few candidate directions per point, evaluated exactly (fast where
+        bfloat16 GEMMs are: AMX CPUs, CUDA). ``"auto"`` (default): ``"screened"`` on such
+        devices, else ``"exact"``. Sector descriptors need the whole spectrum and always run
+        ``"exact"``.
 
     Examples
     --------
@@ -329,12 +327,18 @@ class SpectralPointCloud(torch.nn.Module):
                 raise ValueError(f"sector enrichment {self.config.sectors} exceeds the angle grid {self.grid}")
         self.register_buffer("dictionary_t", calibration.dictionary().transpose(0, 1).contiguous(),
                              persistent=False)                       # (n_virtual, n_az * n_el)
-        self.register_buffer("dictionary_stacked", stack_real(self.dictionary_t),
-                             persistent=False)                       # (2 n_virtual, 2 n_az n_el) real
+        self._tables: dict[tuple[torch.device, torch.dtype], DictionaryTables] = {}   # built on first use
         self.register_buffer("azimuth_table", torch.as_tensor(calibration.azimuth_deg, dtype=torch.float32),
                              persistent=False)
         self.register_buffer("elevation_table", torch.as_tensor(calibration.elevation_deg, dtype=torch.float32),
                              persistent=False)
+
+    def tables(self, device: torch.device | str, dtype: torch.dtype = torch.complex64) -> DictionaryTables:
+        """The beamforming forms of the dictionary on ``device`` in complex ``dtype`` (cached)."""
+        key = (torch.device(device), dtype)
+        if key not in self._tables:
+            self._tables[key] = dictionary_tables(self.dictionary_t.to(key[0]), dtype)
+        return self._tables[key]
 
     # ---- detection ---------------------------------------------------------------------------
     def _envelope(self, rd: torch.Tensor) -> tuple[DDMAEnvelope, torch.Tensor]:
@@ -415,12 +419,7 @@ class SpectralPointCloud(torch.nn.Module):
         d0 = enc.envelope.tx0_doppler(b, r, l)                     # (N,) Tx-0 bins of the gap search
         v = virtual_snapshots(rd, cfg, b, r, d0)                   # (N, n_virtual)
         dev = rd.device                                            # tables follow the input's device
-        if c.beamforming == "bf16-refine":
-            bf = beamform_peaks_refined(v, self.dictionary_t.to(dev), self.grid, c.sectors,
-                                        stacked=self.dictionary_stacked.to(dev), candidates=REFINE_CANDIDATES)
-        else:
-            bf = beamform_peaks(v, self.dictionary_t.to(dev), self.grid, c.sectors,
-                                stacked=self.dictionary_stacked.to(dev))
+        bf = beamform(v, self.tables(dev, v.dtype), self.grid, c.sectors, mode=c.beamforming)
         n_el = self.grid[1]
         az = self.azimuth_table.to(dev)[bf.index // n_el]
         el = self.elevation_table.to(dev)[bf.index % n_el]
