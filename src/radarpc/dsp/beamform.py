@@ -28,7 +28,7 @@ import torch.nn.functional as F
 
 __all__ = ["angle_spectrum", "BeamformResult", "DictionaryTables", "dictionary_tables", "beamform",
            "beamform_peaks", "beamform_peaks_screened", "screen_bound", "sector_pool", "stack_real",
-           "fast_bf16", "resolve_beamforming", "check_beamforming", "BEAMFORMING_MODES",
+           "column_to_direction", "fast_bf16", "resolve_beamforming", "check_beamforming", "BEAMFORMING_MODES",
            "MAX_SCREEN_CANDIDATES"]
 
 BEAMFORMING_MODES = ("auto", "exact", "screened")
@@ -36,9 +36,9 @@ BEAMFORMING_MODES = ("auto", "exact", "screened")
 # Snapshots per GEMM block: the (block, n_az n_el) float32 buffers stay a few MB for RADIal.
 _BLOCK = 1024
 
-# A snapshot whose screen leaves more candidates than this is beamformed exactly over the whole
-# grid instead (e.g. an all-zero snapshot, whose spectrum is flat).
-MAX_SCREEN_CANDIDATES = 64
+# A snapshot whose screen leaves candidates in more azimuths than this is beamformed exactly over
+# the whole grid instead (e.g. an all-zero snapshot, whose spectrum is flat).
+MAX_SCREEN_CANDIDATES = 16
 
 _BF16_UNIT_ROUNDOFF = 2.0 ** -8     # round-to-nearest to 8 significant bits
 _FP32_UNIT_ROUNDOFF = 2.0 ** -24
@@ -127,17 +127,23 @@ class DictionaryTables:
 
     Attributes
     ----------
+    grid : (n_az, n_el)              the angle grid, ``K = n_az n_el``, direction ``k = az n_el + el``
     rows : complex ``(K, N)``        ``B``, row ``k`` = direction ``k`` (exact dot products)
     re, im, gauss : real ``(N, K)``  ``Re B^T``, ``Im B^T`` and ``Re B^T + Im B^T`` (Gauss's trick)
-    stacked_bf16 : bfloat16 ``(2N, 2K)``   :func:`stack_real` of ``B^T`` rounded to bfloat16
+    screen_bf16 : bfloat16 ``(2N, 2K)``   :func:`stack_real` of ``B^T`` rounded to bfloat16
+
+    The GEMM forms (``re``, ``im``, ``gauss``, ``screen_bf16``) hold the directions in
+    elevation-major order, column ``c = el n_az + az`` (:func:`column_to_direction`), so that
+    maxima over elevation are reductions over a leading axis.
     row_norm_max : float             ``max_k ||B[k]||_2``, for the screen's error bound
     """
 
+    grid: tuple[int, int]
     rows: torch.Tensor
     re: torch.Tensor
     im: torch.Tensor
     gauss: torch.Tensor
-    stacked_bf16: torch.Tensor
+    screen_bf16: torch.Tensor
     row_norm_max: float
 
     @property
@@ -145,29 +151,57 @@ class DictionaryTables:
         return int(self.rows.shape[0])
 
     def to(self, device: torch.device | str) -> "DictionaryTables":
-        return DictionaryTables(rows=self.rows.to(device), re=self.re.to(device), im=self.im.to(device),
-                                gauss=self.gauss.to(device), stacked_bf16=self.stacked_bf16.to(device),
-                                row_norm_max=self.row_norm_max)
+        return DictionaryTables(grid=self.grid, rows=self.rows.to(device), re=self.re.to(device),
+                                im=self.im.to(device), gauss=self.gauss.to(device),
+                                screen_bf16=self.screen_bf16.to(device), row_norm_max=self.row_norm_max)
 
 
-def dictionary_tables(dictionary_t: torch.Tensor, dtype: torch.dtype = torch.complex64) -> DictionaryTables:
-    """:class:`DictionaryTables` of ``B^T`` ``(n_virtual, n_dir)`` complex, in ``dtype``."""
+def dictionary_tables(dictionary_t: torch.Tensor, grid: tuple[int, int],
+                      dtype: torch.dtype = torch.complex64) -> DictionaryTables:
+    """:class:`DictionaryTables` of ``B^T`` ``(n_virtual, n_az * n_el)`` complex, in ``dtype``."""
     if not dictionary_t.is_complex() or dictionary_t.ndim != 2:
         raise ValueError(f"dictionary_t must be a complex (n_virtual, n_dir) matrix, got "
                          f"{dictionary_t.dtype} {tuple(dictionary_t.shape)}")
+    n_az, n_el = (int(g) for g in grid)
+    if n_az < 1 or n_el < 1 or n_az * n_el != dictionary_t.shape[1]:
+        raise ValueError(f"grid {tuple(grid)} does not match the dictionary's {dictionary_t.shape[1]} directions")
     bt = dictionary_t.to(dtype)
-    re, im = bt.real.contiguous(), bt.imag.contiguous()
     rows = bt.transpose(0, 1).contiguous()
     norm = float(torch.linalg.vector_norm(rows.to(torch.complex128), dim=1).max()) if rows.numel() else 0.0
-    return DictionaryTables(rows=rows, re=re, im=im, gauss=(re + im).contiguous(),
-                            stacked_bf16=stack_real(bt).to(torch.bfloat16), row_norm_max=norm)
+    bt_em = bt[:, column_to_direction(torch.arange(n_az * n_el, device=bt.device), (n_az, n_el))]
+    re, im = bt_em.real.contiguous(), bt_em.imag.contiguous()
+    return DictionaryTables(grid=(n_az, n_el), rows=rows, re=re, im=im, gauss=(re + im).contiguous(),
+                            screen_bf16=stack_real(bt_em).to(torch.bfloat16), row_norm_max=norm)
 
 
-def _tables_for(snapshots: torch.Tensor, dictionary_t: torch.Tensor | DictionaryTables) -> DictionaryTables:
+def column_to_direction(col: torch.Tensor, grid: tuple[int, int]) -> torch.Tensor:
+    """Direction ``k = az n_el + el`` of elevation-major GEMM column ``col = el n_az + az``."""
+    n_az, n_el = grid
+    return (col % n_az) * n_el + torch.div(col, n_az, rounding_mode="floor")
+
+
+def _sector_pool_elevation_major(power: torch.Tensor, grid: tuple[int, int],
+                                 sectors: tuple[int, int]) -> torch.Tensor:
+    """:func:`sector_pool` of spectra whose columns are elevation-major ``(P, n_el * n_az)``."""
+    n_az, n_el = grid
+    n_as, n_es = sectors
+    if not (1 <= n_as <= n_az and 1 <= n_es <= n_el):
+        raise ValueError(f"angle sectors {sectors} must be between (1, 1) and the grid {grid}")
+    x = power.view(-1, n_el, n_az)
+    if n_es == 1:                                                     # best elevation, then azimuth sectors
+        return F.adaptive_max_pool1d(x.amax(dim=1).unsqueeze(1), n_as).reshape(-1, n_as)
+    pooled = F.adaptive_max_pool2d(x.unsqueeze(1), (n_es, n_as))      # (P, 1, n_es, n_as)
+    return pooled.reshape(-1, n_es, n_as).transpose(1, 2).reshape(-1, n_as * n_es)
+
+
+def _tables_for(snapshots: torch.Tensor, dictionary_t: torch.Tensor | DictionaryTables,
+                grid: tuple[int, int]) -> DictionaryTables:
     if isinstance(dictionary_t, DictionaryTables):
         t = dictionary_t
+        if tuple(t.grid) != tuple(grid):
+            raise ValueError(f"grid {tuple(grid)} differs from the dictionary tables' {t.grid}")
     else:
-        t = dictionary_tables(dictionary_t, snapshots.dtype if snapshots.is_complex() else torch.complex64)
+        t = dictionary_tables(dictionary_t, grid, snapshots.dtype if snapshots.is_complex() else torch.complex64)
     _check(snapshots, t.rows)
     if t.rows.dtype != snapshots.dtype:
         raise ValueError(f"snapshots are {snapshots.dtype} but the dictionary tables are {t.rows.dtype}")
@@ -191,7 +225,7 @@ def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Diction
     grid : (n_az, n_el)
     sectors : (n_az_sec, n_el_sec), optional
     """
-    t = _tables_for(snapshots, dictionary_t)
+    t = _tables_for(snapshots, dictionary_t, grid)
     real = t.re.dtype
     k_dir = t.n_dir
     p = snapshots.shape[0]
@@ -215,10 +249,11 @@ def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Diction
         torch.mm(torch.add(ai, bi, out=ab[:m]), t.gauss, out=t3[:m])  # T3 = (a + b)(C + D)
         im.sub_(t1[:m]).sub_(t2[:m])                                  # Im = T3 - T1 - T2
         re.sub_(t2[:m])                                               # Re = T1 - T2
-        torch.mul(re, re, out=pw).addcmul_(im, im)                    # |s|^2
+        torch.mul(re, re, out=pw).addcmul_(im, im)                    # |s|^2, elevation-major columns
         torch.max(pw, dim=1, out=(power[i:i + m], index[i:i + m]))
         if sec is not None:
-            sec[i:i + m] = sector_pool(pw, grid, sectors)
+            sec[i:i + m] = _sector_pool_elevation_major(pw, grid, sectors)
+    index = column_to_direction(index, t.grid)
     return BeamformResult(index=index, amplitude=power.sqrt(),
                           sectors=None if sec is None else sec.sqrt())
 
@@ -275,64 +310,73 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
                             max_candidates: int = MAX_SCREEN_CANDIDATES) -> BeamformResult:
     """``k_j`` and ``Ae_j`` of :func:`beamform_peaks`, screened by a bfloat16 GEMM and certified.
 
-    1. ``s^_j = B v_j`` over the whole grid from one bfloat16 GEMM (:func:`stack_real` form);
-    2. with the rigorous error bound of :func:`screen_bound`, ``|s_k|`` lies in
-       ``[(1 - alpha)|s^_k| - beta_j, (1 + alpha)|s^_k| + beta_j]``, so the exact maximum is among
-       ``C_j = {k : (1 + alpha)|s^_k| + beta_j >= max_k' (1 - alpha)|s^_k'| - beta_j}``;
-    3. ``|B[k] v_j|`` is evaluated exactly (snapshot dtype) for ``k in C_j`` only, and
+    1. ``s^_j = B v_j`` over the whole grid from one bfloat16 GEMM (:func:`stack_real` form), and
+       its power ``q_jk^2 = |s^_jk|^2`` formed in float32;
+    2. with the rigorous bound of :func:`screen_bound`, ``|s_jk|`` lies in
+       ``[(1 - a_lo) q_jk - beta_j, (1 + a_hi) q_jk + beta_j]``, so the exact maximum is among
+       ``C_j = {k : (1 + a_hi) q_jk + beta_j >= max_k' (1 - a_lo) q_jk' - beta_j}``;
+    3. ``|B[k] v_j|`` is evaluated exactly (complex64 dot products) for ``k in C_j`` only, and
        ``k_j = argmax_{k in C_j}``, ``Ae_j`` its value (ties to the smaller ``k``);
-    4. a snapshot with more than ``max_candidates`` candidates (a flat spectrum, e.g. zeros) is
-       beamformed over the whole grid by :func:`beamform_peaks`.
+    4. a snapshot whose candidates span more than ``max_candidates`` azimuths (a flat spectrum,
+       e.g. zeros) is beamformed over the whole grid by :func:`beamform_peaks`.
 
-    The result is therefore the exact argmax and maximum, up to the float32 rounding of the
-    dot products (directions whose exact amplitudes tie to ~1e-7 may be ordered differently
-    than by the GEMM of :func:`beamform_peaks`). No sector descriptor: it needs every direction.
+    The result is the exact argmax and maximum, up to the float32 rounding of the dot products
+    (directions whose exact amplitudes tie to ~1e-7 may be ordered differently than by the GEMMs
+    of :func:`beamform_peaks`). No sector descriptor: it needs every direction.
     """
     if snapshots.dtype != torch.complex64:
         raise ValueError(f"the screened beamformer works on complex64 snapshots, got {snapshots.dtype}; "
                          f"use beamform_peaks for other precisions")
-    t = _tables_for(snapshots, dictionary_t)
+    t = _tables_for(snapshots, dictionary_t, grid)
     if isinstance(max_candidates, bool) or int(max_candidates) < 1:
         raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
-    real = t.re.dtype
+    n_az, n_el = t.grid
     k_dir = t.n_dir
     p = snapshots.shape[0]
     dev = snapshots.device
     v = snapshots.resolve_conj().contiguous()
     x = torch.view_as_real(v).reshape(p, 2 * v.shape[1])            # (P, 2N) interleaved
     alpha, beta = screen_bound(v, t.row_norm_max)
+    a_hi = a_lo = alpha                                              # |s^| from float32 power (safety in alpha)
     index = torch.empty(p, dtype=torch.long, device=dev)
-    amplitude = torch.empty(p, dtype=real, device=dev)
+    amplitude = torch.empty(p, dtype=torch.float32, device=dev)
     heavy_rows = []
     blk = min(_BLOCK, max(p, 1))
     x16 = torch.empty(blk, x.shape[1], dtype=torch.bfloat16, device=dev)
     y16 = torch.empty(blk, 2 * k_dir, dtype=torch.bfloat16, device=dev)
     y32 = torch.empty(blk, 2 * k_dir, dtype=torch.float32, device=dev)
-    pw_buf = torch.empty(blk, k_dir, dtype=torch.float32, device=dev)
+    q2_buf = torch.empty(blk, k_dir, dtype=torch.float32, device=dev)
+    els = torch.arange(n_el, device=dev)
     kk = torch.arange(k_dir - 1, -1, -1, device=dev, dtype=torch.long)   # K-1-k: ties -> smaller k
     with _fp32_accumulation(dev):
         for i in range(0, p, blk):
             m = min(blk, p - i)
             x16[:m].copy_(x[i:i + m])
-            torch.mm(x16[:m], t.stacked_bf16, out=y16[:m])
-            y = y32[:m].copy_(y16[:m])                                       # (m, 2K) [Re | Im]
-            pw = torch.mul(y[:, :k_dir], y[:, :k_dir], out=pw_buf[:m]).addcmul_(y[:, k_dir:], y[:, k_dir:])
-            bj = beta[i:i + m].to(torch.float32)
-            lower = (1.0 - alpha) * pw.amax(dim=1).sqrt() - bj                # max_k lower bound
-            need = (lower - bj) / (1.0 + alpha)                               # |s^_k| >= need
-            need2 = torch.where(need > 0, need.square() * (1.0 - 1e-6), torch.full_like(need, -1.0))
-            cand = pw >= need2[:, None]                                       # (m, K) C_j
-            heavy = cand.sum(dim=1) > max_candidates
-            if bool(heavy.any()):
-                cand &= ~heavy[:, None]
+            torch.mm(x16[:m], t.screen_bf16, out=y16[:m])                    # (m, 2K) [Re | Im], el-major
+            y = y32[:m].copy_(y16[:m])
+            q2 = torch.mul(y[:, :k_dir], y[:, :k_dir], out=q2_buf[:m]).addcmul_(y[:, k_dir:], y[:, k_dir:])
+            bj = beta[i:i + m]
+            q2_az = q2.view(m, n_el, n_az).amax(dim=1)                       # (m, n_az) best elevation
+            lower = (1.0 - a_lo) * q2_az.amax(dim=1).sqrt() - bj             # max_k lower bound
+            need = (lower - bj) / (1.0 + a_hi)                               # C_j: q_jk >= need_j
+            need2 = torch.where(need > 0, need.square(), torch.full_like(need, -1.0))[:, None]
+            j, az = torch.nonzero(q2_az >= need2, as_tuple=True)             # azimuths holding candidates
+            heavy = torch.bincount(j, minlength=m) > max_candidates
+            if bool(heavy.any()):                                            # flat spectra: whole grid
                 heavy_rows.append(torch.nonzero(heavy).flatten() + i)
-            j, k = torch.nonzero(cand, as_tuple=True)                         # pairs, row-major
-            s = torch.mul(t.rows[k], v[i + j]).sum(dim=1).abs()               # exact |B[k] v_j|
-            key = (s.to(torch.float32).view(torch.int32).to(torch.long) << 32) | kk[k]
+                light = ~heavy[j]
+                j, az = j[light], az[light]
+            j = j.repeat_interleave(n_el)                                    # every elevation of them
+            col = (els.repeat(az.numel()) * n_az) + az.repeat_interleave(n_el)
+            keep = q2.reshape(-1).index_select(0, j * k_dir + col) >= need2.view(-1).index_select(0, j)
+            j, col = j[keep], col[keep]
+            k = column_to_direction(col, t.grid)
+            s = torch.mul(t.rows.index_select(0, k), v.index_select(0, i + j)).sum(dim=1).abs()  # |B[k] v_j|
+            key = (s.view(torch.int32).to(torch.long) << 32) | kk.index_select(0, k)
             best = torch.full((m,), -1, dtype=torch.long, device=dev)
             best.scatter_reduce_(0, j, key, reduce="amax", include_self=True)
             index[i:i + m] = (k_dir - 1) - (best & 0xFFFFFFFF)
-            amplitude[i:i + m] = (best >> 32).to(torch.int32).view(torch.float32).to(real)
+            amplitude[i:i + m] = (best >> 32).to(torch.int32).view(torch.float32)
     if heavy_rows:
         rows = torch.cat(heavy_rows)
         full = beamform_peaks(v[rows], t, grid)

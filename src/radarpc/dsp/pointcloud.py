@@ -337,7 +337,7 @@ class SpectralPointCloud(torch.nn.Module):
         """The beamforming forms of the dictionary on ``device`` in complex ``dtype`` (cached)."""
         key = (torch.device(device), dtype)
         if key not in self._tables:
-            self._tables[key] = dictionary_tables(self.dictionary_t.to(key[0]), dtype)
+            self._tables[key] = dictionary_tables(self.dictionary_t.to(key[0]), self.grid, dtype)
         return self._tables[key]
 
     # ---- detection ---------------------------------------------------------------------------
