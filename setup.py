@@ -1,0 +1,31 @@
+"""Build script for the optional native extension; all metadata lives in pyproject.toml.
+
+``radarpc.dsp._rxsum`` (the CPU kernel behind :mod:`radarpc.dsp.native`) is declared
+``optional=True``: without a working C compiler the build prints a warning and the package
+installs without it, and :func:`radarpc.dsp.native.native_available` reports ``False``.
+"""
+from __future__ import annotations
+
+from setuptools import Extension, setup
+from setuptools.command.build_ext import build_ext
+
+
+class BuildExt(build_ext):
+    """Portable compile flags: ``-O3 -fno-math-errno`` on GCC/Clang (inline IEEE ``sqrtf``,
+    no ``-ffast-math``), ``/O2`` on MSVC. SIMD variants are selected in the C source with
+    function target attributes and run-time CPU checks, so no ``-march`` flag is used."""
+
+    def build_extensions(self) -> None:
+        if self.compiler.compiler_type == "msvc":
+            flags = ["/O2"]
+        else:
+            flags = ["-O3", "-fno-math-errno"]
+        for ext in self.extensions:
+            ext.extra_compile_args = flags + list(ext.extra_compile_args or [])
+        super().build_extensions()
+
+
+setup(
+    ext_modules=[Extension("radarpc.dsp._rxsum", sources=["src/radarpc/dsp/_rxsum.c"], optional=True)],
+    cmdclass={"build_ext": BuildExt},
+)

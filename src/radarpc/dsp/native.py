@@ -1,0 +1,192 @@
+"""Optional native CPU kernel for the RD magnitude sum ``A(r, d) = sum_rx |R(rx, r, d)|``.
+
+The C extension :mod:`radarpc.dsp._rxsum` (built by ``setup.py`` when a compiler is present,
+skipped otherwise) computes ``A`` in one pass over a complex64 cube: ``re``/``im`` deinterleaved
+in SIMD registers, exact IEEE ``sqrt`` of ``re^2 + im^2`` per receiver, then the receiver sum, with
+the GIL released. :func:`rx_magnitude_sum_native` splits the cells over a module-level thread
+pool; :func:`radarpc.dsp.ddma.rx_magnitude_sum` remains the reference and the fallback.
+
+Setting the environment variable ``RADARPC_NO_NATIVE=1`` makes :func:`native_available` return
+``False`` (checked at every call), so the torch path can be compared on the same install.
+"""
+from __future__ import annotations
+
+import math
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from types import ModuleType
+
+import torch
+
+__all__ = [
+    "KERNELS",
+    "native_available",
+    "native_kernels",
+    "native_supports",
+    "rx_magnitude_sum_native",
+]
+
+_rxsum: ModuleType | None
+try:
+    from radarpc.dsp import _rxsum
+except ImportError:                      # built without a compiler (setup.py: optional=True)
+    _rxsum = None
+
+KERNELS = ("auto", "avx512", "avx", "scalar")
+"""Kernel names accepted by :func:`rx_magnitude_sum_native`: ``auto`` picks the fastest one this
+CPU and ``Nrx`` allow (``avx512`` needs ``Nrx % 16 == 0``, ``avx`` ``Nrx % 8 == 0``, ``scalar``
+runs anywhere)."""
+
+DISABLE_ENV = "RADARPC_NO_NATIVE"
+"""Environment variable: any value other than empty or ``0`` disables the native kernel."""
+
+# Cells per chunk below which a call is not split further: a chunk of 16 Rx is then >= 2 MB
+# of input, so handing it to a pool thread (~tens of us) costs < 5 % of its run time.
+_MIN_CHUNK_CELLS = 1 << 14
+# Chunk boundaries fall on multiples of this many cells so every chunk but the last runs whole
+# SIMD blocks (16 cells for avx512).
+_CHUNK_ALIGN = 16
+
+_pool: ThreadPoolExecutor | None = None
+_pool_workers = 0
+_pool_lock = threading.Lock()
+
+
+def native_available() -> bool:
+    """Whether the compiled extension is importable and not disabled by ``RADARPC_NO_NATIVE``.
+
+    Returns
+    -------
+    bool
+        ``True`` when :func:`rx_magnitude_sum_native` can run.
+    """
+    return _rxsum is not None and os.environ.get(DISABLE_ENV, "") in ("", "0")
+
+
+def native_kernels(n_rx: int = 16) -> tuple[str, ...]:
+    """Kernels this build can run on this CPU for ``n_rx`` receivers, fastest first.
+
+    Parameters
+    ----------
+    n_rx : int
+        Number of receivers (size of the last axis), ``>= 1``.
+
+    Returns
+    -------
+    tuple of str
+        Subset of ``("avx512", "avx", "scalar")``; empty when the extension is unavailable.
+    """
+    if isinstance(n_rx, bool) or not isinstance(n_rx, int) or n_rx < 1:
+        raise ValueError(f"n_rx must be an int >= 1, got {n_rx!r}")
+    return tuple(_rxsum.kernels(n_rx)) if native_available() else ()
+
+
+def native_supports(rd: torch.Tensor) -> bool:
+    """Whether :func:`rx_magnitude_sum_native` can take ``rd`` as it is (the dispatch test).
+
+    True for a CPU, complex64, C-contiguous tensor with ``ndim >= 2`` that does not require
+    grad (the kernel has no backward), when :func:`native_available`.
+    """
+    return (native_available() and isinstance(rd, torch.Tensor) and rd.device.type == "cpu"
+            and rd.dtype == torch.complex64 and rd.ndim >= 2 and rd.is_contiguous()
+            and not (rd.requires_grad and torch.is_grad_enabled()))
+
+
+def _executor(workers: int) -> ThreadPoolExecutor:
+    """The shared pool, grown (replaced) when more workers are asked for than it has."""
+    global _pool, _pool_workers
+    with _pool_lock:
+        if _pool is None or _pool_workers < workers:
+            old = _pool
+            _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="radarpc-rxsum")
+            _pool_workers = workers
+            if old is not None:
+                old.shutdown(wait=False)
+        return _pool
+
+
+def _chunks(n_cells: int, threads: int) -> list[tuple[int, int]]:
+    """``(start, count)`` cell ranges: at most ``threads``, each >= ``_MIN_CHUNK_CELLS`` cells
+    (except a single one), boundaries on multiples of ``_CHUNK_ALIGN``."""
+    n = max(1, min(threads, n_cells // max(1, _MIN_CHUNK_CELLS)))
+    step = math.ceil(math.ceil(n_cells / n) / _CHUNK_ALIGN) * _CHUNK_ALIGN
+    return [(s, min(step, n_cells - s)) for s in range(0, n_cells, step)]
+
+
+def rx_magnitude_sum_native(rd: torch.Tensor, *, threads: int | None = None,
+                            kernel: str = "auto") -> torch.Tensor:
+    """``A = sum_rx |rd|`` over the last axis with the native kernel: ``(..., Nd, Nrx) -> (..., Nd)``.
+
+    Same values as :func:`radarpc.dsp.ddma.rx_magnitude_sum` up to float32 rounding of the
+    receiver sum (each ``|z| = sqrt(re^2 + im^2)`` is the IEEE-rounded value; the 16 terms are
+    added as a tree). NaN and inf propagate as in the reference (``inf`` in any receiver gives
+    ``inf``, ``NaN`` gives ``NaN``); squares beyond the float32 range overflow to ``inf``, as in
+    the reference.
+
+    Parameters
+    ----------
+    rd : Tensor ``(..., Nd, Nrx)`` complex64
+        CPU, C-contiguous (a conjugate view is fine: ``|conj z| = |z|``).
+    threads : int, optional
+        Threads to split the cells over (the calling thread runs one chunk, a module-level
+        thread pool the others). Default ``torch.get_num_threads()``. Small inputs use fewer.
+    kernel : str
+        One of :data:`KERNELS`; ``auto`` (default) picks the fastest this CPU allows.
+
+    Returns
+    -------
+    Tensor ``(..., Nd)`` float32
+        On the CPU.
+
+    Raises
+    ------
+    ValueError
+        ``rd`` not a CPU complex64 C-contiguous tensor with ``ndim >= 2``; ``threads < 1``; an
+        unknown kernel, or one this CPU / ``Nrx`` cannot run.
+    RuntimeError
+        The extension ``radarpc.dsp._rxsum`` is not built or is disabled by ``RADARPC_NO_NATIVE``.
+    """
+    if not isinstance(rd, torch.Tensor):
+        raise ValueError(f"rd must be a torch.Tensor, got {type(rd).__name__}")
+    if rd.device.type != "cpu":
+        raise ValueError(f"rd must be on the CPU for the native kernel, got device {rd.device}")
+    if rd.dtype != torch.complex64:
+        raise ValueError(f"rd must be complex64, got dtype {rd.dtype}")
+    if rd.ndim < 2:
+        raise ValueError(f"rd must have shape (..., Nd, Nrx) with ndim >= 2, got {tuple(rd.shape)}")
+    if not rd.is_contiguous():
+        raise ValueError(f"rd must be C-contiguous, got shape {tuple(rd.shape)} with strides {rd.stride()} "
+                         f"(call .contiguous() first)")
+    if threads is None:
+        threads = torch.get_num_threads()
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ValueError(f"threads must be an int >= 1, got {threads!r}")
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+    if not native_available():
+        why = (f"disabled by {DISABLE_ENV}={os.environ.get(DISABLE_ENV)!r}" if _rxsum is not None
+               else "not built (install with a C compiler: pip install -e .)")
+        raise RuntimeError(f"native extension radarpc.dsp._rxsum is {why}; use radarpc.dsp.ddma.rx_magnitude_sum")
+    assert _rxsum is not None
+    n_rx = rd.shape[-1]
+    out = torch.empty(rd.shape[:-1], dtype=torch.float32)          # (..., Nd)
+    if n_rx == 0:
+        return out.zero_()
+    if kernel != "auto" and kernel not in _rxsum.kernels(n_rx):
+        raise ValueError(f"kernel {kernel!r} cannot run here for Nrx={n_rx}; available: {_rxsum.kernels(n_rx)}")
+    n_cells = out.numel()
+    if n_cells == 0:
+        return out
+    src, dst = rd.data_ptr(), out.data_ptr()                         # 8 bytes per complex, 4 per float
+    chunks = _chunks(n_cells, threads)
+    pool = _executor(len(chunks) - 1) if len(chunks) > 1 else None
+    futures = [pool.submit(_rxsum.rx_magnitude_sum, src + 8 * n_rx * s, dst + 4 * s, n, n_rx, kernel)
+               for s, n in chunks[1:]] if pool is not None else []
+    s, n = chunks[0]
+    try:
+        _rxsum.rx_magnitude_sum(src + 8 * n_rx * s, dst + 4 * s, n, n_rx, kernel)
+    finally:
+        for f in futures:                                            # wait even on error: rd/out stay alive
+            f.result()
+    return out
