@@ -3,9 +3,11 @@
 Prints one JSON object per target density (0.007, 0.057, 0.56 by default) with, for the plain
 cloud and for ``enrich=("rd3", "sector32")``: frames/s, ms/frame, points/frame, achieved density,
 device, threads, the frames/s of two numpy baselines on the same frames and the speed ratios; plus
-the process's peak RSS. Each configuration is timed with the default exact float32 beamforming
-and with the opt-in ``beamforming="bf16-refine"`` (rows ``".../bf16-refine"``, which also report
-``agree_with_exact``, the fraction of points whose direction equals the exact mode's).
+the process's peak RSS. Each configuration is timed with every beamformer that can run it
+(:mod:`radarpc.dsp.beamform`): ``exact`` (whole float32 spectrum) and, without sector
+descriptors, ``screened`` (certified bfloat16 screen), rows ``"<config>/<mode>"``; ``is_default``
+marks the one ``beamforming="auto"`` picks on that device, and ``agree_with_exact`` is the
+fraction of points whose direction equals the exact mode's.
 
 The numpy baseline follows RADIal's ``SignalProcessing/rpl.py`` (one frame at a time:
 ``np.abs`` sum over Rx, CA-CFAR with ``scipy.signal.convolve2d``, a Python loop over peaks
@@ -63,7 +65,7 @@ from scipy import signal  # noqa: E402
 from scipy.ndimage import binary_dilation, maximum_filter  # noqa: E402
 
 from radarpc.dsp import SpectralPointCloud  # noqa: E402
-from radarpc.dsp.beamform import beamform_peaks, beamform_peaks_screened  # noqa: E402
+from radarpc.dsp.beamform import beamform_peaks, beamform_peaks_screened, resolve_beamforming  # noqa: E402
 from radarpc.dsp.cfar import ca_cfar  # noqa: E402
 from radarpc.dsp.ddma import ddma_envelope, rx_magnitude_sum, virtual_snapshots  # noqa: E402
 from radarpc.dsp.density import neighbourhood_mask  # noqa: E402
@@ -317,7 +319,9 @@ def main(args: argparse.Namespace) -> None:
             ref_loop = [loop(f) for f in frames_np[:n_loop]]
             loop_fps = n_loop / (time.perf_counter() - t0)
             assert np.array_equal(ref_loop[0]["doppler_full"], ref[0]["doppler_full"])
-            for device, mode in ((d, m) for d in devices for m in ("exact", "screened")):
+            # every beamformer that can run this config: sector descriptors always run "exact"
+            modes = ("exact",) if "sector32" in enrich else ("exact", "screened")
+            for device, mode in ((d, m) for d in devices for m in modes):
                 spc = SpectralPointCloud(cfg, calib, density=density, enrich=enrich, beamforming=mode).to(device)
                 batches = [frames[i:i + args.batch].to(device) for i in range(0, args.frames, args.batch)]
                 times, out = time_torch(spc, batches, args.repeats, device)
@@ -341,14 +345,16 @@ def main(args: argparse.Namespace) -> None:
                 extra = {}
                 if mode == "exact":
                     exact_clouds = clouds
-                else:  # same cells by construction; fraction of points whose direction matches exact
+                else:  # same cells by construction; fraction of points whose direction equals exact's
                     ea = torch.cat([c.azimuth_deg for c in exact_clouds])
                     ee = torch.cat([c.elevation_deg for c in exact_clouds])
                     fa = torch.cat([c.azimuth_deg for c in clouds])
                     fe = torch.cat([c.elevation_deg for c in clouds])
                     extra["agree_with_exact"] = round(float(((ea == fa) & (ee == fe)).double().mean()), 5)
+                default = resolve_beamforming("auto", device, (32, 1) if "sector32" in enrich else None)
                 report["results"].append({
-                    "config": name if mode == "exact" else f"{name}/{mode}", "device": str(device),
+                    "config": f"{name}/{mode}", "device": str(device), "beamforming": mode,
+                    "is_default": mode == default,
                     "frames_per_s": round(fps_best, 1), "frames_per_s_median": round(args.frames / med, 1),
                     "ms_per_frame": round(1e3 * best / args.frames, 2),
                     "points_per_frame": round(pts, 1), "density_achieved": round(dens, 5),

@@ -397,12 +397,13 @@ def test_screened_falls_back_to_the_whole_spectrum_for_flat_spectra():
 
 
 def test_auto_beamforming_resolves_by_device_and_sectors():
-    from radarpc.dsp.beamform import fast_bf16, resolve_beamforming
+    from radarpc.dsp.beamform import prefers_screened, resolve_beamforming
     cpu = torch.device("cpu")
     assert resolve_beamforming("exact", cpu, None) == "exact"
     assert resolve_beamforming("screened", cpu, None) == "screened"
     assert resolve_beamforming("screened", cpu, (32, 1)) == "exact"
-    assert resolve_beamforming("auto", cpu, None) == ("screened" if fast_bf16(cpu) else "exact")
+    assert resolve_beamforming("auto", cpu, None) == ("screened" if prefers_screened(cpu) else "exact")
+    assert not prefers_screened("meta")
     assert resolve_beamforming("auto", cpu, (8, 1)) == "exact"
     with pytest.raises(ValueError, match="beamforming must be one of"):
         resolve_beamforming("bf16", cpu, None)

@@ -98,8 +98,8 @@ def add_density_args(p: argparse.ArgumentParser):
     p.add_argument("--beamforming", choices=BEAMFORMING_MODES, default="auto",
                    help="how each point's direction is found; all give the same points: 'exact' "
                         "(whole float32 spectrum), 'screened' (bf16 GEMM screen with a rigorous error "
-                        "bound, survivors evaluated exactly; fast on AMX CPUs and CUDA), 'auto' "
-                        "(default: screened where bf16 is fast and no sector descriptor is asked for)")
+                        "bound, survivors evaluated exactly; fast on AMX CPUs), 'auto' (default: screened on "
+                        "CPUs with AMX unless sector descriptors are asked for, else exact)")
     p.add_argument("--envelope", choices=ENVELOPES, default=None,
                    help="RD envelope: 'replicas' = sum over the n_tx replica bins of each consolidated cell "
                         "(seed eq. 1, default); 'all-slots' = RADIal rpl.py, sum over every DDMA slot "

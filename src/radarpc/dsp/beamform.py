@@ -12,9 +12,9 @@ Two ways to the same ``k_j`` and ``Ae_j`` (:data:`BEAMFORMING_MODES`):
 * ``"screened"``: a bfloat16 GEMM screens the grid, a rigorous bound on its error leaves the few
   directions that can still hold the maximum, and those are evaluated exactly
   (:func:`beamform_peaks_screened`). The result is the exact argmax (up to float32 rounding of
-  near-ties), not an approximation; it is faster where bfloat16 GEMMs are (AMX CPUs, CUDA).
+  near-ties), not an approximation; it is faster where bfloat16 GEMMs are (measured on AMX CPUs).
 
-``"auto"`` picks ``"screened"`` when the device has fast bfloat16 GEMMs and no sector
+``"auto"`` picks ``"screened"`` where it was measured faster (CPUs with AMX) and no sector
 descriptor is asked for (sectors need the whole spectrum), else ``"exact"``.
 """
 from __future__ import annotations
@@ -28,7 +28,7 @@ import torch.nn.functional as F
 
 __all__ = ["angle_spectrum", "BeamformResult", "DictionaryTables", "dictionary_tables", "beamform",
            "beamform_peaks", "beamform_peaks_screened", "screen_bound", "sector_pool", "stack_real",
-           "column_to_direction", "fast_bf16", "resolve_beamforming", "check_beamforming", "BEAMFORMING_MODES",
+           "column_to_direction", "prefers_screened", "resolve_beamforming", "check_beamforming", "BEAMFORMING_MODES",
            "MAX_SCREEN_CANDIDATES"]
 
 BEAMFORMING_MODES = ("auto", "exact", "screened")
@@ -385,16 +385,16 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     return BeamformResult(index=index, amplitude=amplitude, sectors=None)
 
 
-def fast_bf16(device: torch.device | str) -> bool:
-    """True where bfloat16 GEMMs are much faster than float32 ones: CUDA devices with native
-    bfloat16 (compute capability >= 8.0) and CPUs with AMX tiles."""
+def prefers_screened(device: torch.device | str) -> bool:
+    """True where :func:`beamform_peaks_screened` was measured faster than :func:`beamform_peaks`:
+    CPUs with AMX tiles (bfloat16 GEMMs ~10x float32 ones; ``docs/results/pointcloud.md``).
+    CUDA is not measured (no GPU was available), so ``"auto"`` keeps ``"exact"`` there; ask for
+    ``"screened"`` explicitly to try it."""
     device = torch.device(device)
-    if device.type == "cuda":
-        return torch.cuda.is_available() and torch.cuda.get_device_capability(device)[0] >= 8
-    if device.type == "cpu":
-        probe = getattr(torch.cpu, "_is_amx_tile_supported", None)
-        return bool(probe()) if probe is not None else False
-    return False
+    if device.type != "cpu":
+        return False
+    probe = getattr(torch.cpu, "_is_amx_tile_supported", None)
+    return bool(probe()) if probe is not None else False
 
 
 def check_beamforming(mode: str) -> str:
@@ -408,14 +408,14 @@ def resolve_beamforming(mode: str, device: torch.device | str, sectors: tuple[in
     """The beamformer that runs: ``"exact"`` or ``"screened"``.
 
     Sector descriptors need the whole spectrum, so they always run ``"exact"``; ``"auto"`` runs
-    ``"screened"`` where :func:`fast_bf16` holds.
+    ``"screened"`` where :func:`prefers_screened` holds.
     """
     check_beamforming(mode)
     if sectors is not None or mode == "exact":
         return "exact"
     if mode == "screened":
         return "screened"
-    return "screened" if fast_bf16(device) else "exact"
+    return "screened" if prefers_screened(device) else "exact"
 
 
 def beamform(snapshots: torch.Tensor, tables: torch.Tensor | DictionaryTables, grid: tuple[int, int],

@@ -295,8 +295,8 @@ class SpectralPointCloud(torch.nn.Module):
         of near-ties), only the speed differs (:mod:`radarpc.dsp.beamform`). ``"exact"``: the
         whole float32 spectrum of every point. ``"screened"``: a bfloat16 GEMM with a rigorous
         error bound leaves a few candidate directions per point, evaluated exactly (fast where
-        bfloat16 GEMMs are: AMX CPUs, CUDA). ``"auto"`` (default): ``"screened"`` on such
-        devices, else ``"exact"``. Sector descriptors need the whole spectrum and always run
+        bfloat16 GEMMs are: AMX CPUs). ``"auto"`` (default): ``"screened"`` on CPUs with AMX,
+        else ``"exact"`` (CUDA is unmeasured). Sector descriptors need the whole spectrum and always run
         ``"exact"``.
 
     Examples
