@@ -407,3 +407,19 @@ def test_auto_beamforming_resolves_by_device_and_sectors():
     assert resolve_beamforming("auto", cpu, (8, 1)) == "exact"
     with pytest.raises(ValueError, match="beamforming must be one of"):
         resolve_beamforming("bf16", cpu, None)
+
+
+@pytest.mark.parametrize("grid,sectors", [((181, 5), (32, 1)), ((181, 5), (7, 2)), ((13, 1), (13, 1)),
+                                          ((13, 3), (5, 1)), ((40, 2), (1, 1)), ((9, 4), (4, 3))])
+def test_elevation_major_sector_pooling_equals_adaptive_pooling(grid, sectors):
+    from radarpc.dsp.beamform import _sector_pool_elevation_major, column_to_direction, sector_pool
+    n_az, n_el = grid
+    g = torch.Generator().manual_seed(n_az * 10 + n_el)
+    spec = torch.rand(11, n_az * n_el, generator=g)                   # direction-major (k = az n_el + el)
+    em = spec[:, column_to_direction(torch.arange(n_az * n_el), grid)]   # elevation-major columns
+    assert torch.equal(_sector_pool_elevation_major(em, grid, sectors), sector_pool(spec, grid, sectors))
+    # and against a hand computation of the sector bounds for the 181 -> 32 case
+    if grid == (181, 5) and sectors == (32, 1):
+        best = spec.reshape(11, 181, 5).amax(-1)
+        ref = torch.stack([best[:, (u * 181) // 32: -(-((u + 1) * 181) // 32)].amax(1) for u in range(32)], 1)
+        assert torch.equal(sector_pool(spec, grid, sectors), ref)

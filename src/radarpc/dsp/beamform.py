@@ -180,6 +180,18 @@ def column_to_direction(col: torch.Tensor, grid: tuple[int, int]) -> torch.Tenso
     return (col % n_az) * n_el + torch.div(col, n_az, rounding_mode="floor")
 
 
+def _sector_columns(n: int, n_sec: int, device: torch.device) -> torch.Tensor:
+    """``(L, n_sec)`` indices covering the adaptive-pooling sectors of ``n`` cells (sector ``u``:
+    ``floor(u n / n_sec) .. ceil((u + 1) n / n_sec) - 1``, shorter sectors padded with their last
+    cell), so that ``x[:, idx].amax`` over the leading ``L`` axis is :func:`F.adaptive_max_pool1d`."""
+    u = torch.arange(n_sec, device=device)
+    start = torch.div(u * n, n_sec, rounding_mode="floor")
+    end = -torch.div(-(u + 1) * n, n_sec, rounding_mode="floor")          # ceil
+    width = int((end - start).max())
+    offs = torch.arange(width, device=device)[:, None]
+    return torch.minimum(start[None, :] + offs, end[None, :] - 1)       # (L, n_sec)
+
+
 def _sector_pool_elevation_major(power: torch.Tensor, grid: tuple[int, int],
                                  sectors: tuple[int, int]) -> torch.Tensor:
     """:func:`sector_pool` of spectra whose columns are elevation-major ``(P, n_el * n_az)``."""
@@ -189,7 +201,9 @@ def _sector_pool_elevation_major(power: torch.Tensor, grid: tuple[int, int],
         raise ValueError(f"angle sectors {sectors} must be between (1, 1) and the grid {grid}")
     x = power.view(-1, n_el, n_az)
     if n_es == 1:                                                     # best elevation, then azimuth sectors
-        return F.adaptive_max_pool1d(x.amax(dim=1).unsqueeze(1), n_as).reshape(-1, n_as)
+        best = x.amax(dim=1)                                          # (P, n_az)
+        idx = _sector_columns(n_az, n_as, power.device)               # (L, n_as)
+        return best.index_select(1, idx.reshape(-1)).view(-1, idx.shape[0], n_as).amax(dim=1)
     pooled = F.adaptive_max_pool2d(x.unsqueeze(1), (n_es, n_as))      # (P, 1, n_es, n_as)
     return pooled.reshape(-1, n_es, n_as).transpose(1, 2).reshape(-1, n_as * n_es)
 
