@@ -369,6 +369,12 @@ def test_screen_error_bound_holds_and_screened_is_the_exact_argmax():
     bound = alpha * screen + beta.double().numpy()[:, None]
     assert (err <= bound).all(), f"bound violated by {float((err - bound).max())}"
     assert float((err / bound).max()) > 0.01          # the bound is not vacuous
+    # the bound also holds for this machine's own bfloat16 GEMM (the call the screen makes)
+    x16 = torch.view_as_real(v).reshape(v.shape[0], -1).to(torch.bfloat16)
+    y = torch.mm(x16, stack_real(bt).to(torch.bfloat16)).double()
+    k = bt.shape[1]
+    err_gemm = np.abs(torch.hypot(y[:, :k], y[:, k:]).numpy() - exact)
+    assert (err_gemm <= alpha * torch.hypot(y[:, :k], y[:, k:]).numpy() + beta.double().numpy()[:, None]).all()
     res = beamform_peaks_screened(v, tables, calib.grid_shape)
     picked = exact[np.arange(len(v)), res.index.numpy()]
     np.testing.assert_allclose(picked, exact.max(1), rtol=1e-6)        # the exact maximum (up to fp32 ties)

@@ -285,7 +285,8 @@ def screen_bound(snapshots: torch.Tensor, row_norm_max: float) -> tuple[float, t
     stacked form has the norm of ``B[k]``). Over the two components,
     ``alpha = u / (1 - u)`` and ``beta_j = sqrt(2) c ||v_j|| max_k ||B[k]||``; both are inflated
     by ``1e-5`` (relative) for the float32 evaluation of ``|s^|`` and of the norms, and ``beta``
-    gets an absolute ``2^-120 n max_k ||B[k]||`` for bfloat16's flush of subnormals.
+    gets an absolute ``2^-124 (n + sqrt(n) (max_k ||B[k]|| + ||v_j||))`` for GEMM kernels that
+    flush subnormal inputs, products or partial sums to zero (AMX and AVX512-BF16 do).
 
     Returns
     -------
@@ -300,7 +301,8 @@ def screen_bound(snapshots: torch.Tensor, row_norm_max: float) -> tuple[float, t
     alpha = u / (1.0 - u) * safety
     # norm of the interleaved real view: the complex-input norm is ~100x slower on CPU
     vnorm = torch.linalg.vector_norm(torch.view_as_real(snapshots.resolve_conj()).flatten(1), dim=1)
-    beta = vnorm * (math.sqrt(2.0) * c * row_norm_max * safety) + 2.0 ** -120 * n * row_norm_max
+    flush = 2.0 ** -124 * (n + math.sqrt(n) * (row_norm_max + vnorm))
+    beta = vnorm * (math.sqrt(2.0) * c * row_norm_max * safety) + flush
     return alpha, beta
 
 
