@@ -4,17 +4,20 @@
  * flattened (..., Nd, Nrx) cube; output: n_cells float32, A[c] = sum_r sqrt(re^2 + im^2).
  *
  * Every kernel computes |z| = sqrtf(re*re + im*im) with IEEE sqrt (no rsqrt approximation, no
- * fused multiply-add), exactly as torch's blocked fallback does element by element; only the
- * order of the 16-term receiver sum differs (a tree instead of a left-to-right sum), which
- * changes A by a few float32 ulps at most.
+ * fused multiply-add: setup.py passes -ffp-contract=off), exactly as torch's blocked fallback
+ * does element by element; only the order of the receiver sum differs (a tree instead of a
+ * left-to-right sum), which changes A by a few float32 ulps at most.
  *
  * Kernels (chosen at run time, see kernel_supported):
  *   scalar  any n_rx, any CPU (plain C)
- *   avx     n_rx % 8 == 0,  x86 with AVX: 8 cells per step, re/im deinterleaved in-lane,
- *           8-wide sqrt, a shuffle tree turns the 8 per-cell vectors into 8 sums
- *   avx512  n_rx % 16 == 0, x86 with AVX-512F: the same with 16 cells per step
- * The SIMD kernels are compiled only with GCC/Clang on x86 (function target attributes); MSVC,
- * ARM and other compilers get the scalar kernel. The caller releases the GIL: the entry point
+ *   avx     n_rx % 8 == 0, x86 with AVX: 8 cells per step; re/im deinterleaved in-lane (the
+ *           receiver order inside a register does not matter for the sum), 8-wide sqrt, and a
+ *           shuffle tree that turns the 8 per-cell vectors into the 8 sums
+ * The SIMD kernel is compiled only with GCC/Clang on x86 (function target attribute); MSVC,
+ * ARM and other compilers get the scalar kernel. A 16-cell AVX-512 version of the same scheme
+ * was measured no faster (slower with one thread) on a Sapphire Rapids host: with >= 2 threads
+ * the pass is bound by memory reads, with one by sqrt throughput, which is the same per float
+ * for 256- and 512-bit vectors there. The caller releases the GIL: the entry point
  * takes raw addresses so that Python threads can run disjoint cell ranges in parallel.
  */
 #define PY_SSIZE_T_CLEAN
@@ -22,21 +25,21 @@
 
 #include <math.h>
 #include <stdint.h>
+#include <string.h>
 
 #if (defined(__GNUC__) || defined(__clang__)) && (defined(__x86_64__) || defined(__i386__))
 #define RXSUM_X86_SIMD 1
 #include <immintrin.h>
 #define RXSUM_TARGET(t) __attribute__((target(t)))
-#define RXSUM_INLINE static inline __attribute__((always_inline))
 #define RXSUM_PRAGMA(x) _Pragma(#x)
 #define RXSUM_UNROLL RXSUM_PRAGMA(GCC unroll 16)
 #else
 #define RXSUM_X86_SIMD 0
 #endif
 
-enum { KERNEL_AUTO = 0, KERNEL_SCALAR = 1, KERNEL_AVX = 2, KERNEL_AVX512 = 3 };
+enum { KERNEL_AUTO = 0, KERNEL_SCALAR = 1, KERNEL_AVX = 2 };
 
-static const char *const kernel_names[] = {"auto", "scalar", "avx", "avx512"};
+static const char *const kernel_names[] = {"auto", "scalar", "avx"};
 
 /* ---------------------------------------------------------------- scalar -------------- */
 
@@ -57,7 +60,7 @@ static void rxsum_scalar(const float *x, float *out, Py_ssize_t n_cells, Py_ssiz
 /* ---------------------------------------------------------------- AVX (8 lanes) -------- */
 
 /* |z| of 8 consecutive complex values at p (any receiver order: the caller sums them). */
-RXSUM_TARGET("avx") static inline __m256 mag8(const float *p)
+RXSUM_TARGET("avx") static inline __attribute__((always_inline)) __m256 mag8(const float *p)
 {
     const __m256 a = _mm256_loadu_ps(p), b = _mm256_loadu_ps(p + 8);
     const __m256 re = _mm256_shuffle_ps(a, b, _MM_SHUFFLE(2, 0, 2, 0));
@@ -66,7 +69,7 @@ RXSUM_TARGET("avx") static inline __m256 mag8(const float *p)
 }
 
 /* Eight lane-partials of one cell: sum over its n_rx / 8 groups of 8 receivers. */
-RXSUM_TARGET("avx") static inline __m256 cell8(const float *p, Py_ssize_t groups)
+RXSUM_TARGET("avx") static inline __attribute__((always_inline)) __m256 cell8(const float *p, Py_ssize_t groups)
 {
     __m256 acc = mag8(p);
     for (Py_ssize_t g = 1; g < groups; ++g)
@@ -74,84 +77,47 @@ RXSUM_TARGET("avx") static inline __m256 cell8(const float *p, Py_ssize_t groups
     return acc;
 }
 
+/* A[c .. c+8) for the 8 cells at base. Always inlined so that the caller's constant `groups`
+ * (n_rx = 8 or 16) unrolls fully and m[] stays in registers. */
+RXSUM_TARGET("avx") static inline __attribute__((always_inline))
+void block8(const float *base, Py_ssize_t groups, float *out)
+{
+    /* The shuffle tree below leaves slot s of m[] in lane 4 (s % 2) + s / 2; loading cell
+     * order[s] into slot s puts cell l in lane l (cheaper, measured, than loading in order and
+     * permuting the result, which would also need AVX2). */
+    static const int order[8] = {0, 4, 1, 5, 2, 6, 3, 7};
+    const Py_ssize_t stride = 16 * groups;
+    __m256 m[8], t[4], u[2];
+    RXSUM_UNROLL
+    for (int s = 0; s < 8; ++s)                                      /* 8 partials per cell */
+        m[s] = cell8(base + stride * order[s], groups);
+    RXSUM_UNROLL
+    for (int k = 0; k < 4; ++k)                                      /* 4 partials, 2 cells */
+        t[k] = _mm256_add_ps(_mm256_permute2f128_ps(m[2 * k], m[2 * k + 1], 0x20),
+                             _mm256_permute2f128_ps(m[2 * k], m[2 * k + 1], 0x31));
+    RXSUM_UNROLL
+    for (int k = 0; k < 2; ++k)                                      /* 2 partials, 4 cells */
+        u[k] = _mm256_add_ps(_mm256_shuffle_ps(t[2 * k], t[2 * k + 1], _MM_SHUFFLE(2, 0, 2, 0)),
+                             _mm256_shuffle_ps(t[2 * k], t[2 * k + 1], _MM_SHUFFLE(3, 1, 3, 1)));
+    _mm256_storeu_ps(out, _mm256_add_ps(_mm256_shuffle_ps(u[0], u[1], _MM_SHUFFLE(2, 0, 2, 0)),
+                                        _mm256_shuffle_ps(u[0], u[1], _MM_SHUFFLE(3, 1, 3, 1))));
+}
+
 RXSUM_TARGET("avx")
 static void rxsum_avx(const float *x, float *out, Py_ssize_t n_cells, Py_ssize_t n_rx)
 {
-    /* The tree below leaves slot s of m[] in output lane 4 (s % 2) + s / 2; loading cell
-     * order[s] into slot s makes lane l hold cell l. */
-    static const int order[8] = {0, 4, 1, 5, 2, 6, 3, 7};
-    const Py_ssize_t stride = 2 * n_rx, groups = n_rx / 8;
+    const Py_ssize_t groups = n_rx / 8;
     Py_ssize_t c = 0;
-    for (; c + 8 <= n_cells; c += 8) {
-        const float *base = x + stride * c;
-        __m256 m[8], t[4], u[2];
-        RXSUM_UNROLL
-        for (int s = 0; s < 8; ++s)
-            m[s] = cell8(base + stride * order[s], groups);          /* 8 partials per cell */
-        RXSUM_UNROLL
-        for (int k = 0; k < 4; ++k)                                  /* 4 partials, 2 cells */
-            t[k] = _mm256_add_ps(_mm256_permute2f128_ps(m[2 * k], m[2 * k + 1], 0x20),
-                                 _mm256_permute2f128_ps(m[2 * k], m[2 * k + 1], 0x31));
-        RXSUM_UNROLL
-        for (int k = 0; k < 2; ++k)                                  /* 2 partials, 4 cells */
-            u[k] = _mm256_add_ps(_mm256_shuffle_ps(t[2 * k], t[2 * k + 1], _MM_SHUFFLE(2, 0, 2, 0)),
-                                 _mm256_shuffle_ps(t[2 * k], t[2 * k + 1], _MM_SHUFFLE(3, 1, 3, 1)));
-        _mm256_storeu_ps(out + c,                                    /* 1 sum, 8 cells */
-                         _mm256_add_ps(_mm256_shuffle_ps(u[0], u[1], _MM_SHUFFLE(2, 0, 2, 0)),
-                                       _mm256_shuffle_ps(u[0], u[1], _MM_SHUFFLE(3, 1, 3, 1))));
-    }
-    rxsum_scalar(x + stride * c, out + c, n_cells - c, n_rx);
-}
-
-/* ---------------------------------------------------------------- AVX-512 (16 lanes) --- */
-
-RXSUM_TARGET("avx512f") static inline __m512 mag16(const float *p)
-{
-    const __m512 a = _mm512_loadu_ps(p), b = _mm512_loadu_ps(p + 16);
-    const __m512 re = _mm512_shuffle_ps(a, b, _MM_SHUFFLE(2, 0, 2, 0));
-    const __m512 im = _mm512_shuffle_ps(a, b, _MM_SHUFFLE(3, 1, 3, 1));
-    return _mm512_sqrt_ps(_mm512_add_ps(_mm512_mul_ps(re, re), _mm512_mul_ps(im, im)));
-}
-
-RXSUM_TARGET("avx512f") static inline __m512 cell16(const float *p, Py_ssize_t groups)
-{
-    __m512 acc = mag16(p);
-    for (Py_ssize_t g = 1; g < groups; ++g)
-        acc = _mm512_add_ps(acc, mag16(p + 32 * g));
-    return acc;
-}
-
-RXSUM_TARGET("avx512f")
-static void rxsum_avx512(const float *x, float *out, Py_ssize_t n_cells, Py_ssize_t n_rx)
-{
-    /* The tree leaves slot s in output lane 4 (s % 4) + s / 4 (a 4x4 transpose, its own
-     * inverse): load cell order[s] into slot s so that lane l holds cell l. */
-    static const int order[16] = {0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15};
-    const Py_ssize_t stride = 2 * n_rx, groups = n_rx / 16;
-    Py_ssize_t c = 0;
-    for (; c + 16 <= n_cells; c += 16) {
-        const float *base = x + stride * c;
-        __m512 m[16], t[8], u[4], w[2];
-        RXSUM_UNROLL
-        for (int s = 0; s < 16; ++s)
-            m[s] = cell16(base + stride * order[s], groups);         /* 16 partials per cell */
-        RXSUM_UNROLL
-        for (int k = 0; k < 8; ++k)                                  /* 8 partials, 2 cells */
-            t[k] = _mm512_add_ps(_mm512_shuffle_f32x4(m[2 * k], m[2 * k + 1], _MM_SHUFFLE(1, 0, 1, 0)),
-                                 _mm512_shuffle_f32x4(m[2 * k], m[2 * k + 1], _MM_SHUFFLE(3, 2, 3, 2)));
-        RXSUM_UNROLL
-        for (int k = 0; k < 4; ++k)                                  /* 4 partials, 4 cells */
-            u[k] = _mm512_add_ps(_mm512_shuffle_f32x4(t[2 * k], t[2 * k + 1], _MM_SHUFFLE(2, 0, 2, 0)),
-                                 _mm512_shuffle_f32x4(t[2 * k], t[2 * k + 1], _MM_SHUFFLE(3, 1, 3, 1)));
-        RXSUM_UNROLL
-        for (int k = 0; k < 2; ++k)                                  /* 2 partials, 8 cells */
-            w[k] = _mm512_add_ps(_mm512_shuffle_ps(u[2 * k], u[2 * k + 1], _MM_SHUFFLE(2, 0, 2, 0)),
-                                 _mm512_shuffle_ps(u[2 * k], u[2 * k + 1], _MM_SHUFFLE(3, 1, 3, 1)));
-        _mm512_storeu_ps(out + c,                                    /* 1 sum, 16 cells */
-                         _mm512_add_ps(_mm512_shuffle_ps(w[0], w[1], _MM_SHUFFLE(2, 0, 2, 0)),
-                                       _mm512_shuffle_ps(w[0], w[1], _MM_SHUFFLE(3, 1, 3, 1))));
-    }
-    rxsum_scalar(x + stride * c, out + c, n_cells - c, n_rx);
+    if (groups == 2)                                                 /* RADIal: 16 Rx */
+        for (; c + 8 <= n_cells; c += 8)
+            block8(x + 32 * c, 2, out + c);
+    else if (groups == 1)
+        for (; c + 8 <= n_cells; c += 8)
+            block8(x + 16 * c, 1, out + c);
+    else
+        for (; c + 8 <= n_cells; c += 8)
+            block8(x + 2 * n_rx * c, groups, out + c);
+    rxsum_scalar(x + 2 * n_rx * c, out + c, n_cells - c, n_rx);
 }
 #endif /* RXSUM_X86_SIMD */
 
@@ -166,8 +132,6 @@ static int kernel_on_cpu(int kernel)
 #if RXSUM_X86_SIMD
     case KERNEL_AVX:
         return __builtin_cpu_supports("avx");
-    case KERNEL_AVX512:
-        return __builtin_cpu_supports("avx512f");
 #endif
     default:
         return 0;
@@ -180,15 +144,11 @@ static int kernel_supported(int kernel, Py_ssize_t n_rx)
         return 0;
     if (kernel == KERNEL_AVX)
         return n_rx % 8 == 0;
-    if (kernel == KERNEL_AVX512)
-        return n_rx % 16 == 0;
     return 1;
 }
 
 static int best_kernel(Py_ssize_t n_rx)
 {
-    if (kernel_supported(KERNEL_AVX512, n_rx))
-        return KERNEL_AVX512;
     if (kernel_supported(KERNEL_AVX, n_rx))
         return KERNEL_AVX;
     return KERNEL_SCALAR;
@@ -198,9 +158,6 @@ static void run_kernel(int kernel, const float *x, float *out, Py_ssize_t n_cell
 {
     switch (kernel) {
 #if RXSUM_X86_SIMD
-    case KERNEL_AVX512:
-        rxsum_avx512(x, out, n_cells, n_rx);
-        return;
     case KERNEL_AVX:
         rxsum_avx(x, out, n_cells, n_rx);
         return;
@@ -225,7 +182,7 @@ PyDoc_STRVAR(rx_magnitude_sum_doc,
 "--\n\n"
 "out[c] = sum_r |x[c, r]| for n_cells cells of n_rx complex64 values at address src, written\n"
 "as n_cells float32 at address dst. Both buffers must be valid, contiguous and not overlap;\n"
-"the GIL is released while computing. kernel: 'auto', 'scalar', 'avx' or 'avx512'.\n"
+"the GIL is released while computing. kernel: 'auto', 'scalar' or 'avx'.\n"
 "Returns the name of the kernel that ran.");
 
 static PyObject *py_rx_magnitude_sum(PyObject *self, PyObject *args)
@@ -243,14 +200,14 @@ static PyObject *py_rx_magnitude_sum(PyObject *self, PyObject *args)
     }
     int kernel = parse_kernel(name);
     if (kernel < 0) {
-        PyErr_Format(PyExc_ValueError, "kernel must be 'auto', 'scalar', 'avx' or 'avx512', got '%s'", name);
+        PyErr_Format(PyExc_ValueError, "kernel must be 'auto', 'scalar' or 'avx', got '%s'", name);
         return NULL;
     }
     if (kernel == KERNEL_AUTO) {
         kernel = best_kernel(n_rx);
     } else if (!kernel_supported(kernel, n_rx)) {
         PyErr_Format(PyExc_ValueError, "kernel '%s' is not available for n_rx=%zd on this build/CPU "
-                     "(avx needs n_rx %% 8 == 0, avx512 n_rx %% 16 == 0)", name, n_rx);
+                     "(avx needs n_rx %% 8 == 0 and an AVX CPU)", name, n_rx);
         return NULL;
     }
     if (n_cells > 0 && (src == 0 || dst == 0)) {
@@ -279,7 +236,7 @@ static PyObject *py_kernels(PyObject *self, PyObject *args)
     PyObject *out = PyList_New(0);
     if (out == NULL)
         return NULL;
-    static const int order[] = {KERNEL_AVX512, KERNEL_AVX, KERNEL_SCALAR};
+    static const int order[] = {KERNEL_AVX, KERNEL_SCALAR};
     for (size_t i = 0; i < sizeof(order) / sizeof(order[0]); ++i) {
         if (n_rx >= 1 && kernel_supported(order[i], n_rx)) {
             PyObject *s = PyUnicode_FromString(kernel_names[order[i]]);

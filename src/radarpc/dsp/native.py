@@ -33,10 +33,10 @@ try:
 except ImportError:                      # built without a compiler (setup.py: optional=True)
     _rxsum = None
 
-KERNELS = ("auto", "avx512", "avx", "scalar")
+KERNELS = ("auto", "avx", "scalar")
 """Kernel names accepted by :func:`rx_magnitude_sum_native`: ``auto`` picks the fastest one this
-CPU and ``Nrx`` allow (``avx512`` needs ``Nrx % 16 == 0``, ``avx`` ``Nrx % 8 == 0``, ``scalar``
-runs anywhere)."""
+CPU and ``Nrx`` allow (``avx``, 8 cells per step, needs an x86 CPU with AVX, a GCC/Clang build
+and ``Nrx % 8 == 0``; ``scalar`` runs anywhere)."""
 
 DISABLE_ENV = "RADARPC_NO_NATIVE"
 """Environment variable: any value other than empty or ``0`` disables the native kernel."""
@@ -45,7 +45,7 @@ DISABLE_ENV = "RADARPC_NO_NATIVE"
 # of input, so handing it to a pool thread (~tens of us) costs < 5 % of its run time.
 _MIN_CHUNK_CELLS = 1 << 14
 # Chunk boundaries fall on multiples of this many cells so every chunk but the last runs whole
-# SIMD blocks (16 cells for avx512).
+# SIMD blocks (8 cells for avx).
 _CHUNK_ALIGN = 16
 
 _pool: ThreadPoolExecutor | None = None
@@ -75,7 +75,7 @@ def native_kernels(n_rx: int = 16) -> tuple[str, ...]:
     Returns
     -------
     tuple of str
-        Subset of ``("avx512", "avx", "scalar")``; empty when the extension is unavailable.
+        Subset of ``("avx", "scalar")``; empty when the extension is unavailable.
     """
     if isinstance(n_rx, bool) or not isinstance(n_rx, int) or n_rx < 1:
         raise ValueError(f"n_rx must be an int >= 1, got {n_rx!r}")
