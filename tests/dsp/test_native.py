@@ -1,0 +1,208 @@
+"""Native RD magnitude sum vs a float64 numpy reference and the torch fallback; chunking; errors."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from radarpc.dsp import native
+from radarpc.dsp.ddma import rx_magnitude_sum
+from radarpc.dsp.native import native_available, native_kernels, native_supports, rx_magnitude_sum_native
+
+
+@pytest.fixture
+def built(monkeypatch):
+    """The extension, enabled; skip if it is not built unless RADARPC_REQUIRE_NATIVE=1 (CI)."""
+    monkeypatch.delenv(native.DISABLE_ENV, raising=False)
+    if native._rxsum is None:
+        msg = "radarpc.dsp._rxsum is not built (no C compiler at install time)"
+        if os.environ.get("RADARPC_REQUIRE_NATIVE") == "1":
+            pytest.fail(msg + " but RADARPC_REQUIRE_NATIVE=1")
+        pytest.skip(msg)
+    return native._rxsum
+
+
+def _cube(shape, seed=0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn(shape, dtype=torch.complex64, generator=g)
+
+
+def _reference(rd: torch.Tensor) -> np.ndarray:
+    """``sum_rx sqrt(re^2 + im^2)`` in float64 (the formula itself, also for inf/NaN)."""
+    x = torch.view_as_real(rd.resolve_conj()).numpy().astype(np.float64)      # (..., Nd, Nrx, 2)
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(x[..., 0] ** 2 + x[..., 1] ** 2).sum(-1)
+
+
+def _torch_fallback(rd: torch.Tensor, monkeypatch) -> torch.Tensor:
+    """ddma.rx_magnitude_sum on its torch path (native disabled, whether or not it is wired in)."""
+    with monkeypatch.context() as m:
+        m.setenv(native.DISABLE_ENV, "1")
+        return rx_magnitude_sum(rd)
+
+
+SHAPES = [
+    (1, 256, 16),          # one range row
+    (3, 37, 16),           # odd Nd, tail cells after the 8-cell blocks
+    (2, 5, 33, 16),        # batch dim
+    (2, 3, 17, 4),         # Nrx = 4 (scalar kernel)
+    (4, 9, 8),             # Nrx = 8 (one AVX group)
+    (3, 13, 5),            # odd Nrx
+    (1, 1, 16),            # a single cell
+    (2, 24),               # Nrx = 24 (three AVX groups), 2-D input
+]
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+@pytest.mark.parametrize("threads", [1, 2, 7])
+def test_matches_float64_reference_every_kernel(built, monkeypatch, shape, threads):
+    monkeypatch.setattr(native, "_MIN_CHUNK_CELLS", 1)          # split even tiny inputs into chunks
+    rd = _cube(shape, seed=len(shape) + shape[-1])
+    ref = _reference(rd)
+    for kernel in ("auto",) + native_kernels(shape[-1]):
+        a = rx_magnitude_sum_native(rd, threads=threads, kernel=kernel)
+        assert a.dtype == torch.float32 and a.shape == shape[:-1] and a.device.type == "cpu"
+        np.testing.assert_allclose(a.numpy(), ref, rtol=1e-6, atol=0, err_msg=f"kernel {kernel}")
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_matches_torch_fallback(built, monkeypatch, shape):
+    rd = _cube(shape, seed=3)
+    rd[..., 0, 0] = complex(3e19, 0.0)              # |z|^2 overflows float32 in both: inf
+    fallback = _torch_fallback(rd, monkeypatch)
+    got = rx_magnitude_sum_native(rd, threads=2)
+    assert torch.isinf(got[..., 0]).all() and torch.isinf(fallback[..., 0]).all()
+    np.testing.assert_allclose(got.numpy(), fallback.numpy(), rtol=1e-6, atol=0)
+
+
+def test_full_radial_frame_matches_fallback(built, monkeypatch):
+    rd = _cube((512, 256, 16), seed=5)
+    np.testing.assert_allclose(rx_magnitude_sum_native(rd, threads=2).numpy(),
+                               _torch_fallback(rd, monkeypatch).numpy(), rtol=1e-6, atol=0)
+
+
+def test_nan_and_inf_propagate(built, monkeypatch):
+    monkeypatch.setattr(native, "_MIN_CHUNK_CELLS", 1)
+    rd = _cube((2, 21, 16), seed=7)
+    inf, nan = float("inf"), float("nan")
+    rd[0, 0, 3] = complex(inf, 0.0)                 # inf -> inf
+    rd[0, 9, 15] = complex(0.0, -inf)
+    rd[0, 17, 0] = complex(nan, 1.0)                # NaN -> NaN
+    rd[1, 4, 2] = complex(inf, 0.0)                 # inf and NaN in one cell -> NaN
+    rd[1, 4, 7] = complex(0.0, nan)
+    rd[1, 20, 5] = complex(inf, nan)                # sqrt(inf + nan) -> NaN (the formula, not hypot)
+    ref = _reference(rd)
+    fallback = _torch_fallback(rd, monkeypatch).numpy()
+    for kernel in native_kernels(16):
+        for threads in (1, 3):
+            got = rx_magnitude_sum_native(rd, threads=threads, kernel=kernel).numpy()
+            for want in (ref, fallback):
+                np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+                np.testing.assert_array_equal(np.isposinf(got), np.isposinf(want))
+            assert np.isposinf(got[0, [0, 9]]).all() and np.isnan(got[0, 17]) and np.isnan(got[1, [4, 20]]).all()
+            fin = np.isfinite(ref)
+            np.testing.assert_allclose(got[fin], ref[fin], rtol=1e-6, atol=0)
+
+
+def test_conjugate_view_and_batch_rows_independent(built):
+    rd = _cube((3, 4, 40, 16), seed=11)
+    a = rx_magnitude_sum_native(rd)
+    assert torch.equal(rx_magnitude_sum_native(rd.conj()), a)               # |conj z| = |z|
+    assert torch.equal(rx_magnitude_sum_native(rd[1]), a[1])               # rows do not mix
+    np.testing.assert_allclose(a.numpy(), _reference(rd), rtol=1e-6, atol=0)
+
+
+def test_hand_worked_cell(built):
+    # |3+4j| + |-5+12j| + |0| + |8-15j| + |-7-24j| + 4 * |1+0j| + 8 * |0| = 5 + 13 + 0 + 17 + 25 + 4
+    vals = [3 + 4j, -5 + 12j, 0, 8 - 15j, -7 - 24j] + [1] * 4 + [0] * 7
+    rd = torch.tensor([[vals, vals[::-1]]], dtype=torch.complex64)          # (1, 2, 16)
+    for kernel in native_kernels(16):
+        assert rx_magnitude_sum_native(rd, kernel=kernel).tolist() == [[64.0, 64.0]]
+
+
+def test_empty_inputs(built):
+    assert rx_magnitude_sum_native(torch.zeros(0, 5, 16, dtype=torch.complex64)).shape == (0, 5)
+    z = rx_magnitude_sum_native(torch.ones(3, 5, 0, dtype=torch.complex64))
+    assert z.shape == (3, 5) and bool((z == 0).all())
+
+
+@pytest.mark.parametrize("n_cells,threads", [(1, 4), (15, 2), (16, 2), (330, 7), (10**6, 2), (5, 1)])
+def test_chunks_cover_cells_once(monkeypatch, n_cells, threads):
+    monkeypatch.setattr(native, "_MIN_CHUNK_CELLS", 1)
+    chunks = native._chunks(n_cells, threads)
+    assert 1 <= len(chunks) <= threads
+    assert [s for s, _ in chunks] == [sum(n for _, n in chunks[:i]) for i in range(len(chunks))]
+    assert sum(n for _, n in chunks) == n_cells and all(n > 0 for _, n in chunks)
+    assert all(s % native._CHUNK_ALIGN == 0 for s, _ in chunks)
+
+
+def test_small_inputs_are_not_split():
+    assert native._chunks(native._MIN_CHUNK_CELLS - 1, 8) == [(0, native._MIN_CHUNK_CELLS - 1)]
+    assert len(native._chunks(4 * native._MIN_CHUNK_CELLS, 8)) == 4
+
+
+def test_kernel_lists(built):
+    assert native_kernels(16)[-1] == "scalar" and native_kernels(3) == ("scalar",)
+    assert set(native_kernels(16)) <= set(native.KERNELS) - {"auto"}
+    assert built.rx_magnitude_sum(0, 0, 0, 16, "scalar") == "scalar"      # empty call: nothing read
+    with pytest.raises(ValueError, match="n_rx"):
+        native_kernels(0)
+    with pytest.raises(ValueError, match="kernel must be"):
+        built.rx_magnitude_sum(0, 0, 0, 16, "sse9")
+    with pytest.raises(ValueError, match="n_rx >= 1"):
+        built.rx_magnitude_sum(0, 0, 0, 0)
+    with pytest.raises(ValueError, match="non-null"):
+        built.rx_magnitude_sum(0, 0, 4, 16)
+
+
+def test_bad_input_errors(built):
+    good = _cube((2, 8, 16))
+    with pytest.raises(ValueError, match="torch.Tensor"):
+        rx_magnitude_sum_native(good.numpy())
+    with pytest.raises(ValueError, match="CPU"):
+        rx_magnitude_sum_native(torch.empty(2, 8, 16, dtype=torch.complex64, device="meta"))
+    with pytest.raises(ValueError, match="complex64"):
+        rx_magnitude_sum_native(good.real)
+    with pytest.raises(ValueError, match="complex64"):
+        rx_magnitude_sum_native(good.to(torch.complex128))
+    with pytest.raises(ValueError, match="ndim >= 2"):
+        rx_magnitude_sum_native(good[0, 0])
+    with pytest.raises(ValueError, match="C-contiguous"):
+        rx_magnitude_sum_native(good.transpose(0, 1))
+    for bad in (0, -1, True, 1.5):
+        with pytest.raises(ValueError, match="threads"):
+            rx_magnitude_sum_native(good, threads=bad)
+    with pytest.raises(ValueError, match="kernel must be one of"):
+        rx_magnitude_sum_native(good, kernel="avx512x")
+    if "avx" in native_kernels(16):
+        with pytest.raises(ValueError, match="cannot run here for Nrx=4"):
+            rx_magnitude_sum_native(_cube((2, 8, 4)), kernel="avx")
+
+
+def test_env_var_disables(monkeypatch):
+    monkeypatch.setenv(native.DISABLE_ENV, "1")
+    assert not native_available() and native_kernels(16) == ()
+    assert not native_supports(_cube((2, 8, 16)))
+    with pytest.raises(RuntimeError, match=r"radarpc\.dsp\._rxsum.*RADARPC_NO_NATIVE"):
+        rx_magnitude_sum_native(_cube((2, 8, 16)))
+
+
+def test_missing_extension_raises(monkeypatch):
+    monkeypatch.delenv(native.DISABLE_ENV, raising=False)
+    monkeypatch.setattr(native, "_rxsum", None)
+    assert not native_available()
+    with pytest.raises(RuntimeError, match=r"radarpc\.dsp\._rxsum is not built"):
+        rx_magnitude_sum_native(_cube((2, 8, 16)))
+
+
+def test_native_supports(built):
+    rd = _cube((2, 8, 16))
+    assert native_supports(rd) and native_supports(rd.conj())
+    assert not native_supports(rd.transpose(0, 1))
+    assert not native_supports(rd.to(torch.complex128)) and not native_supports(rd.real)
+    assert not native_supports(rd[0, 0])
+    assert not native_supports(rd.clone().requires_grad_())
+    with torch.no_grad():
+        assert native_supports(rd.clone().requires_grad_())
