@@ -208,3 +208,19 @@ def test_native_supports(built):
     assert not native_supports(rd.clone().requires_grad_())
     with torch.no_grad():
         assert native_supports(rd.clone().requires_grad_())
+
+
+def test_pool_recreated_after_fork_and_shared_by_threads(built, monkeypatch):
+    from concurrent.futures import ThreadPoolExecutor
+
+    monkeypatch.setattr(native, "_MIN_CHUNK_CELLS", 1)
+    rd = _cube((6, 40, 16), seed=13)
+    ref = rx_magnitude_sum_native(rd, threads=1)
+    rx_magnitude_sum_native(rd, threads=3)
+    pool = native._pool
+    monkeypatch.setattr(native, "_pool_pid", -1)       # as in a forked child: the pool has no threads
+    assert torch.equal(rx_magnitude_sum_native(rd, threads=3), ref)
+    assert native._pool is not pool and native._pool_pid == os.getpid()
+    with ThreadPoolExecutor(4) as callers:             # concurrent callers, growing the pool
+        outs = list(callers.map(lambda t: rx_magnitude_sum_native(rd, threads=t), [2, 5, 3, 8, 2, 6]))
+    assert all(torch.equal(o, ref) for o in outs)

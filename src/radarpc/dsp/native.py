@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from types import ModuleType
 
 import torch
@@ -50,6 +50,7 @@ _CHUNK_ALIGN = 16
 
 _pool: ThreadPoolExecutor | None = None
 _pool_workers = 0
+_pool_pid = 0
 _pool_lock = threading.Lock()
 
 
@@ -93,17 +94,22 @@ def native_supports(rd: torch.Tensor) -> bool:
             and not (rd.requires_grad and torch.is_grad_enabled()))
 
 
-def _executor(workers: int) -> ThreadPoolExecutor:
-    """The shared pool, grown (replaced) when more workers are asked for than it has."""
-    global _pool, _pool_workers
+def _submit(calls: list[tuple[int, int, int, int, str]]) -> list[Future]:
+    """Run ``_rxsum.rx_magnitude_sum(*call)`` for every call on the shared pool.
+
+    The pool is created on first use, replaced when more workers are needed, and re-created in
+    a forked child (whose copy has no worker threads). Submission holds the lock, so a pool is
+    never shut down between being looked up and being used.
+    """
+    global _pool, _pool_workers, _pool_pid
+    assert _rxsum is not None
     with _pool_lock:
-        if _pool is None or _pool_workers < workers:
-            old = _pool
-            _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="radarpc-rxsum")
-            _pool_workers = workers
-            if old is not None:
-                old.shutdown(wait=False)
-        return _pool
+        if _pool is None or _pool_workers < len(calls) or _pool_pid != os.getpid():
+            if _pool is not None and _pool_pid == os.getpid():
+                _pool.shutdown(wait=False)                  # queued work still runs
+            _pool = ThreadPoolExecutor(max_workers=len(calls), thread_name_prefix="radarpc-rxsum")
+            _pool_workers, _pool_pid = len(calls), os.getpid()
+        return [_pool.submit(_rxsum.rx_magnitude_sum, *call) for call in calls]
 
 
 def _chunks(n_cells: int, threads: int) -> list[tuple[int, int]]:
@@ -146,6 +152,20 @@ def rx_magnitude_sum_native(rd: torch.Tensor, *, threads: int | None = None,
         unknown kernel, or one this CPU / ``Nrx`` cannot run.
     RuntimeError
         The extension ``radarpc.dsp._rxsum`` is not built or is disabled by ``RADARPC_NO_NATIVE``.
+
+    Notes
+    -----
+    The pass reads the cube once and is bound by memory bandwidth with 2 threads (about the
+    speed of ``torch.view_as_real(rd).sum()``). The pool threads are not torch's: right after a
+    parallel torch op, torch's OpenMP workers keep spinning for a few milliseconds and share the
+    cores with them, which slows a call started at that moment (see
+    ``benchmarks/rx_magnitude_sum.py``, row ``native_after_torch_op``).
+
+    Examples
+    --------
+    >>> rd = torch.randn(2, 512, 256, 16, dtype=torch.complex64)          # (B, Nr, Nd, Nrx)
+    >>> rx_magnitude_sum_native(rd, threads=2).shape                      # doctest: +SKIP
+    torch.Size([2, 512, 256])
     """
     if not isinstance(rd, torch.Tensor):
         raise ValueError(f"rd must be a torch.Tensor, got {type(rd).__name__}")
@@ -179,13 +199,10 @@ def rx_magnitude_sum_native(rd: torch.Tensor, *, threads: int | None = None,
     if n_cells == 0:
         return out
     src, dst = rd.data_ptr(), out.data_ptr()                         # 8 bytes per complex, 4 per float
-    chunks = _chunks(n_cells, threads)
-    pool = _executor(len(chunks) - 1) if len(chunks) > 1 else None
-    futures = [pool.submit(_rxsum.rx_magnitude_sum, src + 8 * n_rx * s, dst + 4 * s, n, n_rx, kernel)
-               for s, n in chunks[1:]] if pool is not None else []
-    s, n = chunks[0]
+    calls = [(src + 8 * n_rx * s, dst + 4 * s, n, n_rx, kernel) for s, n in _chunks(n_cells, threads)]
+    futures = _submit(calls[1:]) if len(calls) > 1 else []
     try:
-        _rxsum.rx_magnitude_sum(src + 8 * n_rx * s, dst + 4 * s, n, n_rx, kernel)
+        _rxsum.rx_magnitude_sum(*calls[0])                           # this thread: the first chunk
     finally:
         for f in futures:                                            # wait even on error: rd/out stay alive
             f.result()
