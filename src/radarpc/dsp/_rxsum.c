@@ -27,7 +27,8 @@
 #include <stdint.h>
 #include <string.h>
 
-#if (defined(__GNUC__) || defined(__clang__)) && (defined(__x86_64__) || defined(__i386__))
+/* Define RXSUM_NO_SIMD to build only the portable scalar kernel (as on MSVC / ARM). */
+#if !defined(RXSUM_NO_SIMD) && (defined(__GNUC__) || defined(__clang__)) && (defined(__x86_64__) || defined(__i386__))
 #define RXSUM_X86_SIMD 1
 #include <immintrin.h>
 #define RXSUM_TARGET(t) __attribute__((target(t)))
