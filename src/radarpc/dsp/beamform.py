@@ -35,6 +35,8 @@ BEAMFORMING_MODES = ("auto", "exact", "screened")
 
 # Snapshots per GEMM block: the (block, n_az n_el) float32 buffers stay a few MB for RADIal.
 _BLOCK = 1024
+# The screen's bfloat16 GEMM runs on this many blocks at once (larger GEMMs run closer to peak).
+_SCREEN_GEMM_BLOCKS = 8
 
 # A snapshot whose screen leaves candidates in more azimuths than this is beamformed exactly over
 # the whole grid instead (e.g. an all-zero snapshot, whose spectrum is flat).
@@ -358,8 +360,8 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     amplitude = torch.empty(p, dtype=torch.float32, device=dev)
     heavy_rows = []
     blk = min(_BLOCK, max(p, 1))
-    x16 = torch.empty(blk, x.shape[1], dtype=torch.bfloat16, device=dev)
-    y16 = torch.empty(blk, 2 * k_dir, dtype=torch.bfloat16, device=dev)
+    gemm_rows = min(_SCREEN_GEMM_BLOCKS * blk, max(p, 1))             # one bf16 GEMM per few blocks
+    y16 = torch.empty(gemm_rows, 2 * k_dir, dtype=torch.bfloat16, device=dev)
     y32 = torch.empty(blk, 2 * k_dir, dtype=torch.float32, device=dev)
     q2_buf = torch.empty(blk, k_dir, dtype=torch.float32, device=dev)
     els = torch.arange(n_el, device=dev)
@@ -367,9 +369,11 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     with _fp32_accumulation(dev):
         for i in range(0, p, blk):
             m = min(blk, p - i)
-            x16[:m].copy_(x[i:i + m])
-            torch.mm(x16[:m], t.screen_bf16, out=y16[:m])                    # (m, 2K) [Re | Im], el-major
-            y = y32[:m].copy_(y16[:m])
+            g = i % gemm_rows
+            if g == 0:
+                rows16 = x[i:i + gemm_rows].to(torch.bfloat16)
+                torch.mm(rows16, t.screen_bf16, out=y16[:rows16.shape[0]])   # [Re | Im], el-major
+            y = y32[:m].copy_(y16[g:g + m])                                  # (m, 2K) float32
             q2 = torch.mul(y[:, :k_dir], y[:, :k_dir], out=q2_buf[:m]).addcmul_(y[:, k_dir:], y[:, k_dir:])
             bj = beta[i:i + m]
             q2_az = q2.view(m, n_el, n_az).amax(dim=1)                       # (m, n_az) best elevation
