@@ -52,6 +52,8 @@ SHAPES = [
     (3, 13, 5),            # odd Nrx
     (1, 1, 16),            # a single cell
     (2, 24),               # Nrx = 24 (three AVX groups), 2-D input
+    (3, 200, 8),           # long enough for the software-prefetch loop at every Nrx % 8 == 0
+    (301, 24),
 ]
 
 

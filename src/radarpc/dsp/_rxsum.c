@@ -104,20 +104,42 @@ void block8(const float *base, Py_ssize_t groups, float *out)
                                         _mm256_shuffle_ps(u[0], u[1], _MM_SHUFFLE(3, 1, 3, 1))));
 }
 
+/* Software prefetch into L2 this many bytes ahead of the block being summed. Measured on the
+ * 16-Rx RADIal cube: ~15 % faster than the hardware prefetchers alone with 1 and 2 threads, for
+ * any distance from 4 to 64 KB (prefetching into L1 or non-temporally was slower). */
+#define RXSUM_PREFETCH_BYTES 16384
+
+/* Sum the whole 8-cell blocks of x; returns the number of cells done. Always inlined so that
+ * the callers' constant `groups` specialises the loops. */
+RXSUM_TARGET("avx") static inline __attribute__((always_inline))
+Py_ssize_t blocks8(const float *x, float *out, Py_ssize_t n_cells, Py_ssize_t groups)
+{
+    const Py_ssize_t cell = 16 * groups;                             /* floats per cell */
+    const Py_ssize_t ahead = RXSUM_PREFETCH_BYTES / (4 * cell);      /* cells */
+    Py_ssize_t c = 0;
+    for (; c + ahead + 8 <= n_cells; c += 8) {                       /* prefetch target inside x */
+        const float *p = x + cell * (c + ahead);
+        RXSUM_UNROLL
+        for (Py_ssize_t l = 0; l < cell / 2; ++l)                    /* the block's 64-byte lines */
+            _mm_prefetch((const char *)(p + 16 * l), _MM_HINT_T1);
+        block8(x + cell * c, groups, out + c);
+    }
+    for (; c + 8 <= n_cells; c += 8)
+        block8(x + cell * c, groups, out + c);
+    return c;
+}
+
 RXSUM_TARGET("avx")
 static void rxsum_avx(const float *x, float *out, Py_ssize_t n_cells, Py_ssize_t n_rx)
 {
     const Py_ssize_t groups = n_rx / 8;
-    Py_ssize_t c = 0;
+    Py_ssize_t c;
     if (groups == 2)                                                 /* RADIal: 16 Rx */
-        for (; c + 8 <= n_cells; c += 8)
-            block8(x + 32 * c, 2, out + c);
+        c = blocks8(x, out, n_cells, 2);
     else if (groups == 1)
-        for (; c + 8 <= n_cells; c += 8)
-            block8(x + 16 * c, 1, out + c);
+        c = blocks8(x, out, n_cells, 1);
     else
-        for (; c + 8 <= n_cells; c += 8)
-            block8(x + 2 * n_rx * c, groups, out + c);
+        c = blocks8(x, out, n_cells, groups);
     rxsum_scalar(x + 2 * n_rx * c, out + c, n_cells - c, n_rx);
 }
 #endif /* RXSUM_X86_SIMD */
