@@ -4,7 +4,10 @@ The C extension :mod:`radarpc.dsp._rxsum` (built by ``setup.py`` when a compiler
 skipped otherwise) computes ``A`` in one pass over a complex64 cube: ``re``/``im`` deinterleaved
 in SIMD registers, exact IEEE ``sqrt`` of ``re^2 + im^2`` per receiver, then the receiver sum, with
 the GIL released. :func:`rx_magnitude_sum_native` splits the cells over a module-level thread
-pool; :func:`radarpc.dsp.ddma.rx_magnitude_sum` remains the reference and the fallback.
+pool; :func:`radarpc.dsp.ddma.rx_magnitude_sum` remains the reference and the fallback. On a
+2-core Sapphire Rapids VM it takes ~0.6 ms per full RADIal frame (512 x 256 x 16) with 2 threads,
+the speed of one read of the cube, against ~2.2 ms for the blocked torch code
+(``benchmarks/rx_magnitude_sum.py``).
 
 Setting the environment variable ``RADARPC_NO_NATIVE=1`` makes :func:`native_available` return
 ``False`` (checked at every call), so the torch path can be compared on the same install.
@@ -20,6 +23,7 @@ from types import ModuleType
 import torch
 
 __all__ = [
+    "DISABLE_ENV",
     "KERNELS",
     "native_available",
     "native_kernels",
@@ -113,8 +117,9 @@ def _submit(calls: list[tuple[int, int, int, int, str]]) -> list[Future]:
 
 
 def _chunks(n_cells: int, threads: int) -> list[tuple[int, int]]:
-    """``(start, count)`` cell ranges: at most ``threads``, each >= ``_MIN_CHUNK_CELLS`` cells
-    (except a single one), boundaries on multiples of ``_CHUNK_ALIGN``."""
+    """``(start, count)`` cell ranges covering ``[0, n_cells)``: at most ``threads`` of about
+    equal size, no more than ``n_cells // _MIN_CHUNK_CELLS`` (at least one), starts on multiples
+    of ``_CHUNK_ALIGN`` so that the SIMD blocks, hence the values, do not depend on ``threads``."""
     n = max(1, min(threads, n_cells // max(1, _MIN_CHUNK_CELLS)))
     step = math.ceil(math.ceil(n_cells / n) / _CHUNK_ALIGN) * _CHUNK_ALIGN
     return [(s, min(step, n_cells - s)) for s in range(0, n_cells, step)]
@@ -126,7 +131,7 @@ def rx_magnitude_sum_native(rd: torch.Tensor, *, threads: int | None = None,
 
     Same values as :func:`radarpc.dsp.ddma.rx_magnitude_sum` up to float32 rounding of the
     receiver sum (each ``|z| = sqrt(re^2 + im^2)`` is the IEEE-rounded value; the 16 terms are
-    added as a tree). NaN and inf propagate as in the reference (``inf`` in any receiver gives
+    added as a tree), bit for bit the same for any ``threads``. NaN and inf propagate as in the reference (``inf`` in any receiver gives
     ``inf``, ``NaN`` gives ``NaN``); squares beyond the float32 range overflow to ``inf``, as in
     the reference.
 
