@@ -60,7 +60,7 @@ SHAPES = [
 @pytest.mark.parametrize("shape", SHAPES)
 @pytest.mark.parametrize("threads", [1, 2, 7])
 def test_matches_float64_reference_every_kernel(built, monkeypatch, shape, threads):
-    monkeypatch.setattr(native, "_MIN_CHUNK_CELLS", 1)          # split even tiny inputs into chunks
+    monkeypatch.setattr(native, "_CHUNK_BYTES", 1)              # items of 16 cells: many, even here
     rd = _cube(shape, seed=len(shape) + shape[-1])
     ref = _reference(rd)
     for kernel in ("auto",) + native_kernels(shape[-1]):
@@ -86,7 +86,7 @@ def test_full_radial_frame_matches_fallback(built, monkeypatch):
 
 
 def test_nan_and_inf_propagate(built, monkeypatch):
-    monkeypatch.setattr(native, "_MIN_CHUNK_CELLS", 1)
+    monkeypatch.setattr(native, "_CHUNK_BYTES", 1)
     rd = _cube((2, 21, 16), seed=7)
     inf, nan = float("inf"), float("nan")
     rd[0, 0, 3] = complex(inf, 0.0)                 # inf -> inf
@@ -130,19 +130,12 @@ def test_empty_inputs(built):
     assert z.shape == (3, 5) and bool((z == 0).all())
 
 
-@pytest.mark.parametrize("n_cells,threads", [(1, 4), (15, 2), (16, 2), (330, 7), (10**6, 2), (5, 1)])
-def test_chunks_cover_cells_once(monkeypatch, n_cells, threads):
-    monkeypatch.setattr(native, "_MIN_CHUNK_CELLS", 1)
-    chunks = native._chunks(n_cells, threads)
-    assert 1 <= len(chunks) <= threads
-    assert [s for s, _ in chunks] == [sum(n for _, n in chunks[:i]) for i in range(len(chunks))]
-    assert sum(n for _, n in chunks) == n_cells and all(n > 0 for _, n in chunks)
-    assert all(s % native._CHUNK_ALIGN == 0 for s, _ in chunks)
-
-
-def test_small_inputs_are_not_split():
-    assert native._chunks(native._MIN_CHUNK_CELLS - 1, 8) == [(0, native._MIN_CHUNK_CELLS - 1)]
-    assert len(native._chunks(4 * native._MIN_CHUNK_CELLS, 8)) == 4
+@pytest.mark.parametrize("n_rx", [1, 4, 5, 16, 24, 10**6])
+def test_chunk_cells(n_rx):
+    step = native._chunk_cells(n_rx)
+    assert step >= native._CHUNK_ALIGN and step % native._CHUNK_ALIGN == 0
+    assert step * 8 * n_rx <= max(native._CHUNK_BYTES, 8 * n_rx * native._CHUNK_ALIGN)
+    assert native._chunk_cells(16) * 8 * 16 == native._CHUNK_BYTES
 
 
 def test_kernel_lists(built):
@@ -215,7 +208,7 @@ def test_native_supports(built):
 def test_pool_recreated_after_fork_and_shared_by_threads(built, monkeypatch):
     from concurrent.futures import ThreadPoolExecutor
 
-    monkeypatch.setattr(native, "_MIN_CHUNK_CELLS", 1)
+    monkeypatch.setattr(native, "_CHUNK_BYTES", 1)
     rd = _cube((6, 40, 16), seed=13)
     ref = rx_magnitude_sum_native(rd, threads=1)
     rx_magnitude_sum_native(rd, threads=3)
