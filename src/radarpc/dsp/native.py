@@ -129,10 +129,11 @@ def rx_magnitude_sum_native(rd: torch.Tensor, *, threads: int | None = None,
     """``A = sum_rx |rd|`` over the last axis with the native kernel: ``(..., Nd, Nrx) -> (..., Nd)``.
 
     Same values as :func:`radarpc.dsp.ddma.rx_magnitude_sum` up to float32 rounding of the
-    receiver sum (each ``|z| = sqrt(re^2 + im^2)`` is the IEEE-rounded value; the 16 terms are
-    added as a tree), bit for bit the same for any ``threads``. NaN and inf propagate as in the reference (``inf`` in any receiver gives
-    ``inf``, ``NaN`` gives ``NaN``); squares beyond the float32 range overflow to ``inf``, as in
-    the reference.
+    receiver sum (each ``|z| = sqrt(re^2 + im^2)`` is the IEEE-rounded value; the ``Nrx`` terms
+    are added as a tree), bit for bit the same for any ``threads``. NaN and inf propagate as in
+    the reference (``inf`` in any receiver gives ``inf``, ``NaN`` gives ``NaN``); squares beyond
+    the float32 range overflow to ``inf``, as in the reference. NaN is not rejected here: it
+    costs a pass, and :func:`radarpc.dsp.ddma.rd_envelope` checks the small envelope instead.
 
     Parameters
     ----------
