@@ -117,37 +117,45 @@ def _to_power(power: Array, nd: int) -> tuple[torch.Tensor, bool]:
         raise ValueError(f"CFAR power has {x.ndim} dims, the {nd}-D window needs at least {nd}")
     if any(s == 0 for s in x.shape):
         raise ValueError(f"CFAR power is empty, shape {tuple(x.shape)}")
-    if not bool(torch.isfinite(x).all()):
+    lo, hi = torch.aminmax(x)                       # one pass; NaN propagates into both
+    lo, hi = float(lo), float(hi)
+    if not (math.isfinite(lo) and math.isfinite(hi)):
         raise ValueError("CFAR power contains NaN or infinite values")
-    if bool((x < 0).any()):
+    if lo < 0:
         raise ValueError("CFAR power must be >= 0 (a power, not an amplitude with sign)")
     return x, is_np
 
 
 def _finish(power: torch.Tensor, noise: torch.Tensor, is_np: bool) -> CFARResult:
-    zero = torch.zeros((), dtype=power.dtype, device=power.device)
-    inf = torch.full((), math.inf, dtype=power.dtype, device=power.device)
-    snr = torch.where(noise > 0, power / noise, torch.where(power > 0, inf, zero))
-    snr = torch.where(torch.isinf(noise), zero, snr)
+    # power is finite and >= 0, noise >= 0 or +inf: IEEE division gives power / noise, +inf for
+    # power > 0 = noise and 0 for noise = inf; only 0 / 0 = NaN is set to 0. (-inf: a -0.0 noise
+    # from -0.0 powers, read as +0.)
+    snr = torch.div(power, noise).nan_to_num_(nan=0.0, posinf=math.inf, neginf=math.inf)
     if is_np:
         return CFARResult(noise=noise.cpu().numpy(), snr=snr.cpu().numpy())
     return CFARResult(noise=noise, snr=snr)
 
 
 # ---- sums over boxes of offsets, with zero outside the array ------------------------------------
-def _interval_sum(x: torch.Tensor, axis: int, lo: int, hi: int) -> torch.Tensor:
-    """``out[i] = sum_{d=lo}^{hi} x[i + d]`` along ``axis`` (0 outside the array).
+def _window_sums(x: torch.Tensor, axis: int, length: int, starts: Sequence[int]) -> list[torch.Tensor]:
+    """``[out_s for s in starts]``, ``out_s[i] = sum_{d=s}^{s+length-1} x[i + d]`` along ``axis`` (0
+    outside the array), the terms added one by one in the order of ``d`` onto ``+0``.
 
-    Shifted additions of non-negative values only: no cancellation, unlike cumulative sums.
+    Shifted additions of non-negative values only: no cancellation, unlike cumulative sums. The
+    window sums are formed once for every start from ``min(starts)`` to ``max(starts)``; each
+    ``out_s`` is a view of them.
     """
     n = x.shape[axis]
-    pad = max(abs(lo), abs(hi))
-    spec = [0, 0] * (x.ndim - 1 - axis) + [pad, pad]  # F.pad lists the last axis first
-    xp = F.pad(x, spec)
-    out = xp.narrow(axis, pad + lo, n).clone()
-    for d in range(lo + 1, hi + 1):
-        out += xp.narrow(axis, pad + d, n)
-    return out
+    lo = min(starts)
+    m = n + max(starts) - lo                                       # acc[j]: window starting at offset lo + j
+    shape = list(x.shape)
+    shape[axis] = m
+    acc = x.new_zeros(shape)
+    for d in range(lo, lo + length):                               # acc[j] += x[j + d] where inside the array
+        j0, j1 = max(0, -d), min(m, n - d)
+        if j1 > j0:
+            acc.narrow(axis, j0, j1 - j0).add_(x.narrow(axis, j0 + d, j1 - j0))
+    return [acc.narrow(axis, st - lo, n) for st in starts]
 
 
 def _ring_sum(x: torch.Tensor, w: tuple[int, ...], g: tuple[int, ...]) -> torch.Tensor:
@@ -155,27 +163,43 @@ def _ring_sum(x: torch.Tensor, w: tuple[int, ...], g: tuple[int, ...]) -> torch.
 
     The ring (window minus guard) is split into disjoint boxes: box ``i`` holds the offsets whose
     first axis outside the guard is ``i`` (inside the guard on axes ``< i``, anywhere in the
-    window on axes ``> i``), on the negative or positive side.
+    window on axes ``> i``), on the negative side (``-hw_i..-hg_i-1``) or the positive side
+    (``hg_i+1..hw_i``) of axis ``i``. Both sides are windows of the same length, summed once.
+    The box sums are added in the order ``i = 0, 1, ...``, negative side first.
     """
     nd = len(w)
     hw = [k // 2 for k in w]
     hg = [k // 2 for k in g]
     first = x.ndim - nd
-    total = torch.zeros_like(x)
+    total = None
     for i in range(nd):
         y = x
         for j in range(nd):
             if j != i:
                 h = hg[j] if j < i else hw[j]
-                y = _interval_sum(y, first + j, -h, h)
-        total += _interval_sum(y, first + i, -hw[i], -hg[i] - 1)
-        total += _interval_sum(y, first + i, hg[i] + 1, hw[i])
+                y = _window_sums(y, first + j, 2 * h + 1, [-h])[0]
+        neg, pos = _window_sums(y, first + i, hw[i] - hg[i], [-hw[i], hg[i] + 1])
+        total = neg + pos if total is None else total.add_(neg).add_(pos)
     return total
 
 
-def _valid_counts(shape: tuple[int, ...], w, g, dtype, device) -> torch.Tensor:
-    """Number of training cells inside the array, per cell of ``shape``."""
-    return _ring_sum(torch.ones(shape, dtype=dtype, device=device), w, g)
+def _valid_counts(shape: tuple[int, ...], w, g) -> np.ndarray:
+    """Number of training cells inside the array, per cell of ``shape`` (float64, on the host).
+
+    Window and guard are boxes: the valid training cells of ``c`` are the in-array window cells
+    minus the in-array guard cells, ``prod_i nw_i(c_i) - prod_i ng_i(c_i)`` with ``nw_i(c)`` the
+    number of offsets ``-hw_i..hw_i`` that stay inside axis ``i`` (exact small integers).
+    """
+    def inside(n: int, h: int) -> np.ndarray:
+        c = np.arange(n)
+        return (np.minimum(c, h) + np.minimum(n - 1 - c, h) + 1).astype(np.float64)
+
+    nw = inside(shape[0], w[0] // 2)
+    ng = inside(shape[0], g[0] // 2)
+    for i in range(1, len(shape)):
+        nw = np.multiply.outer(nw, inside(shape[i], w[i] // 2))
+        ng = np.multiply.outer(ng, inside(shape[i], g[i] // 2))
+    return nw - ng
 
 
 # ---- detectors ---------------------------------------------------------------------------------
@@ -210,9 +234,11 @@ def ca_cfar(power: Array, window: int | Sequence[int] = (9, 9),
     x, is_np = _to_power(power, len(w))
     spatial = tuple(x.shape[x.ndim - len(w):])
     total = _ring_sum(x, w, g)
-    count = _valid_counts(spatial, w, g, x.dtype, x.device)
-    inf = torch.full((), math.inf, dtype=x.dtype, device=x.device)
-    noise = torch.where(count > 0, total / count.clamp_min(1), inf)
+    count_np = _valid_counts(spatial, w, g)
+    count = torch.from_numpy(count_np).to(device=x.device, dtype=x.dtype)
+    noise = total.div_(count)                                      # mean over the valid training cells
+    if not count_np.all():                                         # cells without training cells: noise inf
+        noise = noise.masked_fill_(count == 0, math.inf)
     return _finish(x, noise, is_np)
 
 
@@ -268,7 +294,7 @@ def os_cfar(power: Array, window: int | Sequence[int], guard: int | Sequence[int
         spec += [h, h]
     xp = F.pad(x, spec, value=math.inf)  # cells outside the array sort last
     spatial = tuple(x.shape[first:])
-    n_valid = _valid_counts(spatial, w, g, x.dtype, x.device).round().long()  # (*spatial,)
+    n_valid = torch.from_numpy(_valid_counts(spatial, w, g)).to(x.device).long()  # (*spatial,)
     if isinstance(rank, (int, np.integer)):
         k_all = torch.clamp(n_valid, max=int(rank))
     else:

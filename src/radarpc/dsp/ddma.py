@@ -16,11 +16,12 @@ The DDMA hypothesis (which slot holds Tx 0) is resolved from the empty slots: th
 values ``A(r, l + s W)`` are read circularly and the window of ``n_empty_slots`` consecutive
 slots with the least mean power is the gap; the slot just before it is Tx 0's. The replica
 sum is then ``E = E_all - min_s G_s`` with ``G_s`` the window sums of that search
-(:func:`ddma_envelope` computes both at once).
+(:func:`ddma_envelope` computes both at once). The envelope needs only ``min_s G_s``; the slot
+``argmin_s G_s`` is looked up for the cells that are kept (:meth:`DDMAEnvelope.tx0_doppler`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -117,20 +118,50 @@ def check_envelope_kind(envelope: str) -> str:
     return envelope
 
 
+def _sequential_sum(terms: list[torch.Tensor], out: torch.Tensor) -> torch.Tensor:
+    """``out = ((t_0 + t_1) + t_2) + ...``: the terms added one by one, in this order."""
+    if len(terms) == 1:
+        return out.copy_(terms[0])
+    torch.add(terms[0], terms[1], out=out)
+    for t in terms[2:]:
+        out += t
+    return out
+
+
 def gap_window_sums(x: torch.Tensor, n_gap: int, dim: int = -1) -> torch.Tensor:
     """``G_s = x_{s+1} + ... + x_{s+n_gap}`` (indices mod ``n_slots``) along the slot axis ``dim``.
 
     The sums of the circular windows of ``n_gap`` consecutive slots *after* slot ``s``; the gap
-    follows Tx 0, so ``argmin_s G_s`` is Tx 0's slot. One implementation (sequential adds in the
-    same order) serves the whole-map envelope and the per-peak search, so both resolve the same
-    slot bit for bit.
+    follows Tx 0, so ``argmin_s G_s`` is Tx 0's slot. The terms are added one by one in the
+    order ``k = 1, ..., n_gap`` for every window, so the whole-map envelope and the per-peak
+    search (both use this function) resolve the same slot bit for bit. The windows that do not
+    wrap read ``x`` in place; only the ``2 n_gap - 1`` slots around the wrap are copied.
+
+    Raises
+    ------
+    ValueError
+        ``n_gap`` not in ``[1, n_slots)``.
     """
     n = x.shape[dim]
-    ext = torch.cat([x, x.narrow(dim, 0, n_gap)], dim=dim)                # circular continuation
-    out = ext.narrow(dim, 1, n).clone()
-    for k in range(2, n_gap + 1):
-        out += ext.narrow(dim, k, n)
+    if isinstance(n_gap, bool) or not isinstance(n_gap, int) or not 1 <= n_gap < n:
+        raise ValueError(f"n_gap must be an int in [1, {n}) (empty slots of {n} slots), got {n_gap!r}")
+    out = torch.empty_like(x)
+    n_in = n - n_gap                                                       # windows s < n_in do not wrap
+    _sequential_sum([x.narrow(dim, k, n_in) for k in range(1, n_gap + 1)], out.narrow(dim, 0, n_in))
+    # windows s = n_in + j read slots n_in + 1, ..., n - 1, 0, ..., n_gap - 1: tail[j + k - 1]
+    tail = torch.cat([x.narrow(dim, n_in + 1, n_gap - 1), x.narrow(dim, 0, n_gap)], dim=dim)
+    _sequential_sum([tail.narrow(dim, k, n_gap) for k in range(n_gap)], out.narrow(dim, n_in, n_gap))
     return out
+
+
+def _slot_min(g: torch.Tensor) -> torch.Tensor:
+    """``min_s g[..., s, :]`` by pairwise ``torch.minimum`` of halves (exact: a minimum does not
+    round; NaN propagates): ``(..., n, W) -> (..., W)``. Much faster than a strided reduction."""
+    while g.shape[-2] > 1:
+        n = g.shape[-2]
+        h = n // 2
+        g = torch.minimum(g.narrow(-2, 0, n - h), g.narrow(-2, h, n - h))  # odd n: slot h taken twice
+    return g.squeeze(-2)
 
 
 @dataclass
@@ -139,40 +170,65 @@ class DDMAEnvelope:
 
     Attributes
     ----------
-    mag_sum : Tensor ``(B, Nr, Nd)``      ``A = sum_rx |R|``
-    all_slots : Tensor ``(B, Nr, W)``     ``E_all``: sum over every slot (RADIal rpl.py)
-    replicas : Tensor ``(B, Nr, W)``      ``E``: sum over the ``n_tx`` replica bins (seed eq. 1)
-    tx0_slot : LongTensor ``(B, Nr, W)``  slot of the Tx-0 replica of every cell
+    mag_sum : Tensor ``(B, Nr, Nd)``           ``A = sum_rx |R|``
+    all_slots : Tensor ``(B, Nr, W)``          ``E_all``: sum over every slot (RADIal rpl.py)
+    replicas : Tensor ``(B, Nr, W)``           ``E``: sum over the ``n_tx`` replica bins (seed eq. 1)
+    gap_sums : Tensor ``(B, Nr, n_slots, W)``  ``G_s`` (:func:`gap_window_sums`) of every cell
+    tx0_slot : LongTensor ``(B, Nr, W)``       slot ``argmin_s G_s`` (first on ties) of the Tx-0
+        replica of every cell; a property, computed from ``gap_sums`` on first use
     """
 
     mag_sum: torch.Tensor
     all_slots: torch.Tensor
     replicas: torch.Tensor
-    tx0_slot: torch.Tensor
+    gap_sums: torch.Tensor
+    _tx0_slot: torch.Tensor | None = field(default=None, init=False, repr=False)
 
     def envelope(self, kind: str) -> torch.Tensor:
         """``replicas`` or ``all_slots`` by kind (:data:`ENVELOPES`)."""
         return self.replicas if check_envelope_kind(kind) == "replicas" else self.all_slots
 
+    @property
+    def tx0_slot(self) -> torch.Tensor:
+        """``argmin_s G_s`` of every cell ``(B, Nr, W)`` (first on ties), computed once."""
+        if self._tx0_slot is None:
+            self._tx0_slot = torch.min(self.gap_sums, dim=-2).indices
+        return self._tx0_slot
+
     def tx0_doppler(self, batch_idx: torch.Tensor, range_idx: torch.Tensor,
                     cons_idx: torch.Tensor) -> torch.Tensor:
-        """Full Doppler bin ``d0 = slot * W + l`` of the Tx-0 replica of cells ``(b, r, l)``: ``(P,)``."""
-        w = self.all_slots.shape[-1]
-        return self.tx0_slot[batch_idx, range_idx, cons_idx] * w + cons_idx
+        """Full Doppler bin ``d0 = s0 W + l`` of the Tx-0 replica of cells ``(b, r, l)``: ``(P,)`` long.
+
+        ``s0 = argmin_s G_s(b, r, l)`` (first on ties). For a few cells (at most half the map)
+        the ``n_slots`` sums of each cell are gathered and searched; for more, the whole map
+        :attr:`tx0_slot` is computed once and indexed. Both give the same slots.
+        """
+        _, n_range, n_slots, w = self.gap_sums.shape
+        l = cons_idx.long()
+        if 2 * l.numel() > self.all_slots.numel() or self._tx0_slot is not None:
+            slot = self.tx0_slot[batch_idx, range_idx, cons_idx]
+        else:
+            row = torch.add(range_idx.long(), batch_idx.long(), alpha=n_range)     # b Nr + r, (P,)
+            first = torch.add(l, row, alpha=n_slots * w)                          # flat index of G_0(b, r, l)
+            cols = first.unsqueeze(-1) + torch.arange(0, n_slots * w, w, device=l.device)  # (P, n_slots)
+            slot = torch.min(self.gap_sums.take(cols), dim=1).indices
+        return torch.add(l, slot, alpha=w)
 
 
 def ddma_envelope(a: torch.Tensor, cfg: DDMARadarConfig) -> DDMAEnvelope:
-    """Both envelopes and the Tx-0 slot of every consolidated cell from ``A`` ``(B, Nr, Nd)``.
+    """Both envelopes and the gap sums of every consolidated cell from ``A`` ``(B, Nr, Nd)``.
 
-    ``x_s = A(r, s W + l)``, ``G_s`` = :func:`gap_window_sums`, ``s0 = argmin_s G_s`` (first on
-    ties, as :func:`resolve_tx0_doppler`), ``E_all = sum_s x_s`` and ``E = E_all - G_{s0}``: the
-    sum over the ``n_tx`` slots ``s0 + tx_slots`` (the replica bins ``T(r, l)``).
+    ``x_s = A(r, s W + l)``, ``G_s`` = :func:`gap_window_sums`, ``E_all = sum_s x_s`` and
+    ``E = E_all - min_s G_s``: the sum over the ``n_tx`` slots ``s0 + tx_slots`` with
+    ``s0 = argmin_s G_s`` (first on ties, as :func:`resolve_tx0_doppler`), i.e. the replica bins
+    ``T(r, l)``. The slots ``s0`` themselves are looked up on demand
+    (:meth:`DDMAEnvelope.tx0_doppler`, :attr:`DDMAEnvelope.tx0_slot`).
     """
     x = a.reshape(a.shape[:-1] + (cfg.n_slots, cfg.slot_width))            # (B, Nr, n_slots, W)
     e_all = x.sum(-2)                                                       # (B, Nr, W)
     g = gap_window_sums(x, cfg.n_empty_slots, dim=-2)                       # (B, Nr, n_slots, W)
-    g_min, slot = torch.min(g, dim=-2)                                      # (B, Nr, W) each
-    return DDMAEnvelope(mag_sum=a, all_slots=e_all, replicas=(e_all - g_min).clamp_min_(0.0), tx0_slot=slot)
+    e = torch.sub(e_all, _slot_min(g)).clamp_min_(0.0)                      # (B, Nr, W)
+    return DDMAEnvelope(mag_sum=a, all_slots=e_all, replicas=e, gap_sums=g)
 
 
 def rd_envelope(rd: torch.Tensor, cfg: DDMARadarConfig, envelope: str = "replicas") -> torch.Tensor:
@@ -201,7 +257,8 @@ def rd_envelope(rd: torch.Tensor, cfg: DDMARadarConfig, envelope: str = "replica
 
 def check_finite_envelope(e: torch.Tensor) -> None:
     """NaN or inf anywhere in a cube propagates into its envelope: check the small map."""
-    bad = ~torch.isfinite(e).flatten(1).all(dim=1)
+    lo, hi = torch.aminmax(e.flatten(1), dim=1)                    # NaN propagates into both
+    bad = ~(torch.isfinite(lo) & torch.isfinite(hi))               # (B,)
     if bool(bad.any()):
         frames = torch.nonzero(bad).flatten().tolist()
         raise ValueError(f"rd contains NaN or infinite values (or overflows float) in frame(s) "
@@ -255,9 +312,15 @@ def resolve_tx0_doppler(rd_mag_sum: torch.Tensor, cfg: DDMARadarConfig, range_id
 
 
 def replica_bins(cfg: DDMARadarConfig, d0: torch.Tensor) -> torch.Tensor:
-    """The ``M = n_tx`` full-Doppler bins ``(d0 + doppler_offsets) mod N_D`` in Tx order: ``(P, n_tx)``."""
+    """The ``M = n_tx`` full-Doppler bins ``(d0 + doppler_offsets) mod N_D`` in Tx order: ``(P, n_tx)`` long.
+
+    Row ``d0 mod N_D`` of the table ``(d + doppler_offsets) mod N_D``, ``d = 0..N_D-1``, is
+    gathered (a modulo per peak instead of one per peak and Tx).
+    """
     off = torch.as_tensor(cfg.doppler_offsets, device=d0.device)
-    return (d0.long().unsqueeze(-1) + off) % cfg.n_doppler
+    d = torch.arange(cfg.n_doppler, device=d0.device)
+    table = (d.unsqueeze(-1) + off).remainder_(cfg.n_doppler)      # (N_D, n_tx)
+    return table.index_select(0, d0.long().remainder(cfg.n_doppler))
 
 
 def virtual_snapshots(rd: torch.Tensor, cfg: DDMARadarConfig, batch_idx: torch.Tensor | None,
@@ -274,9 +337,9 @@ def virtual_snapshots(rd: torch.Tensor, cfg: DDMARadarConfig, batch_idx: torch.T
             raise ValueError(f"batch_idx is required for a batch of {rd.shape[0]} frames")
         batch_idx = torch.zeros_like(range_idx)
     bins = replica_bins(cfg, d0)                                   # (P, n_tx)
-    row = batch_idx.long() * cfg.n_range + range_idx.long()        # (P,) index of (b, r)
     if rd.is_contiguous():                                         # row gather: fast on CPU and GPU
-        flat = (row.unsqueeze(-1) * cfg.n_doppler + bins).reshape(-1)
+        row = torch.add(range_idx.long(), batch_idx.long(), alpha=cfg.n_range)           # (P,) b Nr + r
+        flat = torch.add(bins, row.unsqueeze(-1), alpha=cfg.n_doppler).reshape(-1)      # (P * n_tx,)
         v = rd.view(-1, rd.shape[-1]).index_select(0, flat)        # (P * n_tx, n_rx)
     else:
         v = rd[batch_idx.long().unsqueeze(-1), range_idx.long().unsqueeze(-1), bins]  # (P, n_tx, n_rx)

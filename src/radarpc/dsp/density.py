@@ -23,7 +23,6 @@ threshold exactly from the order statistics of ``D`` (no bisection tolerance).
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
 from radarpc.sensors.radial import DDMARadarConfig
 
@@ -88,8 +87,27 @@ def neighbourhood_snr(snr: torch.Tensor, n: int) -> torch.Tensor:
     _check_maps(snr, "snr")
     if not snr.is_floating_point():
         raise ValueError(f"snr must be a real floating-point SNR map, got {snr.dtype}")
-    # max_pool2d pads with -inf: cells outside the grid never win the max (truncation of eq. 8)
-    return F.max_pool2d(snr.unsqueeze(1), n, stride=1, padding=n // 2).squeeze(1)
+    return _box_max(snr, n // 2)
+
+
+def _box_max(x: torch.Tensor, h: int) -> torch.Tensor:
+    """Max of ``x`` over the ``(2h + 1) x (2h + 1)`` box around every cell of the last two axes,
+    truncated at the borders (cells outside the grid never win), NaN propagating.
+
+    Separable: the max over the Doppler offsets, then over the range offsets, each as ``2h``
+    shifted ``torch.maximum`` into the overlapping slice. Exact (a maximum does not round) and the
+    same values as ``max_pool2d`` with ``-inf`` padding, several times faster on these thin maps.
+    """
+    out = x
+    for axis in (-1, -2):
+        src = out
+        out = src.clone()
+        n = src.shape[axis]
+        for d in range(1, min(h, n - 1) + 1):
+            head, tail = out.narrow(axis, 0, n - d), out.narrow(axis, d, n - d)
+            torch.maximum(tail, src.narrow(axis, 0, n - d), out=tail)    # neighbour at offset -d
+            torch.maximum(head, src.narrow(axis, d, n - d), out=head)    # neighbour at offset +d
+    return out
 
 
 def neighbourhood_mask(peaks: torch.Tensor, n: int) -> torch.Tensor:
@@ -110,8 +128,8 @@ def neighbourhood_mask(peaks: torch.Tensor, n: int) -> torch.Tensor:
     _check_maps(peaks, "peaks")
     if peaks.dtype != torch.bool:
         raise ValueError(f"peaks must be a bool mask, got {peaks.dtype}")
-    x = peaks.unsqueeze(1).to(torch.float32)                                   # (B, 1, Nr, W)
-    return F.max_pool2d(x, n, stride=1, padding=n // 2).squeeze(1) > 0
+    # dilation = box max of the 0/1 bytes (the same bytes viewed back as bool)
+    return _box_max(peaks.view(torch.uint8), n // 2).view(torch.bool)
 
 
 def density_of_mask(mask: torch.Tensor, cfg: DDMARadarConfig) -> torch.Tensor:
@@ -171,16 +189,17 @@ def _closest_count_threshold(values: torch.Tensor, m: int) -> torch.Tensor:
     """
     g, total = values.shape
     if m <= 0:
-        return values.max(dim=1).values                                       # nothing exceeds the max
+        return values.amax(dim=1)                                             # nothing exceeds the max
     if m >= total:
-        return _below(values.min(dim=1).values)
-    v = torch.kthvalue(values, total - m + 1, dim=1).values                   # m-th largest, (G,)
+        return _below(values.amin(dim=1))
+    v = torch.topk(values, m, dim=1, sorted=False).values.amin(dim=1)        # m-th largest, (G,)
     vv = v[:, None]
-    c_hi = (values >= vv).sum(1)                                              # (G,)
-    c_lo = (values > vv).sum(1)
-    inf = torch.full_like(values, float("inf"))
-    above = torch.where(values > vv, values, inf).min(dim=1).values           # next larger value (inf: none)
-    below = torch.where(values < vv, values, -inf).max(dim=1).values          # next smaller value (-inf: none)
+    gt = values > vv                                                          # (G, N)
+    ge = values >= vv
+    c_lo = gt.sum(1)                                                          # (G,)
+    c_hi = ge.sum(1)
+    above = values.masked_fill(~gt, float("inf")).amin(dim=1)                # next larger value (inf: none)
+    below = values.masked_fill(ge, float("-inf")).amax(dim=1)                 # next smaller value (-inf: none)
     tau_lo = torch.where(torch.isinf(above), v, _between(above, v))           # keeps c_lo cells
     tau_hi = torch.where(torch.isinf(below), _below(v), _between(v, below))   # keeps c_hi cells
     return torch.where((c_hi - m) < (m - c_lo), tau_hi, tau_lo)
@@ -234,7 +253,7 @@ def tau_for_density(snr_batch: torch.Tensor, cfg: DDMARadarConfig, target: float
         snr_batch = snr_batch.unsqueeze(0)
     if snr_batch.ndim != 3 or tuple(snr_batch.shape[1:]) != (cfg.n_range, cfg.slot_width):
         raise ValueError(f"snr_batch must be (B, {cfg.n_range}, {cfg.slot_width}), got {tuple(snr_batch.shape)}")
-    if snr_batch.is_complex() or bool(torch.isnan(snr_batch).any()):
+    if snr_batch.is_complex() or bool(torch.isnan(snr_batch.amax())):   # amax propagates NaN
         raise ValueError("snr_batch must be real without NaN")
     cells = cfg.n_range * cfg.slot_width
     n = int(round(target * cfg.n_range * cfg.n_doppler / cfg.n_tx))
@@ -248,9 +267,12 @@ def tau_for_density(snr_batch: torch.Tensor, cfg: DDMARadarConfig, target: float
     if mode == "per-frame":
         flat = snr_batch.flatten(1)                                          # (B, cells)
         if n >= cells:
-            return _below(flat.min(dim=1).values)
-        top = torch.topk(flat, n + 1, dim=1, largest=True, sorted=True).values  # (B, n + 1)
-        return _midpoint_threshold(top, n)
+            return _below(flat.amin(dim=1))
+        if n == 0:
+            return flat.amax(dim=1)
+        top = torch.topk(flat, n + 1, dim=1, sorted=False).values            # the n + 1 largest, (B, n + 1)
+        lo_hi = torch.topk(top, 2, dim=1, largest=False, sorted=True).values  # (n+1)-th and n-th largest
+        return _midpoint_threshold(lo_hi.flip(1), 1)
     flat = snr_batch.flatten()
     total = flat.numel()
     m = int(round(target * snr_batch.shape[0] * cfg.n_range * cfg.n_doppler / cfg.n_tx))
