@@ -155,3 +155,78 @@ def test_os_cfar_blocked_equals_unblocked(monkeypatch):
     ref, _ = _brute(p[1].numpy(), (5, 3, 3), (3, 1, 1),
                     lambda v: np.sort(v)[max(1, math.ceil(0.6 * len(v))) - 1])
     np.testing.assert_array_equal(blocked.noise[1].numpy(), ref)
+
+
+def _ordered_ring_sum(p: np.ndarray, cell: tuple[int, ...], window, guard) -> np.float32:
+    """The training sum of ``cell`` in float32, added in the documented order: box ``i`` (first
+    axis outside the guard) negative side then positive side, ``i = 0, 1, ...``; inside a box the
+    axes ``j != i`` are summed innermost-first in axis order (guard extent for ``j < i``, window
+    extent for ``j > i``), then axis ``i``; every sum runs over ascending offsets, cells outside
+    the array skipped."""
+    nd = p.ndim
+    hw = [w // 2 for w in window]
+    hg = [g // 2 for g in guard]
+
+    def nested(c: list[int], axes: list[tuple[int, range]]) -> np.float32:
+        if not axes:
+            return p[tuple(c)]
+        (ax, offs), rest = axes[0], axes[1:]
+        acc = np.float32(0.0)
+        for o in offs:
+            q = list(c)
+            q[ax] += o
+            if 0 <= q[ax] < p.shape[ax]:
+                acc = np.float32(acc + nested(q, rest))
+        return acc
+
+    total = np.float32(0.0)
+    for i in range(nd):
+        inner = [(j, range(-hg[j], hg[j] + 1) if j < i else range(-hw[j], hw[j] + 1)) for j in range(nd) if j != i]
+        for side in (range(-hw[i], -hg[i]), range(hg[i] + 1, hw[i] + 1)):
+            axes = [(i, side)] + inner[::-1]                  # outermost first: axis i, then the last summed
+            total = np.float32(total + nested(list(cell), axes))
+    return total
+
+
+@pytest.mark.parametrize("shape,window,guard", CASES + [((9, 6), (7, 5), (3, 3))])
+@pytest.mark.parametrize("kind", ["random", "ties"])
+def test_ca_cfar_float32_bitwise_against_ordered_sum(shape, window, guard, kind):
+    # not just close: the float32 noise is the ordered training sum divided by the valid count
+    rng = np.random.default_rng(5)
+    p = rng.exponential(size=shape).astype(np.float32) * 100
+    if kind == "ties":
+        p = np.floor(p / 50).astype(np.float32)                      # zeros and repeated values
+    res = ca_cfar(torch.from_numpy(p), window, guard)
+    for cell in itertools.product(*[range(n) for n in shape]):
+        count = np.float32(len(_training_values(p, cell, window, guard)))
+        noise = np.float32(_ordered_ring_sum(p, cell, window, guard) / count)
+        assert res.noise[cell].item() == noise, cell
+        with np.errstate(divide="ignore", invalid="ignore"):
+            snr = np.float32(p[cell] / noise)
+        snr = np.float32(0.0) if np.isnan(snr) else snr              # 0 / 0
+        assert res.snr[cell].item() == snr, cell
+
+
+def test_cells_without_training_cells():
+    # 1-D, window 5 and guard 3: in an array of 2 every window cell is a guard cell
+    res = ca_cfar(torch.tensor([1.0, 2.0]), 5, 3)
+    assert torch.equal(res.noise, torch.full((2,), math.inf)) and torch.equal(res.snr, torch.zeros(2))
+    # 2-D: only the centre of a 4 x 3 array with a 7 x 7 window and 5 x 5 guard has none
+    p = torch.arange(1.0, 13.0).reshape(4, 3)
+    res = ca_cfar(p, (7, 7), (5, 5))
+    for cell in itertools.product(range(4), range(3)):
+        vals = _training_values(p.numpy(), cell, (7, 7), (5, 5))
+        if len(vals) == 0:
+            assert res.noise[cell] == math.inf and res.snr[cell] == 0
+        else:
+            assert res.noise[cell].item() == pytest.approx(vals.mean(), rel=1e-6)
+    assert bool(torch.isinf(res.noise).any())
+    os_res = os_cfar(p, (7, 7), (5, 5), 1)
+    assert torch.equal(torch.isinf(os_res.noise), torch.isinf(res.noise))
+
+
+def test_infinite_power_is_rejected():
+    p = torch.ones(20, 20)
+    p[3, 4] = math.inf
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        ca_cfar(p)

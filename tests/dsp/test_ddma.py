@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from radarpc.dsp.ddma import (check_rd, ddma_envelope, rd_envelope, replica_bins, resolve_tx0_doppler,
-                              rx_magnitude_sum, virtual_snapshots)
+from radarpc.dsp.ddma import (check_finite_envelope, check_rd, ddma_envelope, gap_window_sums, rd_envelope,
+                              replica_bins, resolve_tx0_doppler, rx_magnitude_sum, virtual_snapshots)
 from radarpc.sensors.radial import RADIAL_S, TINY
 from radarpc.sim.rd import Scatterers, synthesize_rd
 
@@ -134,3 +134,80 @@ def test_bad_cubes():
     rd[2, 5, 5, 1] = complex(float("nan"), 0.0)
     with pytest.raises(ValueError, match=r"NaN.*\[2\]"):
         rd_envelope(rd, TINY)
+
+
+def _gap_reference(x: torch.Tensor, n_gap: int) -> torch.Tensor:
+    """G_s over the last axis, terms added one by one in the order k = 1..n_gap (the definition)."""
+    n = x.shape[-1]
+    cols = []
+    for s in range(n):
+        acc = x[..., (s + 1) % n].clone()
+        for k in range(2, n_gap + 1):
+            acc = acc + x[..., (s + k) % n]
+        cols.append(acc)
+    return torch.stack(cols, dim=-1)
+
+
+@pytest.mark.parametrize("n,n_gap", [(4, 1), (4, 2), (4, 3), (16, 4), (16, 1), (16, 15), (7, 3)])
+def test_gap_window_sums_bitwise_sequential(n, n_gap):
+    g = torch.Generator().manual_seed(n * 31 + n_gap)
+    x = torch.rand(3, 5, n, generator=g) * 1e3
+    x[0] = x[0].round()                                               # ties
+    ref = _gap_reference(x, n_gap)
+    assert torch.equal(gap_window_sums(x, n_gap, dim=-1), ref)
+    # along a middle axis (the envelope's layout)
+    xt = x.transpose(-1, -2).contiguous()                             # (3, n, 5)
+    assert torch.equal(gap_window_sums(xt, n_gap, dim=-2), ref.transpose(-1, -2))
+
+
+def test_gap_window_sums_bad_gap():
+    x = torch.ones(2, 4)
+    for bad in (0, 4, 5, 2.0):
+        with pytest.raises(ValueError, match=r"n_gap must be an int in \[1, 4\)"):
+            gap_window_sums(x, bad)
+
+
+@pytest.mark.parametrize("cfg", [TINY, RADIAL_S])
+@pytest.mark.parametrize("kind", ["random", "ties", "zeros"])
+def test_envelope_and_tx0_bitwise_against_direct_search(cfg, kind):
+    # E and every Tx-0 slot against the plain search: G_s by definition, torch.min over the slots
+    g = torch.Generator().manual_seed(7)
+    a = torch.rand(3, cfg.n_range, cfg.n_doppler, generator=g) * 4
+    if kind == "ties":
+        a = a.floor()                                                 # integers 0..3: many equal G_s
+    elif kind == "zeros":
+        a = a * (a > 3.5)                                             # noise-free cube: mostly G_s = 0
+    x = a.reshape(3, cfg.n_range, cfg.n_slots, cfg.slot_width).transpose(-1, -2)   # (B, Nr, W, n_slots)
+    gmin, slot = torch.min(_gap_reference(x, cfg.n_empty_slots), dim=-1)            # first on ties
+    e_all = a.reshape(3, cfg.n_range, cfg.n_slots, cfg.slot_width).sum(-2)
+    env = ddma_envelope(a, cfg)
+    assert torch.equal(env.all_slots, e_all)
+    assert torch.equal(env.replicas, (e_all - gmin).clamp_min(0.0))
+    d0_map = slot * cfg.slot_width + torch.arange(cfg.slot_width)
+    # few cells (gathered per cell), many cells (whole map), then the cached whole map
+    for frac in (0.1, 0.8, 0.1):
+        kept = torch.rand(3, cfg.n_range, cfg.slot_width, generator=g) < frac
+        b, r, l = torch.nonzero(kept, as_tuple=True)
+        d0 = env.tx0_doppler(b, r, l)
+        assert d0.dtype == torch.long and torch.equal(d0, d0_map[b, r, l])
+        assert torch.equal(resolve_tx0_doppler(a, cfg, r, l, b), d0)
+    assert torch.equal(env.tx0_slot, slot)
+    fresh = ddma_envelope(a, cfg)
+    assert torch.equal(fresh.tx0_doppler(b, r, l), d0_map[b, r, l])   # per-cell path on a fresh map
+
+
+def test_replica_bins_any_integer_d0():
+    cfg = RADIAL_S
+    d0 = torch.tensor([-1, 0, 63, 64, 200, -70])
+    ref = [[(d + int(o)) % cfg.n_doppler for o in cfg.doppler_offsets] for d in d0.tolist()]
+    assert replica_bins(cfg, d0).tolist() == ref
+    assert replica_bins(cfg, d0.int()).dtype == torch.long
+
+
+def test_finite_envelope_check_names_frames():
+    e = torch.ones(4, 8, 3)
+    check_finite_envelope(e)
+    e[1, 2, 0] = float("inf")
+    e[3, 0, 2] = float("nan")
+    with pytest.raises(ValueError, match=r"frame\(s\) \[1, 3\]"):
+        check_finite_envelope(e)

@@ -258,3 +258,67 @@ def test_peak_density_without_enrichment_is_density(sim_frames):
     rd, calib, _ = sim_frames
     c = SpectralPointCloud(RADIAL_S, calib, density=0.057, enrich=("sector8",))(rd[:2])
     torch.testing.assert_close(c.peak_density, c.density)
+
+
+# ---- the fast paths against direct references: borders, ties, tiny grids -------------------------
+@pytest.mark.parametrize("n", [3, 5, 7])
+@pytest.mark.parametrize("shape", [(2, 64, 8), (1, 3, 2), (2, 1, 5)])
+def test_neighbourhood_maps_equal_max_pool(n, shape):
+    import torch.nn.functional as F
+    g = torch.Generator().manual_seed(n)
+    snr = (torch.rand(shape, generator=g, dtype=torch.float64) * 4).floor()      # many ties
+    ref = F.max_pool2d(snr.unsqueeze(1), n, stride=1, padding=n // 2).squeeze(1)   # -inf padding
+    assert torch.equal(neighbourhood_snr(snr, n), ref)
+    peaks = snr > 2
+    ref_mask = F.max_pool2d(peaks.unsqueeze(1).float(), n, stride=1, padding=n // 2).squeeze(1) > 0
+    got = neighbourhood_mask(peaks, n)
+    assert got.dtype == torch.bool and torch.equal(got, ref_mask)
+    if n // 2 < min(shape[1:]):
+        np.testing.assert_array_equal(got.numpy(), _np_dilate(peaks.numpy(), n))
+    snr[0, 0, 0] = float("nan")                                           # NaN spreads like max_pool's
+    ref = F.max_pool2d(snr.unsqueeze(1), n, stride=1, padding=n // 2).squeeze(1)
+    torch.testing.assert_close(neighbourhood_snr(snr, n), ref, rtol=0, atol=0, equal_nan=True)
+
+
+@pytest.mark.parametrize("kind", ["random", "ties"])
+def test_per_frame_tau_is_the_sorted_midpoint(kind):
+    cfg = TINY
+    g = torch.Generator().manual_seed(11)
+    snr = torch.rand(3, cfg.n_range, cfg.slot_width, generator=g) * 10
+    if kind == "ties":
+        snr = snr.floor()
+    for target in (1e-4, 0.01, 0.1, 0.3, 0.5):
+        n = round(target * cfg.n_range * cfg.n_doppler / cfg.n_tx)
+        tau = tau_for_density(snr, cfg, target)
+        for b in range(3):
+            s = torch.sort(snr[b].flatten(), descending=True).values
+            if n == 0:
+                want = s[0]                                                # nothing passes
+            elif n >= s.numel():                                           # every cell passes
+                want = 0.5 * s[-1] if s[-1] > 0 else torch.tensor(-1.0)
+            else:
+                hi, lo = s[n - 1], s[n]
+                want = 0.5 * (hi + lo) if 0.5 * (hi + lo) < hi else lo
+            assert tau[b].item() == want.item(), (target, b)
+            count = int((snr[b] > tau[b]).sum())
+            assert count == n or (kind == "ties" and count <= n)
+
+
+@pytest.mark.parametrize("mode", DENSITY_MODES)
+def test_enriched_controller_closest_count_with_ties(mode):
+    # integer SNRs: D has large plateaus, so |P*| jumps; the count is still the closest reachable one
+    cfg = TINY
+    g = torch.Generator().manual_seed(4)
+    snr = (torch.rand(2, cfg.n_range, cfg.slot_width, generator=g) ** 4 * 8).floor().double()
+    for target in (0.005, 0.02, 0.1, 0.4):
+        tau = tau_for_density(snr, cfg, target, mode=mode, neighbourhood=3)
+        got = neighbourhood_mask(snr > tau.reshape(-1, 1, 1), 3)
+        if mode == "per-frame":
+            m = round(target * cfg.n_range * cfg.n_doppler / cfg.n_tx)
+            for b in range(2):
+                assert int(got[b].sum()) == _closest(_reachable_counts(snr[b].numpy(), 3), m)
+        else:
+            m = round(target * 2 * cfg.n_range * cfg.n_doppler / cfg.n_tx)
+            u = np.unique(snr.numpy())
+            pooled = _np_dilate(snr.numpy()[None] > u[:, None, None, None], 3).reshape(len(u), -1).sum(1)
+            assert int(got.sum()) == _closest(np.unique(np.append(pooled, snr.numel())), m)
