@@ -183,23 +183,24 @@ def _ring_sum(x: torch.Tensor, w: tuple[int, ...], g: tuple[int, ...]) -> torch.
     return total
 
 
-def _valid_counts(shape: tuple[int, ...], w, g) -> np.ndarray:
-    """Number of training cells inside the array, per cell of ``shape`` (float64, on the host).
+def _valid_counts(shape: tuple[int, ...], w, g, dtype: type = np.float64) -> np.ndarray:
+    """Number of training cells inside the array, per cell of ``shape`` (numpy ``dtype``, on the host).
 
     Window and guard are boxes: the valid training cells of ``c`` are the in-array window cells
     minus the in-array guard cells, ``prod_i nw_i(c_i) - prod_i ng_i(c_i)`` with ``nw_i(c)`` the
     number of offsets ``-hw_i..hw_i`` that stay inside axis ``i`` (exact small integers).
     """
     def inside(n: int, h: int) -> np.ndarray:
-        c = np.arange(n)
-        return (np.minimum(c, h) + np.minimum(n - 1 - c, h) + 1).astype(np.float64)
+        c = np.arange(n, dtype=dtype)
+        return np.minimum(c, h) + np.minimum(c[::-1], h) + 1
 
     nw = inside(shape[0], w[0] // 2)
     ng = inside(shape[0], g[0] // 2)
     for i in range(1, len(shape)):
         nw = np.multiply.outer(nw, inside(shape[i], w[i] // 2))
         ng = np.multiply.outer(ng, inside(shape[i], g[i] // 2))
-    return nw - ng
+    nw -= ng
+    return nw
 
 
 # ---- detectors ---------------------------------------------------------------------------------
@@ -234,8 +235,8 @@ def ca_cfar(power: Array, window: int | Sequence[int] = (9, 9),
     x, is_np = _to_power(power, len(w))
     spatial = tuple(x.shape[x.ndim - len(w):])
     total = _ring_sum(x, w, g)
-    count_np = _valid_counts(spatial, w, g)
-    count = torch.from_numpy(count_np).to(device=x.device, dtype=x.dtype)
+    count_np = _valid_counts(spatial, w, g, np.float32 if x.dtype == torch.float32 else np.float64)
+    count = torch.from_numpy(count_np).to(device=x.device, dtype=x.dtype)  # a no-op for float32 on CPU
     noise = total.div_(count)                                      # mean over the valid training cells
     if not count_np.all():                                         # cells without training cells: noise inf
         noise = noise.masked_fill_(count == 0, math.inf)

@@ -50,6 +50,8 @@ every slot (empty slots included)."""
 
 # Rows of the (B * Nr) axis processed per block on CPU: keeps the |.| intermediates in cache.
 _CPU_BLOCK_BYTES = 1 << 21
+# Bytes of A per block of the envelope on CPU (a block's slot sums G_s stay in cache).
+_ENVELOPE_BLOCK_BYTES = 1 << 21
 
 
 def check_rd(rd: torch.Tensor, cfg: DDMARadarConfig) -> torch.Tensor:
@@ -128,7 +130,7 @@ def _sequential_sum(terms: list[torch.Tensor], out: torch.Tensor) -> torch.Tenso
     return out
 
 
-def gap_window_sums(x: torch.Tensor, n_gap: int, dim: int = -1) -> torch.Tensor:
+def gap_window_sums(x: torch.Tensor, n_gap: int, dim: int = -1, *, out: torch.Tensor | None = None) -> torch.Tensor:
     """``G_s = x_{s+1} + ... + x_{s+n_gap}`` (indices mod ``n_slots``) along the slot axis ``dim``.
 
     The sums of the circular windows of ``n_gap`` consecutive slots *after* slot ``s``; the gap
@@ -136,6 +138,7 @@ def gap_window_sums(x: torch.Tensor, n_gap: int, dim: int = -1) -> torch.Tensor:
     order ``k = 1, ..., n_gap`` for every window, so the whole-map envelope and the per-peak
     search (both use this function) resolve the same slot bit for bit. The windows that do not
     wrap read ``x`` in place; only the ``2 n_gap - 1`` slots around the wrap are copied.
+    ``out`` (shaped like ``x``) receives the sums if given.
 
     Raises
     ------
@@ -145,7 +148,7 @@ def gap_window_sums(x: torch.Tensor, n_gap: int, dim: int = -1) -> torch.Tensor:
     n = x.shape[dim]
     if isinstance(n_gap, bool) or not isinstance(n_gap, int) or not 1 <= n_gap < n:
         raise ValueError(f"n_gap must be an int in [1, {n}) (empty slots of {n} slots), got {n_gap!r}")
-    out = torch.empty_like(x)
+    out = torch.empty_like(x) if out is None else out
     n_in = n - n_gap                                                       # windows s < n_in do not wrap
     _sequential_sum([x.narrow(dim, k, n_in) for k in range(1, n_gap + 1)], out.narrow(dim, 0, n_in))
     # windows s = n_in + j read slots n_in + 1, ..., n - 1, 0, ..., n_gap - 1: tail[j + k - 1]
@@ -222,13 +225,27 @@ def ddma_envelope(a: torch.Tensor, cfg: DDMARadarConfig) -> DDMAEnvelope:
     ``E = E_all - min_s G_s``: the sum over the ``n_tx`` slots ``s0 + tx_slots`` with
     ``s0 = argmin_s G_s`` (first on ties, as :func:`resolve_tx0_doppler`), i.e. the replica bins
     ``T(r, l)``. The slots ``s0`` themselves are looked up on demand
-    (:meth:`DDMAEnvelope.tx0_doppler`, :attr:`DDMAEnvelope.tx0_slot`).
+    (:meth:`DDMAEnvelope.tx0_doppler`, :attr:`DDMAEnvelope.tx0_slot`). On CPU the rows are
+    processed in blocks of about 2 MB of ``A`` (a block's ``x`` and ``G`` stay in cache).
     """
-    x = a.reshape(a.shape[:-1] + (cfg.n_slots, cfg.slot_width))            # (B, Nr, n_slots, W)
-    e_all = x.sum(-2)                                                       # (B, Nr, W)
-    g = gap_window_sums(x, cfg.n_empty_slots, dim=-2)                       # (B, Nr, n_slots, W)
-    e = torch.sub(e_all, _slot_min(g)).clamp_min_(0.0)                      # (B, Nr, W)
-    return DDMAEnvelope(mag_sum=a, all_slots=e_all, replicas=e, gap_sums=g)
+    w = cfg.slot_width
+    x = a.reshape(-1, cfg.n_slots, w)                                       # (B Nr, n_slots, W) rows
+    rows = x.shape[0]
+    e_all = x.new_empty(rows, w)                                            # (B Nr, W)
+    e = x.new_empty(rows, w)
+    g = torch.empty_like(x)                                                 # (B Nr, n_slots, W)
+    step = rows
+    if a.device.type == "cpu":
+        step = max(1, _ENVELOPE_BLOCK_BYTES // (cfg.n_doppler * x.element_size()))
+    for i in range(0, rows, step):
+        xi, gi, ei = x[i:i + step], g[i:i + step], e_all[i:i + step]
+        torch.sum(xi, dim=-2, out=ei)                                       # E_all
+        gap_window_sums(xi, cfg.n_empty_slots, dim=-2, out=gi)              # G_s
+        torch.sub(ei, _slot_min(gi), out=e[i:i + step])                     # E = E_all - min_s G_s
+    lead = a.shape[:-1]
+    return DDMAEnvelope(mag_sum=a, all_slots=e_all.reshape(lead + (w,)),
+                        replicas=e.clamp_min_(0.0).reshape(lead + (w,)),
+                        gap_sums=g.reshape(lead + (cfg.n_slots, w)))
 
 
 def rd_envelope(rd: torch.Tensor, cfg: DDMARadarConfig, envelope: str = "replicas") -> torch.Tensor:
