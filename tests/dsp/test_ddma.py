@@ -211,3 +211,16 @@ def test_finite_envelope_check_names_frames():
     e[3, 0, 2] = float("nan")
     with pytest.raises(ValueError, match=r"frame\(s\) \[1, 3\]"):
         check_finite_envelope(e)
+
+
+def test_envelope_row_blocks_equal_one_block(monkeypatch):
+    import radarpc.dsp.ddma as ddma_mod
+    cfg = RADIAL_S
+    a = rx_magnitude_sum(_random_rd(cfg, 3, seed=4))
+    whole = ddma_envelope(a, cfg)
+    row_bytes = cfg.n_doppler * a.element_size()
+    monkeypatch.setattr(ddma_mod, "_ENVELOPE_BLOCK_BYTES", 37 * row_bytes)  # 37-row blocks, a short last one
+    blocked = ddma_envelope(a, cfg)
+    for name in ("all_slots", "replicas", "gap_sums", "tx0_slot"):
+        assert torch.equal(getattr(blocked, name), getattr(whole, name)), name
+    assert blocked.gap_sums.shape == (3, cfg.n_range, cfg.n_slots, cfg.slot_width)
