@@ -230,3 +230,20 @@ def test_infinite_power_is_rejected():
     p[3, 4] = math.inf
     with pytest.raises(ValueError, match="NaN or infinite"):
         ca_cfar(p)
+
+
+@pytest.mark.parametrize("rank", [1, 7, 40, 72, 0.3, 0.75])
+def test_os_cfar_ties_and_every_border_k(rank):
+    # integer powers (many equal values) on a thin map: most cells are border cells, with many
+    # different k; each k-group must give the brute-force order statistic
+    rng = np.random.default_rng(6)
+    p = np.floor(rng.exponential(size=(2, 13, 10)) * 3)
+
+    def stat(vals):
+        v = np.sort(vals)
+        k = min(rank, len(v)) if isinstance(rank, int) else max(1, math.ceil(rank * len(v)))
+        return v[k - 1]
+
+    res = os_cfar(torch.from_numpy(p), (9, 9), (3, 3), rank)
+    for b, r, l in itertools.product(range(2), range(13), range(10)):
+        assert res.noise[b, r, l].item() == stat(_training_values(p[b], (r, l), (9, 9), (3, 3))), (b, r, l)
