@@ -178,6 +178,19 @@ def _between(hi: torch.Tensor, lo: torch.Tensor) -> torch.Tensor:
     return torch.where(tau < hi, tau, lo)
 
 
+def _count_threshold(values: torch.Tensor, n: int) -> torch.Tensor:
+    """Per row of ``values`` ``(G, N)``, the tau that exactly the ``n`` largest values exceed (fewer
+    on ties): the midpoint of the ``n``-th and ``(n + 1)``-th largest (:func:`_midpoint_threshold`),
+    read as the two smallest of the ``n + 1`` largest (one partial selection, no sort)."""
+    if n >= values.shape[1]:
+        return _below(values.amin(dim=1))                                     # every value passes
+    if n == 0:
+        return values.amax(dim=1)                                             # nothing exceeds the max
+    top = torch.topk(values, n + 1, dim=1, sorted=False).values              # the n + 1 largest, (G, n + 1)
+    lo_hi = torch.topk(top, 2, dim=1, largest=False, sorted=True).values     # (n+1)-th and n-th largest
+    return _midpoint_threshold(lo_hi.flip(1), 1)
+
+
 def _closest_count_threshold(values: torch.Tensor, m: int) -> torch.Tensor:
     """Per row of ``values`` ``(G, N)``, a tau whose count ``#{values > tau}`` is the reachable
     count closest to ``m`` (a tie between two reachable counts goes to the smaller one).
@@ -192,13 +205,15 @@ def _closest_count_threshold(values: torch.Tensor, m: int) -> torch.Tensor:
         return values.amax(dim=1)                                             # nothing exceeds the max
     if m >= total:
         return _below(values.amin(dim=1))
-    v = torch.topk(values, m, dim=1, sorted=False).values.amin(dim=1)        # m-th largest, (G,)
+    top = torch.topk(values, m, dim=1, sorted=False).values                  # the m largest, (G, m)
+    v = top.amin(dim=1)                                                       # m-th largest, (G,)
     vv = v[:, None]
-    gt = values > vv                                                          # (G, N)
-    ge = values >= vv
+    # every value > v is among the m largest: c_lo and the next larger value come from top alone
+    gt = top > vv                                                             # (G, m)
     c_lo = gt.sum(1)                                                          # (G,)
+    above = top.masked_fill(~gt, float("inf")).amin(dim=1)                   # next larger value (inf: none)
+    ge = values >= vv                                                         # (G, N)
     c_hi = ge.sum(1)
-    above = values.masked_fill(~gt, float("inf")).amin(dim=1)                # next larger value (inf: none)
     below = values.masked_fill(ge, float("-inf")).amax(dim=1)                 # next smaller value (-inf: none)
     tau_lo = torch.where(torch.isinf(above), v, _between(above, v))           # keeps c_lo cells
     tau_hi = torch.where(torch.isinf(below), _below(v), _between(v, below))   # keeps c_hi cells
@@ -265,23 +280,6 @@ def tau_for_density(snr_batch: torch.Tensor, cfg: DDMARadarConfig, target: float
         m = int(round(target * snr_batch.shape[0] * cfg.n_range * cfg.n_doppler / cfg.n_tx))
         return _closest_count_threshold(d.reshape(1, -1), m)[0]
     if mode == "per-frame":
-        flat = snr_batch.flatten(1)                                          # (B, cells)
-        if n >= cells:
-            return _below(flat.amin(dim=1))
-        if n == 0:
-            return flat.amax(dim=1)
-        top = torch.topk(flat, n + 1, dim=1, sorted=False).values            # the n + 1 largest, (B, n + 1)
-        lo_hi = torch.topk(top, 2, dim=1, largest=False, sorted=True).values  # (n+1)-th and n-th largest
-        return _midpoint_threshold(lo_hi.flip(1), 1)
-    flat = snr_batch.flatten()
-    total = flat.numel()
+        return _count_threshold(snr_batch.flatten(1), n)                    # (B,)
     m = int(round(target * snr_batch.shape[0] * cfg.n_range * cfg.n_doppler / cfg.n_tx))
-    m = min(max(m, 0), total)
-    if m >= total:
-        return _below(flat.min())
-    # the m-th and (m+1)-th largest = the (total - m + 1)-th and (total - m)-th smallest
-    lo = torch.kthvalue(flat, total - m).values
-    hi = torch.kthvalue(flat, total - m + 1).values if m > 0 else None
-    if hi is None:
-        return lo.clone()
-    return _midpoint_threshold(torch.stack([hi, lo]), 1)
+    return _count_threshold(snr_batch.reshape(1, -1), max(m, 0))[0]
