@@ -322,3 +322,12 @@ def test_enriched_controller_closest_count_with_ties(mode):
             u = np.unique(snr.numpy())
             pooled = _np_dilate(snr.numpy()[None] > u[:, None, None, None], 3).reshape(len(u), -1).sum(1)
             assert int(got.sum()) == _closest(np.unique(np.append(pooled, snr.numel())), m)
+
+
+@pytest.mark.parametrize("neighbourhood", [None, 3])
+def test_nan_snr_is_rejected(neighbourhood):
+    snr = torch.ones(2, TINY.n_range, TINY.slot_width)
+    snr[1, 5, 3] = float("nan")
+    for mode in DENSITY_MODES:
+        with pytest.raises(ValueError, match="without NaN"):
+            tau_for_density(snr, TINY, 0.1, mode=mode, neighbourhood=neighbourhood)
