@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from radarpc.dsp.workspace import Workspace
+
 __all__ = ["angle_spectrum", "BeamformResult", "DictionaryTables", "dictionary_tables", "beamform",
            "beamform_peaks", "beamform_peaks_screened", "screen_bound", "sector_pool", "stack_real",
            "column_to_direction", "prefers_screened", "resolve_beamforming", "check_beamforming", "BEAMFORMING_MODES",
@@ -225,7 +227,8 @@ def _tables_for(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Dictionary
 
 
 def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | DictionaryTables,
-                   grid: tuple[int, int], sectors: tuple[int, int] | None = None) -> BeamformResult:
+                   grid: tuple[int, int], sectors: tuple[int, int] | None = None, *,
+                   workspace: Workspace | None = None) -> BeamformResult:
     """Dominant direction, its amplitude and optional sector maxima from the exact spectra.
 
     With ``v = a + ib`` and ``B^T = C + iD`` the product needs three real GEMMs (Gauss):
@@ -240,22 +243,25 @@ def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Diction
         ``B`` transposed, as stored by :class:`~radarpc.dsp.pointcloud.SpectralPointCloud`.
     grid : (n_az, n_el)
     sectors : (n_az_sec, n_el_sec), optional
+    workspace : Workspace, optional
+        Reused scratch buffers (repeated calls then allocate no large temporaries).
     """
     t = _tables_for(snapshots, dictionary_t, grid)
+    ws = Workspace() if workspace is None else workspace
     real = t.re.dtype
     k_dir = t.n_dir
-    p = snapshots.shape[0]
+    p, n = snapshots.shape
     dev = snapshots.device
-    a = snapshots.real.contiguous()                                   # (P, N)
-    b = snapshots.imag.contiguous()
+    a = ws.empty("exact.re", (p, n), real, dev).copy_(snapshots.real)        # (P, N)
+    b = ws.empty("exact.im", (p, n), real, dev).copy_(snapshots.imag)
     index = torch.empty(p, dtype=torch.long, device=dev)
     power = torch.empty(p, dtype=real, device=dev)
     sec = None
     if sectors is not None:
         sec = torch.empty(p, sectors[0] * sectors[1], dtype=real, device=dev)
     blk = min(_BLOCK, max(p, 1))
-    t1, t2, t3 = (torch.empty(blk, k_dir, dtype=real, device=dev) for _ in range(3))
-    ab = torch.empty(blk, a.shape[1], dtype=real, device=dev)
+    t1, t2, t3 = (ws.empty(f"exact.t{q}", (blk, k_dir), real, dev) for q in (1, 2, 3))
+    ab = ws.empty("exact.a+b", (blk, n), real, dev)
     for i in range(0, p, blk):
         m = min(blk, p - i)
         ai, bi = a[i:i + m], b[i:i + m]
@@ -324,8 +330,8 @@ def _fp32_accumulation(device: torch.device):
 
 
 def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor | DictionaryTables,
-                            grid: tuple[int, int], *,
-                            max_candidates: int = MAX_SCREEN_CANDIDATES) -> BeamformResult:
+                            grid: tuple[int, int], *, max_candidates: int = MAX_SCREEN_CANDIDATES,
+                            workspace: Workspace | None = None) -> BeamformResult:
     """``k_j`` and ``Ae_j`` of :func:`beamform_peaks`, screened by a bfloat16 GEMM and certified.
 
     1. ``s^_j = B v_j`` over the whole grid from one bfloat16 GEMM (:func:`stack_real` form), and
@@ -340,7 +346,8 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
 
     The result is the exact argmax and maximum, up to the float32 rounding of the dot products
     (directions whose exact amplitudes tie to ~1e-7 may be ordered differently than by the GEMMs
-    of :func:`beamform_peaks`). No sector descriptor: it needs every direction.
+    of :func:`beamform_peaks`). No sector descriptor: it needs every direction. ``workspace``
+    holds the scratch buffers across calls, as in :func:`beamform_peaks`.
     """
     if snapshots.dtype != torch.complex64:
         raise ValueError(f"the screened beamformer works on complex64 snapshots, got {snapshots.dtype}; "
@@ -348,6 +355,7 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     t = _tables_for(snapshots, dictionary_t, grid)
     if isinstance(max_candidates, bool) or int(max_candidates) < 1:
         raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
+    ws = Workspace() if workspace is None else workspace
     n_az, n_el = t.grid
     k_dir = t.n_dir
     p = snapshots.shape[0]
@@ -361,9 +369,10 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     heavy_rows = []
     blk = min(_BLOCK, max(p, 1))
     gemm_rows = min(_SCREEN_GEMM_BLOCKS * blk, max(p, 1))             # one bf16 GEMM per few blocks
-    y16 = torch.empty(gemm_rows, 2 * k_dir, dtype=torch.bfloat16, device=dev)
-    y32 = torch.empty(blk, 2 * k_dir, dtype=torch.float32, device=dev)
-    q2_buf = torch.empty(blk, k_dir, dtype=torch.float32, device=dev)
+    x16 = ws.empty("screen.x16", (gemm_rows, x.shape[1]), torch.bfloat16, dev)
+    y16 = ws.empty("screen.y16", (gemm_rows, 2 * k_dir), torch.bfloat16, dev)
+    y32 = ws.empty("screen.y32", (blk, 2 * k_dir), torch.float32, dev)
+    q2_buf = ws.empty("screen.q2", (blk, k_dir), torch.float32, dev)
     els = torch.arange(n_el, device=dev)
     kk = torch.arange(k_dir - 1, -1, -1, device=dev, dtype=torch.long)   # K-1-k: ties -> smaller k
     with _fp32_accumulation(dev):
@@ -371,7 +380,7 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
             m = min(blk, p - i)
             g = i % gemm_rows
             if g == 0:
-                rows16 = x[i:i + gemm_rows].to(torch.bfloat16)
+                rows16 = x16[:min(gemm_rows, p - i)].copy_(x[i:i + gemm_rows])
                 torch.mm(rows16, t.screen_bf16, out=y16[:rows16.shape[0]])   # [Re | Im], el-major
             y = y32[:m].copy_(y16[g:g + m])                                  # (m, 2K) float32
             q2 = torch.mul(y[:, :k_dir], y[:, :k_dir], out=q2_buf[:m]).addcmul_(y[:, k_dir:], y[:, k_dir:])
@@ -399,7 +408,7 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
             amplitude[i:i + m] = (best >> 32).to(torch.int32).view(torch.float32)
     if heavy_rows:
         rows = torch.cat(heavy_rows)
-        full = beamform_peaks(v[rows], t, grid)
+        full = beamform_peaks(v[rows], t, grid, workspace=ws)
         index[rows] = full.index
         amplitude[rows] = full.amplitude
     return BeamformResult(index=index, amplitude=amplitude, sectors=None)
@@ -439,8 +448,9 @@ def resolve_beamforming(mode: str, device: torch.device | str, sectors: tuple[in
 
 
 def beamform(snapshots: torch.Tensor, tables: torch.Tensor | DictionaryTables, grid: tuple[int, int],
-             sectors: tuple[int, int] | None = None, mode: str = "auto") -> BeamformResult:
+             sectors: tuple[int, int] | None = None, mode: str = "auto", *,
+             workspace: Workspace | None = None) -> BeamformResult:
     """:func:`beamform_peaks` or :func:`beamform_peaks_screened`, as :func:`resolve_beamforming` picks."""
     if resolve_beamforming(mode, snapshots.device, sectors) == "screened" and snapshots.dtype == torch.complex64:
-        return beamform_peaks_screened(snapshots, tables, grid)
-    return beamform_peaks(snapshots, tables, grid, sectors)
+        return beamform_peaks_screened(snapshots, tables, grid, workspace=workspace)
+    return beamform_peaks(snapshots, tables, grid, sectors, workspace=workspace)

@@ -36,6 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from radarpc.dsp.beamform import DictionaryTables, beamform, check_beamforming, dictionary_tables
+from radarpc.dsp.workspace import Workspace
 from radarpc.dsp.cfar import RADIAL_TAU, CFARResult, ca_cfar, check_tau, check_window
 from radarpc.dsp.ddma import (DDMAEnvelope, check_envelope_kind, check_finite_envelope, check_rd,
                               ddma_envelope, rx_magnitude_sum, virtual_snapshots)
@@ -328,6 +329,7 @@ class SpectralPointCloud(torch.nn.Module):
         self.register_buffer("dictionary_t", calibration.dictionary().transpose(0, 1).contiguous(),
                              persistent=False)                       # (n_virtual, n_az * n_el)
         self._tables: dict[tuple[torch.device, torch.dtype], DictionaryTables] = {}   # built on first use
+        self.workspace = Workspace()      # beamforming scratch, reused across calls (per thread)
         self.register_buffer("azimuth_table", torch.as_tensor(calibration.azimuth_deg, dtype=torch.float32),
                              persistent=False)
         self.register_buffer("elevation_table", torch.as_tensor(calibration.elevation_deg, dtype=torch.float32),
@@ -419,7 +421,8 @@ class SpectralPointCloud(torch.nn.Module):
         d0 = enc.envelope.tx0_doppler(b, r, l)                     # (N,) Tx-0 bins of the gap search
         v = virtual_snapshots(rd, cfg, b, r, d0)                   # (N, n_virtual)
         dev = rd.device                                            # tables follow the input's device
-        bf = beamform(v, self.tables(dev, v.dtype), self.grid, c.sectors, mode=c.beamforming)
+        bf = beamform(v, self.tables(dev, v.dtype), self.grid, c.sectors, mode=c.beamforming,
+                      workspace=self.workspace)
         n_el = self.grid[1]
         az = self.azimuth_table.to(dev)[bf.index // n_el]
         el = self.elevation_table.to(dev)[bf.index % n_el]
