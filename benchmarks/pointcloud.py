@@ -39,11 +39,15 @@ def _parse() -> argparse.Namespace:
     p.add_argument("--batch", type=int, default=8, help="frames per forward call")
     p.add_argument("--repeats", type=int, default=5, help="timed passes (best and median reported)")
     p.add_argument("--numpy-frames", type=int, default=4, help="frames timed with the numpy baseline")
-    p.add_argument("--loop-frames", type=int, default=1, help="frames timed with the per-peak-loop baseline")
+    p.add_argument("--loop-frames", type=int, default=4, help="frames timed with the per-peak-loop baseline")
+    p.add_argument("--numpy-repeats", type=int, default=3,
+                   help="timed passes of each numpy baseline over its frames (the best is reported)")
     p.add_argument("--densities", type=float, nargs="+", default=[0.007, 0.057, 0.56])
     p.add_argument("--scatterers", type=int, default=60, help="point scatterers per simulated frame")
     p.add_argument("--device", default=None, help="torch device (default: cpu, and cuda if available)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--batch-sweep", type=int, nargs="*", default=[],
+                   help="also time the default configuration at these batch sizes (density 0.057)")
     p.add_argument("--stages", action="store_true",
                    help="also print the per-stage wall time of one batch at density 0.057 (CPU)")
     return p.parse_args()
@@ -227,6 +231,17 @@ def _noise_and_targets(cfg: DDMARadarConfig, n: int, k: int, seed: int) -> torch
     return torch.from_numpy(rd.astype(np.complex64))
 
 
+def time_numpy(impl, frames: np.ndarray, repeats: int) -> tuple[list[dict], float]:
+    """Outputs of a numpy baseline on ``frames`` and its best wall time over ``repeats`` passes
+    (the same best-of rule as radarpc's timing)."""
+    best, out = float("inf"), []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        out = [impl(f) for f in frames]
+        best = min(best, time.perf_counter() - t0)
+    return out, best
+
+
 def time_torch(spc: SpectralPointCloud, batches: list[torch.Tensor], repeats: int, device: torch.device):
     def sync():
         if device.type == "cuda":
@@ -310,14 +325,12 @@ def main(args: argparse.Namespace) -> None:
             npc = NumpyPointCloud(cfg, calib, density, rd_n=3 if "rd3" in enrich else None,
                                   sectors=32 if "sector32" in enrich else None)
             npc(frames_np[0])
-            t0 = time.perf_counter()
-            ref = [npc(f) for f in frames_np]
-            np_fps = len(frames_np) / (time.perf_counter() - t0)
+            ref, np_s = time_numpy(npc, frames_np, args.numpy_repeats)
+            np_fps = len(frames_np) / np_s
             loop = NumpyLoopPointCloud(cfg, calib, density, rd_n=npc.rd_n, sectors=npc.sectors)
-            t0 = time.perf_counter()
             n_loop = max(1, min(args.loop_frames, len(frames_np)))
-            ref_loop = [loop(f) for f in frames_np[:n_loop]]
-            loop_fps = n_loop / (time.perf_counter() - t0)
+            ref_loop, loop_s = time_numpy(loop, frames_np[:n_loop], args.numpy_repeats)
+            loop_fps = n_loop / loop_s
             assert np.array_equal(ref_loop[0]["doppler_full"], ref[0]["doppler_full"])
             # every beamformer that can run this config: sector descriptors always run "exact"
             modes = ("exact",) if "sector32" in enrich else ("exact", "screened")
@@ -364,6 +377,19 @@ def main(args: argparse.Namespace) -> None:
                     "agree_with_numpy": round(agree / max(total, 1), 4), **extra})
         report["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
         print(json.dumps(report), flush=True)
+    if args.batch_sweep:
+        sweep = {"batch_sweep": [], "density_target": 0.057, "frames": args.frames, "threads": args.threads,
+                 "device": "cpu", "load_avg_1min": os.getloadavg()[0]}
+        for name, enrich in configs.items():
+            spc = SpectralPointCloud(cfg, calib, density=0.057, enrich=enrich)     # beamforming="auto"
+            mode = resolve_beamforming("auto", torch.device("cpu"), spc.config.sectors)
+            for bs in args.batch_sweep:
+                batches = [frames[i:i + bs] for i in range(0, args.frames, bs)]
+                times, _ = time_torch(spc, batches, args.repeats, torch.device("cpu"))
+                sweep["batch_sweep"].append({"config": f"{name}/{mode}", "batch": bs,
+                                             "frames_per_s": round(args.frames / min(times), 1),
+                                             "ms_per_frame": round(1e3 * min(times) / args.frames, 2)})
+        print(json.dumps(sweep), flush=True)
     if args.stages:
         batch = frames[: args.batch]
         stages = {name: stage_times(SpectralPointCloud(cfg, calib, density=0.057, enrich=enrich), batch,
