@@ -41,8 +41,10 @@ _BLOCK = 1024
 _SCREEN_GEMM_BLOCKS = 8
 
 # A snapshot whose screen leaves candidates in more azimuths than this is beamformed exactly over
-# the whole grid instead (e.g. an all-zero snapshot, whose spectrum is flat).
-MAX_SCREEN_CANDIDATES = 16
+# the whole grid instead: a flat spectrum (noise-like or all-zero snapshots) leaves many
+# candidates, and beyond ~6 azimuths (~20 exact dot products) one GEMM row over the whole grid is
+# cheaper (measured on full RADIal frames at densities 0.057 and 0.56, docs/results/pointcloud.md).
+MAX_SCREEN_CANDIDATES = 6
 
 _BF16_UNIT_ROUNDOFF = 2.0 ** -8     # round-to-nearest to 8 significant bits
 _FP32_UNIT_ROUNDOFF = 2.0 ** -24
