@@ -42,7 +42,8 @@ def _parse() -> argparse.Namespace:
     p.add_argument("--loop-frames", type=int, default=4, help="frames timed with the per-peak-loop baseline")
     p.add_argument("--numpy-repeats", type=int, default=3,
                    help="timed passes of each numpy baseline over its frames (the best is reported)")
-    p.add_argument("--densities", type=float, nargs="+", default=[0.007, 0.057, 0.56])
+    p.add_argument("--densities", type=float, nargs="*", default=[0.007, 0.057, 0.56],
+                   help="target densities of the main table (none: skip it, e.g. for --batch-sweep alone)")
     p.add_argument("--scatterers", type=int, default=60, help="point scatterers per simulated frame")
     p.add_argument("--device", default=None, help="torch device (default: cpu, and cuda if available)")
     p.add_argument("--seed", type=int, default=0)
