@@ -396,6 +396,16 @@ def test_screened_falls_back_to_the_whole_spectrum_for_flat_spectra():
         assert torch.equal(res.index, ref.index), cap
         torch.testing.assert_close(res.amplitude, ref.amplitude, rtol=2e-6, atol=0)
     assert bool((res.amplitude[::7] == 0).all()) and bool((res.index[::7] == ref.index[::7]).all())
+    # a non-finite snapshot leaves no candidate: it takes the exact path too, as do empty inputs
+    w = v.clone()
+    w[3, 5] = complex(float("nan"), 0.0)
+    w[4, 0] = complex(float("inf"), 0.0)
+    ref = beamform_peaks(w, bt, calib.grid_shape)
+    res = beamform_peaks_screened(w, bt, calib.grid_shape)
+    assert torch.equal(res.index, ref.index) and 0 <= int(res.index.min()) and int(res.index.max()) < bt.shape[1]
+    assert torch.equal(res.amplitude.isnan(), ref.amplitude.isnan()) and bool(res.amplitude[3].isnan())
+    empty = beamform_peaks_screened(v[:0], bt, calib.grid_shape)
+    assert empty.index.shape == (0,) and empty.amplitude.shape == (0,)
     with pytest.raises(ValueError, match="max_candidates"):
         beamform_peaks_screened(v, bt, calib.grid_shape, max_candidates=0)
     with pytest.raises(ValueError, match="complex64"):

@@ -344,7 +344,8 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     3. ``|B[k] v_j|`` is evaluated exactly (complex64 dot products) for ``k in C_j`` only, and
        ``k_j = argmax_{k in C_j}``, ``Ae_j`` its value (ties to the smaller ``k``);
     4. a snapshot whose candidates span more than ``max_candidates`` azimuths (a flat spectrum,
-       e.g. zeros) is beamformed over the whole grid by :func:`beamform_peaks`.
+       e.g. zeros), or none at all (a non-finite spectrum), is beamformed over the whole grid by
+       :func:`beamform_peaks`.
 
     The result is the exact argmax and maximum, up to the float32 rounding of the dot products
     (directions whose exact amplitudes tie to ~1e-7 may be ordered differently than by the GEMMs
@@ -392,7 +393,8 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
             need = (lower - bj) / (1.0 + a_hi)                               # C_j: q_jk >= need_j
             need2 = torch.where(need > 0, need.square(), torch.full_like(need, -1.0))[:, None]
             j, az = torch.nonzero(q2_az >= need2, as_tuple=True)             # azimuths holding candidates
-            heavy = torch.bincount(j, minlength=m) > max_candidates
+            n_cand = torch.bincount(j, minlength=m)
+            heavy = (n_cand > max_candidates) | (n_cand == 0)                # none: NaN/inf rows
             if bool(heavy.any()):                                            # flat spectra: whole grid
                 heavy_rows.append(torch.nonzero(heavy).flatten() + i)
                 light = ~heavy[j]
