@@ -339,8 +339,8 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     1. ``s^_j = B v_j`` over the whole grid from one bfloat16 GEMM (:func:`stack_real` form), and
        its power ``q_jk^2 = |s^_jk|^2`` formed in float32;
     2. with the rigorous bound of :func:`screen_bound`, ``|s_jk|`` lies in
-       ``[(1 - a_lo) q_jk - beta_j, (1 + a_hi) q_jk + beta_j]``, so the exact maximum is among
-       ``C_j = {k : (1 + a_hi) q_jk + beta_j >= max_k' (1 - a_lo) q_jk' - beta_j}``;
+       ``[(1 - alpha) q_jk - beta_j, (1 + alpha) q_jk + beta_j]``, so the exact maximum is among
+       ``C_j = {k : (1 + alpha) q_jk + beta_j >= max_k' (1 - alpha) q_jk' - beta_j}``;
     3. ``|B[k] v_j|`` is evaluated exactly (complex64 dot products) for ``k in C_j`` only, and
        ``k_j = argmax_{k in C_j}``, ``Ae_j`` its value (ties to the smaller ``k``);
     4. a snapshot whose candidates span more than ``max_candidates`` azimuths (a flat spectrum,
@@ -366,7 +366,6 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     v = snapshots.resolve_conj().contiguous()
     x = torch.view_as_real(v).reshape(p, 2 * v.shape[1])            # (P, 2N) interleaved
     alpha, beta = screen_bound(v, t.row_norm_max)
-    a_hi = a_lo = alpha                                              # |s^| from float32 power (safety in alpha)
     index = torch.empty(p, dtype=torch.long, device=dev)
     amplitude = torch.empty(p, dtype=torch.float32, device=dev)
     heavy_rows = []
@@ -389,8 +388,8 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
             q2 = torch.mul(y[:, :k_dir], y[:, :k_dir], out=q2_buf[:m]).addcmul_(y[:, k_dir:], y[:, k_dir:])
             bj = beta[i:i + m]
             q2_az = q2.view(m, n_el, n_az).amax(dim=1)                       # (m, n_az) best elevation
-            lower = (1.0 - a_lo) * q2_az.amax(dim=1).sqrt() - bj             # max_k lower bound
-            need = (lower - bj) / (1.0 + a_hi)                               # C_j: q_jk >= need_j
+            lower = (1.0 - alpha) * q2_az.amax(dim=1).sqrt() - bj             # max_k lower bound
+            need = (lower - bj) / (1.0 + alpha)                               # C_j: q_jk >= need_j
             need2 = torch.where(need > 0, need.square(), torch.full_like(need, -1.0))[:, None]
             j, az = torch.nonzero(q2_az >= need2, as_tuple=True)             # azimuths holding candidates
             n_cand = torch.bincount(j, minlength=m)
