@@ -1,8 +1,8 @@
 """Build script for the optional native extension; all metadata lives in pyproject.toml.
 
-``radarpc.dsp._rxsum`` (the CPU kernel behind :mod:`radarpc.dsp.native`) is declared
-``optional=True``: without a working C compiler the build prints a warning and the package
-installs without it, and :func:`radarpc.dsp.native.native_available` reports ``False``.
+``radarpc.dsp._rxsum`` and ``radarpc.dsp._screen`` (the CPU kernels behind
+:mod:`radarpc.dsp.native`) are declared ``optional=True``: without a working C compiler the build prints a warning and the package
+installs without them, and :func:`radarpc.dsp.native.native_available` reports ``False``.
 """
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ class BuildExt(build_ext):
 
 
 setup(
-    ext_modules=[Extension("radarpc.dsp._rxsum", sources=["src/radarpc/dsp/_rxsum.c"], optional=True)],
+    ext_modules=[Extension("radarpc.dsp._rxsum", sources=["src/radarpc/dsp/_rxsum.c"], optional=True),
+                 Extension("radarpc.dsp._screen", sources=["src/radarpc/dsp/_screen.c"], optional=True)],
     cmdclass={"build_ext": BuildExt},
 )

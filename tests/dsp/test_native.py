@@ -12,18 +12,6 @@ from radarpc.dsp.ddma import rx_magnitude_sum
 from radarpc.dsp.native import native_available, native_kernels, native_supports, rx_magnitude_sum_native
 
 
-@pytest.fixture
-def built(monkeypatch):
-    """The extension, enabled; skip if it is not built unless RADARPC_REQUIRE_NATIVE=1 (CI)."""
-    monkeypatch.delenv(native.DISABLE_ENV, raising=False)
-    if native._rxsum is None:
-        msg = "radarpc.dsp._rxsum is not built (no C compiler at install time)"
-        if os.environ.get("RADARPC_REQUIRE_NATIVE") == "1":
-            pytest.fail(msg + " but RADARPC_REQUIRE_NATIVE=1")
-        pytest.skip(msg)
-    return native._rxsum
-
-
 def _cube(shape, seed=0) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     return torch.randn(shape, dtype=torch.complex64, generator=g)
@@ -141,15 +129,15 @@ def test_chunk_cells(n_rx):
 def test_kernel_lists(built):
     assert native_kernels(16)[-1] == "scalar" and native_kernels(3) == ("scalar",)
     assert set(native_kernels(16)) <= set(native.KERNELS) - {"auto"}
-    assert built.rx_magnitude_sum(0, 0, 0, 16, "scalar") == "scalar"      # empty call: nothing read
+    assert built._rxsum.rx_magnitude_sum(0, 0, 0, 16, "scalar") == "scalar"      # empty call: nothing read
     with pytest.raises(ValueError, match="n_rx"):
         native_kernels(0)
     with pytest.raises(ValueError, match="kernel must be"):
-        built.rx_magnitude_sum(0, 0, 0, 16, "sse9")
+        built._rxsum.rx_magnitude_sum(0, 0, 0, 16, "sse9")
     with pytest.raises(ValueError, match="n_rx >= 1"):
-        built.rx_magnitude_sum(0, 0, 0, 0)
+        built._rxsum.rx_magnitude_sum(0, 0, 0, 0)
     with pytest.raises(ValueError, match="non-null"):
-        built.rx_magnitude_sum(0, 0, 4, 16)
+        built._rxsum.rx_magnitude_sum(0, 0, 4, 16)
 
 
 def test_bad_input_errors(built):
@@ -177,8 +165,9 @@ def test_bad_input_errors(built):
 
 
 def test_env_var_disables(monkeypatch):
-    if native._rxsum is None:                       # the env var alone, also on a build without it
-        monkeypatch.setattr(native, "_rxsum", object())
+    for ext in ("_rxsum", "_screen"):               # the env var alone, also on a build without them
+        if getattr(native, ext) is None:
+            monkeypatch.setattr(native, ext, object())
     monkeypatch.setenv(native.DISABLE_ENV, "1")
     assert not native_available() and native_kernels(16) == ()
     assert not native_supports(_cube((2, 8, 16)))
@@ -188,10 +177,12 @@ def test_env_var_disables(monkeypatch):
 
 def test_missing_extension_raises(monkeypatch):
     monkeypatch.delenv(native.DISABLE_ENV, raising=False)
-    monkeypatch.setattr(native, "_rxsum", None)
-    assert not native_available()
-    with pytest.raises(RuntimeError, match=r"radarpc\.dsp\._rxsum is not built"):
-        rx_magnitude_sum_native(_cube((2, 8, 16)))
+    for ext in ("_rxsum", "_screen"):               # either one missing: both reported missing
+        with monkeypatch.context() as m:
+            m.setattr(native, ext, None)
+            assert not native_available()
+            with pytest.raises(RuntimeError, match=r"radarpc\.dsp\._rxsum/_screen are not built"):
+                rx_magnitude_sum_native(_cube((2, 8, 16)))
 
 
 def test_native_supports(built):

@@ -319,7 +319,7 @@ def _random_scene(cfg, n, g):
     return Scatterers(r, az, el, v, rcs)
 
 
-def test_screened_beamforming_gives_the_exact_points():
+def test_screened_beamforming_gives_the_exact_points(selection):
     cfg = RADIAL_S
     g = torch.Generator().manual_seed(7)
     rd = synthesize_rd(cfg, [_random_scene(cfg, 40, g) for _ in range(4)], noise=True, generator=g)
@@ -347,7 +347,7 @@ def _bf16_screen(v, bt):
     return torch.hypot(y[:, :k], y[:, k:])
 
 
-def test_screen_error_bound_holds_and_screened_is_the_exact_argmax():
+def test_screen_error_bound_holds_and_screened_is_the_exact_argmax(selection):
     from radarpc.dsp.beamform import beamform_peaks_screened, dictionary_tables, screen_bound
     cfg = TINY
     calib = make_calibration(cfg)
@@ -382,7 +382,7 @@ def test_screen_error_bound_holds_and_screened_is_the_exact_argmax():
     assert (res.index.numpy() == exact.argmax(1)).mean() > 0.99
 
 
-def test_screened_falls_back_to_the_whole_spectrum_for_flat_spectra():
+def test_screened_falls_back_to_the_whole_spectrum_for_flat_spectra(selection):
     from radarpc.dsp.beamform import beamform_peaks, beamform_peaks_screened
     cfg = TINY
     calib = make_calibration(cfg)

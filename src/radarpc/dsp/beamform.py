@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from radarpc.dsp import native
 from radarpc.dsp.workspace import Workspace
 
 __all__ = ["angle_spectrum", "BeamformResult", "DictionaryTables", "dictionary_tables", "beamform",
@@ -331,6 +332,47 @@ def _fp32_accumulation(device: torch.device):
         torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction = prev
 
 
+def _screen_select(y16: torch.Tensor, v: torch.Tensor, t: DictionaryTables, beta: torch.Tensor,
+                   alpha: float, max_candidates: int, index: torch.Tensor, amplitude: torch.Tensor,
+                   ws: Workspace) -> torch.Tensor | None:
+    """Steps 2-4 of :func:`beamform_peaks_screened` in torch for one block of ``m`` screen rows
+    ``y16`` ``(m, 2K)``: writes ``index`` and ``amplitude`` ``(m,)`` of the rows it settles and
+    returns the block-relative indices of the rows left to the whole-grid beamformer (or None).
+    :func:`radarpc.dsp.native.screen_select_native` is the same step in C."""
+    n_az, n_el = t.grid
+    k_dir = t.n_dir
+    m = y16.shape[0]
+    dev = y16.device
+    y = ws.empty("screen.y32", (m, 2 * k_dir), torch.float32, dev).copy_(y16)   # (m, 2K) float32
+    q2 = torch.mul(y[:, :k_dir], y[:, :k_dir], out=ws.empty("screen.q2", (m, k_dir), torch.float32, dev))
+    q2.addcmul_(y[:, k_dir:], y[:, k_dir:])                               # q_jc^2
+    q2_az = q2.view(m, n_el, n_az).amax(dim=1)                            # (m, n_az) best elevation
+    lower = (1.0 - alpha) * q2_az.amax(dim=1).sqrt() - beta               # max_k lower bound
+    need = (lower - beta) / (1.0 + alpha)                                 # C_j: q_jk >= need_j
+    need2 = torch.where(need > 0, need.square(), torch.full_like(need, -1.0))[:, None]
+    j, az = torch.nonzero(q2_az >= need2, as_tuple=True)                 # azimuths holding candidates
+    n_cand = torch.bincount(j, minlength=m)
+    heavy = (n_cand > max_candidates) | (n_cand == 0)                    # none: NaN/inf rows
+    heavy_rows = None
+    if bool(heavy.any()):                                                # flat spectra: whole grid
+        heavy_rows = torch.nonzero(heavy).flatten()
+        light = ~heavy[j]
+        j, az = j[light], az[light]
+    j = j.repeat_interleave(n_el)                                        # every elevation of them
+    col = (torch.arange(n_el, device=dev).repeat(az.numel()) * n_az) + az.repeat_interleave(n_el)
+    keep = q2.reshape(-1).index_select(0, j * k_dir + col) >= need2.view(-1).index_select(0, j)
+    j, col = j[keep], col[keep]
+    k = column_to_direction(col, t.grid)
+    s = torch.mul(t.rows.index_select(0, k), v.index_select(0, j)).sum(dim=1).abs()   # |B[k] v_j|
+    kk = (k_dir - 1) - k                                                 # ties -> the smaller k
+    key = (s.view(torch.int32).to(torch.long) << 32) | kk
+    best = torch.full((m,), -1, dtype=torch.long, device=dev)
+    best.scatter_reduce_(0, j, key, reduce="amax", include_self=True)
+    index.copy_((k_dir - 1) - (best & 0xFFFFFFFF))
+    amplitude.copy_((best >> 32).to(torch.int32).view(torch.float32))
+    return heavy_rows
+
+
 def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor | DictionaryTables,
                             grid: tuple[int, int], *, max_candidates: int = MAX_SCREEN_CANDIDATES,
                             workspace: Workspace | None = None) -> BeamformResult:
@@ -359,7 +401,6 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     if isinstance(max_candidates, bool) or int(max_candidates) < 1:
         raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
     ws = Workspace() if workspace is None else workspace
-    n_az, n_el = t.grid
     k_dir = t.n_dir
     p = snapshots.shape[0]
     dev = snapshots.device
@@ -373,42 +414,24 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     gemm_rows = min(_SCREEN_GEMM_BLOCKS * blk, max(p, 1))             # one bf16 GEMM per few blocks
     x16 = ws.empty("screen.x16", (gemm_rows, x.shape[1]), torch.bfloat16, dev)
     y16 = ws.empty("screen.y16", (gemm_rows, 2 * k_dir), torch.bfloat16, dev)
-    y32 = ws.empty("screen.y32", (blk, 2 * k_dir), torch.float32, dev)
-    q2_buf = ws.empty("screen.q2", (blk, k_dir), torch.float32, dev)
-    els = torch.arange(n_el, device=dev)
-    kk = torch.arange(k_dir - 1, -1, -1, device=dev, dtype=torch.long)   # K-1-k: ties -> smaller k
+    select_natively = dev.type == "cpu" and native.native_available()
     with _fp32_accumulation(dev):
-        for i in range(0, p, blk):
-            m = min(blk, p - i)
-            g = i % gemm_rows
-            if g == 0:
-                rows16 = x16[:min(gemm_rows, p - i)].copy_(x[i:i + gemm_rows])
-                torch.mm(rows16, t.screen_bf16, out=y16[:rows16.shape[0]])   # [Re | Im], el-major
-            y = y32[:m].copy_(y16[g:g + m])                                  # (m, 2K) float32
-            q2 = torch.mul(y[:, :k_dir], y[:, :k_dir], out=q2_buf[:m]).addcmul_(y[:, k_dir:], y[:, k_dir:])
-            bj = beta[i:i + m]
-            q2_az = q2.view(m, n_el, n_az).amax(dim=1)                       # (m, n_az) best elevation
-            lower = (1.0 - alpha) * q2_az.amax(dim=1).sqrt() - bj             # max_k lower bound
-            need = (lower - bj) / (1.0 + alpha)                               # C_j: q_jk >= need_j
-            need2 = torch.where(need > 0, need.square(), torch.full_like(need, -1.0))[:, None]
-            j, az = torch.nonzero(q2_az >= need2, as_tuple=True)             # azimuths holding candidates
-            n_cand = torch.bincount(j, minlength=m)
-            heavy = (n_cand > max_candidates) | (n_cand == 0)                # none: NaN/inf rows
-            if bool(heavy.any()):                                            # flat spectra: whole grid
-                heavy_rows.append(torch.nonzero(heavy).flatten() + i)
-                light = ~heavy[j]
-                j, az = j[light], az[light]
-            j = j.repeat_interleave(n_el)                                    # every elevation of them
-            col = (els.repeat(az.numel()) * n_az) + az.repeat_interleave(n_el)
-            keep = q2.reshape(-1).index_select(0, j * k_dir + col) >= need2.view(-1).index_select(0, j)
-            j, col = j[keep], col[keep]
-            k = column_to_direction(col, t.grid)
-            s = torch.mul(t.rows.index_select(0, k), v.index_select(0, i + j)).sum(dim=1).abs()  # |B[k] v_j|
-            key = (s.view(torch.int32).to(torch.long) << 32) | kk.index_select(0, k)
-            best = torch.full((m,), -1, dtype=torch.long, device=dev)
-            best.scatter_reduce_(0, j, key, reduce="amax", include_self=True)
-            index[i:i + m] = (k_dir - 1) - (best & 0xFFFFFFFF)
-            amplitude[i:i + m] = (best >> 32).to(torch.int32).view(torch.float32)
+        for i in range(0, p, gemm_rows):
+            g = min(gemm_rows, p - i)
+            torch.mm(x16[:g].copy_(x[i:i + g]), t.screen_bf16, out=y16[:g])  # [Re | Im], el-major
+            if select_natively:                                             # steps 2-4 in C, per row
+                idx, amp, heavy = native.screen_select_native(y16[:g], v[i:i + g], t.rows, beta[i:i + g],
+                                                              t.grid, alpha, max_candidates)
+                index[i:i + g], amplitude[i:i + g] = idx, amp
+                if bool(heavy.any()):
+                    heavy_rows.append(torch.nonzero(heavy).flatten() + i)
+                continue
+            for b in range(0, g, blk):
+                m = min(blk, g - b)
+                heavy = _screen_select(y16[b:b + m], v[i + b:i + b + m], t, beta[i + b:i + b + m], alpha,
+                                       max_candidates, index[i + b:i + b + m], amplitude[i + b:i + b + m], ws)
+                if heavy is not None:
+                    heavy_rows.append(heavy + (i + b))
     if heavy_rows:
         rows = torch.cat(heavy_rows)
         full = beamform_peaks(v[rows], t, grid, workspace=ws)

@@ -1,16 +1,24 @@
-"""Optional native CPU kernel for the RD magnitude sum ``A(r, d) = sum_rx |R(rx, r, d)|``.
+"""Optional native CPU kernels: the RD magnitude sum and the screened beamformer's selection.
 
-The C extension :mod:`radarpc.dsp._rxsum` (built by ``setup.py`` when a compiler is present,
-skipped otherwise) computes ``A`` in one pass over a complex64 cube: ``re``/``im`` deinterleaved
-in SIMD registers, exact IEEE ``sqrt`` of ``re^2 + im^2`` per receiver, then the receiver sum, with
-the GIL released. :func:`rx_magnitude_sum_native` splits the cells over a module-level thread
-pool; :func:`radarpc.dsp.ddma.rx_magnitude_sum` remains the reference and the fallback. On a
-2-core Sapphire Rapids VM it takes ~0.6 ms per full RADIal frame (512 x 256 x 16) with 2 threads,
-the speed of one read of the cube, against ~2.2 ms for the blocked torch code
-(``benchmarks/rx_magnitude_sum.py``).
+Two C extensions, built by ``setup.py`` when a compiler is present and skipped otherwise:
 
-Setting the environment variable ``RADARPC_NO_NATIVE=1`` makes :func:`native_available` return
-``False`` (checked at every call), so the torch path can be compared on the same install.
+* :mod:`radarpc.dsp._rxsum` computes ``A(r, d) = sum_rx |R(rx, r, d)|`` in one pass over a
+  complex64 cube: ``re``/``im`` deinterleaved in SIMD registers, exact IEEE ``sqrt`` of
+  ``re^2 + im^2`` per receiver, then the receiver sum (:func:`rx_magnitude_sum_native`;
+  :func:`radarpc.dsp.ddma.rx_magnitude_sum` remains the reference and the fallback). On a
+  2-core Sapphire Rapids VM it takes ~0.6 ms per full RADIal frame (512 x 256 x 16) with 2
+  threads, the speed of one read of the cube, against ~2.2 ms for the blocked torch code
+  (``benchmarks/rx_magnitude_sum.py``).
+* :mod:`radarpc.dsp._screen` runs everything of
+  :func:`radarpc.dsp.beamform.beamform_peaks_screened` after its bfloat16 GEMM, one snapshot
+  at a time in a single read of its screen row: power, best elevation per azimuth, the
+  certified candidate set, the exact dot products of the candidates and their argmax
+  (:func:`screen_select_native`; the torch code in ``beamform_peaks_screened`` remains the
+  reference and the fallback).
+
+Both release the GIL and split their work over a module-level thread pool. Setting the
+environment variable ``RADARPC_NO_NATIVE=1`` makes :func:`native_available` return ``False``
+(checked at every call), so the torch paths can be compared on the same install.
 """
 from __future__ import annotations
 
@@ -30,13 +38,19 @@ __all__ = [
     "native_kernels",
     "native_supports",
     "rx_magnitude_sum_native",
+    "screen_select_native",
 ]
 
 _rxsum: ModuleType | None
+_screen: ModuleType | None
 try:
     from radarpc.dsp import _rxsum
 except ImportError:                      # built without a compiler (setup.py: optional=True)
     _rxsum = None
+try:
+    from radarpc.dsp import _screen
+except ImportError:
+    _screen = None
 
 KERNELS = ("auto", "avx", "scalar")
 """Kernel names accepted by :func:`rx_magnitude_sum_native`: ``auto`` picks the fastest one this
@@ -63,14 +77,23 @@ _pool_lock = threading.Lock()
 
 
 def native_available() -> bool:
-    """Whether the compiled extension is importable and not disabled by ``RADARPC_NO_NATIVE``.
+    """Whether the compiled extensions are importable and not disabled by ``RADARPC_NO_NATIVE``.
 
     Returns
     -------
     bool
-        ``True`` when :func:`rx_magnitude_sum_native` can run.
+        ``True`` when :func:`rx_magnitude_sum_native` and :func:`screen_select_native` can run
+        (both extensions come from the same compiler, so they are built together or not at all).
     """
-    return _rxsum is not None and os.environ.get(DISABLE_ENV, "") in ("", "0")
+    return _rxsum is not None and _screen is not None and os.environ.get(DISABLE_ENV, "") in ("", "0")
+
+
+def _require_native(fallback: str) -> None:
+    if not native_available():
+        built = _rxsum is not None and _screen is not None
+        why = (f"disabled by {DISABLE_ENV}={os.environ.get(DISABLE_ENV)!r}" if built
+               else "not built (install with a C compiler: pip install -e .)")
+        raise RuntimeError(f"native extensions radarpc.dsp._rxsum/_screen are {why}; use {fallback}")
 
 
 def native_kernels(n_rx: int = 16) -> tuple[str, ...]:
@@ -117,6 +140,33 @@ def _submit(work: Callable[[], None], count: int) -> list[Future]:
             _pool = ThreadPoolExecutor(max_workers=count, thread_name_prefix="radarpc-rxsum")
             _pool_workers, _pool_pid = count, os.getpid()
         return [_pool.submit(work) for _ in range(count)]
+
+
+def _run_items(item: Callable[[int, int], None], n: int, step: int, threads: int) -> None:
+    """Call ``item(start, count)`` over ``range(0, n, step)`` on ``threads`` threads.
+
+    The calling thread and ``threads - 1`` pool threads take items from a shared queue until it is
+    empty; returns when every item is done (also on error, so that the caller's buffers outlive
+    the work), re-raising the first error.
+    """
+    starts = iter(range(0, n, step))                                 # the shared queue of items
+    take = threading.Lock()
+
+    def work() -> None:
+        while True:
+            with take:
+                s = next(starts, None)
+            if s is None:
+                return
+            item(s, min(step, n - s))
+
+    helpers = min(threads, math.ceil(n / step)) - 1
+    futures = _submit(work, helpers) if helpers > 0 else []
+    try:
+        work()                                                       # this thread works too
+    finally:
+        for f in futures:                                            # wait even on error
+            f.result()
 
 
 def _chunk_cells(n_rx: int) -> int:
@@ -190,10 +240,7 @@ def rx_magnitude_sum_native(rd: torch.Tensor, *, threads: int | None = None,
         raise ValueError(f"threads must be an int >= 1, got {threads!r}")
     if kernel not in KERNELS:
         raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
-    if not native_available():
-        why = (f"disabled by {DISABLE_ENV}={os.environ.get(DISABLE_ENV)!r}" if _rxsum is not None
-               else "not built (install with a C compiler: pip install -e .)")
-        raise RuntimeError(f"native extension radarpc.dsp._rxsum is {why}; use radarpc.dsp.ddma.rx_magnitude_sum")
+    _require_native("radarpc.dsp.ddma.rx_magnitude_sum")
     assert _rxsum is not None
     n_rx = rd.shape[-1]
     out = torch.empty(rd.shape[:-1], dtype=torch.float32)          # (..., Nd)
@@ -205,24 +252,108 @@ def rx_magnitude_sum_native(rd: torch.Tensor, *, threads: int | None = None,
     if n_cells == 0:
         return out
     src, dst = rd.data_ptr(), out.data_ptr()                         # 8 bytes per complex, 4 per float
-    step = _chunk_cells(n_rx)
-    starts = iter(range(0, n_cells, step))                          # the shared queue of items
-    take = threading.Lock()
     ext = _rxsum
 
-    def work() -> None:
-        while True:
-            with take:
-                s = next(starts, None)
-            if s is None:
-                return
-            ext.rx_magnitude_sum(src + 8 * n_rx * s, dst + 4 * s, min(step, n_cells - s), n_rx, kernel)
+    def item(s: int, m: int) -> None:
+        ext.rx_magnitude_sum(src + 8 * n_rx * s, dst + 4 * s, m, n_rx, kernel)
 
-    helpers = min(threads, math.ceil(n_cells / step)) - 1
-    futures = _submit(work, helpers) if helpers > 0 else []
-    try:
-        work()                                                       # this thread works too
-    finally:
-        for f in futures:                                            # wait even on error: rd/out stay alive
-            f.result()
+    _run_items(item, n_cells, _chunk_cells(n_rx), threads)
     return out
+
+
+# Snapshots per work item of screen_select_native: ~60 us of work at RADIal's 181 x 5 grid, so
+# that the per-item cost (a few us) stays small and two threads still balance on one frame.
+_SCREEN_ROWS = 64
+
+
+def screen_select_native(screen: torch.Tensor, snapshots: torch.Tensor, rows: torch.Tensor,
+                         beta: torch.Tensor, grid: tuple[int, int], alpha: float,
+                         max_candidates: int, *, threads: int | None = None
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Selection step of :func:`radarpc.dsp.beamform.beamform_peaks_screened`, natively.
+
+    For every snapshot ``j``: ``q_jc^2 = Re^2 + Im^2`` of its screen row, the best elevation
+    per azimuth ``Q_j(az)``, ``need_j = ((1 - alpha) sqrt(max Q_j) - 2 beta_j) / (1 + alpha)``,
+    the candidates ``q_jc >= need_j``, their exact amplitudes ``|B[k] v_j|`` (complex64
+    products, float32 partial sums, modulus in double) and the argmax (ties to the smaller
+    ``k``). Rows whose candidates span no azimuth or more than ``max_candidates`` azimuths, or
+    whose screen holds NaN/inf, are flagged ``heavy`` and get ``index = -1``: the caller
+    beamforms them over the whole grid.
+
+    Parameters
+    ----------
+    screen : Tensor ``(P, >= 2 K)`` bfloat16
+        ``[Re s^ | Im s^]`` per row, columns elevation-major (``c = el n_az + az``), ``K = n_az n_el``;
+        rows may be padded (row stride ``>= 2 K``), the inner stride must be 1.
+    snapshots : Tensor ``(P, N)`` complex64, C-contiguous (no conjugate view)
+    rows : Tensor ``(K, N)`` complex64, C-contiguous
+        ``B``, row ``k = az n_el + el``.
+    beta : Tensor ``(P,)`` float32
+        :func:`radarpc.dsp.beamform.screen_bound`'s ``beta_j``.
+    grid : (n_az, n_el)
+    alpha : float
+        ``0 <= alpha < 1``, the bound's relative term.
+    max_candidates : int
+        Most azimuths with candidates a row may have before it is left to the caller.
+    threads : int, optional
+        Default ``torch.get_num_threads()``.
+
+    Returns
+    -------
+    index : LongTensor ``(P,)``        ``k_j`` (``-1`` for heavy rows)
+    amplitude : Tensor ``(P,)``        ``Ae_j`` float32 (``0`` for heavy rows)
+    heavy : BoolTensor ``(P,)``
+
+    Raises
+    ------
+    ValueError
+        Wrong device, dtype, shape or layout of an input; bad ``alpha``, ``max_candidates``, ``threads``.
+    RuntimeError
+        The extensions are not built or are disabled by ``RADARPC_NO_NATIVE``.
+    """
+    n_az, n_el = (int(g) for g in grid)
+    k_dir = n_az * n_el
+    for name, t in (("screen", screen), ("snapshots", snapshots), ("rows", rows), ("beta", beta)):
+        if not isinstance(t, torch.Tensor) or t.device.type != "cpu":
+            raise ValueError(f"{name} must be a CPU torch.Tensor for the native kernel")
+    if screen.dtype != torch.bfloat16 or screen.ndim != 2 or screen.shape[1] < 2 * k_dir or screen.stride(1) != 1:
+        raise ValueError(f"screen must be bfloat16 (P, >= 2 n_az n_el = {2 * k_dir}) with unit column stride, "
+                         f"got {screen.dtype} {tuple(screen.shape)} strides {screen.stride()}")
+    p = screen.shape[0]
+    if (snapshots.dtype != torch.complex64 or snapshots.ndim != 2 or snapshots.shape[0] != p
+            or not snapshots.is_contiguous() or snapshots.is_conj()):
+        raise ValueError(f"snapshots must be a C-contiguous complex64 (P={p}, N) tensor without a conjugate "
+                         f"view, got {snapshots.dtype} {tuple(snapshots.shape)}")
+    n = snapshots.shape[1]
+    if rows.dtype != torch.complex64 or tuple(rows.shape) != (k_dir, n) or not rows.is_contiguous() or rows.is_conj():
+        raise ValueError(f"rows must be a C-contiguous complex64 ({k_dir}, {n}) tensor, got {rows.dtype} "
+                         f"{tuple(rows.shape)}")
+    if beta.dtype != torch.float32 or tuple(beta.shape) != (p,) or not beta.is_contiguous():
+        raise ValueError(f"beta must be a contiguous float32 ({p},) tensor, got {beta.dtype} {tuple(beta.shape)}")
+    if not (0.0 <= float(alpha) < 1.0):
+        raise ValueError(f"alpha must be in [0, 1), got {alpha!r}")
+    if isinstance(max_candidates, bool) or int(max_candidates) < 1:
+        raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
+    if threads is None:
+        threads = torch.get_num_threads()
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ValueError(f"threads must be an int >= 1, got {threads!r}")
+    _require_native("the torch path of radarpc.dsp.beamform.beamform_peaks_screened")
+    assert _screen is not None
+    index = torch.empty(p, dtype=torch.long)
+    amplitude = torch.empty(p, dtype=torch.float32)
+    heavy = torch.empty(p, dtype=torch.bool)
+    if p == 0:
+        return index, amplitude, heavy
+    ext = _screen
+    y_ptr, y_stride = screen.data_ptr(), screen.stride(0)
+    v_ptr, b_ptr = snapshots.data_ptr(), beta.data_ptr()
+    i_ptr, a_ptr, h_ptr = index.data_ptr(), amplitude.data_ptr(), heavy.data_ptr()
+    r_ptr, a_f, m_c = rows.data_ptr(), float(alpha), int(max_candidates)
+
+    def item(s: int, m: int) -> None:                                # bool is one byte, as uint8
+        ext.screen_select(y_ptr + 2 * y_stride * s, y_stride, v_ptr + 8 * n * s, r_ptr, b_ptr + 4 * s, m,
+                          n_az, n_el, n, a_f, m_c, i_ptr + 8 * s, a_ptr + 4 * s, h_ptr + s)
+
+    _run_items(item, p, _SCREEN_ROWS, threads)
+    return index, amplitude, heavy
