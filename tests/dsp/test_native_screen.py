@@ -65,9 +65,13 @@ def _real_screen(n: int, seed: int):
 
 
 @pytest.mark.parametrize("max_candidates", [1, 6, 40])
-def test_matches_the_torch_selection(built, max_candidates):
+@pytest.mark.parametrize("kernel", ["auto", "avx", "scalar"])
+def test_matches_the_torch_selection(built, max_candidates, kernel):
+    if kernel not in ("auto",) + native._screen.kernels():
+        kernel = "auto"                                                       # no AVX here: auto is scalar
     v, t, y16, alpha, beta = _real_screen(300, seed=1)
-    index, amplitude, heavy = screen_select_native(y16, v, t.rows, beta, t.grid, alpha, max_candidates)
+    index, amplitude, heavy = screen_select_native(y16, v, t.rows, beta, t.grid, alpha, max_candidates,
+                                                   kernel=kernel)
     ref_index = torch.empty(len(v), dtype=torch.long)
     ref_amp = torch.empty(len(v))
     ref_heavy = _screen_select(y16, v, t, beta, alpha, max_candidates, ref_index, ref_amp, Workspace())
@@ -99,6 +103,24 @@ def test_threads_items_and_row_stride_do_not_change_the_result(built, monkeypatc
         for y in (y16, wide[:, :y16.shape[1]], wide):                   # padded rows: stride > 2K
             got = screen_select_native(y, v, t.rows, beta, t.grid, alpha, 6, threads=threads)
             assert all(torch.equal(a, b) for a, b in zip(got, ref)), threads
+    # the two dot kernels: the same directions, amplitudes within float32 rounding of the sums
+    got = screen_select_native(y16, v, t.rows, beta, t.grid, alpha, 6, kernel="scalar")
+    assert torch.equal(got[0], ref[0]) and torch.equal(got[2], ref[2])
+    torch.testing.assert_close(got[1], ref[1], rtol=1e-6, atol=0)
+    # a snapshot length that is not a multiple of 8 complex values exercises the kernels' tails
+    n = 13
+    rows = torch.randn(t.n_dir, n, dtype=torch.complex64, generator=torch.Generator().manual_seed(0))
+    w = torch.randn(len(v), n, dtype=torch.complex64, generator=torch.Generator().manual_seed(1))
+    tables = dictionary_tables(rows.transpose(0, 1).contiguous(), t.grid)
+    a, b = screen_bound(w, tables.row_norm_max)
+    y = torch.mm(torch.view_as_real(w).reshape(len(w), -1).to(torch.bfloat16), tables.screen_bf16)
+    exact = np.abs(w.numpy().astype(np.complex128) @ rows.numpy().T.astype(np.complex128))
+    for kernel in native._screen.kernels():
+        index, amplitude, heavy = screen_select_native(y, w, tables.rows, b, t.grid, a, 40, kernel=kernel)
+        light = (~heavy).numpy()
+        assert light.sum() > len(w) // 2
+        np.testing.assert_allclose(amplitude.numpy()[light], exact[light].max(1), rtol=2e-6)
+        np.testing.assert_allclose(exact[light, index.numpy()[light]], exact[light].max(1), rtol=1e-6)
     empty = screen_select_native(y16[:0], v[:0], t.rows, beta[:0], t.grid, alpha, 6)
     assert [e.shape for e in empty] == [(0,), (0,), (0,)]
 
@@ -134,10 +156,16 @@ def test_bad_input(built):
         call(6, 0)
     with pytest.raises(ValueError, match="threads"):
         call(6, 6, threads=0)
+    with pytest.raises(ValueError, match="kernel must be one of"):
+        call(6, 6, kernel="avx9")
     with pytest.raises(ValueError, match="n_az"):                        # the C entry point checks too
         native._screen.screen_select(0, 0, 0, 0, 0, 1, 0, 1, 1, 0.0, 1, 0, 0, 0)
     with pytest.raises(ValueError, match="non-null"):
         native._screen.screen_select(0, 2, 0, 0, 0, 1, 1, 1, 1, 0.0, 1, 0, 0, 0)
+    with pytest.raises(ValueError, match="kernel 'sse9'"):
+        native._screen.screen_select(0, 2, 0, 0, 0, 1, 1, 1, 1, 0.0, 1, 0, 0, 0, "sse9")
+    assert native._screen.screen_select(0, 2, 0, 0, 0, 0, 1, 1, 1, 0.0, 1, 0, 0, 0, "scalar") == (0, "scalar")
+    assert native._screen.kernels()[-1] == "scalar"
 
 
 def test_disabled_raises(monkeypatch):

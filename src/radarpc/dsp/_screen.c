@@ -17,9 +17,11 @@
  * whole-grid float32 beamformer) when its candidates span no azimuth or more than max_cand
  * azimuths, or when its screen holds NaN or inf.
  *
- * Plain C, vectorised by the compiler (-O3; the loops over azimuths are independent lanes and the
- * dot product keeps 16 explicit partial sums, so no reassociation flag is needed); on x86 with
- * GCC/Clang an AVX2 clone is chosen at run time. The entry point takes raw addresses and a row
+ * The per-row power and maxima are plain C loops over independent azimuth lanes, vectorised by
+ * the compiler (-O3, no reassociation flag needed); with GCC/Clang on x86 Linux an AVX2 clone of
+ * them is chosen at load time (target_clones). The dot products have two kernels, 16 float32
+ * partial sums each: "scalar" (plain C, any CPU) and "avx" (intrinsics, x86 with AVX; the
+ * compiler's own vectorisation of the scalar one was 5x slower), chosen at run time. The entry point takes raw addresses and a row
  * range and releases the GIL, so Python threads can run disjoint row ranges in parallel.
  */
 #define PY_SSIZE_T_CLEAN
@@ -118,7 +120,33 @@ SCREEN_TARGET("avx") static float dot_abs_avx(const float *b, const float *v, co
 #endif
 
 typedef float (*dot_abs_fn)(const float *, const float *, const float *, Py_ssize_t);
-static dot_abs_fn dot_abs = dot_abs_scalar;               /* set at import: AVX where the CPU has it */
+
+enum { KERNEL_AUTO = 0, KERNEL_SCALAR = 1, KERNEL_AVX = 2 };
+static const char *const kernel_names[] = {"auto", "scalar", "avx"};
+
+static int kernel_on_cpu(int kernel)
+{
+    switch (kernel) {
+    case KERNEL_SCALAR:
+        return 1;
+#if SCREEN_X86_SIMD
+    case KERNEL_AVX:
+        return __builtin_cpu_supports("avx");
+#endif
+    default:
+        return 0;
+    }
+}
+
+static dot_abs_fn kernel_dot(int kernel)
+{
+#if SCREEN_X86_SIMD
+    if (kernel == KERNEL_AVX)
+        return dot_abs_avx;
+#endif
+    (void)kernel;
+    return dot_abs_scalar;
+}
 
 /* Work arrays of one call: per-azimuth maxima and finiteness checks, one swapped snapshot. */
 typedef struct {
@@ -129,7 +157,7 @@ SCREEN_CLONES
 static void select_rows(const uint16_t *y, Py_ssize_t y_stride, const float *v, const float *rows,
                         const float *beta, Py_ssize_t n_rows, Py_ssize_t n_az, Py_ssize_t n_el,
                         Py_ssize_t n_virtual, double alpha, Py_ssize_t max_cand, int64_t *index,
-                        float *amplitude, uint8_t *heavy, scratch_t *w)
+                        float *amplitude, uint8_t *heavy, dot_abs_fn dot_abs, scratch_t *w)
 {
     const Py_ssize_t k_dir = n_az * n_el;
     const float one_minus_alpha = (float)(1.0 - alpha), one_plus_alpha = (float)(1.0 + alpha);
@@ -172,7 +200,7 @@ static void select_rows(const uint16_t *y, Py_ssize_t y_stride, const float *v, 
         }
         heavy[j] = 0;
         const float *vj = v + 2 * n_virtual * j;
-        for (Py_ssize_t i = 0; i < n_virtual && dot_abs == dot_abs_scalar; ++i) {   /* the AVX dot swaps in registers */
+        for (Py_ssize_t i = 0; i < n_virtual && dot_abs == dot_abs_scalar; ++i) {   /* AVX swaps in registers */
             vs[2 * i] = vj[2 * i + 1];
             vs[2 * i + 1] = vj[2 * i];
         }
@@ -203,24 +231,36 @@ static void select_rows(const uint16_t *y, Py_ssize_t y_stride, const float *v, 
 
 PyDoc_STRVAR(screen_select_doc,
 "screen_select(y, y_stride, v, rows, beta, n_rows, n_az, n_el, n_virtual, alpha, max_cand,\n"
-"              index, amplitude, heavy)\n"
+"              index, amplitude, heavy, kernel='auto')\n"
 "--\n\n"
 "Selection step of the screened beamformer for n_rows snapshots (see the module source).\n"
 "Addresses: y bfloat16 (n_rows rows of stride y_stride >= 2 n_az n_el elements, [Re | Im],\n"
 "elevation-major columns); v complex64 (n_rows, n_virtual); rows complex64\n"
 "(n_az n_el, n_virtual), row k = az n_el + el; beta float32 (n_rows,). Outputs: index int64,\n"
 "amplitude float32, heavy uint8, (n_rows,) each; heavy rows get index -1. The GIL is released.\n"
-"Returns the number of heavy rows.");
+"kernel: 'auto', 'scalar' or 'avx' (the dot products). Returns (heavy rows, kernel that ran).");
 
 static PyObject *py_screen_select(PyObject *self, PyObject *args)
 {
     unsigned long long y, v, rows, beta, index, amplitude, heavy;
     Py_ssize_t y_stride, n_rows, n_az, n_el, n_virtual, max_cand;
     double alpha;
+    const char *name = "auto";
     (void)self;
-    if (!PyArg_ParseTuple(args, "KnKKKnnnndnKKK", &y, &y_stride, &v, &rows, &beta, &n_rows, &n_az,
-                          &n_el, &n_virtual, &alpha, &max_cand, &index, &amplitude, &heavy))
+    if (!PyArg_ParseTuple(args, "KnKKKnnnndnKKK|s", &y, &y_stride, &v, &rows, &beta, &n_rows, &n_az,
+                          &n_el, &n_virtual, &alpha, &max_cand, &index, &amplitude, &heavy, &name))
         return NULL;
+    int kernel = -1;
+    for (int k = 0; k < (int)(sizeof(kernel_names) / sizeof(kernel_names[0])); ++k)
+        if (strcmp(name, kernel_names[k]) == 0)
+            kernel = k;
+    if (kernel == KERNEL_AUTO)
+        kernel = kernel_on_cpu(KERNEL_AVX) ? KERNEL_AVX : KERNEL_SCALAR;
+    if (kernel < 0 || !kernel_on_cpu(kernel)) {
+        PyErr_Format(PyExc_ValueError, "kernel '%s' is not one of 'auto', 'scalar', 'avx' or cannot run on "
+                     "this build/CPU", name);
+        return NULL;
+    }
     if (n_rows < 0 || n_az < 1 || n_el < 1 || n_virtual < 1 || max_cand < 1 || y_stride < 2 * n_az * n_el) {
         PyErr_Format(PyExc_ValueError, "need n_rows >= 0, n_az, n_el, n_virtual, max_cand >= 1 and "
                      "y_stride >= 2 n_az n_el, got n_rows=%zd n_az=%zd n_el=%zd n_virtual=%zd "
@@ -232,7 +272,7 @@ static PyObject *py_screen_select(PyObject *self, PyObject *args)
         return NULL;
     }
     if (n_rows == 0)
-        return PyLong_FromSsize_t(0);
+        return Py_BuildValue("(ns)", (Py_ssize_t)0, kernel_names[kernel]);
     if (!y || !v || !rows || !beta || !index || !amplitude || !heavy) {
         PyErr_SetString(PyExc_ValueError, "addresses must be non-null");
         return NULL;
@@ -247,18 +287,33 @@ static PyObject *py_screen_select(PyObject *self, PyObject *args)
     select_rows((const uint16_t *)(uintptr_t)y, y_stride, (const float *)(uintptr_t)v,
                 (const float *)(uintptr_t)rows, (const float *)(uintptr_t)beta, n_rows, n_az, n_el,
                 n_virtual, alpha, max_cand, (int64_t *)(uintptr_t)index,
-                (float *)(uintptr_t)amplitude, (uint8_t *)(uintptr_t)heavy, &w);
+                (float *)(uintptr_t)amplitude, (uint8_t *)(uintptr_t)heavy, kernel_dot(kernel), &w);
     Py_END_ALLOW_THREADS
     free(w.q_az);
     Py_ssize_t n_heavy = 0;
     const uint8_t *h = (const uint8_t *)(uintptr_t)heavy;
     for (Py_ssize_t j = 0; j < n_rows; ++j)
         n_heavy += h[j];
-    return PyLong_FromSsize_t(n_heavy);
+    return Py_BuildValue("(ns)", n_heavy, kernel_names[kernel]);
+}
+
+PyDoc_STRVAR(kernels_doc,
+"kernels()\n"
+"--\n\n"
+"Names of the dot-product kernels this build can run on this CPU, fastest first.");
+
+static PyObject *py_kernels(PyObject *self, PyObject *args)
+{
+    (void)self;
+    (void)args;
+    if (kernel_on_cpu(KERNEL_AVX))
+        return Py_BuildValue("(ss)", kernel_names[KERNEL_AVX], kernel_names[KERNEL_SCALAR]);
+    return Py_BuildValue("(s)", kernel_names[KERNEL_SCALAR]);
 }
 
 static PyMethodDef screen_methods[] = {
     {"screen_select", py_screen_select, METH_VARARGS, screen_select_doc},
+    {"kernels", py_kernels, METH_NOARGS, kernels_doc},
     {NULL, NULL, 0, NULL},
 };
 
@@ -272,8 +327,6 @@ PyMODINIT_FUNC PyInit__screen(void)
 {
 #if SCREEN_X86_SIMD
     __builtin_cpu_init();
-    if (__builtin_cpu_supports("avx"))
-        dot_abs = dot_abs_avx;
 #endif
     return PyModule_Create(&screen_module);
 }

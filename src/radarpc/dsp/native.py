@@ -53,9 +53,9 @@ except ImportError:
     _screen = None
 
 KERNELS = ("auto", "avx", "scalar")
-"""Kernel names accepted by :func:`rx_magnitude_sum_native`: ``auto`` picks the fastest one this
-CPU and ``Nrx`` allow (``avx``, 8 cells per step, needs an x86 CPU with AVX, a GCC/Clang build
-and ``Nrx % 8 == 0``; ``scalar`` runs anywhere)."""
+"""Kernel names accepted by :func:`rx_magnitude_sum_native` and :func:`screen_select_native`:
+``auto`` picks the fastest one this CPU allows (``avx`` needs an x86 CPU with AVX and a GCC/Clang
+build, and for the magnitude sum ``Nrx % 8 == 0``, 8 cells per step; ``scalar`` runs anywhere)."""
 
 DISABLE_ENV = "RADARPC_NO_NATIVE"
 """Environment variable: any value other than empty or ``0`` disables the native kernel."""
@@ -268,7 +268,7 @@ _SCREEN_ROWS = 64
 
 def screen_select_native(screen: torch.Tensor, snapshots: torch.Tensor, rows: torch.Tensor,
                          beta: torch.Tensor, grid: tuple[int, int], alpha: float,
-                         max_candidates: int, *, threads: int | None = None
+                         max_candidates: int, *, threads: int | None = None, kernel: str = "auto"
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Selection step of :func:`radarpc.dsp.beamform.beamform_peaks_screened`, natively.
 
@@ -297,6 +297,9 @@ def screen_select_native(screen: torch.Tensor, snapshots: torch.Tensor, rows: to
         Most azimuths with candidates a row may have before it is left to the caller.
     threads : int, optional
         Default ``torch.get_num_threads()``.
+    kernel : str
+        Dot-product kernel, one of :data:`KERNELS`: ``auto`` (default) picks ``avx`` where the
+        CPU has it, else ``scalar``; they differ only in the float32 rounding of the sums.
 
     Returns
     -------
@@ -307,7 +310,8 @@ def screen_select_native(screen: torch.Tensor, snapshots: torch.Tensor, rows: to
     Raises
     ------
     ValueError
-        Wrong device, dtype, shape or layout of an input; bad ``alpha``, ``max_candidates``, ``threads``.
+        Wrong device, dtype, shape or layout of an input; bad ``alpha``, ``max_candidates``,
+        ``threads``; an unknown kernel, or one this CPU cannot run.
     RuntimeError
         The extensions are not built or are disabled by ``RADARPC_NO_NATIVE``.
     """
@@ -338,8 +342,12 @@ def screen_select_native(screen: torch.Tensor, snapshots: torch.Tensor, rows: to
         threads = torch.get_num_threads()
     if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
         raise ValueError(f"threads must be an int >= 1, got {threads!r}")
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
     _require_native("the torch path of radarpc.dsp.beamform.beamform_peaks_screened")
     assert _screen is not None
+    if kernel != "auto" and kernel not in _screen.kernels():
+        raise ValueError(f"kernel {kernel!r} cannot run here; available: {_screen.kernels()}")
     index = torch.empty(p, dtype=torch.long)
     amplitude = torch.empty(p, dtype=torch.float32)
     heavy = torch.empty(p, dtype=torch.bool)
@@ -353,7 +361,7 @@ def screen_select_native(screen: torch.Tensor, snapshots: torch.Tensor, rows: to
 
     def item(s: int, m: int) -> None:                                # bool is one byte, as uint8
         ext.screen_select(y_ptr + 2 * y_stride * s, y_stride, v_ptr + 8 * n * s, r_ptr, b_ptr + 4 * s, m,
-                          n_az, n_el, n, a_f, m_c, i_ptr + 8 * s, a_ptr + 4 * s, h_ptr + s)
+                          n_az, n_el, n, a_f, m_c, i_ptr + 8 * s, a_ptr + 4 * s, h_ptr + s, kernel)
 
     _run_items(item, p, _SCREEN_ROWS, threads)
     return index, amplitude, heavy
