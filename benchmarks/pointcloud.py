@@ -288,13 +288,13 @@ def stage_times(spc: SpectralPointCloud, batch: torch.Tensor, repeats: int) -> d
         d0 = env.tx0_doppler(b, r, l)
         v = virtual_snapshots(batch, cfg, b, r, d0)                # (P, n_virtual)
         t = tick("snapshot gather", t)
-        beamform_peaks(v, tables, spc.grid, None)
+        beamform_peaks(v, tables, spc.grid, None, workspace=spc.workspace)
         t = tick("beamforming GEMM + argmax", t)
         if c.sectors is not None:
-            beamform_peaks(v, tables, spc.grid, c.sectors)
+            beamform_peaks(v, tables, spc.grid, c.sectors, workspace=spc.workspace)
             t = tick("beamforming with sectors", t)
         else:
-            beamform_peaks_screened(v, tables, spc.grid)
+            beamform_peaks_screened(v, tables, spc.grid, workspace=spc.workspace)
             t = tick("screened beamforming", t)
         spc(batch)
         tick("whole forward", t)

@@ -423,6 +423,15 @@ def test_auto_beamforming_resolves_by_device_and_sectors():
     assert resolve_beamforming("auto", cpu, (8, 1)) == "exact"
     with pytest.raises(ValueError, match="beamforming must be one of"):
         resolve_beamforming("bf16", cpu, None)
+    # "auto" is the default everywhere a user can leave it out
+    import inspect
+
+    from radarpc.dsp.convert import ConvertSettings, convert_dataset
+    calib = make_calibration(TINY)
+    assert SpectralPointCloud(TINY, calib).config.beamforming == "auto"
+    assert SpectralPointCloudConfig().beamforming == "auto"
+    assert inspect.signature(convert_dataset).parameters["beamforming"].default == "auto"
+    assert ConvertSettings(tau=1.585).beamforming == "auto"
 
 
 @pytest.mark.parametrize("grid,sectors", [((181, 5), (32, 1)), ((181, 5), (7, 2)), ((13, 1), (13, 1)),

@@ -540,7 +540,7 @@ def convert_dataset(
     window: tuple[int, int] = (9, 9),
     guard: tuple[int, int] = (3, 3),
     envelope: str = "replicas",
-    beamforming: str = "exact",
+    beamforming: str = "auto",
     split: str = "all",
     batch_size: int = 8,
     chunk_frames: int = 64,

@@ -312,7 +312,7 @@ class SpectralPointCloud(torch.nn.Module):
     def __init__(self, sensor: DDMARadarConfig, calibration: Calibration, tau: float | None = RADIAL_TAU, *,
                  density: float | None = None, density_mode: str = "per-frame",
                  window: Sequence[int] = (9, 9), guard: Sequence[int] = (3, 3),
-                 enrich: Sequence[str] = (), envelope: str = "replicas", beamforming: str = "exact") -> None:
+                 enrich: Sequence[str] = (), envelope: str = "replicas", beamforming: str = "auto") -> None:
         super().__init__()
         self.config = SpectralPointCloudConfig(tau=tau, density=density, density_mode=density_mode,
                                                window=window, guard=guard, enrich=enrich, envelope=envelope,
