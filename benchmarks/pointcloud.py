@@ -74,6 +74,7 @@ from radarpc.dsp.beamform import beamform_peaks, beamform_peaks_screened, resolv
 from radarpc.dsp.cfar import ca_cfar  # noqa: E402
 from radarpc.dsp.ddma import ddma_envelope, rx_magnitude_sum, virtual_snapshots  # noqa: E402
 from radarpc.dsp.density import neighbourhood_mask  # noqa: E402
+from radarpc.dsp.native import DISABLE_ENV, native_available  # noqa: E402
 from radarpc.sensors.radial import RADIAL, Calibration, DDMARadarConfig, make_calibration  # noqa: E402
 from radarpc.machine import cpu_model  # noqa: E402
 
@@ -296,6 +297,19 @@ def stage_times(spc: SpectralPointCloud, batch: torch.Tensor, repeats: int) -> d
         else:
             beamform_peaks_screened(v, tables, spc.grid, workspace=spc.workspace)
             t = tick("screened beamforming", t)
+            if native_available():                                 # the same on the torch paths
+                prev = os.environ.get(DISABLE_ENV)
+                os.environ[DISABLE_ENV] = "1"
+                try:
+                    beamform_peaks_screened(v, tables, spc.grid, workspace=spc.workspace)
+                    t = tick("screened beamforming, torch selection (RADARPC_NO_NATIVE=1)", t)
+                    rx_magnitude_sum(batch)
+                    t = tick("sum_rx |RD|, torch (RADARPC_NO_NATIVE=1)", t)
+                finally:
+                    if prev is None:
+                        del os.environ[DISABLE_ENV]
+                    else:
+                        os.environ[DISABLE_ENV] = prev
         spc(batch)
         tick("whole forward", t)
         if _ == 0:
