@@ -70,7 +70,8 @@ from scipy import signal  # noqa: E402
 from scipy.ndimage import binary_dilation, maximum_filter  # noqa: E402
 
 from radarpc.dsp import SpectralPointCloud  # noqa: E402
-from radarpc.dsp.beamform import beamform_peaks, beamform_peaks_screened, resolve_beamforming  # noqa: E402
+from radarpc.dsp.beamform import (MAX_SCREEN_CANDIDATES, beamform_peaks, beamform_peaks_screened,  # noqa: E402
+                                  resolve_beamforming, screen_bound)
 from radarpc.dsp.cfar import ca_cfar  # noqa: E402
 from radarpc.dsp.ddma import ddma_envelope, rx_magnitude_sum, virtual_snapshots  # noqa: E402
 from radarpc.dsp.density import neighbourhood_mask  # noqa: E402
@@ -322,6 +323,43 @@ def stage_times(spc: SpectralPointCloud, batch: torch.Tensor, repeats: int) -> d
     return out
 
 
+def screen_statistics(spc: SpectralPointCloud, batch: torch.Tensor, sectors: int = 32) -> dict[str, float]:
+    """What the screened beamformer's bound leaves on the points of ``batch`` (``spc``'s
+    detection), recomputed here independently of its selection code: the float64 exact spectrum,
+    this machine's bfloat16 screen GEMM and :func:`screen_bound`. Returns the mean number of
+    candidate directions and azimuths per point, the fraction of points with more than
+    ``MAX_SCREEN_CANDIDATES`` azimuths (left to the exact GEMM), the largest observed
+    ``| |s^| - |s| | / bound``, and the mean number of directions that could hold one of
+    ``sectors`` azimuth-sector maxima (what screening the sector descriptor would leave)."""
+    enc = spc.encode(batch)
+    b, r, l = torch.nonzero(enc.kept, as_tuple=True)
+    v = virtual_snapshots(batch, spc.sensor, b, r, enc.envelope.tx0_doppler(b, r, l)).contiguous()
+    t = spc.tables(batch.device)
+    n_az, n_el = t.grid
+    k_dir = t.n_dir
+    y = torch.mm(torch.view_as_real(v).reshape(len(v), -1).to(torch.bfloat16), t.screen_bf16).double()
+    q = torch.hypot(y[:, :k_dir], y[:, k_dir:])                                 # (P, K) el-major
+    exact = (v.to(torch.complex128) @ torch.complex(t.re.double(), t.im.double())).abs()
+    alpha, beta = screen_bound(v, t.row_norm_max)
+    beta = beta.double()[:, None]
+    ratio = float(((q - exact).abs() / (alpha * q + beta)).max())
+    upper, lower = (1 + alpha) * q + beta, (1 - alpha) * q - beta
+    cand = upper >= lower.amax(1, keepdim=True)                                  # (P, K)
+    n_azimuths = cand.view(-1, n_el, n_az).any(1).sum(1)
+    light = (n_azimuths >= 1) & (n_azimuths <= MAX_SCREEN_CANDIDATES)
+    sec = 0
+    for u in range(sectors):                                                    # adaptive-pooling sectors
+        cols = torch.arange(u * n_az // sectors, -(-(u + 1) * n_az // sectors))
+        up, lo = upper.view(-1, n_el, n_az)[:, :, cols], lower.view(-1, n_el, n_az)[:, :, cols]
+        sec = sec + (up.flatten(1) >= lo.flatten(1).amax(1, keepdim=True)).sum(1)
+    return {"points": len(v), "candidate_directions_per_point": round(float(cand[light].sum(1).double().mean()), 2),
+            "candidate_azimuths_per_point": round(float(n_azimuths[light].double().mean()), 2),
+            "fraction_left_to_exact_gemm": round(float((~light).double().mean()), 4),
+            "max_error_over_bound": round(ratio, 3),
+            f"sector{sectors}_candidate_directions_per_point": round(float(sec.double().mean()), 1),
+            "directions": k_dir}
+
+
 def main(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.threads)
     cfg = RADIAL
@@ -410,7 +448,9 @@ def main(args: argparse.Namespace) -> None:
         stages = {name: stage_times(SpectralPointCloud(cfg, calib, density=0.057, enrich=enrich), batch,
                                     args.repeats)
                   for name, enrich in configs.items()}
-        print(json.dumps({"stages_ms_per_frame": stages, "density_target": 0.057, "batch": args.batch,
+        screen = screen_statistics(SpectralPointCloud(cfg, calib, density=0.057), batch)
+        print(json.dumps({"stages_ms_per_frame": stages, "screen_statistics": screen,
+                          "density_target": 0.057, "batch": args.batch,
                           "threads": args.threads, "device": "cpu",
                           "load_avg_1min": os.getloadavg()[0]}), flush=True)
 
