@@ -77,7 +77,7 @@ from radarpc.dsp.ddma import ddma_envelope, rx_magnitude_sum, virtual_snapshots 
 from radarpc.dsp.density import neighbourhood_mask  # noqa: E402
 from radarpc.dsp.native import DISABLE_ENV, native_available  # noqa: E402
 from radarpc.sensors.radial import RADIAL, Calibration, DDMARadarConfig, make_calibration  # noqa: E402
-from radarpc.machine import cpu_model  # noqa: E402
+from radarpc.machine import cpu_model, numeric_libraries  # noqa: E402
 
 
 # ---- the straightforward numpy implementation (rpl.py style) ---------------------------------------
@@ -373,7 +373,7 @@ def main(args: argparse.Namespace) -> None:
         report: dict = {"density_target": density, "frames": args.frames, "batch": args.batch,
                         "frame_shape": list(cfg.rd_shape), "angle_grid": list(calib.grid_shape),
                         "threads": args.threads, "cpu": cpu_model(),
-                        "load_avg_1min": os.getloadavg()[0], "results": []}
+                        "libraries": numeric_libraries(), "load_avg_1min": os.getloadavg()[0], "results": []}
         for name, enrich in configs.items():
             npc = NumpyPointCloud(cfg, calib, density, rd_n=3 if "rd3" in enrich else None,
                                   sectors=32 if "sector32" in enrich else None)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import platform
 from pathlib import Path
 
-__all__ = ["cpu_model"]
+__all__ = ["cpu_model", "numeric_libraries"]
 
 
 def cpu_model() -> str:
@@ -17,3 +17,30 @@ def cpu_model() -> str:
     except OSError:
         return platform.processor() or platform.machine()
     return platform.processor() or platform.machine()
+
+
+def numeric_libraries() -> dict[str, str]:
+    """Versions of torch and numpy, torch's CPU kernel level and the BLAS numpy runs with.
+
+    A benchmark that compares radarpc with a numpy baseline records these, because the
+    baseline's speed depends on which BLAS build and kernel it gets. The BLAS kernel
+    (``architecture``, e.g. ``SkylakeX``) comes from ``threadpoolctl`` when it is installed;
+    otherwise only numpy's build-time BLAS name and version are given.
+    """
+    import numpy as np
+    import torch
+
+    out = {"torch": torch.__version__, "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+           "numpy": np.__version__}
+    try:
+        from threadpoolctl import threadpool_info
+    except ImportError:
+        blas = np.__config__.CONFIG.get("Build Dependencies", {}).get("blas", {})
+        out["numpy_blas"] = f"{blas.get('name', '?')} {blas.get('version', '?')}"
+        return out
+    for pool in threadpool_info():
+        if pool.get("user_api") == "blas" and "numpy" in pool.get("filepath", ""):
+            out["numpy_blas"] = (f"{pool.get('internal_api')} {pool.get('version')} "
+                                 f"({pool.get('architecture', '?')}, {pool.get('num_threads')} threads)")
+            break
+    return out
