@@ -7,9 +7,11 @@
  *
  *   q_jc^2  = Re^2 + Im^2 of column c (bfloat16 widened exactly to float32)
  *   Q_j(az) = max_el q^2_j(el * n_az + az)                     best elevation per azimuth
- *   lower_j = (1 - alpha) sqrt(max_az Q_j) - beta_j            a lower bound of max_k |s_jk|
- *   need_j  = (lower_j - beta_j) / (1 + alpha)                 q_jk >= need_j: k can hold it
- *   C_j     = {c : q^2_jc >= need_j^2}   (every c when need_j <= 0)
+ *   M_j     = sqrt(max_az Q_j)                                  (double from here on)
+ *   need_j  = ((1 - alpha) M_j - 2 beta_j) / (1 + alpha) - 2^-20 M_j
+ *             (q_jk >= need_j: k can hold the maximum; the last term covers the float32
+ *             rounding of the powers and of need_j^2)
+ *   C_j     = {c : q^2_jc >= (float) need_j^2}   (every c when need_j <= 2^-40)
  *   k_j     = argmax_{c in C_j} |B[k(c)] . v_j|,  Ae_j its value (complex64 products summed
  *             in float32 lanes, the modulus in double), ties to the smaller direction k
  *
@@ -49,6 +51,11 @@
 #endif
 
 #define LANES 16
+
+/* The candidate threshold's slack and floor; the same values as radarpc.dsp.beamform's
+ * _SCREEN_SLACK and _SCREEN_TINY_NEED (the tests compare the two selections bit for bit). */
+#define SCREEN_SLACK 0x1p-20
+#define SCREEN_TINY_NEED 0x1p-40
 
 static inline float bf16_to_f32(uint16_t h)
 {
@@ -160,7 +167,6 @@ static void select_rows(const uint16_t *y, Py_ssize_t y_stride, const float *v, 
                         float *amplitude, uint8_t *heavy, dot_abs_fn dot_abs, scratch_t *w)
 {
     const Py_ssize_t k_dir = n_az * n_el;
-    const float one_minus_alpha = (float)(1.0 - alpha), one_plus_alpha = (float)(1.0 + alpha);
     float *q_az = w->q_az, *check = w->check, *vs = w->vs;
     for (Py_ssize_t j = 0; j < n_rows; ++j) {
         const uint16_t *yr = y + y_stride * j, *yi = yr + k_dir;
@@ -186,9 +192,9 @@ static void select_rows(const uint16_t *y, Py_ssize_t y_stride, const float *v, 
             bad = bad + check[az];
         }
         const float bj = beta[j];
-        const float lower = one_minus_alpha * sqrtf(q_max) - bj;
-        const float need = (lower - bj) / one_plus_alpha;
-        const float need2 = need > 0.0f ? need * need : -1.0f;
+        const double m_j = sqrt((double)q_max);
+        const double need = ((1.0 - alpha) * m_j - 2.0 * (double)bj) / (1.0 + alpha) - SCREEN_SLACK * m_j;
+        const float need2 = need > SCREEN_TINY_NEED ? (float)(need * need) : -1.0f;
         Py_ssize_t n_cand = 0;
         for (Py_ssize_t az = 0; az < n_az; ++az)
             n_cand += q_az[az] >= need2;

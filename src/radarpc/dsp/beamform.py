@@ -50,6 +50,18 @@ MAX_SCREEN_CANDIDATES = 6
 _BF16_UNIT_ROUNDOFF = 2.0 ** -8     # round-to-nearest to 8 significant bits
 _FP32_UNIT_ROUNDOFF = 2.0 ** -24
 
+# Snapshots whose 2-norm lies in [2^-40, 2^40] are beamformed as they are: every float32 value
+# the beamformers form from them (squared entries that matter, |B v|^2 over the grid) stays in the
+# normal range. Others are first scaled by a power of two (exact) so that their largest |Re| or
+# |Im| lies in [0.5, 1), and the amplitudes scaled back (:func:`_range_exponents`).
+_SAFE_NORM = (2.0 ** -40, 2.0 ** 40)
+# The screen's candidate threshold is lowered by this fraction of the screen's peak: it covers the
+# float32 evaluation of the screen powers q^2 and of the threshold (each ~2^-24 relative).
+_SCREEN_SLACK = 2.0 ** -20
+# Below this threshold (a screen with no usable peak) every direction is a candidate, so that no
+# comparison is made among subnormal float32 powers.
+_SCREEN_TINY_NEED = 2.0 ** -40
+
 
 def _check(snapshots: torch.Tensor, dictionary: torch.Tensor) -> None:
     if not snapshots.is_complex() or not dictionary.is_complex():
@@ -229,6 +241,54 @@ def _tables_for(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Dictionary
     return t
 
 
+def _row_norms(snapshots: torch.Tensor) -> torch.Tensor:
+    """Float32 2-norms of the rows of complex ``(P, N)`` snapshots (the interleaved real view: the
+    complex-input norm is ~100x slower on CPU)."""
+    return torch.linalg.vector_norm(torch.view_as_real(snapshots.resolve_conj()).flatten(1), dim=1)
+
+
+def _range_exponents(snapshots: torch.Tensor, norms: torch.Tensor) -> torch.Tensor | None:
+    """Per-row exponents ``e`` (int32 ``(P,)``) such that ``snapshots * 2^-e`` has its largest
+    ``|Re|`` or ``|Im|`` in ``[0.5, 1)``, for the rows whose ``norms`` lie outside
+    :data:`_SAFE_NORM` (``e = 0`` for the others, and for all-zero or non-finite rows); ``None``
+    when every row is inside (the common case: one reduction, no copy)."""
+    lo, hi = _SAFE_NORM
+    out = ~((norms >= lo) & (norms <= hi))                       # NaN / inf norms are outside too
+    if not bool(out.any()):
+        return None
+    x = torch.view_as_real(snapshots[out].resolve_conj()).flatten(1)
+    amax = torch.maximum(x.amax(dim=1), -x.amin(dim=1)) if x.shape[1] else torch.zeros(len(x), device=x.device)
+    _, e = torch.frexp(amax)                                     # amax = m 2^e, m in [0.5, 1)
+    e = torch.where(torch.isfinite(amax), e.clamp(-126, 126), torch.zeros_like(e))
+    exps = torch.zeros(snapshots.shape[0], dtype=torch.int32, device=snapshots.device)
+    exps[out] = e.to(torch.int32)
+    return exps
+
+
+def _scaled(snapshots: torch.Tensor, exps: torch.Tensor) -> torch.Tensor:
+    """``snapshots * 2^-exps`` per row, exactly (scaling by a power of two rounds nothing)."""
+    x = torch.view_as_real(snapshots.resolve_conj())
+    return torch.view_as_complex(torch.ldexp(x, -exps[:, None, None]).to(x.dtype).contiguous())
+
+
+@contextlib.contextmanager
+def _full_fp32_matmul():
+    """Float32 GEMMs in full float32 while the beamformers run: with
+    ``torch.set_float32_matmul_precision("high" | "medium")`` torch may run them in TF32 (CUDA) or
+    bfloat16 (oneDNN on AMX CPUs), and the exact spectrum would no longer be exact. The setting is
+    process-wide; it is changed only when it is not already ``"highest"`` (the default) and
+    restored afterwards."""
+    prev = torch.get_float32_matmul_precision()
+    if prev == "highest":
+        yield
+        return
+    torch.set_float32_matmul_precision("highest")
+    try:
+        yield
+    finally:
+        torch.set_float32_matmul_precision(prev)
+
+
 def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | DictionaryTables,
                    grid: tuple[int, int], sectors: tuple[int, int] | None = None, *,
                    workspace: Workspace | None = None) -> BeamformResult:
@@ -238,6 +298,10 @@ def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Diction
     ``T1 = a C``, ``T2 = b D``, ``T3 = (a + b)(C + D)``; ``Re = T1 - T2``, ``Im = T3 - T1 - T2``.
     The power ``|B v|^2 = Re^2 + Im^2`` is formed block by block in preallocated buffers (argmax
     and max-pooling commute with the monotone square root) and only kept values are rooted.
+    Snapshots whose norm lies outside ``[2^-40, 2^40]`` are first scaled by a power of two
+    (exact), so that the power neither overflows (``|B v| >= 2^64``) nor goes subnormal; the
+    amplitudes and sectors are scaled back. The GEMMs run in full float32 whatever
+    ``torch.set_float32_matmul_precision`` says (:func:`_full_fp32_matmul`).
 
     Parameters
     ----------
@@ -255,6 +319,9 @@ def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Diction
     k_dir = t.n_dir
     p, n = snapshots.shape
     dev = snapshots.device
+    exps = _range_exponents(snapshots, _row_norms(snapshots))
+    if exps is not None:                                              # extreme magnitudes: 2^-e v
+        snapshots = _scaled(snapshots, exps)
     a = ws.empty("exact.re", (p, n), real, dev).copy_(snapshots.real)        # (P, N)
     b = ws.empty("exact.im", (p, n), real, dev).copy_(snapshots.imag)
     index = torch.empty(p, dtype=torch.long, device=dev)
@@ -265,6 +332,22 @@ def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Diction
     blk = min(_BLOCK, max(p, 1))
     t1, t2, t3 = (ws.empty(f"exact.t{q}", (blk, k_dir), real, dev) for q in (1, 2, 3))
     ab = ws.empty("exact.a+b", (blk, n), real, dev)
+    with _full_fp32_matmul():
+        _exact_blocks(a, b, t, grid, sectors, blk, t1, t2, t3, ab, power, index, sec)
+    index = column_to_direction(index, t.grid)
+    amplitude = power.sqrt()
+    if sec is not None:
+        sec = sec.sqrt()
+    if exps is not None:                                              # back to the input's scale
+        amplitude = torch.ldexp(amplitude, exps).to(real)
+        sec = None if sec is None else torch.ldexp(sec, exps[:, None]).to(real)
+    return BeamformResult(index=index, amplitude=amplitude, sectors=sec)
+
+
+def _exact_blocks(a, b, t: DictionaryTables, grid, sectors, blk, t1, t2, t3, ab, power, index, sec) -> None:
+    """The block loop of :func:`beamform_peaks`: writes ``power``, elevation-major ``index`` and
+    squared ``sec`` in place."""
+    p = a.shape[0]
     for i in range(0, p, blk):
         m = min(blk, p - i)
         ai, bi = a[i:i + m], b[i:i + m]
@@ -278,42 +361,52 @@ def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Diction
         torch.max(pw, dim=1, out=(power[i:i + m], index[i:i + m]))
         if sec is not None:
             sec[i:i + m] = _sector_pool_elevation_major(pw, grid, sectors)
-    index = column_to_direction(index, t.grid)
-    return BeamformResult(index=index, amplitude=power.sqrt(),
-                          sectors=None if sec is None else sec.sqrt())
 
 
 def screen_bound(snapshots: torch.Tensor, row_norm_max: float) -> tuple[float, torch.Tensor]:
     """Error bound of the bfloat16 screen: ``| |s^_k| - |s_k| | <= alpha |s^_k| + beta_j``.
 
     ``s^ = B v`` computed from ``v`` and ``B`` rounded to bfloat16 (unit roundoff ``u = 2^-8``),
-    products accumulated in float32 (``gamma_n = n 2^-24 / (1 - n 2^-24)``, ``n = 2 n_virtual``
-    terms) and the sum rounded to bfloat16. Per real output ``y`` (``Re`` or ``Im`` of ``s_k``)::
+    products accumulated in float32 in any order (``gamma_n = n 2^-24 / (1 - n 2^-24)``,
+    ``n = 2 n_virtual`` terms) and the sum rounded to bfloat16. Per real output ``y`` (``Re`` or
+    ``Im`` of ``s_k``)::
 
         |y^ - y| <= u / (1 - u) |y^| + c sum_p |x_p| |W_pk|,   c = 2u + u^2 + gamma_n (1 + u)^2,
 
     and ``sum_p |x_p| |W_pk| <= ||v_j||_2 ||B[k]||_2`` (Cauchy-Schwarz; each real column of the
     stacked form has the norm of ``B[k]``). Over the two components,
-    ``alpha = u / (1 - u)`` and ``beta_j = sqrt(2) c ||v_j|| max_k ||B[k]||``; both are inflated
-    by ``1e-5`` (relative) for the float32 evaluation of ``|s^|`` and of the norms, and ``beta``
-    gets an absolute ``2^-124 (n + sqrt(n) (max_k ||B[k]|| + ||v_j||))`` for GEMM kernels that
-    flush subnormal inputs, products or partial sums to zero (AMX and AVX512-BF16 do).
+    ``alpha = u / (1 - u)`` and ``beta_j = sqrt(2) c ||v_j|| max_k ||B[k]||``. ``beta`` is
+    inflated by ``1 + gamma_(n+2)`` for the float32 evaluation of ``||v_j||`` (and ``2^-20`` for
+    its own rounding), and gets an absolute ``2^-124 (n + sqrt(n) (max_k ||B[k]|| + ||v_j||))``
+    for GEMM kernels that flush subnormal inputs, products or partial sums to zero (AMX and
+    AVX512-BF16 do). Norms of snapshots outside ``[2^-40, 2^40]`` are taken on a power-of-two
+    rescaled copy, so they neither underflow nor overflow.
 
     Returns
     -------
     alpha : float
-    beta : Tensor ``(P,)`` in the snapshots' real dtype
+    beta : Tensor ``(P,)`` float32
     """
+    v = snapshots.resolve_conj()
+    vnorm = _row_norms(v)
+    exps = _range_exponents(v, vnorm)
+    if exps is not None:
+        vnorm = torch.ldexp(_row_norms(_scaled(v, exps)), exps).to(vnorm.dtype)
+    return _bound_terms(vnorm, 2 * snapshots.shape[1], row_norm_max)
+
+
+def _bound_terms(vnorm: torch.Tensor, n: int, row_norm_max: float) -> tuple[float, torch.Tensor]:
+    """``alpha`` and ``beta_j`` of :func:`screen_bound` from the float32 row norms ``vnorm`` of
+    snapshots with ``n`` real entries each."""
     u = _BF16_UNIT_ROUNDOFF
-    n = 2 * snapshots.shape[1]
     gamma = n * _FP32_UNIT_ROUNDOFF / (1.0 - n * _FP32_UNIT_ROUNDOFF)
     c = 2.0 * u + u * u + gamma * (1.0 + u) ** 2
-    safety = 1.0 + 1e-5
-    alpha = u / (1.0 - u) * safety
-    # norm of the interleaved real view: the complex-input norm is ~100x slower on CPU
-    vnorm = torch.linalg.vector_norm(torch.view_as_real(snapshots.resolve_conj()).flatten(1), dim=1)
+    alpha = u / (1.0 - u)
+    m = (n + 2) * _FP32_UNIT_ROUNDOFF
+    norm_safety = (1.0 + m / (1.0 - m)) * (1.0 + 2.0 ** -20)       # float32 ||v||, then beta's rounding
+    vnorm = vnorm.to(torch.float32)
     flush = 2.0 ** -124 * (n + math.sqrt(n) * (row_norm_max + vnorm))
-    beta = vnorm * (math.sqrt(2.0) * c * row_norm_max * safety) + flush
+    beta = vnorm * (math.sqrt(2.0) * c * row_norm_max * norm_safety) + flush
     return alpha, beta
 
 
@@ -332,6 +425,20 @@ def _fp32_accumulation(device: torch.device):
         torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction = prev
 
 
+def _screen_threshold(q2_max: torch.Tensor, beta: torch.Tensor, alpha: float) -> torch.Tensor:
+    """Squared candidate threshold ``need_j^2`` (float32 ``(m,)``) from the screen's peak power
+    ``max_k q_jk^2`` (float32) and ``beta_j``, evaluated in float64 as the C kernel does::
+
+        Q_j = sqrt(max_k q_jk^2),   need_j = ((1 - alpha) Q_j - 2 beta_j) / (1 + alpha) - 2^-20 Q_j
+
+    (``k`` is a candidate when ``(1 + alpha) q_jk + beta_j >= (1 - alpha) Q_j - beta_j``; the last
+    term covers the float32 rounding of the powers and of ``need_j^2``), and ``-1`` (every
+    direction a candidate) when ``need_j <= 2^-40``."""
+    q = q2_max.double().sqrt()
+    need = ((1.0 - alpha) * q - 2.0 * beta.double()) / (1.0 + alpha) - _SCREEN_SLACK * q
+    return torch.where(need > _SCREEN_TINY_NEED, need.square(), torch.full_like(need, -1.0)).to(torch.float32)
+
+
 def _screen_select(y16: torch.Tensor, v: torch.Tensor, t: DictionaryTables, beta: torch.Tensor,
                    alpha: float, max_candidates: int, index: torch.Tensor, amplitude: torch.Tensor,
                    ws: Workspace) -> torch.Tensor | None:
@@ -347,12 +454,11 @@ def _screen_select(y16: torch.Tensor, v: torch.Tensor, t: DictionaryTables, beta
     q2 = torch.mul(y[:, :k_dir], y[:, :k_dir], out=ws.empty("screen.q2", (m, k_dir), torch.float32, dev))
     q2.addcmul_(y[:, k_dir:], y[:, k_dir:])                               # q_jc^2
     q2_az = q2.view(m, n_el, n_az).amax(dim=1)                            # (m, n_az) best elevation
-    lower = (1.0 - alpha) * q2_az.amax(dim=1).sqrt() - beta               # max_k lower bound
-    need = (lower - beta) / (1.0 + alpha)                                 # C_j: q_jk >= need_j
-    need2 = torch.where(need > 0, need.square(), torch.full_like(need, -1.0))[:, None]
+    need2 = _screen_threshold(q2_az.amax(dim=1), beta, alpha)[:, None]    # C_j: q_jk^2 >= need2_j
     j, az = torch.nonzero(q2_az >= need2, as_tuple=True)                 # azimuths holding candidates
     n_cand = torch.bincount(j, minlength=m)
-    heavy = (n_cand > max_candidates) | (n_cand == 0)                    # none: NaN/inf rows
+    finite = torch.isfinite(q2_az).all(dim=1) & torch.isfinite(beta)      # NaN/inf screen or bound
+    heavy = (n_cand > max_candidates) | (n_cand == 0) | ~finite
     heavy_rows = None
     if bool(heavy.any()):                                                # flat spectra: whole grid
         heavy_rows = torch.nonzero(heavy).flatten()
@@ -378,16 +484,21 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
                             workspace: Workspace | None = None) -> BeamformResult:
     """``k_j`` and ``Ae_j`` of :func:`beamform_peaks`, screened by a bfloat16 GEMM and certified.
 
+    0. snapshots whose norm lies outside ``[2^-40, 2^40]`` are scaled by a power of two (exact;
+       the amplitudes are scaled back at the end), so that no float32 value below underflows or
+       overflows; the exact beamformer does the same;
     1. ``s^_j = B v_j`` over the whole grid from one bfloat16 GEMM (:func:`stack_real` form), and
        its power ``q_jk^2 = |s^_jk|^2`` formed in float32;
     2. with the rigorous bound of :func:`screen_bound`, ``|s_jk|`` lies in
        ``[(1 - alpha) q_jk - beta_j, (1 + alpha) q_jk + beta_j]``, so the exact maximum is among
-       ``C_j = {k : (1 + alpha) q_jk + beta_j >= max_k' (1 - alpha) q_jk' - beta_j}``;
+       ``C_j = {k : (1 + alpha) q_jk + beta_j >= max_k' (1 - alpha) q_jk' - beta_j}``, tested as
+       ``q_jk^2 >= need_j^2`` with the threshold of :func:`_screen_threshold` (float64, lowered by
+       ``2^-20 max_k q_jk`` for the float32 rounding of the powers);
     3. ``|B[k] v_j|`` is evaluated exactly (complex64 dot products) for ``k in C_j`` only, and
        ``k_j = argmax_{k in C_j}``, ``Ae_j`` its value (ties to the smaller ``k``);
     4. a snapshot whose candidates span more than ``max_candidates`` azimuths (a flat spectrum,
-       e.g. zeros), or none at all (a non-finite spectrum), is beamformed over the whole grid by
-       :func:`beamform_peaks`.
+       e.g. zeros), or none at all, or whose screen or bound is not finite (NaN/inf), is
+       beamformed over the whole grid by :func:`beamform_peaks`.
 
     The result is the exact argmax and maximum, up to the float32 rounding of the dot products
     (directions whose exact amplitudes tie to ~1e-7 may be ordered differently than by the GEMMs
@@ -405,8 +516,13 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     p = snapshots.shape[0]
     dev = snapshots.device
     v = snapshots.resolve_conj().contiguous()
+    vnorm = _row_norms(v)
+    exps = _range_exponents(v, vnorm)
+    if exps is not None:                                              # extreme magnitudes: 2^-e v
+        v = _scaled(v, exps)
+        vnorm = _row_norms(v)
+    alpha, beta = _bound_terms(vnorm, 2 * v.shape[1], t.row_norm_max)   # screen_bound of v
     x = torch.view_as_real(v).reshape(p, 2 * v.shape[1])            # (P, 2N) interleaved
-    alpha, beta = screen_bound(v, t.row_norm_max)
     index = torch.empty(p, dtype=torch.long, device=dev)
     amplitude = torch.empty(p, dtype=torch.float32, device=dev)
     heavy_rows = []
@@ -437,6 +553,8 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
         full = beamform_peaks(v[rows], t, grid, workspace=ws)
         index[rows] = full.index
         amplitude[rows] = full.amplitude
+    if exps is not None:                                              # back to the input's scale
+        amplitude = torch.ldexp(amplitude, exps).to(torch.float32)
     return BeamformResult(index=index, amplitude=amplitude, sectors=None)
 
 

@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 import os
 import threading
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from collections.abc import Callable
 from types import ModuleType
 
@@ -165,8 +165,9 @@ def _run_items(item: Callable[[int, int], None], n: int, step: int, threads: int
     try:
         work()                                                       # this thread works too
     finally:
-        for f in futures:                                            # wait even on error
-            f.result()
+        wait(futures)                                                # every item, even on error
+        for f in futures:
+            f.result()                                               # re-raises the first error
 
 
 def _chunk_cells(n_rx: int) -> int:
