@@ -170,6 +170,17 @@ def _run_items(item: Callable[[int, int], None], n: int, step: int, threads: int
             f.result()                                               # re-raises the first error
 
 
+def _check_threads_and_kernel(threads: int | None, kernel: str) -> int:
+    """``threads`` (default ``torch.get_num_threads()``) after checking it and ``kernel``."""
+    if threads is None:
+        threads = torch.get_num_threads()
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ValueError(f"threads must be an int >= 1, got {threads!r}")
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+    return threads
+
+
 def _chunk_cells(n_rx: int) -> int:
     """Cells per work item: about ``_CHUNK_BYTES`` of input, a multiple of ``_CHUNK_ALIGN``."""
     return max(1, _CHUNK_BYTES // (8 * n_rx * _CHUNK_ALIGN)) * _CHUNK_ALIGN
@@ -235,12 +246,7 @@ def rx_magnitude_sum_native(rd: torch.Tensor, *, threads: int | None = None,
     if not rd.is_contiguous():
         raise ValueError(f"rd must be C-contiguous, got shape {tuple(rd.shape)} with strides {rd.stride()} "
                          f"(call .contiguous() first)")
-    if threads is None:
-        threads = torch.get_num_threads()
-    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
-        raise ValueError(f"threads must be an int >= 1, got {threads!r}")
-    if kernel not in KERNELS:
-        raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+    threads = _check_threads_and_kernel(threads, kernel)
     _require_native("radarpc.dsp.ddma.rx_magnitude_sum")
     assert _rxsum is not None
     n_rx = rd.shape[-1]
@@ -339,12 +345,7 @@ def screen_select_native(screen: torch.Tensor, snapshots: torch.Tensor, rows: to
         raise ValueError(f"alpha must be in [0, 1), got {alpha!r}")
     if isinstance(max_candidates, bool) or int(max_candidates) < 1:
         raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
-    if threads is None:
-        threads = torch.get_num_threads()
-    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
-        raise ValueError(f"threads must be an int >= 1, got {threads!r}")
-    if kernel not in KERNELS:
-        raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+    threads = _check_threads_and_kernel(threads, kernel)
     _require_native("the torch path of radarpc.dsp.beamform.beamform_peaks_screened")
     assert _screen is not None
     if kernel != "auto" and kernel not in _screen.kernels():
