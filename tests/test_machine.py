@@ -22,3 +22,20 @@ def test_numeric_libraries_without_threadpoolctl_reads_numpy_build_config(monkey
 
 def test_cpu_model_is_a_non_empty_string():
     assert isinstance(cpu_model(), str) and cpu_model()
+
+
+def test_check_device_names_what_is_wrong():
+    import pytest
+
+    from radarpc.machine import check_device
+
+    assert check_device("cpu") == torch.device("cpu")
+    with pytest.raises(ValueError, match="--device 'gpu' is not a torch device"):
+        check_device("gpu", "--device")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="device 'cuda:0': CUDA is not available.*use --device cpu"):
+            check_device("cuda:0")
+    else:
+        n = torch.cuda.device_count()
+        with pytest.raises(ValueError, match=f"only {n} CUDA device"):
+            check_device(f"cuda:{n}")

@@ -1,10 +1,11 @@
-"""What machine a measurement ran on, for the benchmark scripts and run reports."""
+"""What machine a measurement ran on (for the benchmark scripts and run reports), and which torch
+devices it has (:func:`check_device`)."""
 from __future__ import annotations
 
 import platform
 from pathlib import Path
 
-__all__ = ["cpu_model", "numeric_libraries"]
+__all__ = ["check_device", "cpu_model", "numeric_libraries"]
 
 
 def cpu_model() -> str:
@@ -44,3 +45,38 @@ def numeric_libraries() -> dict[str, str]:
                                  f"({pool.get('architecture', '?')}, {pool.get('num_threads')} threads)")
             break
     return out
+
+
+def check_device(device: "str | object", what: str = "device") -> "object":
+    """``torch.device(device)`` after checking that this machine has it.
+
+    Parameters
+    ----------
+    device : str or torch.device
+        E.g. ``"cpu"``, ``"cuda"``, ``"cuda:1"``.
+    what : str
+        How the messages name it (a CLI passes its flag, ``"--device"``).
+
+    Returns
+    -------
+    torch.device
+
+    Raises
+    ------
+    ValueError
+        Not a device name, or a CUDA device this machine (or this torch build) does not have.
+    """
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as e:
+        raise ValueError(f"{what} {device!r} is not a torch device (expected e.g. cpu, cuda or cuda:1): {e}") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            why = "this torch build has no CUDA" if torch.version.cuda is None else "no CUDA GPU is visible"
+            raise ValueError(f"{what} {device!r}: CUDA is not available ({why}; torch {torch.__version__}); "
+                             f"use --device cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"{what} {device!r}: only {torch.cuda.device_count()} CUDA device(s) are visible")
+    return dev

@@ -206,3 +206,46 @@ def test_pointcloud_beamforming_flag(root, tmp_path, capsys):
     assert run_cli(["pointcloud", str(root), "--snr", "1.585", "--out", str(exact), "--quiet",
                     "--beamforming", "screened"]) == 0
     assert PointStore(exact).metadata.settings["beamforming"] == "screened"
+
+
+def test_density_far_off_target_is_warned(root, tmp_path, capsys):
+    # on TINY, 0.007 with rd5 is out of reach (one peak's 5x5 neighbourhood overshoots it)
+    run_cli(["pointcloud", str(root), "--density", "0.007", "--enrich", "rd5", "--out",
+             str(tmp_path / "a.parquet"), "--quiet"])
+    err = capsys.readouterr().err
+    achieved = PointStore(tmp_path / "a.parquet").metadata.achieved_density
+    assert abs(achieved - 0.007) / 0.007 > pointcloud.DENSITY_WARN_REL
+    assert f"warning: the achieved density {achieved:.5f} is" in err and "with rd5" in err
+    run_cli(["pointcloud", str(root), "--density", "0.1", "--out", str(tmp_path / "b.parquet"), "--quiet"])
+    achieved = PointStore(tmp_path / "b.parquet").metadata.achieved_density
+    assert abs(achieved - 0.1) / 0.1 <= pointcloud.DENSITY_WARN_REL and capsys.readouterr().err == ""
+    assert pointcloud.density_warning(0.1, 0.13, ()) is not None
+    assert pointcloud.density_warning(0.1, 0.12, ()) is None and pointcloud.density_warning(None, 0.5, ()) is None
+
+
+def test_show_refuses_a_store_of_another_root_and_a_directory_as_figure(root, tmp_path):
+    import shutil
+    store = tmp_path / "pc.parquet"
+    run_cli(["pointcloud", str(root), "--snr", "3", "--out", str(store), "--quiet"])
+    other = tmp_path / "other"
+    shutil.copytree(root, other)
+    with pytest.raises(ValueError, match=f"was made from {root.resolve()}, not from {other}"):
+        run_cli(["show", str(other), "--frame", "0", "--store", str(store), "--out", str(tmp_path / "f.png")])
+    (tmp_path / "figs").mkdir()
+    with pytest.raises(IsADirectoryError, match="is a directory; give the path of a .png file"):
+        run_cli(["show", str(root), "--frame", "0", "--snr", "3", "--out", str(tmp_path / "figs")])
+
+
+def test_interrupt_and_bad_device_are_one_line_messages(root, tmp_path, capsys, monkeypatch):
+    from radarpc import cli
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pointcloud, "convert_dataset", interrupted)
+    assert cli.main(["pointcloud", str(root), "--snr", "3", "--out", str(tmp_path / "pc.parquet")]) == 130
+    assert "interrupted; finished work is kept, run the same command again to resume" in capsys.readouterr().err
+    monkeypatch.undo()
+    assert cli.main(["pointcloud", str(root), "--snr", "3", "--out", str(tmp_path / "pc.parquet"),
+                     "--device", "nodevice"]) == 2
+    assert "device 'nodevice' is not a torch device" in capsys.readouterr().err

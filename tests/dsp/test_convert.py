@@ -404,3 +404,121 @@ def test_simulated_dataset_object_converts_like_its_written_root(tmp_path):
     for i in range(6):
         a_, b_ = r1[i], r2[i]
         assert all(torch.equal(x, y) for x, y in zip(a_, b_)), i
+
+
+def _copy_root(src, dst):
+    import shutil
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_changed_source_files_are_noticed_on_resume(root, tmp_path):
+    # a finished store is redone, and parts of an interrupted run are refused, once a cube changed
+    src = _copy_root(root, tmp_path / "src")
+    out = tmp_path / "pc.parquet"
+    first = convert_dataset(src, out, tau=4.0, chunk_frames=3, progress=False)
+    assert convert_dataset(src, out, tau=4.0, chunk_frames=3, progress=False).chunks_converted == 0
+    cube = np.load(fft_path(src, 1))
+    cube[:] = 0                                                   # frame 1 rewritten: no detection now
+    save_npy_atomic(fft_path(src, 1), cube)
+    redone = convert_dataset(src, out, tau=4.0, chunk_frames=3, progress=False)
+    assert redone.chunks_converted == 3
+    assert PointStore(out).frame_table.n_points[1] == 0 and redone.n_points < first.n_points
+    seen = []
+
+    def stop(k):
+        seen.append(k)
+        raise KeyboardInterrupt("simulated kill")
+
+    with pytest.raises(KeyboardInterrupt):
+        convert_dataset(src, out, tau=3.0, chunk_frames=3, progress=False, on_chunk_done=stop)
+    save_npy_atomic(fft_path(src, 7), cube)
+    with pytest.raises(ValueError, match="other source_files"):
+        convert_dataset(src, out, tau=3.0, chunk_frames=3, progress=False)
+    # the sparse-RD root records the files too
+    sparse = tmp_path / "sparse"
+    write_sparse_rd(src, sparse, tau=4.0, progress=False)
+    save_npy_atomic(fft_path(src, 2), cube)
+    with pytest.raises(ValueError, match="other data or settings"):
+        write_sparse_rd(src, sparse, tau=4.0, progress=False)
+
+
+def test_sparse_rd_resume_after_kill_keeps_every_frame_record(root, tmp_path, monkeypatch):
+    import radarpc.dsp.convert as convert
+
+    ref = write_sparse_rd(root, tmp_path / "ref", density=0.1, batch_size=2, progress=False)
+    out = tmp_path / "sparse"
+    calls = []
+    real_save = convert.save_npy_atomic
+
+    def dying_save(path, array):                  # killed after the 5th cube, before its record
+        if len(calls) == 5:
+            raise KeyboardInterrupt("simulated kill")
+        calls.append(path)
+        real_save(path, array)
+
+    monkeypatch.setattr(convert, "save_npy_atomic", dying_save)
+    with pytest.raises(KeyboardInterrupt):
+        write_sparse_rd(root, out, density=0.1, batch_size=2, progress=False)
+    monkeypatch.setattr(convert, "save_npy_atomic", real_save)
+    info = json.loads((out / "sparse_rd.json").read_text())
+    assert not info["complete"] and sorted(info["frames"]) == ["0", "1", "2", "3"]   # two whole batches
+    res = write_sparse_rd(root, out, density=0.1, batch_size=2, progress=False)
+    assert res.frames_written == 5                  # frame 4 (cube on disk, no record) is redone
+    info = json.loads((out / "sparse_rd.json").read_text())
+    want = json.loads((tmp_path / "ref" / "sparse_rd.json").read_text())
+    assert info["complete"] and info["frames"] == want["frames"] and info["mean_density"] == want["mean_density"]
+    assert res.frame_tau == ref.frame_tau
+    for num in range(9):
+        assert np.array_equal(np.load(fft_path(out, num)), np.load(fft_path(tmp_path / "ref", num))), num
+
+
+def test_sparse_rd_refuses_a_folder_that_is_not_a_sparse_root(root, tmp_path):
+    dense = _copy_root(root, tmp_path / "dense")
+    with pytest.raises(FileExistsError, match="is not empty and is not a sparse-RD root"):
+        write_sparse_rd(root, dense, tau=4.0, progress=False)
+    with pytest.raises(FileExistsError, match="is not empty and is not a sparse-RD root"):
+        write_sparse_rd(root, dense, tau=4.0, progress=False, resume=False)
+    assert np.array_equal(np.load(fft_path(dense, 0)), np.load(fft_path(root, 0)))   # untouched
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert write_sparse_rd(root, empty, tau=4.0, progress=False).frames_written == 9
+
+
+def test_output_path_problems_are_named_before_any_work(root, tmp_path):
+    (tmp_path / "adir").mkdir()
+    with pytest.raises(IsADirectoryError, match="is a directory; give the path of a .parquet file"):
+        convert_dataset(root, tmp_path / "adir", tau=4.0, progress=False)
+    assert not parts_dir(tmp_path / "adir").exists()
+    foreign = tmp_path / "foreign.parquet"
+    foreign.write_text("not a store")
+    with pytest.raises(DataFileError, match="in the way of this conversion.*resume=False"):
+        convert_dataset(root, foreign, tau=4.0, progress=False)
+    assert convert_dataset(root, foreign, tau=4.0, progress=False, resume=False).n_frames == 9
+    with pytest.raises(ValueError, match="is not a torch device"):
+        convert_dataset(root, tmp_path / "x.parquet", tau=4.0, progress=False, device="gpu0")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="CUDA is not available"):
+            convert_dataset(root, tmp_path / "x.parquet", tau=4.0, progress=False, device="cuda")
+
+
+def test_orphaned_worker_stops_before_its_next_batch(root, tmp_path):
+    # a spawned worker whose parent was killed stops, dropping its unfinished part
+    import dataclasses
+    import os
+
+    import radarpc.dsp.convert as convert
+
+    out = tmp_path / "pc.parquet"
+    ds = RADIal(root, split="all")
+    meta = convert_dataset(root, tmp_path / "ref.parquet", tau=4.0, progress=False)
+    m = PointStore(meta.path).metadata.to_dict()
+    job = convert._ChunkJob(dataset=ds, out=str(out), settings=ConvertSettings(tau=4.0), tau=4.0, meta=m,
+                            chunks=(0,), chunk_frames=9, batch_size=2, device="cpu", threads=None,
+                            parent_pid=os.getppid())
+    parts_dir(out).mkdir()
+    assert convert._run_chunks(job, lambda k, n: None) == 1 and part_path(out, 0).is_file()
+    part_path(out, 0).unlink()
+    with pytest.raises(SystemExit, match="is gone, stopping"):
+        convert._run_chunks(dataclasses.replace(job, parent_pid=os.getppid() + 1), lambda k, n: None)
+    assert list(parts_dir(out).iterdir()) == []

@@ -32,10 +32,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, FileExistsError) as e:
+    except (ValueError, FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError) as e:
         # Bad input is reported as one clear line, not a traceback.
         print(f"radarpc {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        # Every long command writes atomically and resumes: say so instead of a traceback.
+        print(f"\nradarpc {args.command}: interrupted; finished work is kept, run the same command again "
+              f"to resume", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -8,7 +8,7 @@ Examples::
     radarpc pointcloud data/radial --snr 1.585 --cfar radial --out data/pc_rpl.parquet   # RADIal rpl.py
     radarpc pointcloud data/sim_radial --density 0.057 --density-mode per-dataset \\
         --sparse-rd-out data/sim_radial_srd057
-    torchrun --nproc-per-node 4 "$(which radarpc)" pointcloud data/radial --density 0.057 --out pc.parquet
+    torchrun --nproc-per-node 4 -m radarpc pointcloud data/radial --density 0.057 --out pc.parquet
 
 A killed conversion resumes when the same command is run again (``--no-resume`` starts over).
 Under torchrun each rank converts its share of the chunks (on ``cuda:LOCAL_RANK`` when CUDA is
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from dataclasses import dataclass
 
 from radarpc.dsp.cfar import check_tau
@@ -82,8 +83,9 @@ def add_density_args(p: argparse.ArgumentParser):
     required mutually exclusive group (``--density`` | ``--snr``) so that a command can add to it."""
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--density", type=_fraction, metavar="D",
-                   help="target density |S(tau)| / (Nr * ND) in (0, 1], e.g. 0.057 (RADIal's default); "
-                        "with an rdN enrichment the density of the enlarged set |S*(tau)| / (Nr * ND)")
+                   help="target density |S(tau)| / (Nr * ND) in (0, n_tx / n_slots] (0.75 for RADIal), e.g. "
+                        "0.057 (RADIal's default); with an rdN enrichment the density of the enlarged set "
+                        "|S*(tau)| / (Nr * ND)")
     g.add_argument("--snr", type=_fraction, metavar="TAU",
                    help="fixed linear CFAR SNR threshold tau (> 0), e.g. 1.585 (= 2 dB, RADIal rpl.py's "
                         "threshold, chosen for its CFAR geometry: rpl.py's (9,9,3,3) are half widths, i.e. "
@@ -135,6 +137,29 @@ def check_density_args(args: argparse.Namespace) -> None:
                 raise ValueError(f"{flag}: {e}") from None
 
 
+# A per-frame density target missed by more than this (relative) is reported on stderr.
+DENSITY_WARN_REL = 0.25
+
+
+def density_warning(target: float | None, achieved: float, enrich: tuple[str, ...]) -> str | None:
+    """A warning when the mean achieved density is far from the target (``None`` otherwise).
+
+    Thresholds move the encoded set in steps: one CFAR peak adds ``n_tx`` cells, and with an
+    ``rdN`` enrichment up to ``n^2 n_tx``, so a small sensor cannot hit a small target closely.
+    """
+    if target is None or not math.isfinite(achieved):
+        return None
+    off = abs(achieved - target) / target
+    if off <= DENSITY_WARN_REL:
+        return None
+    rd = next((e for e in enrich if e.startswith("rd")), None)
+    why = (f"with {rd}, each CFAR peak adds up to {rd[2:]}x{rd[2:]} neighbourhood cells, so the encoded set "
+           f"grows in coarse steps on this sensor" if rd is not None else
+           "each CFAR peak adds n_tx cells, so the set grows in steps")
+    return (f"warning: the achieved density {achieved:.5f} is {100 * off:.0f} % off the target {target} ({why}); "
+            f"a larger sensor, a larger target or a fixed --snr threshold gives a closer density")
+
+
 def run(args: argparse.Namespace) -> int:
     check_density_args(args)
     cfar = resolve_cfar_args(args)
@@ -161,11 +186,18 @@ def run(args: argparse.Namespace) -> int:
                   + (f" (target {args.density})" if args.density is not None else "") + extra
                   + f"; {res.chunks_converted} chunk(s) of {res.chunk_frames} frames converted, "
                   f"{res.chunks_skipped} resumed")
+            warn = density_warning(args.density, res.achieved_density, enrich)
+            if warn is not None:
+                print(warn, file=sys.stderr)
     if args.sparse_rd_out is not None and dist_env().rank == 0:
         srd = write_sparse_rd(args.root, args.sparse_rd_out, calibrated_tau=calibrated, **common)
         dens = "n/a (all frames existed)" if math.isnan(srd.achieved_density) else f"{srd.achieved_density:.5f}"
         print(f"wrote sparse-RD root {srd.root}: {srd.n_frames} frames ({srd.frames_written} written now), "
               f"achieved density {dens} (per-frame taus and densities in sparse_rd.json)")
+        if args.out is None:                                  # else the store's line warned already
+            warn = density_warning(args.density, srd.achieved_density, enrich)
+            if warn is not None:
+                print(warn, file=sys.stderr)
     return 0
 
 

@@ -29,6 +29,7 @@ from radarpc.data.radial import RADIal
 from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS
 from radarpc.dsp.convert import ConvertSettings, build_point_cloud, calibrate_tau
 from radarpc.io import atomic_write
+from radarpc.machine import check_device
 
 __all__ = ["FramePlot", "plot_frame", "rd_extent", "peak_marker_range_m", "add_parser", "run"]
 
@@ -95,6 +96,8 @@ def plot_frame(root: str | Path, frame: int, out: str | Path, settings: ConvertS
     import matplotlib.pyplot as plt
 
     root, out = Path(root), Path(out)
+    if out.is_dir():
+        raise IsADirectoryError(f"the figure path {out} is a directory; give the path of a .png file")
     if (settings is None) == (store is None):
         raise ValueError("give exactly one of settings (a threshold or density) and store (a point store)")
     ds = RADIal(root, split="all")
@@ -104,7 +107,7 @@ def plot_frame(root: str | Path, frame: int, out: str | Path, settings: ConvertS
         raise ValueError(f"frame {frame} is not in {root} (numSample from {ds.frame_ids[0] if ds.frame_ids else '-'} "
                          f"to {ds.frame_ids[-1] if ds.frame_ids else '-'})") from None
     rd, labels, _ = ds[i]
-    dev = torch.device(device)
+    dev = check_device(device)
     stored = None
     if store is not None:
         pstore = PointStore(store)
@@ -112,6 +115,9 @@ def plot_frame(root: str | Path, frame: int, out: str | Path, settings: ConvertS
         if stored is None:
             raise ValueError(f"frame {frame} is not in the point store {store}")
         m = pstore.metadata
+        if m.source_root and Path(m.source_root).resolve() != root.resolve():
+            raise ValueError(f"the point store {store} was made from {m.source_root}, not from {root}: "
+                             f"its points would be drawn over another dataset's spectrum")
         settings = ConvertSettings(tau=float(stored.tau[0]), enrich=m.enrich, window=m.window, guard=m.guard,
                                    envelope=m.envelope)
     if settings.mode == "per-dataset":

@@ -34,15 +34,12 @@ def add_parser(kinds) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Write the dataset described by ``args``; returns the exit code."""
-    import torch
+    from radarpc.machine import check_device
 
     from radarpc.sim.coloradar_writer import write_coloradar
 
     scenes = [s.strip() for s in str(args.scenes).split(",") if s.strip()]
-    try:
-        torch.device(args.device)
-    except RuntimeError:
-        raise ValueError(f"--device {args.device!r} is not a torch device (expected e.g. cpu or cuda)") from None
+    check_device(args.device, "--device")
     root = write_coloradar(args.out, scenes, args.runs_per_scene, args.frames, args.seed,
                            overwrite=args.overwrite, lidar_beams=args.lidar_beams,
                            lidar_azimuth_steps=args.lidar_azimuth_steps, device=args.device,

@@ -33,15 +33,12 @@ def add_parser(kinds) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Write the dataset described by ``args``; returns the exit code."""
-    import torch
+    from radarpc.machine import check_device
 
     from radarpc.sim.radial_writer import write_radial_dataset
 
     cfg = radial_sensor(args.sensor)
-    try:
-        torch.device(args.device)
-    except RuntimeError:
-        raise ValueError(f"--device {args.device!r} is not a torch device (expected e.g. cpu or cuda)") from None
+    check_device(args.device, "--device")
     root = write_radial_dataset(args.out, cfg, args.sequences, args.frames_per_sequence, args.seed,
                                 overwrite=args.overwrite, progress=not args.no_progress,
                                 device=args.device)

@@ -62,6 +62,7 @@ from radarpc.data.radial_format import LABEL_COLUMNS, fft_path, freespace_path
 from radarpc.dsp.density import check_density
 from radarpc.dsp.pointcloud import SpectralPointCloud, SpectralPointCloudConfig
 from radarpc.io import DataFileError, atomic_write, save_npy_atomic
+from radarpc.machine import check_device
 from radarpc.sensors.radial import Calibration, DDMARadarConfig, save_calibration
 
 __all__ = [
@@ -136,6 +137,34 @@ def open_source(source: Source, split: str = "all") -> tuple[Any, str, str]:
     root = getattr(source, "root", None)
     sid = str(Path(root).resolve()) if root is not None else repr(source)
     return source, sid, resolved
+
+
+_ROOT_FILES = ("labels.csv", "calibration.npz", "CalibrationTable.npy", "sensor.json")
+
+
+def source_fingerprint(ds: Any) -> str | None:
+    """A digest of the files a conversion of ``ds`` reads, so that a resumed run notices changed data.
+
+    For a dataset with a ``root`` folder: the name, size and modification time (ns) of the RD cube
+    of every frame and of ``labels.csv``, the calibration and ``sensor.json`` (make-like: a file
+    rewritten in place changes it, a copy to another folder has another source id anyway; the
+    data themselves are not read). ``None`` for an object without a root (SimulatedRADIal: its
+    frames follow from its ``repr``, the source id).
+    """
+    root = getattr(ds, "root", None)
+    if root is None:
+        return None
+    import hashlib
+
+    root = Path(root)
+    h = hashlib.sha256()
+    for f in [fft_path(root, num) for num in ds.frame_ids] + [root / n for n in _ROOT_FILES]:
+        try:
+            st = f.stat()
+            h.update(f"{f.relative_to(root)} {st.st_size} {st.st_mtime_ns}\n".encode())
+        except FileNotFoundError:
+            h.update(f"{f.relative_to(root)} -\n".encode())
+    return h.hexdigest()
 
 
 def read_cube(ds: Any, i: int) -> torch.Tensor:
@@ -278,7 +307,7 @@ def part_path(out: str | os.PathLike, k: int) -> Path:
 
 def _default_device(device: torch.device | str | None, env: DistEnv) -> torch.device:
     if device is not None:
-        return torch.device(device)
+        return check_device(device)
     if torch.cuda.is_available():
         return torch.device(f"cuda:{env.local_rank}")
     return torch.device("cpu")
@@ -382,12 +411,13 @@ def _calibration_source(source: Source, ds: Any, calibration_source: Source | No
 
 # ---- manifest -----------------------------------------------------------------------------------
 def _manifest_key(source_id: str, settings: ConvertSettings, frames: Sequence[int],
-                  calibration_id: str | None) -> dict:
+                  calibration_id: str | None, fingerprint: str | None = None) -> dict:
     """What must match for parts (or a finished store) of an earlier run to be reused: every
-    setting that shapes the output (not ``chunk_frames``), the source, its frames and, in
-    per-dataset mode, the training frames tau was calibrated on."""
+    setting that shapes the output (not ``chunk_frames``), the source, its frames, the state of
+    its files (:func:`source_fingerprint`) and, in per-dataset mode, the training frames tau was
+    calibrated on."""
     return {"source": source_id, "settings": settings.output_key(), "frames": [int(f) for f in frames],
-            "calibration_source": calibration_id}
+            "calibration_source": calibration_id, "source_files": fingerprint}
 
 
 def _read_manifest(d: Path) -> dict | None:
@@ -443,6 +473,7 @@ class _ChunkJob:
     batch_size: int
     device: str
     threads: int | None              # torch threads of a spawned worker (None: leave as is)
+    parent_pid: int | None = None    # a spawned worker's parent: the worker stops if it dies
 
 
 def _chunk_positions(n_frames: int, chunk_frames: int, k: int) -> list[int]:
@@ -465,6 +496,10 @@ def _run_chunks(job: _ChunkJob, on_done: Callable[[int, int], None]) -> int:
             continue
         with PointStoreWriter(path, meta, row_group_frames=max(len(pos), 1)) as w, torch.no_grad():
             for b, rd in _prefetched(ds, _batches(pos, job.batch_size), dev):
+                if job.parent_pid is not None and os.getppid() != job.parent_pid:
+                    # orphaned (the parent was killed): stop; the unfinished part is dropped and a
+                    # re-run converts it
+                    raise SystemExit(f"conversion worker {os.getpid()}: parent {job.parent_pid} is gone, stopping")
                 clouds = spc(rd)
                 w.write(clouds, [ds.frame_ids[p] for p in b], [ds.sequences[p] for p in b])
         done += 1
@@ -475,6 +510,10 @@ def _run_chunks(job: _ChunkJob, on_done: Callable[[int, int], None]) -> int:
 def _worker_main(job: _ChunkJob, q) -> None:  # pragma: no cover - runs in a spawned process
     try:
         _run_chunks(job, lambda k, n: q.put(("done", k, n)))
+    except KeyboardInterrupt:        # Ctrl-C reaches the whole process group: the parent reports it
+        raise SystemExit(130)
+    except SystemExit:               # orphaned (see _run_chunks): nobody to report to
+        raise
     except BaseException:  # noqa: BLE001 - report any failure to the parent, then exit non-zero
         q.put(("error", -1, traceback.format_exc()))
         raise SystemExit(1)
@@ -492,7 +531,8 @@ def _run_workers(job: _ChunkJob, workers: int, on_done: Callable[[int, int], Non
     for w in range(workers):
         mine = tuple(k for i, k in enumerate(job.chunks) if i % workers == w)
         if mine:
-            p = ctx.Process(target=_worker_main, args=(dataclasses.replace(job, chunks=mine, threads=threads), q),
+            p = ctx.Process(target=_worker_main,
+                            args=(dataclasses.replace(job, chunks=mine, threads=threads, parent_pid=os.getpid()), q),
                             daemon=False)
             p.start()
             procs.append(p)
@@ -619,6 +659,8 @@ def convert_dataset(
     if not (wait_timeout_s >= 0):
         raise ValueError(f"wait_timeout_s must be >= 0 seconds, got {wait_timeout_s}")
     out = Path(out)
+    if out.is_dir():
+        raise IsADirectoryError(f"the point store {out} is a directory; give the path of a .parquet file")
     env = dist_env()
     dev = _default_device(device, env)
     ds, source_id, split_used = open_source(source, settings.split)
@@ -628,12 +670,16 @@ def convert_dataset(
     if settings.mode == "per-dataset":
         cal_src, cal_id = _calibration_source(source, ds, calibration_source)
     n = len(ds)
-    key = _manifest_key(source_id, settings, ds.frame_ids, cal_id)
+    key = _manifest_key(source_id, settings, ds.frame_ids, cal_id, source_fingerprint(ds))
     pdir = parts_dir(out)
 
     # A finished conversion with these settings: nothing to do.
     if resume and out.is_file() and not pdir.exists():
-        store = PointStore(out)
+        try:
+            store = PointStore(out)
+        except DataFileError as e:
+            raise DataFileError(out, f"{e.problem}; it is in the way of this conversion: remove it, or pass "
+                                     f"resume=False (CLI: --no-resume) to overwrite it") from e
         m = store.metadata
         if m.settings.get("key") == key:
             chunk = int(m.settings.get("chunk_frames") or settings.chunk_frames)
@@ -646,9 +692,11 @@ def convert_dataset(
             _remove_parts_dir(pdir)
         manifest = _read_manifest(pdir)
         if manifest is not None and manifest.get("key") != key:
-            raise ValueError(f"{pdir} holds parts of a conversion with other settings or frames "
-                             f"(recorded {manifest.get('key')}, now {key}); "
-                             f"delete it or pass resume=False (CLI: --no-resume) to start over")
+            old_key = manifest.get("key") or {}
+            what = [k for k in key if old_key.get(k) != key[k]]
+            raise ValueError(f"{pdir} holds parts of a conversion with other {', '.join(what) or 'settings'} "
+                             f"(recorded {old_key}, now {key}); delete it or pass resume=False "
+                             f"(CLI: --no-resume) to start over")
         if manifest is None:
             chunk = settings.chunk_frames
             procs = int(workers) * env.world_size
@@ -851,7 +899,10 @@ def write_sparse_rd(
     if settings.mode == "per-dataset" and calibrated_tau is None:
         cal_src, cal_id = _calibration_source(source, ds, calibration_source)
     info_path = out_root / "sparse_rd.json"
-    key = {"source_root": source_id, "settings": settings.output_key()}
+    if out_root.is_dir() and not info_path.is_file() and any(out_root.iterdir()):
+        raise FileExistsError(f"{out_root} is not empty and is not a sparse-RD root (no sparse_rd.json): "
+                              f"refusing to write masked cubes into it; choose a new or empty folder")
+    key = {"source_root": source_id, "settings": settings.output_key(), "source_files": source_fingerprint(ds)}
     prev = None
     if resume and info_path.is_file():
         try:
@@ -895,7 +946,9 @@ def write_sparse_rd(
         if not resume or not (out_root / "labels.csv").is_file():
             _write_labels_from_dataset(ds, out_root / "labels.csv")
 
-    todo = [p for p in range(len(ds)) if not (resume and fft_path(out_root, ds.frame_ids[p]).is_file())]
+    # a frame is done when its cube is on disk and recorded (a run killed between the two redoes it)
+    todo = [p for p in range(len(ds)) if not (resume and str(ds.frame_ids[p]) in frames
+                                              and fft_path(out_root, ds.frame_ids[p]).is_file())]
     it = _prefetched(ds, _batches(todo, int(batch_size)), dev)
     if progress:
         from tqdm import tqdm
@@ -915,6 +968,8 @@ def write_sparse_rd(
                 frames[str(num)] = {"tau": float(enc.tau[b]), "density": float(dens[b]),
                                     "peak_density": float(peak[b])}
                 written.append(float(dens[b]))
+            with atomic_write(info_path, "w") as f:                      # the records so far (resume)
+                json.dump(info, f, indent=1)
     has_freespace = root is not None or callable(getattr(ds, "freespace_mask", None))
     for i, num in enumerate(ds.frame_ids):
         dst = freespace_path(out_root, num)

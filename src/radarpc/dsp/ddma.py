@@ -60,8 +60,9 @@ def check_rd(rd: torch.Tensor, cfg: DDMARadarConfig) -> torch.Tensor:
     Raises
     ------
     ValueError
-        Not a complex tensor, or a shape other than ``(Nr, Nd, Nrx)`` / ``(B, Nr, Nd, Nrx)`` of
-        the sensor. (NaN is detected later, on the envelope, where it costs nothing.)
+        Not a complex tensor, a shape other than ``(Nr, Nd, Nrx)`` / ``(B, Nr, Nd, Nrx)`` of the
+        sensor, or an empty batch (``B = 0``). (NaN is detected later, on the envelope, where it
+        costs nothing.)
     """
     if not isinstance(rd, torch.Tensor):
         raise ValueError(f"rd must be a complex torch.Tensor, got {type(rd).__name__}")
@@ -72,6 +73,8 @@ def check_rd(rd: torch.Tensor, cfg: DDMARadarConfig) -> torch.Tensor:
         raise ValueError(f"rd must have shape (B, {expected[0]}, {expected[1]}, {expected[2]}) or "
                          f"{expected} for sensor {cfg.name!r} (n_range, n_doppler, n_rx), "
                          f"got {tuple(rd.shape)}")
+    if rd.ndim == 4 and rd.shape[0] == 0:
+        raise ValueError(f"rd is an empty batch (shape {tuple(rd.shape)}): give at least one frame")
     return rd if rd.ndim == 4 else rd.unsqueeze(0)
 
 
