@@ -168,6 +168,10 @@ def test_per_frame_and_per_dataset_density(root, tmp_path):
     tau = float(tau_for_density(snr, TINY, 0.1, mode="per-dataset"))
     assert store.metadata.tau == pytest.approx(tau)
     np.testing.assert_allclose(store.frame_table.tau, tau, rtol=1e-6)
+    # and, counted here: over the 3 train frames that tau passes round(0.1 * 3 Nr ND / n_tx) cells,
+    # i.e. their mean density is the target up to one cell
+    want = round(0.1 * 3 * TINY.n_range * TINY.n_doppler / TINY.n_tx)
+    assert int((snr.numpy() > store.metadata.tau).sum()) == want
 
 
 def test_density_with_rd_neighbourhood_applies_to_s_star(root, tmp_path):
