@@ -36,7 +36,7 @@ def numeric_libraries() -> dict[str, str]:
     try:
         from threadpoolctl import threadpool_info
     except ImportError:
-        blas = np.__config__.CONFIG.get("Build Dependencies", {}).get("blas", {})
+        blas = getattr(np.__config__, "CONFIG", {}).get("Build Dependencies", {}).get("blas", {})   # numpy >= 1.26
         out["numpy_blas"] = f"{blas.get('name', '?')} {blas.get('version', '?')}"
         return out
     for pool in threadpool_info():

@@ -231,6 +231,15 @@ def test_show_refuses_a_store_of_another_root_and_a_directory_as_figure(root, tm
     shutil.copytree(root, other)
     with pytest.raises(ValueError, match=f"was made from {root.resolve()}, not from {other}"):
         run_cli(["show", str(other), "--frame", "0", "--store", str(store), "--out", str(tmp_path / "f.png")])
+    # a store made from the dataset object that wrote ROOT records its repr, not a path: accepted
+    from radarpc.dsp.convert import convert_dataset
+    from radarpc.sim.radial_writer import SimulatedRADIal
+
+    obj_store = tmp_path / "obj.parquet"
+    convert_dataset(SimulatedRADIal(TINY, n_sequences=3, frames_per_sequence=2, seed=0, split="all"), obj_store,
+                    tau=3.0, progress=False)
+    assert not PointStore(obj_store).metadata.source_root.startswith("/")
+    run_cli(["show", str(root), "--frame", "0", "--store", str(obj_store), "--out", str(tmp_path / "g.png")])
     (tmp_path / "figs").mkdir()
     with pytest.raises(IsADirectoryError, match="is a directory; give the path of a .png file"):
         run_cli(["show", str(root), "--frame", "0", "--snr", "3", "--out", str(tmp_path / "figs")])

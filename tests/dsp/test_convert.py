@@ -417,17 +417,16 @@ def _copy_root(src, dst):
 
 
 def test_changed_source_files_are_noticed_on_resume(root, tmp_path):
-    # a finished store is redone, and parts of an interrupted run are refused, once a cube changed
+    # identical files rewritten (a re-run of the simulator, another node's copy) change nothing;
+    # other labels, sensor or calibration, or a cube of another size, make a new conversion
     src = _copy_root(root, tmp_path / "src")
     out = tmp_path / "pc.parquet"
-    first = convert_dataset(src, out, tau=4.0, chunk_frames=3, progress=False)
+    convert_dataset(src, out, tau=4.0, chunk_frames=3, progress=False)
+    labels = (src / "labels.csv").read_bytes()
+    (src / "labels.csv").write_bytes(labels)                      # same content, new mtime
     assert convert_dataset(src, out, tau=4.0, chunk_frames=3, progress=False).chunks_converted == 0
-    cube = np.load(fft_path(src, 1))
-    cube[:] = 0                                                   # frame 1 rewritten: no detection now
-    save_npy_atomic(fft_path(src, 1), cube)
-    redone = convert_dataset(src, out, tau=4.0, chunk_frames=3, progress=False)
-    assert redone.chunks_converted == 3
-    assert PointStore(out).frame_table.n_points[1] == 0 and redone.n_points < first.n_points
+    (src / "labels.csv").write_bytes(labels.replace(b"\n", b"\r\n"))   # other bytes: another dataset
+    assert convert_dataset(src, out, tau=4.0, chunk_frames=3, progress=False).chunks_converted == 3
     seen = []
 
     def stop(k):
@@ -436,13 +435,20 @@ def test_changed_source_files_are_noticed_on_resume(root, tmp_path):
 
     with pytest.raises(KeyboardInterrupt):
         convert_dataset(src, out, tau=3.0, chunk_frames=3, progress=False, on_chunk_done=stop)
-    save_npy_atomic(fft_path(src, 7), cube)
+    np.save(fft_path(src, 7), np.load(fft_path(src, 7)).astype(np.complex128))   # another size
     with pytest.raises(ValueError, match="other source_files"):
         convert_dataset(src, out, tau=3.0, chunk_frames=3, progress=False)
+    # per-dataset tau: a changed training cube is noticed when another split is converted
+    out_val = tmp_path / "val.parquet"
+    first = convert_dataset(src, out_val, density=0.1, density_mode="per-dataset", split="val", progress=False)
+    cube = np.load(fft_path(src, 0))
+    np.save(fft_path(src, 0), (cube * 3).astype(np.complex128))    # train frame 0: stronger, other size
+    again = convert_dataset(src, out_val, density=0.1, density_mode="per-dataset", split="val", progress=False)
+    assert again.chunks_converted == 1 and again.tau != first.tau
     # the sparse-RD root records the files too
     sparse = tmp_path / "sparse"
     write_sparse_rd(src, sparse, tau=4.0, progress=False)
-    save_npy_atomic(fft_path(src, 2), cube)
+    (src / "labels.csv").write_bytes(labels)
     with pytest.raises(ValueError, match="other data or settings"):
         write_sparse_rd(src, sparse, tau=4.0, progress=False)
 

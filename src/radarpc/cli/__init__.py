@@ -12,6 +12,10 @@ import sys
 from radarpc import __version__
 
 
+# Commands that keep finished work and resume it when run again.
+RESUMABLE_COMMANDS = ("simulate", "pointcloud", "demo", "baseline")
+
+
 def _command_modules():
     # Imported lazily so that `radarpc --help` stays fast and one broken stage cannot hide the others.
     from radarpc.cli import simulate, info, pointcloud, show, demo, baseline, evaluate_points
@@ -37,9 +41,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"radarpc {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        # Every long command writes atomically and resumes: say so instead of a traceback.
-        print(f"\nradarpc {args.command}: interrupted; finished work is kept, run the same command again "
-              f"to resume", file=sys.stderr)
+        # The long commands write atomically and resume: say so instead of a traceback.
+        hint = ("; finished work is kept, run the same command again to resume"
+                if args.command in RESUMABLE_COMMANDS else "")
+        print(f"\nradarpc {args.command}: interrupted{hint}", file=sys.stderr)
         return 130
 
 

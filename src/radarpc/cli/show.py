@@ -115,7 +115,11 @@ def plot_frame(root: str | Path, frame: int, out: str | Path, settings: ConvertS
         if stored is None:
             raise ValueError(f"frame {frame} is not in the point store {store}")
         m = pstore.metadata
-        if m.source_root and Path(m.source_root).resolve() != root.resolve():
+        made_from = Path(m.source_root) if m.source_root else None
+        # a store made from a root records its resolved path (one made from a dataset object its
+        # repr): refuse it over another root that still exists beside its own
+        if (made_from is not None and made_from.is_absolute() and made_from.is_dir()
+                and made_from.resolve() != root.resolve()):
             raise ValueError(f"the point store {store} was made from {m.source_root}, not from {root}: "
                              f"its points would be drawn over another dataset's spectrum")
         settings = ConvertSettings(tau=float(stored.tau[0]), enrich=m.enrich, window=m.window, guard=m.guard,

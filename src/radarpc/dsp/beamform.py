@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -31,8 +32,8 @@ from radarpc.dsp.workspace import Workspace
 
 __all__ = ["angle_spectrum", "BeamformResult", "DictionaryTables", "dictionary_tables", "beamform",
            "beamform_peaks", "beamform_peaks_screened", "screen_bound", "sector_pool", "stack_real",
-           "column_to_direction", "prefers_screened", "resolve_beamforming", "check_beamforming", "BEAMFORMING_MODES",
-           "MAX_SCREEN_CANDIDATES"]
+           "column_to_direction", "prefers_screened", "reduced_fp32_matmul", "resolve_beamforming",
+           "check_beamforming", "BEAMFORMING_MODES", "MAX_SCREEN_CANDIDATES"]
 
 BEAMFORMING_MODES = ("auto", "exact", "screened")
 
@@ -271,22 +272,26 @@ def _scaled(snapshots: torch.Tensor, exps: torch.Tensor) -> torch.Tensor:
     return torch.view_as_complex(torch.ldexp(x, -exps[:, None, None]).to(x.dtype).contiguous())
 
 
-@contextlib.contextmanager
-def _full_fp32_matmul():
-    """Float32 GEMMs in full float32 while the beamformers run: with
-    ``torch.set_float32_matmul_precision("high" | "medium")`` torch may run them in TF32 (CUDA) or
-    bfloat16 (oneDNN on AMX CPUs), and the exact spectrum would no longer be exact. The setting is
-    process-wide; it is changed only when it is not already ``"highest"`` (the default) and
-    restored afterwards."""
-    prev = torch.get_float32_matmul_precision()
-    if prev == "highest":
-        yield
-        return
-    torch.set_float32_matmul_precision("highest")
-    try:
-        yield
-    finally:
-        torch.set_float32_matmul_precision(prev)
+def reduced_fp32_matmul(device: torch.device | str) -> bool:
+    """Whether float32 GEMMs on ``device`` may run in reduced precision (TF32 on CUDA, bfloat16
+    through oneDNN on CPUs with AMX), as set by ``torch.set_float32_matmul_precision("high" |
+    "medium")`` or by the per-backend ``fp32_precision`` settings of torch >= 2.9. The exact
+    beamformer's spectrum is then not exact; :func:`beamform_peaks` warns, and does not change the
+    process-wide setting itself (that would race with other threads)."""
+    device = torch.device(device)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")                          # deprecation notes of some versions
+        try:
+            return torch.get_float32_matmul_precision() != "highest"
+        except RuntimeError:                                     # the per-backend API is in use
+            backend = torch.backends.cuda.matmul if device.type == "cuda" else torch.backends.mkldnn.matmul
+            return getattr(backend, "fp32_precision", "ieee") not in ("ieee", "none")
+
+
+_REDUCED_PRECISION_WARNING = (
+    "float32 matmul precision is reduced (torch.set_float32_matmul_precision or a backend's "
+    "fp32_precision): the exact beamformer's GEMMs may run in TF32/bfloat16 and its argmax and "
+    "amplitudes are then approximate; set torch.set_float32_matmul_precision('highest') for exact results")
 
 
 def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | DictionaryTables,
@@ -300,8 +305,9 @@ def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Diction
     and max-pooling commute with the monotone square root) and only kept values are rooted.
     Snapshots whose norm lies outside ``[2^-40, 2^40]`` are first scaled by a power of two
     (exact), so that the power neither overflows (``|B v| >= 2^64``) nor goes subnormal; the
-    amplitudes and sectors are scaled back. The GEMMs run in full float32 whatever
-    ``torch.set_float32_matmul_precision`` says (:func:`_full_fp32_matmul`).
+    amplitudes and sectors are scaled back. The spectrum is exact only with full float32 GEMMs
+    (torch's default): under a reduced ``torch.set_float32_matmul_precision`` a
+    ``RuntimeWarning`` says so (:func:`reduced_fp32_matmul`).
 
     Parameters
     ----------
@@ -332,22 +338,8 @@ def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Diction
     blk = min(_BLOCK, max(p, 1))
     t1, t2, t3 = (ws.empty(f"exact.t{q}", (blk, k_dir), real, dev) for q in (1, 2, 3))
     ab = ws.empty("exact.a+b", (blk, n), real, dev)
-    with _full_fp32_matmul():
-        _exact_blocks(a, b, t, grid, sectors, blk, t1, t2, t3, ab, power, index, sec)
-    index = column_to_direction(index, t.grid)
-    amplitude = power.sqrt()
-    if sec is not None:
-        sec = sec.sqrt()
-    if exps is not None:                                              # back to the input's scale
-        amplitude = torch.ldexp(amplitude, exps).to(real)
-        sec = None if sec is None else torch.ldexp(sec, exps[:, None]).to(real)
-    return BeamformResult(index=index, amplitude=amplitude, sectors=sec)
-
-
-def _exact_blocks(a, b, t: DictionaryTables, grid, sectors, blk, t1, t2, t3, ab, power, index, sec) -> None:
-    """The block loop of :func:`beamform_peaks`: writes ``power``, elevation-major ``index`` and
-    squared ``sec`` in place."""
-    p = a.shape[0]
+    if reduced_fp32_matmul(dev):
+        warnings.warn(_REDUCED_PRECISION_WARNING, RuntimeWarning, stacklevel=2)
     for i in range(0, p, blk):
         m = min(blk, p - i)
         ai, bi = a[i:i + m], b[i:i + m]
@@ -361,6 +353,14 @@ def _exact_blocks(a, b, t: DictionaryTables, grid, sectors, blk, t1, t2, t3, ab,
         torch.max(pw, dim=1, out=(power[i:i + m], index[i:i + m]))
         if sec is not None:
             sec[i:i + m] = _sector_pool_elevation_major(pw, grid, sectors)
+    index = column_to_direction(index, t.grid)
+    amplitude = power.sqrt()
+    if sec is not None:
+        sec = sec.sqrt()
+    if exps is not None:                                              # back to the input's scale
+        amplitude = torch.ldexp(amplitude, exps).to(real)
+        sec = None if sec is None else torch.ldexp(sec, exps[:, None]).to(real)
+    return BeamformResult(index=index, amplitude=amplitude, sectors=sec)
 
 
 def screen_bound(snapshots: torch.Tensor, row_norm_max: float) -> tuple[float, torch.Tensor]:

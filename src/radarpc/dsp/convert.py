@@ -139,17 +139,20 @@ def open_source(source: Source, split: str = "all") -> tuple[Any, str, str]:
     return source, sid, resolved
 
 
-_ROOT_FILES = ("labels.csv", "calibration.npz", "CalibrationTable.npy", "sensor.json")
+_ROOT_FILES = ("labels.csv", "calibration.npz", "CalibrationTable.npy", "sensor.json", "scene.json")
 
 
 def source_fingerprint(ds: Any) -> str | None:
-    """A digest of the files a conversion of ``ds`` reads, so that a resumed run notices changed data.
+    """A digest of the data a conversion of ``ds`` reads, so that a resumed run notices changed data.
 
-    For a dataset with a ``root`` folder: the name, size and modification time (ns) of the RD cube
-    of every frame and of ``labels.csv``, the calibration and ``sensor.json`` (make-like: a file
-    rewritten in place changes it, a copy to another folder has another source id anyway; the
-    data themselves are not read). ``None`` for an object without a root (SimulatedRADIal: its
-    frames follow from its ``repr``, the source id).
+    For a dataset with a ``root`` folder: the name and size of the RD cube of every frame, and the
+    name and content digest of the root's small files (``labels.csv``, the calibration,
+    ``sensor.json``, the simulator's ``scene.json``). Contents, not modification times: an
+    identical copy (another node's local copy, a re-run of ``radarpc simulate`` that rewrites the
+    same files) has the same fingerprint, while a re-simulated root (other seed, scene or sensor)
+    or an edited label file does not. Cubes are not read (that would read the whole dataset): a
+    cube rewritten in place with other values of the same size goes unnoticed. ``None`` for an
+    object without a root (SimulatedRADIal: its ``repr``, the source id, fixes its frames).
     """
     root = getattr(ds, "root", None)
     if root is None:
@@ -158,12 +161,18 @@ def source_fingerprint(ds: Any) -> str | None:
 
     root = Path(root)
     h = hashlib.sha256()
-    for f in [fft_path(root, num) for num in ds.frame_ids] + [root / n for n in _ROOT_FILES]:
+    for num in ds.frame_ids:
+        f = fft_path(root, num)
         try:
-            st = f.stat()
-            h.update(f"{f.relative_to(root)} {st.st_size} {st.st_mtime_ns}\n".encode())
+            h.update(f"{f.relative_to(root)} {f.stat().st_size}\n".encode())
         except FileNotFoundError:
             h.update(f"{f.relative_to(root)} -\n".encode())
+    for name in _ROOT_FILES:
+        try:
+            digest = hashlib.sha256((root / name).read_bytes()).hexdigest()
+        except FileNotFoundError:
+            digest = "-"
+        h.update(f"{name} {digest}\n".encode())
     return h.hexdigest()
 
 
@@ -405,8 +414,12 @@ def _calibration_source(source: Source, ds: Any, calibration_source: Source | No
         raise ValueError("per-dataset density mode with a dataset object needs calibration_source= its "
                          "training split (e.g. SimulatedRADIal(..., split='train')) or a root path")
     if isinstance(cal, (str, os.PathLike)):
-        return cal, str(Path(cal).resolve()) + ":train"
-    return cal, open_source(cal)[1]
+        frames = RADIal(Path(cal), split="train")
+        cal_id = str(Path(cal).resolve()) + ":train"
+    else:
+        frames, cal_id, _ = open_source(cal)
+    fp = source_fingerprint(frames)
+    return cal, cal_id if fp is None else f"{cal_id}@{fp}"      # changed training files: a new tau
 
 
 # ---- manifest -----------------------------------------------------------------------------------
@@ -896,13 +909,19 @@ def write_sparse_rd(
     dev = _default_device(device, DistEnv())
     _check_dsp_settings(settings, ds, source_id)
     cal_src, cal_id = (None, None)
-    if settings.mode == "per-dataset" and calibrated_tau is None:
-        cal_src, cal_id = _calibration_source(source, ds, calibration_source)
+    if settings.mode == "per-dataset":
+        try:
+            cal_src, cal_id = _calibration_source(source, ds, calibration_source)
+        except ValueError:
+            if calibrated_tau is None:                 # nothing to calibrate on
+                raise
+            cal_id = f"given tau {float(calibrated_tau)!r}"
     info_path = out_root / "sparse_rd.json"
     if out_root.is_dir() and not info_path.is_file() and any(out_root.iterdir()):
         raise FileExistsError(f"{out_root} is not empty and is not a sparse-RD root (no sparse_rd.json): "
                               f"refusing to write masked cubes into it; choose a new or empty folder")
-    key = {"source_root": source_id, "settings": settings.output_key(), "source_files": source_fingerprint(ds)}
+    key = {"source_root": source_id, "settings": settings.output_key(), "source_files": source_fingerprint(ds),
+           "calibration_source": cal_id}
     prev = None
     if resume and info_path.is_file():
         try:
