@@ -20,7 +20,7 @@ from radarpc.data.pointstore import (
     PointStoreWriter,
     collate_clouds,
 )
-from radarpc.dsp.pointcloud import PointCloudBatch
+from radarpc.points import PointCloudBatch
 from radarpc.io import DataFileError
 from radarpc.sensors.radial import TINY
 

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from radarpc.dsp.beamform import stack_real
-from radarpc.dsp.pointcloud import PointCloudBatch, SpectralPointCloud, SpectralPointCloudConfig, offset2batch
+from radarpc.dsp.pointcloud import SpectralPointCloud, SpectralPointCloudConfig
+from radarpc.points import PointCloudBatch, offset2batch
 from radarpc.sensors.radial import RADIAL_S, TINY, make_calibration
 from radarpc.sim.rd import Scatterers, synthesize_rd
 

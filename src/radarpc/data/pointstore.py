@@ -2,7 +2,7 @@
 
 A store holds the point clouds of a list of RADIal frames, written by :class:`PointStoreWriter`
 (usually through :func:`radarpc.dsp.convert.convert_dataset`) and read back by
-:class:`PointStore` as per-frame :class:`~radarpc.dsp.pointcloud.PointCloudBatch` tensors.
+:class:`PointStore` as per-frame :class:`~radarpc.points.PointCloudBatch` tensors.
 
 File layout (pyarrow Parquet)::
 
@@ -43,7 +43,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator, Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -53,10 +53,9 @@ import torch
 from radarpc import __version__
 from radarpc.dsp.ddma import check_envelope_kind
 from radarpc.io import DataFileError, temp_file_beside
+from radarpc.points import (BOOL_FIELDS, FLOAT_FIELDS, INT_FIELDS, LIST_FIELDS, POINT_FIELDS, PointCloudBatch,
+                             collate_clouds)
 from radarpc.sensors.radial import DDMARadarConfig
-
-if TYPE_CHECKING:  # pragma: no cover
-    from radarpc.dsp.pointcloud import PointCloudBatch
 
 __all__ = [
     "METADATA_KEY",
@@ -79,20 +78,18 @@ METADATA_KEY = b"radarpc.pointstore"
 """Parquet key-value metadata key holding the store's JSON description."""
 FORMAT_VERSION = 1
 
-FLOAT_COLUMNS: tuple[str, ...] = (
-    "range_m", "azimuth_deg", "elevation_deg", "velocity_mps", "amplitude", "snr", "x", "y", "z")
+FLOAT_COLUMNS: tuple[str, ...] = FLOAT_FIELDS
 """Per-point float32 columns."""
-INT_COLUMNS: tuple[str, ...] = ("doppler_bin", "range_bin", "doppler_full")
+INT_COLUMNS: tuple[str, ...] = INT_FIELDS
 """Per-point integer columns (int32 on disk, int64 tensors in memory)."""
-BOOL_COLUMNS: tuple[str, ...] = ("is_neighbour",)
-LIST_COLUMNS: tuple[str, ...] = ("sector", "rd_patch")
+BOOL_COLUMNS: tuple[str, ...] = BOOL_FIELDS
+LIST_COLUMNS: tuple[str, ...] = LIST_FIELDS
 """Optional enrichment columns, fixed-size lists of float32 (present when enabled)."""
 _ORDER: tuple[str, ...] = (
     "frame", "sequence", "range_m", "azimuth_deg", "elevation_deg", "doppler_bin", "velocity_mps",
     "amplitude", "snr", "x", "y", "z", "range_bin", "doppler_full", "is_neighbour")
 REQUIRED_COLUMNS: tuple[str, ...] = _ORDER
 """Columns every store has, in file order (the enrichment columns follow when present)."""
-POINT_FIELDS: tuple[str, ...] = FLOAT_COLUMNS + INT_COLUMNS + BOOL_COLUMNS
 DENSITY_MODES: tuple[str, ...] = ("fixed-tau", "per-frame", "per-dataset")
 """How the CFAR threshold was chosen: one given tau, a tau per frame hitting the target
 density, or one tau calibrated on the training split to hit the target mean density."""
@@ -286,7 +283,7 @@ def _list_size(t: torch.Tensor | None, name: str, n_points: int) -> int | None:
     return int(t.shape[1])
 
 
-def _batch_to_table(clouds: "PointCloudBatch", frames: Sequence[int], sequences: Sequence[str],
+def _batch_to_table(clouds: PointCloudBatch, frames: Sequence[int], sequences: Sequence[str],
                     schema: pa.Schema) -> tuple[pa.Table, np.ndarray]:
     """Arrow table of every point of ``clouds`` and the ``(B,)`` point count per frame."""
     offset = clouds.offset.detach().to("cpu", torch.int64).numpy()                 # (B,)
@@ -387,7 +384,7 @@ class PointStoreWriter:
         if self._closed:
             raise ValueError(f"point store writer for {self.path} is already closed")
 
-    def write(self, clouds: "PointCloudBatch", frames: Sequence[int], sequences: Sequence[str]) -> None:
+    def write(self, clouds: PointCloudBatch, frames: Sequence[int], sequences: Sequence[str]) -> None:
         """Append the ``B`` frames of ``clouds``.
 
         Parameters
@@ -663,15 +660,15 @@ class PointStore:
             raise DataFileError(self.path, f"rows of frame {expect} are not where its frame table puts them")
         return table
 
-    def __getitem__(self, i: int) -> "PointCloudBatch":
+    def __getitem__(self, i: int) -> PointCloudBatch:
         """The point cloud of item ``i`` as a one-frame :class:`PointCloudBatch`."""
         return self.read_frames([i])
 
-    def __iter__(self) -> Iterator["PointCloudBatch"]:
+    def __iter__(self) -> Iterator[PointCloudBatch]:
         for i in range(len(self)):
             yield self[i]
 
-    def read_frames(self, indices: Sequence[int]) -> "PointCloudBatch":
+    def read_frames(self, indices: Sequence[int]) -> PointCloudBatch:
         """Items ``indices`` concatenated into one :class:`PointCloudBatch` (``offset`` ``(B,)``)."""
         indices = [int(i) for i in indices]
         tables = [self.frame_rows(i) for i in indices]
@@ -684,33 +681,6 @@ class PointStore:
         peak = torch.as_tensor(self.frame_table.n_peaks[idx] * (s.n_tx / (s.n_range * s.n_doppler)),
                                dtype=torch.float32)
         return _table_to_batch(table, counts, tau, dens, self.device, peak)
-
-
-def collate_clouds(clouds: Sequence["PointCloudBatch"]) -> "PointCloudBatch":
-    """Concatenate clouds (e.g. items of a :class:`PointStore` in a DataLoader) into one batch.
-
-    Per-point tensors are concatenated, ``offset`` re-accumulated, ``tau`` / ``density`` (and
-    ``peak_density`` when every input has it) stacked; every input must carry the same optional
-    enrichments. Use as ``collate_fn``.
-    """
-    from radarpc.dsp.pointcloud import PointCloudBatch
-
-    if not clouds:
-        raise ValueError("collate_clouds needs at least one cloud")
-    out: dict[str, torch.Tensor | None] = {}
-    for name in POINT_FIELDS + LIST_COLUMNS:
-        parts = [getattr(c, name) for c in clouds]
-        if any(p is None for p in parts):
-            if not all(p is None for p in parts):
-                raise ValueError(f"cannot collate clouds with and without {name!r}")
-            out[name] = None
-        else:
-            out[name] = torch.cat(parts)
-    counts = torch.cat([torch.diff(c.offset, prepend=c.offset.new_zeros(1)) for c in clouds])   # (B,)
-    peaks = [getattr(c, "peak_density", None) for c in clouds]
-    peak = None if any(p is None for p in peaks) else torch.cat(peaks)
-    return PointCloudBatch(offset=torch.cumsum(counts, 0), tau=torch.cat([c.tau for c in clouds]),
-                           density=torch.cat([c.density for c in clouds]), peak_density=peak, **out)
 
 
 def _frame_stats(pf: pq.ParquetFile, schema: pa.Schema) -> list[tuple[int, int] | None]:
@@ -735,9 +705,7 @@ def _column_numpy(table: pa.Table, name: str) -> np.ndarray:
 
 
 def _table_to_batch(table: pa.Table, counts: np.ndarray, tau: torch.Tensor, density: torch.Tensor,
-                    device: torch.device, peak_density: torch.Tensor | None = None) -> "PointCloudBatch":
-    from radarpc.dsp.pointcloud import PointCloudBatch
-
+                    device: torch.device, peak_density: torch.Tensor | None = None) -> PointCloudBatch:
     fields: dict[str, torch.Tensor | None] = {}
     for name in FLOAT_COLUMNS:
         fields[name] = torch.from_numpy(_column_numpy(table, name).astype(np.float32, copy=True)).to(device)

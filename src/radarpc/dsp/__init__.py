@@ -4,8 +4,7 @@ from radarpc.dsp.cfar import CFARResult, ca_cfar, os_cfar
 from radarpc.dsp.ddma import (ENVELOPES, DDMAEnvelope, check_rd, consolidate, ddma_envelope, rd_envelope, replica_bins, resolve_tx0_doppler,
                               rx_magnitude_sum, virtual_snapshots)
 from radarpc.dsp.density import density_of_mask, max_density, tau_for_density
-from radarpc.dsp.pointcloud import (EncodedSet, PointCloudBatch, SpectralPointCloud, SpectralPointCloudConfig,
-                                    offset2batch)
+from radarpc.dsp.pointcloud import EncodedSet, SpectralPointCloud, SpectralPointCloudConfig
 from radarpc.dsp.sparse_rd import sparse_rd, sparse_rd_mask
 
 __all__ = [
@@ -15,7 +14,6 @@ __all__ = [
     "replica_bins", "virtual_snapshots",
     "angle_spectrum", "BeamformResult", "beamform_peaks", "sector_pool",
     "density_of_mask", "max_density", "tau_for_density",
-    "SpectralPointCloudConfig", "PointCloudBatch", "SpectralPointCloud", "EncodedSet",
-    "offset2batch",
+    "SpectralPointCloudConfig", "SpectralPointCloud", "EncodedSet",
     "sparse_rd_mask", "sparse_rd",
 ]

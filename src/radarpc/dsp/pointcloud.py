@@ -42,15 +42,14 @@ from radarpc.dsp.ddma import (DDMAEnvelope, check_envelope_kind, check_finite_en
                               ddma_envelope, rx_magnitude_sum, virtual_snapshots)
 from radarpc.dsp.density import (DENSITY_MODES, check_density, check_density_value, density_of_mask,
                                  neighbourhood_mask, tau_for_density)
+from radarpc.points import PointCloudBatch, offset2batch
 from radarpc.sensors.radial import Calibration, DDMARadarConfig
 
 __all__ = [
     "SpectralPointCloudConfig",
-    "PointCloudBatch",
     "EncodedSet",
     "SpectralPointCloud",
     "RADIAL_TAU",
-    "offset2batch",
 ]
 
 _RD = re.compile(r"rd(\d+)")
@@ -151,91 +150,6 @@ class SpectralPointCloudConfig:
 
 def _seq(v) -> tuple:
     return (v,) if isinstance(v, int) or not hasattr(v, "__iter__") else tuple(v)
-
-
-def offset2batch(offset: torch.Tensor) -> torch.Tensor:
-    """Frame index of every point from the cumulative ``offset`` ``(B,)``: ``(N,)`` long."""
-    counts = torch.diff(offset, prepend=offset.new_zeros(1))
-    return torch.repeat_interleave(torch.arange(offset.numel(), device=offset.device), counts)
-
-
-@dataclass
-class PointCloudBatch:
-    """Spectral point clouds of ``B`` frames, concatenated; frame ``b`` holds points
-    ``offset[b-1]:offset[b]`` (``offset[-1] = N``). All per-point tensors are ``(N, ...)``.
-
-    Attributes
-    ----------
-    offset : LongTensor ``(B,)``         cumulative end index of each frame's points
-    range_bin, doppler_bin : LongTensor  range bin and consolidated Doppler index ``l`` (the seed's d_j)
-    doppler_full : LongTensor            resolved full-axis Doppler bin ``d0`` of Tx 0
-    range_m, azimuth_deg, elevation_deg, velocity_mps : float32
-    amplitude : float32                  ``Ae = |B v|`` at the argmax (eq. 7)
-    snr : float32                        CA-CFAR SNR ``|E|^2 / mu`` of the point's consolidated cell
-    x, y, z : float32                    metres, x forward, y left, z up
-    is_neighbour : BoolTensor            True for points added by RD-neighbourhood enrichment
-    sector : float32 ``(N, n_az_sec * n_el_sec)`` or None   angle-sector maxima (eq. 10)
-    rd_patch : float32 ``(N, n * n)`` or None   ``E`` around the point's cell, row-major
-        (range offset outer, Doppler offset inner), 0 outside the grid
-    tau : float32 ``(B,)``               threshold used per frame
-    density : float32 ``(B,)``           achieved density of the encoded set: ``|S*(tau)| / (Nr Nd)``
-                                         with RD-neighbourhood points, else ``|S(tau)| / (Nr Nd)``
-    peak_density : float32 ``(B,)`` or None   ``|S(tau)| / (Nr Nd)`` of the CFAR peaks alone
-                                         (equals ``density`` without RD-neighbourhood points)
-    """
-
-    offset: torch.Tensor
-    range_bin: torch.Tensor
-    doppler_bin: torch.Tensor
-    doppler_full: torch.Tensor
-    range_m: torch.Tensor
-    azimuth_deg: torch.Tensor
-    elevation_deg: torch.Tensor
-    velocity_mps: torch.Tensor
-    amplitude: torch.Tensor
-    snr: torch.Tensor
-    x: torch.Tensor
-    y: torch.Tensor
-    z: torch.Tensor
-    is_neighbour: torch.Tensor
-    sector: torch.Tensor | None
-    rd_patch: torch.Tensor | None
-    tau: torch.Tensor
-    density: torch.Tensor
-    peak_density: torch.Tensor | None = None
-
-    _PER_POINT = ("range_bin", "doppler_bin", "doppler_full", "range_m", "azimuth_deg", "elevation_deg",
-                  "velocity_mps", "amplitude", "snr", "x", "y", "z", "is_neighbour", "sector", "rd_patch")
-
-    def __len__(self) -> int:
-        """Number of frames."""
-        return int(self.offset.numel())
-
-    @property
-    def num_points(self) -> int:
-        return int(self.range_bin.numel())
-
-    def batch_index(self) -> torch.Tensor:
-        """Frame index of every point, ``(N,)``."""
-        return offset2batch(self.offset)
-
-    def frame(self, b: int) -> "PointCloudBatch":
-        """The cloud of frame ``b`` alone (a batch of one)."""
-        n = len(self)
-        if not -n <= b < n:
-            raise IndexError(f"frame {b} out of range for a batch of {n} frames")
-        b = b % n
-        start = int(self.offset[b - 1]) if b > 0 else 0
-        end = int(self.offset[b])
-        kw = {k: (None if getattr(self, k) is None else getattr(self, k)[start:end]) for k in self._PER_POINT}
-        peak = None if self.peak_density is None else self.peak_density[b:b + 1]
-        return PointCloudBatch(offset=self.offset.new_tensor([end - start]), tau=self.tau[b:b + 1],
-                               density=self.density[b:b + 1], peak_density=peak, **kw)
-
-    def to(self, device: torch.device | str) -> "PointCloudBatch":
-        kw = {f.name: (None if getattr(self, f.name) is None else getattr(self, f.name).to(device))
-              for f in dataclasses.fields(self)}
-        return PointCloudBatch(**kw)
 
 
 @dataclass

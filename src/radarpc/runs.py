@@ -1,0 +1,369 @@
+"""One run-folder mechanism for every long job: simulation, conversion, baselines, training.
+
+A long job fills one output (a folder, or a file with a parts folder beside it) that it owns
+from start to finish:
+
+* **lock** — :class:`OutputLock` takes an exclusive lock on the output before anything is read or
+  written; a second writer of the same output is refused at once with a message naming the
+  holder (:class:`OutputBusyError`), so two jobs can never mix their results in one output;
+* **key** — the settings that shape the output (a JSON-able dict) are stored in manifest files
+  inside the folder (:class:`RunFolder`). A rerun with the same key resumes; a rerun with another
+  key is refused (:class:`RunMismatchError`) unless the caller asks to overwrite, which removes
+  the job's own outputs first;
+* **atomic parts** — every file is written through :func:`radarpc.io.atomic_write` (a temp file
+  beside it, then a rename), so a finished part is never half-written; :meth:`RunFolder.done`
+  tells a resumed job which parts it can keep (optionally validating them);
+* **leftovers** — temp files that a killed job left (``.NAME.*.tmp``) are removed when the next
+  job takes the output.
+
+Resuming is bit-identical by construction: every part is a deterministic function of the key and
+the part's index, and a part either exists whole under its final name or not at all.
+
+Examples
+--------
+>>> with RunFolder("out/sim", {"sim.json": {"seed": 0}}, what="simulation") as run:  # doctest: +SKIP
+...     for i in range(10):
+...         if not run.done(f"frame_{i}.npy"):
+...             save_npy_atomic(run.path / f"frame_{i}.npy", make(i))
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Callable, Iterator, Mapping, Sequence
+
+__all__ = [
+    "OutputBusyError",
+    "RunMismatchError",
+    "OutputLock",
+    "RunFolder",
+    "check_writable",
+    "remove_temp_files",
+    "read_json",
+    "locked_output",
+]
+
+
+class OutputBusyError(FileExistsError):
+    """Another process is writing the same output."""
+
+
+class RunMismatchError(FileExistsError):
+    """The output holds a run with other settings."""
+
+
+def read_json(path: str | os.PathLike) -> object | None:
+    """The JSON content of ``path``, or None when it is missing or unreadable."""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+
+
+def _existing_ancestor(path: Path) -> Path:
+    p = path.absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def check_writable(path: str | os.PathLike, what: str = "output") -> None:
+    """Raise a clear :class:`PermissionError` now if ``path`` cannot be created or written.
+
+    Checks the path itself when it exists, else its nearest existing folder, so that a job fails
+    before it starts work rather than with a traceback at its first write.
+    """
+    path = Path(path)
+    target = path if path.exists() else _existing_ancestor(path.parent if path.suffix else path)
+    if target.is_dir():
+        ok = os.access(target, os.W_OK | os.X_OK)
+    else:
+        ok = os.access(target, os.W_OK) and os.access(target.parent, os.W_OK | os.X_OK)
+    if not ok:
+        raise PermissionError(f"cannot write the {what} {path}: {target} is not writable")
+
+
+def remove_temp_files(folder: str | os.PathLike, recursive: bool = True) -> int:
+    """Delete the temp files of interrupted atomic writes (``.NAME.*.tmp``) under ``folder``.
+
+    Call it only while holding the folder's :class:`OutputLock`: a live writer's temp file looks
+    the same. Returns how many were removed.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return 0
+    files = folder.rglob(".*.tmp") if recursive else folder.glob(".*.tmp")
+    n = 0
+    for p in files:
+        if p.is_file():
+            with contextlib.suppress(FileNotFoundError):
+                p.unlink()
+                n += 1
+    return n
+
+
+class OutputLock:
+    """An exclusive, non-blocking lock on an output path, held by one writer at a time.
+
+    The lock is a file ``.NAME.lock`` beside the output (so that it covers a file output and its
+    parts folder alike, and is not part of a dataset folder's contents). It holds the holder's
+    pid for the error message, is locked with ``flock`` (released by the OS if the holder dies,
+    so a killed job never blocks its rerun) and is removed on release.
+
+    Parameters
+    ----------
+    output : path-like
+        The output to protect (a folder or a file).
+    what : str
+        What the output is, for messages ("point store", "dataset root", ...).
+
+    Raises
+    ------
+    OutputBusyError
+        On :meth:`acquire`, when another process holds the lock.
+    """
+
+    def __init__(self, output: str | os.PathLike, what: str = "output") -> None:
+        self.output = Path(output)
+        self.what = what
+        self.path = self.output.parent / f".{self.output.name}.lock"
+        self._fd: int | None = None
+
+    def acquire(self) -> "OutputLock":
+        if self._fd is not None:
+            raise RuntimeError(f"{self.path} is already held by this object")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+            try:
+                _lock_fd(fd)
+            except BlockingIOError:
+                holder = ""
+                with contextlib.suppress(OSError, ValueError):
+                    holder = f" (pid {int(os.pread(fd, 32, 0).decode().strip())})"
+                os.close(fd)
+                raise OutputBusyError(
+                    f"another radarpc process{holder} is writing the {self.what} {self.output}; wait for it "
+                    f"to finish or choose another output") from None
+            # The previous holder may have removed the file between our open and our lock: then we
+            # hold a lock on an unlinked inode, which protects nothing. Retry on the current file.
+            try:
+                same = os.stat(self.path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.path)        # before unlocking: a waiter then retries on a fresh file
+        os.close(self._fd)
+        self._fd = None
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def __enter__(self) -> "OutputLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _lock_fd(fd: int) -> None:
+    try:
+        import fcntl
+    except ImportError:    # pragma: no cover - Windows
+        import msvcrt
+        try:
+            msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
+        except OSError as e:
+            raise BlockingIOError(str(e)) from e
+        return
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+
+
+def _canonical(d: object) -> object:
+    return json.loads(json.dumps(d))
+
+
+class RunFolder:
+    """A folder that one job owns, fills part by part, and resumes after an interruption.
+
+    Parameters
+    ----------
+    path : path-like
+        The folder (created on :meth:`start`).
+    manifests : mapping of str to dict
+        Files in the folder that record the run's key, ``{file name: JSON-able dict}``; written
+        at start, compared on rerun. Usually one (``{"run.json": config.to_dict()}``); a dataset
+        layout with its own description files passes those (e.g. ``sensor.json``).
+    what : str
+        What the folder is, for messages.
+    ignore_keys : sequence of str
+        Top-level manifest keys that are recorded but do not identify the run (a version string).
+    indent : int, optional
+        JSON indentation of the manifests as written.
+    owned : sequence of str, optional
+        The entries of the folder that the job writes (files or subfolders). ``overwrite`` deletes
+        these and the manifests; None means the whole folder's content is the job's.
+    lock_output : path-like, optional
+        The output to lock, when it is not the folder itself (a store file whose parts folder
+        this is). Default: the folder.
+
+    Attributes
+    ----------
+    resumed : bool
+        After :meth:`start`: the folder held a run with the same key, whose parts are kept.
+    """
+
+    def __init__(self, path: str | os.PathLike, manifests: Mapping[str, Mapping], *, what: str = "run folder",
+                 ignore_keys: Sequence[str] = (), indent: int | None = 1, owned: Sequence[str] | None = None,
+                 lock_output: str | os.PathLike | None = None) -> None:
+        if not manifests:
+            raise ValueError("a run folder needs at least one manifest file")
+        self.path = Path(path)
+        self.manifests = {str(k): _canonical(dict(v)) for k, v in manifests.items()}
+        self.what = what
+        self.ignore_keys = tuple(ignore_keys)
+        self.indent = indent
+        self.owned = None if owned is None else tuple(owned)
+        self.lock = OutputLock(self.path if lock_output is None else lock_output, what)
+        self.resumed = False
+        self._resume = True
+
+    # ---- state ----------------------------------------------------------------------------------
+    def _key(self, d: object) -> object:
+        if not isinstance(d, dict):
+            return d
+        return {k: v for k, v in d.items() if k not in self.ignore_keys}
+
+    def stored(self) -> dict[str, object | None]:
+        """The manifests as found in the folder (None for a missing or unreadable one)."""
+        return {name: read_json(self.path / name) for name in self.manifests}
+
+    def differences(self) -> list[str]:
+        """Keys (``file:key``) whose stored value differs from this run's; empty when they match."""
+        out = []
+        for name, stored in self.stored().items():
+            want, have = self._key(self.manifests[name]), self._key(stored)
+            if not isinstance(have, dict):
+                out.append(f"{name} (missing or unreadable)")
+                continue
+            out += [f"{name}:{k}" for k in sorted(set(want) | set(have)) if want.get(k) != have.get(k)]
+        return out
+
+    def is_empty(self) -> bool:
+        return not self.path.exists() or (self.path.is_dir() and not any(self.path.iterdir()))
+
+    # ---- lifecycle ------------------------------------------------------------------------------
+    def start(self, *, overwrite: bool = False, resume: bool = True) -> "RunFolder":
+        """Lock the output, check the folder against this run's key, and write the manifests.
+
+        Parameters
+        ----------
+        overwrite : bool
+            Replace a folder that holds another run (or, with ``resume=False``, this one): its
+            owned entries are deleted first.
+        resume : bool
+            Keep the parts of an earlier run with the same key. False starts over (deleting the
+            owned entries of a matching run; a non-matching one still needs ``overwrite``).
+
+        Raises
+        ------
+        NotADirectoryError
+            ``path`` is a file.
+        RunMismatchError
+            The folder is not empty and does not hold a run with this key, without ``overwrite``.
+        OutputBusyError
+            Another process writes the same output.
+        PermissionError
+            The folder cannot be written.
+        """
+        if self.path.exists() and not self.path.is_dir():
+            raise NotADirectoryError(f"the {self.what} {self.path} exists and is not a folder")
+        check_writable(self.path, self.what)
+        self.lock.acquire()
+        try:
+            self._start(overwrite, resume)
+        except BaseException:
+            self.lock.release()
+            raise
+        return self
+
+    def _start(self, overwrite: bool, resume: bool) -> None:
+        self.resumed = False
+        if not self.is_empty():
+            diff = self.differences()
+            if diff and not overwrite:
+                raise RunMismatchError(
+                    f"{self.path} is not empty and does not hold a run with these settings (differs in "
+                    f"{', '.join(diff[:6])}{' ...' if len(diff) > 6 else ''}); pass --overwrite "
+                    f"(overwrite=True) to replace it, or choose another output")
+            if diff or not resume:
+                self.clear()
+            else:
+                self.resumed = True
+                remove_temp_files(self.path)
+        self._resume = resume
+        self.path.mkdir(parents=True, exist_ok=True)
+        from radarpc.io import atomic_write
+
+        for name, content in self.manifests.items():
+            with atomic_write(self.path / name, "w") as f:
+                json.dump(content, f, indent=self.indent)
+
+    def clear(self) -> None:
+        """Delete the job's entries of the folder (the owned ones and the manifests)."""
+        if not self.path.is_dir():
+            return
+        names = set(self.manifests) | (set(self.owned) if self.owned is not None else
+                                       {p.name for p in self.path.iterdir()})
+        for name in names:
+            p = self.path / name
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            elif p.exists() or p.is_symlink():
+                p.unlink()
+        remove_temp_files(self.path)
+
+    def done(self, part: str | os.PathLike, check: Callable[[Path], bool] | None = None) -> bool:
+        """Whether the file ``part`` (a path, e.g. ``run.path / "part-00001.parquet"``) is finished and
+        can be kept.
+
+        False when the run does not resume, the file is missing, or ``check(path)`` is False (a
+        file damaged after its atomic write is then redone).
+        """
+        p = Path(part)
+        if not self.resumed or not p.is_file():
+            return False
+        return True if check is None else bool(check(p))
+
+    def close(self) -> None:
+        """Release the lock (the folder stays)."""
+        self.lock.release()
+
+    def __enter__(self) -> "RunFolder":
+        return self if self.lock.held else self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+@contextlib.contextmanager
+def locked_output(path: str | os.PathLike, what: str = "output") -> Iterator[OutputLock]:
+    """``with locked_output(p): ...``: check that ``p`` is writable, then hold its :class:`OutputLock`."""
+    check_writable(path, what)
+    with OutputLock(path, what) as lock:
+        yield lock

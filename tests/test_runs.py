@@ -1,0 +1,146 @@
+"""The shared run-folder mechanism: lock, key check, resume, overwrite, leftovers."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from radarpc.io import atomic_write
+from radarpc.runs import (OutputBusyError, OutputLock, RunFolder, RunMismatchError, check_writable,
+                          remove_temp_files)
+
+
+def _hold_lock_in_child(output, seconds: float) -> subprocess.Popen:
+    """A second real process that takes the lock on ``output`` and holds it."""
+    code = textwrap.dedent(f"""
+        import sys, time
+        from radarpc.runs import OutputLock
+        with OutputLock({str(output)!r}):
+            print("locked", flush=True)
+            time.sleep({seconds})
+    """)
+    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    assert child.stdout.readline().strip() == "locked"
+    return child
+
+
+def test_second_process_is_refused_while_the_first_holds_the_output(tmp_path):
+    out = tmp_path / "store.parquet"
+    child = _hold_lock_in_child(out, 30)
+    try:
+        with pytest.raises(OutputBusyError, match=rf"pid {child.pid}.*store\.parquet"):
+            OutputLock(out, "point store").acquire()
+        run = RunFolder(tmp_path / "parts", {"run.json": {"a": 1}}, lock_output=out)
+        with pytest.raises(OutputBusyError):
+            run.start()
+        assert not (tmp_path / "parts").exists()          # refused before anything was written
+    finally:
+        child.kill()
+        child.wait()
+        child.stdout.close()
+    # a killed holder releases the lock (flock dies with the process)
+    with OutputLock(out) as lock:
+        assert lock.held
+    assert not lock.path.exists()                           # removed on release
+
+
+def test_lock_is_reacquirable_and_exclusive_within_a_process(tmp_path):
+    a = OutputLock(tmp_path / "x")
+    a.acquire()
+    with pytest.raises(OutputBusyError):
+        OutputLock(tmp_path / "x").acquire()              # flock is per open file description
+    a.release()
+    with OutputLock(tmp_path / "x"):
+        pass
+
+
+def test_resume_keeps_parts_and_mismatch_is_refused(tmp_path):
+    d = tmp_path / "run"
+    with RunFolder(d, {"run.json": {"seed": 0, "version": "1"}}, ignore_keys=("version",)) as run:
+        assert not run.resumed
+        with atomic_write(d / "part-0.bin") as f:
+            f.write(b"abc")
+    assert json.loads((d / "run.json").read_text()) == {"seed": 0, "version": "1"}
+    # same key, another version string: resumes and keeps the part
+    with RunFolder(d, {"run.json": {"seed": 0, "version": "2"}}, ignore_keys=("version",)) as run:
+        assert run.resumed
+        assert run.done(d / "part-0.bin")
+        assert not run.done(d / "part-1.bin")
+        assert not run.done(d / "part-0.bin", check=lambda p: p.read_bytes() == b"xyz")
+    # another key: refused, naming the difference; nothing deleted
+    with pytest.raises(RunMismatchError, match=r"run\.json:seed.*--overwrite"):
+        RunFolder(d, {"run.json": {"seed": 1}}).start()
+    assert (d / "part-0.bin").read_bytes() == b"abc"
+    # overwrite starts over
+    with RunFolder(d, {"run.json": {"seed": 1}}).start(overwrite=True) as run:
+        assert not run.resumed and not run.done(d / "part-0.bin")
+    assert sorted(p.name for p in d.iterdir()) == ["run.json"]
+
+
+def test_overwrite_deletes_only_owned_entries(tmp_path):
+    d = tmp_path / "root"
+    (d / "radar_FFT").mkdir(parents=True)
+    (d / "radar_FFT" / "a.npy").write_bytes(b"1")
+    (d / "notes.txt").write_text("user file")
+    run = RunFolder(d, {"sensor.json": {"n": 2}}, owned=("radar_FFT",))
+    with pytest.raises(RunMismatchError):
+        run.start()
+    run.start(overwrite=True)
+    run.close()
+    assert (d / "notes.txt").read_text() == "user file"
+    assert not (d / "radar_FFT").exists()
+
+
+def test_not_resume_clears_a_matching_run(tmp_path):
+    d = tmp_path / "run"
+    with RunFolder(d, {"run.json": {"k": 1}}):
+        (d / "part").write_text("x")
+    with RunFolder(d, {"run.json": {"k": 1}}).start(resume=False) as run:
+        assert not run.resumed
+    assert not (d / "part").exists()
+
+
+def test_leftover_temp_files_are_removed_on_resume(tmp_path):
+    d = tmp_path / "run"
+    with RunFolder(d, {"run.json": {"k": 1}}):
+        pass
+    (d / "sub").mkdir()
+    for name in (".part-3.parquet.abc123.tmp", "sub/.frame_1.bin.x.tmp"):
+        (d / name).write_bytes(b"half")
+    keep = d / "keep.tmp"                                   # not an atomic-write temp name
+    keep.write_text("x")
+    with RunFolder(d, {"run.json": {"k": 1}}) as run:
+        assert run.resumed
+    assert not list(d.rglob(".*.tmp"))
+    assert keep.exists()
+    assert remove_temp_files(tmp_path / "missing") == 0
+
+
+def test_a_file_in_place_of_the_folder(tmp_path):
+    f = tmp_path / "f"
+    f.write_text("x")
+    with pytest.raises(NotADirectoryError, match="not a folder"):
+        RunFolder(f, {"run.json": {}}).start()
+
+
+@pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0, reason="permissions are not enforced for root")
+def test_read_only_output_fails_before_work(tmp_path):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        with pytest.raises(PermissionError, match=r"cannot write the dataset root .*ro"):
+            RunFolder(ro / "sim", {"run.json": {}}, what="dataset root").start()
+        with pytest.raises(PermissionError):
+            check_writable(ro / "x.parquet")
+    finally:
+        ro.chmod(0o755)
+
+
+def test_check_writable_accepts_new_nested_paths(tmp_path):
+    check_writable(tmp_path / "a" / "b" / "c.parquet")
+    check_writable(tmp_path / "new_folder")
