@@ -194,6 +194,18 @@ def _lock_fd(fd: int) -> None:
     fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
 
 
+def _differing(want: dict, have: dict, prefix: str = "") -> list[str]:
+    """Dotted paths of the keys whose values differ, descending into dicts present on both sides."""
+    out = []
+    for k in sorted(set(want) | set(have), key=str):
+        a, b = want.get(k), have.get(k)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _differing(a, b, f"{prefix}{k}.")
+        elif a != b:
+            out.append(f"{prefix}{k}")
+    return out
+
+
 def _canonical(d: object) -> object:
     return json.loads(json.dumps(d))
 
@@ -221,6 +233,8 @@ class RunFolder:
     lock_output : path-like, optional
         The output to lock, when it is not the folder itself (a store file whose parts folder
         this is). Default: the folder.
+    lock : OutputLock, optional
+        A lock the caller already holds (and releases) for this output, instead of ``lock_output``.
 
     Attributes
     ----------
@@ -230,7 +244,7 @@ class RunFolder:
 
     def __init__(self, path: str | os.PathLike, manifests: Mapping[str, Mapping], *, what: str = "run folder",
                  ignore_keys: Sequence[str] = (), indent: int | None = 1, owned: Sequence[str] | None = None,
-                 lock_output: str | os.PathLike | None = None) -> None:
+                 lock_output: str | os.PathLike | None = None, lock: OutputLock | None = None) -> None:
         if not manifests:
             raise ValueError("a run folder needs at least one manifest file")
         self.path = Path(path)
@@ -239,9 +253,10 @@ class RunFolder:
         self.ignore_keys = tuple(ignore_keys)
         self.indent = indent
         self.owned = None if owned is None else tuple(owned)
-        self.lock = OutputLock(self.path if lock_output is None else lock_output, what)
+        self.lock = lock if lock is not None else OutputLock(self.path if lock_output is None else lock_output, what)
+        self._own_lock = lock is None
         self.resumed = False
-        self._resume = True
+        self._started = False
 
     # ---- state ----------------------------------------------------------------------------------
     def _key(self, d: object) -> object:
@@ -261,14 +276,14 @@ class RunFolder:
             if not isinstance(have, dict):
                 out.append(f"{name} (missing or unreadable)")
                 continue
-            out += [f"{name}:{k}" for k in sorted(set(want) | set(have)) if want.get(k) != have.get(k)]
+            out += [f"{name}:{k}" for k in _differing(want, have)]
         return out
 
     def is_empty(self) -> bool:
         return not self.path.exists() or (self.path.is_dir() and not any(self.path.iterdir()))
 
     # ---- lifecycle ------------------------------------------------------------------------------
-    def start(self, *, overwrite: bool = False, resume: bool = True) -> "RunFolder":
+    def start(self, *, overwrite: bool = False, resume: bool = True, write_manifests: bool = True) -> "RunFolder":
         """Lock the output, check the folder against this run's key, and write the manifests.
 
         Parameters
@@ -279,6 +294,10 @@ class RunFolder:
         resume : bool
             Keep the parts of an earlier run with the same key. False starts over (deleting the
             owned entries of a matching run; a non-matching one still needs ``overwrite``).
+        write_manifests : bool
+            Write the manifests of a new run now. False when the caller completes them first
+            (e.g. with a calibrated value) and writes them with :meth:`write_manifest`. A resumed
+            run keeps the manifests it finds (they match, ``ignore_keys`` aside).
 
         Raises
         ------
@@ -294,16 +313,20 @@ class RunFolder:
         if self.path.exists() and not self.path.is_dir():
             raise NotADirectoryError(f"the {self.what} {self.path} exists and is not a folder")
         check_writable(self.path, self.what)
-        self.lock.acquire()
+        if self._own_lock:
+            self.lock.acquire()
+        elif not self.lock.held:
+            raise RuntimeError(f"the lock of {self.lock.output} must be held before starting {self.path}")
         try:
-            self._start(overwrite, resume)
+            self._start(overwrite, resume, write_manifests)
         except BaseException:
-            self.lock.release()
+            self.close()
             raise
         return self
 
-    def _start(self, overwrite: bool, resume: bool) -> None:
+    def _start(self, overwrite: bool, resume: bool, write_manifests: bool) -> None:
         self.resumed = False
+        self._started = True
         if not self.is_empty():
             diff = self.differences()
             if diff and not overwrite:
@@ -316,13 +339,21 @@ class RunFolder:
             else:
                 self.resumed = True
                 remove_temp_files(self.path)
-        self._resume = resume
         self.path.mkdir(parents=True, exist_ok=True)
+        if write_manifests and not self.resumed:
+            for name, content in self.manifests.items():
+                self.write_manifest(name, content)
+
+    def write_manifest(self, name: str, content: Mapping) -> None:
+        """Write manifest ``name`` atomically (its key part must be this run's)."""
         from radarpc.io import atomic_write
 
-        for name, content in self.manifests.items():
-            with atomic_write(self.path / name, "w") as f:
-                json.dump(content, f, indent=self.indent)
+        if name not in self.manifests:
+            raise ValueError(f"{name} is not a manifest of {self.path}")
+        if self._key(_canonical(dict(content))) != self._key(self.manifests[name]):
+            raise ValueError(f"manifest {name} of {self.path} would not match this run's key")
+        with atomic_write(self.path / name, "w") as f:
+            json.dump(dict(content), f, indent=self.indent)
 
     def clear(self) -> None:
         """Delete the job's entries of the folder (the owned ones and the manifests)."""
@@ -351,11 +382,12 @@ class RunFolder:
         return True if check is None else bool(check(p))
 
     def close(self) -> None:
-        """Release the lock (the folder stays)."""
-        self.lock.release()
+        """Release the lock if this folder took it (the folder stays)."""
+        if self._own_lock:
+            self.lock.release()
 
     def __enter__(self) -> "RunFolder":
-        return self if self.lock.held else self.start()
+        return self if self._started else self.start()
 
     def __exit__(self, *exc) -> None:
         self.close()

@@ -27,7 +27,9 @@ import sys
 from dataclasses import dataclass
 
 from radarpc.dsp.cfar import check_tau
-from radarpc.dsp.convert import DEFAULT_WAIT_S, convert_dataset, dist_env, write_sparse_rd
+from radarpc.distributed import DEFAULT_WAIT_S, dist_env
+from radarpc.pipelines.pointclouds import ConvertSettings, convert_dataset
+from radarpc.pipelines.sparse_rd import write_sparse_rd
 from radarpc.dsp.beamform import BEAMFORMING_MODES
 from radarpc.dsp.ddma import ENVELOPES
 from radarpc.dsp.density import check_density_value
@@ -166,14 +168,17 @@ def run(args: argparse.Namespace) -> int:
     if args.out is None and args.sparse_rd_out is None:
         raise ValueError("nothing to write: give --out FILE.parquet and/or --sparse-rd-out DIR")
     enrich = parse_enrich(args.enrich)
-    common = dict(tau=args.snr, density=args.density, density_mode=args.density_mode, window=cfar.window,
-                  guard=cfar.guard, envelope=cfar.envelope, enrich=enrich, split=args.split,
-                  batch_size=args.batch_size, device=args.device, resume=not args.no_resume,
-                  progress=not args.quiet, calibration_frames=args.calibration_frames)
+    # One config, validated once, passed whole to both writers.
+    settings = ConvertSettings(tau=args.snr, density=args.density, density_mode=args.density_mode,
+                               window=cfar.window, guard=cfar.guard, envelope=cfar.envelope, enrich=enrich,
+                               split=args.split, chunk_frames=args.chunk_frames,
+                               calibration_frames=args.calibration_frames, beamforming=args.beamforming)
+    run_args = dict(batch_size=args.batch_size, device=args.device, resume=not args.no_resume,
+                    progress=not args.quiet)
     calibrated = None
     if args.out is not None:
-        res = convert_dataset(args.root, args.out, workers=args.workers, chunk_frames=args.chunk_frames,
-                              wait_timeout_s=args.wait_timeout, beamforming=args.beamforming, **common)
+        res = convert_dataset(args.root, args.out, settings, workers=args.workers,
+                              wait_timeout_s=args.wait_timeout, **run_args)
         calibrated = res.tau if args.density is not None and args.density_mode == "per-dataset" else None
         if res.path is not None:
             tau = "per frame" if res.tau is None else f"{res.tau:.6g}"
@@ -190,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
             if warn is not None:
                 print(warn, file=sys.stderr)
     if args.sparse_rd_out is not None and dist_env().rank == 0:
-        srd = write_sparse_rd(args.root, args.sparse_rd_out, calibrated_tau=calibrated, **common)
+        srd = write_sparse_rd(args.root, args.sparse_rd_out, settings, calibrated_tau=calibrated, **run_args)
         dens = "n/a (all frames existed)" if math.isnan(srd.achieved_density) else f"{srd.achieved_density:.5f}"
         print(f"wrote sparse-RD root {srd.root}: {srd.n_frames} frames ({srd.frames_written} written now), "
               f"achieved density {dens} (per-frame taus and densities in sparse_rd.json)")

@@ -14,17 +14,13 @@ from PIL import Image
 from radarpc.data.pointstore import PointStore
 from radarpc.data.radial import RADIal
 from radarpc.data.radial_format import LABEL_COLUMNS, fft_path, freespace_path, simulated_sequence_name
-from radarpc.dsp.convert import (
-    ConvertSettings,
-    build_point_cloud,
-    convert_dataset,
-    part_path,
-    parts_dir,
-    write_sparse_rd,
-)
+from radarpc.pipelines.pointclouds import ConvertSettings, build_point_cloud, convert_dataset, part_path, parts_dir
+from radarpc.pipelines.sparse_rd import write_sparse_rd
 from radarpc.dsp.density import tau_for_density
 from radarpc.io import DataFileError, save_npy_atomic
-from radarpc.sensors.radial import TINY, make_calibration, save_calibration, steering_vectors
+from radarpc.data.radial_format import save_calibration
+from radarpc.sensors.radial import TINY, steering_vectors
+from radarpc.sim.radial_calibration import make_calibration
 
 N_SEQ, PER_SEQ = 3, 3          # sequences q0 (train), q1 (val), q2 (test); 9 frames
 ZERO_FRAME = 4                 # an all-zero cube: no detection at any tau
@@ -454,7 +450,7 @@ def test_changed_source_files_are_noticed_on_resume(root, tmp_path):
 
 
 def test_sparse_rd_resume_after_kill_keeps_every_frame_record(root, tmp_path, monkeypatch):
-    import radarpc.dsp.convert as convert
+    import radarpc.pipelines.sparse_rd as convert
 
     ref = write_sparse_rd(root, tmp_path / "ref", density=0.1, batch_size=2, progress=False)
     out = tmp_path / "sparse"
@@ -517,18 +513,21 @@ def test_orphaned_worker_stops_before_its_next_batch(root, tmp_path):
     import dataclasses
     import os
 
-    import radarpc.dsp.convert as convert
+    import radarpc.pipelines.pointclouds as convert
+    from radarpc.distributed import WorkerJob
 
     out = tmp_path / "pc.parquet"
     ds = RADIal(root, split="all")
     meta = convert_dataset(root, tmp_path / "ref.parquet", tau=4.0, progress=False)
     m = PointStore(meta.path).metadata.to_dict()
-    job = convert._ChunkJob(dataset=ds, out=str(out), settings=ConvertSettings(tau=4.0), tau=4.0, meta=m,
-                            chunks=(0,), chunk_frames=9, batch_size=2, device="cpu", threads=None,
-                            parent_pid=os.getppid())
+    job = WorkerJob(run=convert._run_chunks, payload=convert._ChunkJob(
+        dataset=ds, out=str(out), settings=ConvertSettings(tau=4.0), tau=4.0, meta=m, chunk_frames=9, batch_size=2,
+        device="cpu"), items=(0,), parent_pid=os.getppid())
     parts_dir(out).mkdir()
-    assert convert._run_chunks(job, lambda k, n: None) == 1 and part_path(out, 0).is_file()
+    finished = []
+    convert._run_chunks(job, job.items, lambda k, n: finished.append(k))
+    assert finished == [0] and part_path(out, 0).is_file()
     part_path(out, 0).unlink()
     with pytest.raises(SystemExit, match="is gone, stopping"):
-        convert._run_chunks(dataclasses.replace(job, parent_pid=os.getppid() + 1), lambda k, n: None)
+        convert._run_chunks(dataclasses.replace(job, parent_pid=os.getppid() + 1), job.items, lambda k, n: None)
     assert list(parts_dir(out).iterdir()) == []

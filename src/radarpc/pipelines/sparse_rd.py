@@ -1,0 +1,267 @@
+"""Sparse-RD roots: the RD cubes of a RADIal root masked to the set a point store encodes.
+
+:func:`write_sparse_rd` writes the RD cubes masked to the set the matching point store encodes
+(``S(tau)``, or ``S*(tau)`` with ``rdN``; same envelope, CFAR and per-frame taus as
+:func:`radarpc.pipelines.pointclouds.convert_dataset`) as a new RADIal-layout root (labels,
+freespace, calibration and sensor description linked or copied) that the unchanged
+:class:`~radarpc.data.radial.RADIal` reader and the dense FFTRadNet read: the sparse-RD baseline.
+The root is locked for the run (:class:`radarpc.runs.OutputLock`) and resumes frame by frame.
+"""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from radarpc import __version__
+from radarpc.data.radial_format import LABEL_COLUMNS, fft_path, freespace_path, save_calibration
+from radarpc.distributed import DistEnv, rank_device
+from radarpc.dsp.sparse_rd import sparse_rd, sparse_rd_mask
+from radarpc.io import DataFileError, atomic_write, save_npy_atomic
+from radarpc.pipelines.pointclouds import (ConvertSettings, build_point_cloud, calibrate_tau,
+                                           calibration_source_of, check_dsp_settings)
+from radarpc.pipelines.sources import Source, batched, open_source, prefetched, source_fingerprint
+from radarpc.runs import OutputLock, check_writable, remove_temp_files
+
+__all__ = ["SparseRDResult", "write_sparse_rd"]
+
+
+@dataclass(frozen=True)
+class SparseRDResult:
+    """Outcome of :func:`write_sparse_rd`."""
+
+    root: Path                       # the sparse-RD root
+    n_frames: int                    # frames in the root
+    frames_written: int              # cubes computed in this call (the others existed)
+    achieved_density: float          # mean density of the frames written in this call (nan if none)
+    tau: float | None                # fixed or calibrated threshold (None in per-frame mode)
+    frame_tau: dict[int, float] = dataclasses.field(default_factory=dict)      # per frame (numSample), all recorded frames
+    frame_density: dict[int, float] = dataclasses.field(default_factory=dict)  # per frame, density of the kept set
+
+
+def _link_or_copy(src: Path, dst: Path, *, overwrite: bool = False) -> None:
+    """Hard-link ``src`` to ``dst`` (copy across file systems), atomically; an existing ``dst`` is
+    kept unless ``overwrite``."""
+    if dst.exists() and not overwrite:
+        return
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
+    try:
+        os.link(src, tmp)
+    except OSError:
+        shutil.copyfile(src, tmp)
+    os.replace(tmp, dst)
+
+
+def _write_split_labels(src: Path, dst: Path, keep: set[int]) -> None:
+    """Copy ``labels.csv`` keeping only the rows of frames ``keep`` (atomic)."""
+    with open(src, newline="", encoding="utf-8-sig") as f:
+        rows = list(csv.reader(f))
+    if not rows or tuple(h.strip() for h in rows[0]) != LABEL_COLUMNS:
+        raise DataFileError(src, "header is not RADIal's labels header")
+    with atomic_write(dst, "w") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(rows[0])
+        for r in rows[1:]:
+            if r and int(float(r[0])) in keep:
+                w.writerow(r)
+
+
+def _write_png(path: Path, mask: np.ndarray) -> None:
+    """A 2-D uint8 mask as a greyscale PNG, atomically."""
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path, "wb") as f:
+        Image.fromarray(np.ascontiguousarray(mask, dtype=np.uint8)).save(f, format="PNG")
+
+
+def _write_labels_from_dataset(ds: Any, dst: Path) -> None:
+    """``labels.csv`` from a dataset object's raw rows (``frame_labels(i)``), atomic."""
+    if not hasattr(ds, "frame_labels"):
+        raise ValueError(f"{type(ds).__name__} has neither a root folder nor frame_labels(i): cannot write "
+                         f"the sparse root's labels.csv")
+    with atomic_write(dst, "w") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(LABEL_COLUMNS)
+        for i in range(len(ds)):
+            for row in ds.frame_labels(i):
+                w.writerow([row[c] for c in LABEL_COLUMNS])
+
+
+def write_sparse_rd(
+    source: Source,
+    out_root: str | os.PathLike,
+    settings: ConvertSettings | None = None,
+    *,
+    batch_size: int = 8,
+    calibration_source: Source | None = None,
+    calibrated_tau: float | None = None,
+    device: torch.device | str | None = None,
+    resume: bool = True,
+    progress: bool = True,
+    **fields: Any,
+) -> SparseRDResult:
+    """Write a RADIal-layout root whose RD cubes are masked to the set the point store encodes.
+
+    ``R_sparse[r, d, c] = R[r, d, c]`` if ``(r, d)`` is in the encoded set else 0 (all Rx
+    channels kept). The encoded set is exactly the one :func:`convert_dataset` with the same
+    arguments turns into points: ``S(tau)`` (the ``n_tx`` replica bins of every CFAR peak), or
+    with an ``rdN`` enrichment ``S*(tau)`` (the replica bins of every cell of the ``n x n``
+    neighbourhoods), with the same envelope, CFAR and per-frame (or calibrated) taus; a density
+    target applies to that set. ``labels.csv`` (restricted to the split's frames), the freespace
+    PNGs, ``calibration.npz`` / ``CalibrationTable.npy`` and ``sensor.json`` are hard-linked (or
+    copied) from the source root; for a dataset object without a ``root`` (SimulatedRADIal),
+    ``labels.csv`` is written from ``frame_labels(i)``, ``calibration.npz`` and ``sensor.json``
+    from its calibration and sensor, and the freespace PNGs from ``freespace_mask(i)`` (when the
+    object has it; ``sparse_rd.json`` records ``"freespace"``). Each cube is written
+    atomically and existing cubes are kept when ``resume`` (so a killed run resumes).
+
+    ``sparse_rd.json`` records the source, the settings and the tau (a resumed run must match
+    them), every frame's tau and achieved density (``frames``: numSample -> ``{"tau",
+    "density", "peak_density"}``), their mean, and whether the run completed.
+
+    Parameters are those of :func:`~radarpc.pipelines.pointclouds.convert_dataset` (``settings``
+    whole, or its fields), plus ``calibrated_tau``: in per-dataset mode,
+    the tau already calibrated for the matching store (``ConvertResult.tau``), used instead of
+    calibrating again.
+
+    Returns
+    -------
+    SparseRDResult
+    """
+    if settings is None:
+        settings = ConvertSettings(**fields)
+    elif fields:
+        raise TypeError(f"give settings or its fields, not both (got {sorted(fields)})")
+    # The mask does not depend on how directions are found, nor the root on the part size.
+    settings = dataclasses.replace(settings, beamforming="auto", chunk_frames=64)
+    if int(batch_size) < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    out_root = Path(out_root)
+    ds, source_id, split_used = open_source(source, settings.split)
+    settings = dataclasses.replace(settings, split=split_used)
+    root = Path(ds.root) if getattr(ds, "root", None) is not None else None
+    if root is not None and root.resolve() == out_root.resolve():
+        raise ValueError(f"the sparse-RD root must differ from the source root {root}")
+    dev = rank_device(device, DistEnv())
+    check_dsp_settings(settings, ds, source_id)
+    cal_src, cal_id = (None, None)
+    if settings.mode == "per-dataset":
+        try:
+            cal_src, cal_id = calibration_source_of(source, ds, calibration_source)
+        except ValueError:
+            if calibrated_tau is None:                 # nothing to calibrate on
+                raise
+            cal_id = f"given tau {float(calibrated_tau)!r}"
+    if out_root.exists() and not out_root.is_dir():
+        raise NotADirectoryError(f"the sparse-RD root {out_root} exists and is not a folder")
+    check_writable(out_root, "sparse-RD root")
+    with OutputLock(out_root, "sparse-RD root"):
+        return _write_locked(ds, source_id, out_root, settings, root, dev, cal_src, cal_id, batch_size=int(batch_size),
+                             calibrated_tau=calibrated_tau, resume=resume, progress=progress)
+
+
+def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSettings, root: Path | None,
+                  dev: torch.device, cal_src: Any, cal_id: str | None, *, batch_size: int,
+                  calibrated_tau: float | None, resume: bool, progress: bool) -> SparseRDResult:
+    info_path = out_root / "sparse_rd.json"
+    if out_root.is_dir() and not info_path.is_file() and any(out_root.iterdir()):
+        raise FileExistsError(f"{out_root} is not empty and is not a sparse-RD root (no sparse_rd.json): "
+                              f"refusing to write masked cubes into it; choose a new or empty folder")
+    key = {"source_root": source_id, "settings": settings.output_key(), "source_files": source_fingerprint(ds),
+           "calibration_source": cal_id}
+    prev = None
+    if resume and info_path.is_file():
+        try:
+            prev = json.loads(info_path.read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError) as e:
+            raise DataFileError(info_path, f"is unreadable ({e}); delete it or pass resume=False") from e
+        if {k: prev.get(k) for k in key} != key:
+            raise ValueError(f"{out_root} holds a sparse-RD root made from other data or settings (see "
+                             f"{info_path}); write to another folder or pass resume=False (CLI: --no-resume)")
+    cal_tau = settings.tau
+    if settings.mode == "per-dataset":
+        if prev is not None:
+            cal_tau = prev["tau"]
+        elif calibrated_tau is not None:
+            cal_tau = float(calibrated_tau)
+        else:
+            cal_tau = calibrate_tau(cal_src, settings, batch_size=batch_size, device=dev, progress=progress)
+        if calibrated_tau is not None and cal_tau != float(calibrated_tau):
+            raise ValueError(f"calibrated_tau={calibrated_tau} differs from the tau {cal_tau} of the existing "
+                             f"sparse root {out_root}; pass resume=False to rewrite it")
+    spc = build_point_cloud(ds, settings, cal_tau, dev)
+
+    out_root.mkdir(parents=True, exist_ok=True)
+    remove_temp_files(out_root)                     # of a killed earlier run (we hold the lock)
+    frames: dict[str, dict] = dict(prev.get("frames") or {}) if prev is not None else {}
+    info = dict(key, tau=cal_tau, mode=settings.mode, radarpc_version=__version__, complete=False,
+                frames=frames)
+    with atomic_write(info_path, "w") as f:
+        json.dump(info, f, indent=1)
+    if root is not None:
+        for name in ("calibration.npz", "CalibrationTable.npy", "sensor.json"):
+            if (root / name).is_file():
+                _link_or_copy(root / name, out_root / name, overwrite=not resume)
+        if not resume or not (out_root / "labels.csv").is_file():
+            _write_split_labels(root / "labels.csv", out_root / "labels.csv", set(ds.frame_ids))
+    else:
+        if not resume or not (out_root / "calibration.npz").is_file():
+            save_calibration(out_root / "calibration.npz", ds.calibration)
+        if not resume or not (out_root / "sensor.json").is_file():
+            with atomic_write(out_root / "sensor.json", "w") as f:
+                json.dump(ds.sensor.to_dict(), f, indent=1)
+        if not resume or not (out_root / "labels.csv").is_file():
+            _write_labels_from_dataset(ds, out_root / "labels.csv")
+
+    # a frame is done when its cube is on disk and recorded (a run killed between the two redoes it)
+    todo = [p for p in range(len(ds)) if not (resume and str(ds.frame_ids[p]) in frames
+                                              and fft_path(out_root, ds.frame_ids[p]).is_file())]
+    it = prefetched(ds, batched(todo, batch_size), dev)
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(it, total=-(-len(todo) // batch_size), desc=f"sparse RD {Path(source_id).name}", unit="batch")
+    written: list[float] = []
+    with torch.no_grad():
+        for pos, rd in it:                                                 # rd: (B, Nr, Nd, Nrx)
+            enc = spc.encode(rd)                                           # the point cloud's detection
+            mask_full = sparse_rd_mask(enc.kept, ds.sensor, enc.tx0_doppler())   # (B, Nr, Nd) bool
+            sparse = sparse_rd(rd, mask_full)                              # (B, Nr, Nd, Nrx)
+            dens = mask_full.double().mean(dim=(1, 2)).cpu()               # (B,) encoded-set density
+            peak = enc.peaks.flatten(1).double().sum(1).cpu() * ds.sensor.n_tx / (
+                ds.sensor.n_range * ds.sensor.n_doppler)                   # (B,) |S(tau)| / (Nr ND)
+            for b, p in enumerate(pos):
+                num = ds.frame_ids[p]
+                save_npy_atomic(fft_path(out_root, num), sparse[b].cpu().numpy().astype(np.complex64))
+                frames[str(num)] = {"tau": float(enc.tau[b]), "density": float(dens[b]),
+                                    "peak_density": float(peak[b])}
+                written.append(float(dens[b]))
+            with atomic_write(info_path, "w") as f:                      # the records so far (resume)
+                json.dump(info, f, indent=1)
+    has_freespace = root is not None or callable(getattr(ds, "freespace_mask", None))
+    for i, num in enumerate(ds.frame_ids):
+        dst = freespace_path(out_root, num)
+        if root is not None:
+            if freespace_path(root, num).is_file():
+                _link_or_copy(freespace_path(root, num), dst, overwrite=not resume)
+        elif has_freespace and (not resume or not dst.is_file()):
+            _write_png(dst, ds.freespace_mask(i))
+    recorded = [frames[str(num)] for num in ds.frame_ids if str(num) in frames]
+    info.update(complete=True, frames_written_last_run=len(todo),
+                mean_density_last_run=float(np.mean(written)) if written else None,
+                mean_density=float(np.mean([r["density"] for r in recorded])) if recorded else None,
+                freespace=has_freespace)
+    with atomic_write(info_path, "w") as f:
+        json.dump(info, f, indent=1)
+    return SparseRDResult(out_root, len(ds), len(todo), float(np.mean(written)) if written else float("nan"),
+                          cal_tau, frame_tau={int(k): v["tau"] for k, v in frames.items()},
+                          frame_density={int(k): v["density"] for k, v in frames.items()})
