@@ -1,7 +1,7 @@
 """Parquet store of spectral point clouds: one row per point, one file per dataset conversion.
 
 A store holds the point clouds of a list of RADIal frames, written by :class:`PointStoreWriter`
-(usually through :func:`radarpc.dsp.convert.convert_dataset`) and read back by
+(usually through :func:`radarpc.pipelines.pointclouds.convert_dataset`) and read back by
 :class:`PointStore` as per-frame :class:`~radarpc.points.PointCloudBatch` tensors.
 
 File layout (pyarrow Parquet)::
@@ -52,6 +52,7 @@ import torch
 
 from radarpc import __version__
 from radarpc.dsp.ddma import check_envelope_kind
+from radarpc.dsp.density import DENSITY_MODES, check_density_value
 from radarpc.io import DataFileError, temp_file_beside
 from radarpc.points import (BOOL_FIELDS, FLOAT_FIELDS, INT_FIELDS, LIST_FIELDS, POINT_FIELDS, PointCloudBatch,
                              collate_clouds)
@@ -65,7 +66,7 @@ __all__ = [
     "BOOL_COLUMNS",
     "LIST_COLUMNS",
     "REQUIRED_COLUMNS",
-    "DENSITY_MODES",
+    "THRESHOLD_MODES",
     "PointStoreMetadata",
     "FrameTable",
     "PointStoreWriter",
@@ -90,9 +91,10 @@ _ORDER: tuple[str, ...] = (
     "amplitude", "snr", "x", "y", "z", "range_bin", "doppler_full", "is_neighbour")
 REQUIRED_COLUMNS: tuple[str, ...] = _ORDER
 """Columns every store has, in file order (the enrichment columns follow when present)."""
-DENSITY_MODES: tuple[str, ...] = ("fixed-tau", "per-frame", "per-dataset")
-"""How the CFAR threshold was chosen: one given tau, a tau per frame hitting the target
-density, or one tau calibrated on the training split to hit the target mean density."""
+THRESHOLD_MODES: tuple[str, ...] = ("fixed-tau",) + DENSITY_MODES
+"""How the CFAR threshold was chosen: one given tau, or from a density target
+(:data:`radarpc.dsp.density.DENSITY_MODES`): a tau per frame hitting the target density, or one
+tau calibrated on the training split to hit the target mean density."""
 
 
 def point_schema(sector_size: int | None = None, rd_patch_size: int | None = None) -> pa.Schema:
@@ -127,7 +129,7 @@ class PointStoreMetadata:
     """
 
     sensor: DDMARadarConfig                  # radar that produced the RD cubes
-    density_mode: str                        # one of DENSITY_MODES
+    density_mode: str                        # one of THRESHOLD_MODES
     tau: float | None                        # linear SNR threshold (fixed, or calibrated per-dataset)
     target_density: float | None             # requested density of the encoded set, in (0, 1]:
                                              #   |S*(tau)| / (Nr * ND) with rdN, else |S(tau)| / (Nr * ND)
@@ -143,23 +145,23 @@ class PointStoreMetadata:
     envelope: str = "replicas"               # RD envelope: "replicas" (seed eq. 1) or "all-slots" (RADIal rpl.py)
     settings: dict = dataclasses.field(default_factory=dict)
     # ^ every setting that shapes the output, as resolved by the writer (``ConvertSettings.to_dict()``
-    #   for :func:`radarpc.dsp.convert.convert_dataset`: threshold/density, mode, enrichments,
+    #   for :func:`radarpc.pipelines.pointclouds.convert_dataset`: threshold/density, mode, enrichments,
     #   CFAR geometry, envelope, split, calibration frames and source); compared on resume
 
     def __post_init__(self) -> None:
         check_envelope_kind(self.envelope)
         if not isinstance(self.settings, dict):
             raise ValueError(f"settings must be a dict of conversion settings, got {type(self.settings).__name__}")
-        if self.density_mode not in DENSITY_MODES:
-            raise ValueError(f"density_mode must be one of {DENSITY_MODES}, got {self.density_mode!r}")
+        if self.density_mode not in THRESHOLD_MODES:
+            raise ValueError(f"density_mode must be one of {THRESHOLD_MODES}, got {self.density_mode!r}")
         if self.density_mode in ("fixed-tau", "per-dataset") and self.tau is None:
             raise ValueError(f"density_mode {self.density_mode!r} needs tau")
         if self.density_mode in ("per-frame", "per-dataset") and self.target_density is None:
             raise ValueError(f"density_mode {self.density_mode!r} needs target_density")
         if self.tau is not None and not math.isfinite(self.tau):
             raise ValueError(f"tau must be a finite linear SNR threshold, got {self.tau}")
-        if self.target_density is not None and not 0.0 < self.target_density <= 1.0:
-            raise ValueError(f"target_density must be in (0, 1], got {self.target_density}")
+        if self.target_density is not None:
+            check_density_value(self.target_density)
 
     def to_dict(self) -> dict:
         """JSON-able dict; :meth:`from_dict` inverts it."""

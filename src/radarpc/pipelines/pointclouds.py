@@ -47,6 +47,7 @@ from typing import Any, Callable, Sequence
 import torch
 
 from radarpc import __version__
+from radarpc.config import from_dict, to_dict
 from radarpc.data.pointstore import PointStore, PointStoreMetadata, PointStoreWriter
 from radarpc.data.radial import RADIal
 from radarpc.distributed import (DEFAULT_WAIT_S, DistEnv, WorkerJob, barrier, dist_env, parent_alive,
@@ -123,14 +124,16 @@ class ConvertSettings:
 
     @property
     def mode(self) -> str:
-        """``"fixed-tau"``, ``"per-frame"`` or ``"per-dataset"`` (:data:`DENSITY_MODES`)."""
+        """``"fixed-tau"``, ``"per-frame"`` or ``"per-dataset"`` (:data:`radarpc.data.pointstore.THRESHOLD_MODES`)."""
         return "fixed-tau" if self.tau is not None else self.density_mode
 
     def to_dict(self) -> dict:
-        """Plain JSON-able dict (lists for tuples)."""
-        d = dataclasses.asdict(self)
-        d["enrich"], d["window"], d["guard"] = list(self.enrich), list(self.window), list(self.guard)
-        return d
+        """Plain JSON-able dict (lists for tuples); :meth:`from_dict` inverts it."""
+        return to_dict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict, where: str = "conversion settings") -> "ConvertSettings":
+        return from_dict(cls, d, where=where)
 
     def output_key(self) -> dict:
         """:meth:`to_dict` without ``chunk_frames`` (which changes the part files, not the store)."""
