@@ -1,8 +1,9 @@
 """Build script for the optional native extension; all metadata lives in pyproject.toml.
 
-``radarpc.dsp._rxsum`` and ``radarpc.dsp._screen`` (the CPU kernels behind
-:mod:`radarpc.dsp.native`) are declared ``optional=True``: without a working C compiler the build prints a warning and the package
-installs without them, and :func:`radarpc.dsp.native.native_available` reports ``False``.
+``radarpc.dsp.accel._rxsum`` and ``radarpc.dsp.accel._screen`` (the CPU kernels behind
+:mod:`radarpc.dsp.accel.native`) are declared ``optional=True``: without a working C compiler the
+build prints a warning and the package installs without them,
+:func:`radarpc.dsp.accel.native.native_available` reports ``False`` and the torch paths run.
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ class BuildExt(build_ext):
 
 
 setup(
-    ext_modules=[Extension("radarpc.dsp._rxsum", sources=["src/radarpc/dsp/_rxsum.c"], optional=True),
-                 Extension("radarpc.dsp._screen", sources=["src/radarpc/dsp/_screen.c"], optional=True)],
+    ext_modules=[Extension("radarpc.dsp.accel._rxsum", sources=["src/radarpc/dsp/accel/_rxsum.c"], optional=True),
+                 Extension("radarpc.dsp.accel._screen", sources=["src/radarpc/dsp/accel/_screen.c"], optional=True)],
     cmdclass={"build_ext": BuildExt},
 )

@@ -5,10 +5,12 @@ median ms/frame over ``--repeats`` passes, frames/s and the GB/s of cube read, p
 the torch fallback and to the read floor, measured in the same run (methods are interleaved pass
 by pass so that load from other processes hits them alike):
 
-* ``native``: :func:`radarpc.dsp.native.rx_magnitude_sum_native` (kernel ``auto``), and each
+* ``native``: :func:`radarpc.dsp.accel.native.rx_magnitude_sum_native` (kernel ``auto``), and each
   other kernel this CPU can run (``native/avx``, ``native/scalar``, ...);
-* ``torch``: :func:`radarpc.dsp.ddma.rx_magnitude_sum` with ``RADARPC_NO_NATIVE=1`` set, i.e. the
-  blocked torch implementation;
+* ``torch``: :func:`radarpc.dsp.accel.rxsum.rx_magnitude_sum_blocked`, the blocked torch
+  implementation (what a build without the C kernels runs);
+* ``core``: :func:`radarpc.dsp.ddma.rx_magnitude_sum` with the accel switch off, the core's
+  one-pass torch formula (what ``RADARPC_NO_NATIVE=1`` runs);
 * ``read_floor``: ``torch.view_as_real(x).sum()``, one pass over the cube with trivial arithmetic;
 * ``native_after_torch_op``: the native kernel started right after a parallel torch op, with no
   pause. Every other method is timed after a ``--gap-ms`` pause: torch's OpenMP workers keep
@@ -22,17 +24,17 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
-import os
 import statistics
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 import torch
 
+from radarpc.dsp import accel
+from radarpc.dsp.accel.native import native_available, native_kernels, rx_magnitude_sum_native
+from radarpc.dsp.accel.rxsum import rx_magnitude_sum_blocked
 from radarpc.dsp.ddma import rx_magnitude_sum
-from radarpc.dsp.native import DISABLE_ENV, native_available, native_kernels, rx_magnitude_sum_native
 from radarpc.machine import cpu_model
 from radarpc.sensors.radial import RADIAL
 
@@ -48,22 +50,8 @@ def _parse() -> argparse.Namespace:
     return p.parse_args()
 
 
-@contextlib.contextmanager
-def _native_disabled() -> Iterator[None]:
-    """Set ``RADARPC_NO_NATIVE=1`` for the block (restores the previous value)."""
-    old = os.environ.get(DISABLE_ENV)
-    os.environ[DISABLE_ENV] = "1"
-    try:
-        yield
-    finally:
-        if old is None:
-            del os.environ[DISABLE_ENV]
-        else:
-            os.environ[DISABLE_ENV] = old
-
-
-def _torch_fallback(x: torch.Tensor) -> torch.Tensor:
-    with _native_disabled():
+def _core(x: torch.Tensor) -> torch.Tensor:
+    with accel.disabled():
         return rx_magnitude_sum(x)
 
 
@@ -73,7 +61,8 @@ def _methods(threads: int) -> dict[str, Callable[[torch.Tensor], object]]:
         m["native"] = lambda x: rx_magnitude_sum_native(x, threads=threads)
         for k in native_kernels(RADIAL.rd_shape[-1])[1:]:
             m[f"native/{k}"] = lambda x, k=k: rx_magnitude_sum_native(x, threads=threads, kernel=k)
-    m["torch"] = _torch_fallback
+    m["torch"] = rx_magnitude_sum_blocked
+    m["core"] = _core
     m["read_floor"] = lambda x: torch.view_as_real(x).sum()
     return m
 
@@ -93,8 +82,8 @@ def main() -> None:
     for threads in args.threads:
         torch.set_num_threads(threads)
         methods = _methods(threads)
-        if "native" in methods:                                      # same values as the fallback
-            a, b = methods["native"](x), _torch_fallback(x)
+        if "native" in methods:                                      # same values as the core
+            a, b = methods["native"](x), _core(x)
             max_rel = float(((a - b).abs() / b.abs().clamp_min(1e-30)).max())
         else:
             max_rel = None

@@ -1,20 +1,20 @@
-"""Fixtures shared by the DSP tests: the native extensions, enabled or disabled."""
+"""Fixtures shared by the DSP tests: the native extensions of radarpc.dsp.accel, enabled or disabled."""
 from __future__ import annotations
 
 import os
 
 import pytest
 
-from radarpc.dsp import native
+from radarpc.dsp.accel import DISABLE_ENV, native
 
 
 @pytest.fixture
 def built(monkeypatch):
     """The native extensions, enabled; skip if they are not built, unless RADARPC_REQUIRE_NATIVE=1
     (CI), where that is a failure."""
-    monkeypatch.delenv(native.DISABLE_ENV, raising=False)
+    monkeypatch.delenv(DISABLE_ENV, raising=False)
     if native._rxsum is None or native._screen is None:
-        msg = "radarpc.dsp._rxsum/_screen are not built (no C compiler at install time)"
+        msg = "radarpc.dsp.accel._rxsum/_screen are not built (no C compiler at install time)"
         if os.environ.get("RADARPC_REQUIRE_NATIVE") == "1":
             pytest.fail(msg + " but RADARPC_REQUIRE_NATIVE=1")
         pytest.skip(msg)
@@ -27,5 +27,5 @@ def selection(request, monkeypatch):
     if request.param == "native":
         request.getfixturevalue("built")
     else:
-        monkeypatch.setenv(native.DISABLE_ENV, "1")
+        monkeypatch.setenv(DISABLE_ENV, "1")
     return request.param

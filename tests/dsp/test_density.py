@@ -9,7 +9,8 @@ import torch
 from radarpc.dsp.density import (DENSITY_MODES, density_of_mask, max_density, neighbourhood_mask,
                                  neighbourhood_snr, tau_for_density)
 from radarpc.dsp.pointcloud import SpectralPointCloud
-from radarpc.sensors.radial import RADIAL_S, TINY, make_calibration
+from radarpc.sensors.radial import RADIAL_S, TINY
+from radarpc.sim.radial_calibration import make_calibration
 from radarpc.sim.radial_writer import SimulatedRADIal
 from radarpc.sim.rd import Scatterers, synthesize_rd
 

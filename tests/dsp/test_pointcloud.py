@@ -12,7 +12,8 @@ import torch
 from radarpc.dsp.beamform import stack_real
 from radarpc.dsp.pointcloud import SpectralPointCloud, SpectralPointCloudConfig
 from radarpc.points import PointCloudBatch, offset2batch
-from radarpc.sensors.radial import RADIAL_S, TINY, make_calibration
+from radarpc.sensors.radial import RADIAL_S, TINY
+from radarpc.sim.radial_calibration import make_calibration
 from radarpc.sim.rd import Scatterers, synthesize_rd
 
 # (range in bins, off-grid; true Doppler bin; azimuth deg) of isolated targets per sensor
@@ -351,7 +352,8 @@ def _bf16_screen(v, bt):
 
 
 def test_screen_error_bound_holds_and_screened_is_the_exact_argmax(selection):
-    from radarpc.dsp.beamform import beamform_peaks_screened, dictionary_tables, screen_bound
+    from radarpc.dsp.accel.screened import beamform_peaks_screened, screen_bound
+    from radarpc.dsp.beamform import dictionary_tables
     cfg = TINY
     calib = make_calibration(cfg)
     bt = calib.dictionary().transpose(0, 1).contiguous()                # (n_virtual, K)
@@ -386,7 +388,8 @@ def test_screen_error_bound_holds_and_screened_is_the_exact_argmax(selection):
 
 
 def test_screened_falls_back_to_the_whole_spectrum_for_flat_spectra(selection):
-    from radarpc.dsp.beamform import beamform_peaks, beamform_peaks_screened
+    from radarpc.dsp.accel.screened import beamform_peaks_screened
+    from radarpc.dsp.beamform import beamform_peaks
     cfg = TINY
     calib = make_calibration(cfg)
     bt = calib.dictionary().transpose(0, 1).contiguous()
@@ -416,7 +419,7 @@ def test_screened_falls_back_to_the_whole_spectrum_for_flat_spectra(selection):
 
 
 def test_auto_beamforming_resolves_by_device_and_sectors():
-    from radarpc.dsp.beamform import prefers_screened, resolve_beamforming
+    from radarpc.dsp.accel.screened import prefers_screened, resolve_beamforming
     cpu = torch.device("cpu")
     assert resolve_beamforming("exact", cpu, None) == "exact"
     assert resolve_beamforming("screened", cpu, None) == "screened"
@@ -429,12 +432,18 @@ def test_auto_beamforming_resolves_by_device_and_sectors():
     # "auto" is the default everywhere a user can leave it out
     import inspect
 
-    from radarpc.dsp.convert import ConvertSettings, convert_dataset
+    from radarpc.pipelines.pointclouds import ConvertSettings, convert_dataset
     calib = make_calibration(TINY)
     assert SpectralPointCloud(TINY, calib).config.beamforming == "auto"
     assert SpectralPointCloudConfig().beamforming == "auto"
-    assert inspect.signature(convert_dataset).parameters["beamforming"].default == "auto"
     assert ConvertSettings(tau=1.585).beamforming == "auto"
+    assert "settings" in inspect.signature(convert_dataset).parameters
+    # the one switch turns the screened path off: "auto" is then the core's exact beamformer
+    from radarpc.dsp import accel
+    with accel.disabled():
+        assert not prefers_screened(cpu)
+        assert resolve_beamforming("auto", cpu, None) == "exact"
+        assert resolve_beamforming("screened", cpu, None) == "screened"     # asked for explicitly
 
 
 @pytest.mark.parametrize("grid,sectors", [((181, 5), (32, 1)), ((181, 5), (7, 2)), ((13, 1), (13, 1)),

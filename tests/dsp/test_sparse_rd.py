@@ -8,7 +8,8 @@ import torch
 from radarpc.dsp.density import density_of_mask
 from radarpc.dsp.pointcloud import SpectralPointCloud
 from radarpc.dsp.sparse_rd import sparse_rd, sparse_rd_mask
-from radarpc.sensors.radial import RADIAL_S, TINY, make_calibration
+from radarpc.sensors.radial import RADIAL_S, TINY
+from radarpc.sim.radial_calibration import make_calibration
 from radarpc.sim.rd import Scatterers, synthesize_rd
 
 

@@ -5,64 +5,40 @@
 ``k_j = argmax_k s_j[k]`` (eq. 6) and ``Ae_j = s_j[k_j]`` (eq. 7); the sector descriptor of
 eq. 10 max-pools ``s_j`` reshaped to ``(n_az, n_el)`` into ``n_az_sec x n_el_sec`` sectors.
 
-Two ways to the same ``k_j`` and ``Ae_j`` (:data:`BEAMFORMING_MODES`):
-
-* ``"exact"``: the whole spectrum of every snapshot in float32, the complex product as three real
-  GEMMs (Gauss's trick, :func:`beamform_peaks`);
-* ``"screened"``: a bfloat16 GEMM screens the grid, a rigorous bound on its error leaves the few
-  directions that can still hold the maximum, and those are evaluated exactly
-  (:func:`beamform_peaks_screened`). The result is the exact argmax (up to float32 rounding of
-  near-ties), not an approximation; it is faster where bfloat16 GEMMs are (measured on AMX CPUs).
-
-``"auto"`` picks ``"screened"`` where it was measured faster (CPUs with AMX) and no sector
-descriptor is asked for (sectors need the whole spectrum), else ``"exact"``.
+:func:`beamform_peaks` is the exact path: the whole spectrum of every snapshot in float32, the
+complex product as three real GEMMs (Gauss's trick). The beamforming modes
+(:data:`BEAMFORMING_MODES`) choose between it (``"exact"``) and the screened bfloat16 beamformer
+of :mod:`radarpc.dsp.accel.screened` (``"screened"``: the same ``k_j`` and ``Ae_j`` up to float32
+rounding of near-ties, faster where bfloat16 GEMMs are); ``"auto"`` picks ``"screened"`` where it
+was measured faster and no sector descriptor is asked for. The mode's entry point is
+:func:`radarpc.dsp.accel.screened.beamform`.
 """
 from __future__ import annotations
 
-import contextlib
-import math
 import warnings
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
-from radarpc.dsp import native
-from radarpc.dsp.workspace import Workspace
+from radarpc.dsp.accel.workspace import Workspace
 
-__all__ = ["angle_spectrum", "BeamformResult", "DictionaryTables", "dictionary_tables", "beamform",
-           "beamform_peaks", "beamform_peaks_screened", "screen_bound", "sector_pool", "stack_real",
-           "column_to_direction", "prefers_screened", "reduced_fp32_matmul", "resolve_beamforming",
-           "check_beamforming", "BEAMFORMING_MODES", "MAX_SCREEN_CANDIDATES"]
+__all__ = ["angle_spectrum", "BeamformResult", "DictionaryTables", "dictionary_tables",
+           "beamform_peaks", "sector_pool", "stack_real", "column_to_direction", "reduced_fp32_matmul",
+           "check_beamforming", "BEAMFORMING_MODES"]
 
 BEAMFORMING_MODES = ("auto", "exact", "screened")
+"""``"exact"``: :func:`beamform_peaks`; ``"screened"``: the screened bfloat16 beamformer
+(:mod:`radarpc.dsp.accel.screened`); ``"auto"``: ``"screened"`` where it was measured faster."""
 
 # Snapshots per GEMM block: the (block, n_az n_el) float32 buffers stay a few MB for RADIal.
 _BLOCK = 1024
-# The screen's bfloat16 GEMM runs on this many blocks at once (larger GEMMs run closer to peak).
-_SCREEN_GEMM_BLOCKS = 8
-
-# A snapshot whose screen leaves candidates in more azimuths than this is beamformed exactly over
-# the whole grid instead: a flat spectrum (noise-like or all-zero snapshots) leaves many
-# candidates, and beyond ~6 azimuths (~20 exact dot products) one GEMM row over the whole grid is
-# cheaper (measured on full RADIal frames at densities 0.057 and 0.56, docs/results/pointcloud.md).
-MAX_SCREEN_CANDIDATES = 6
-
-_BF16_UNIT_ROUNDOFF = 2.0 ** -8     # round-to-nearest to 8 significant bits
-_FP32_UNIT_ROUNDOFF = 2.0 ** -24
 
 # Snapshots whose 2-norm lies in [2^-40, 2^40] are beamformed as they are: every float32 value
 # the beamformers form from them (squared entries that matter, |B v|^2 over the grid) stays in the
 # normal range. Others are first scaled by a power of two (exact) so that their largest |Re| or
 # |Im| lies in [0.5, 1), and the amplitudes scaled back (:func:`_range_exponents`).
 _SAFE_NORM = (2.0 ** -40, 2.0 ** 40)
-# The screen's candidate threshold is lowered by this fraction of the screen's peak: it covers the
-# float32 evaluation of the screen powers q^2 and of the threshold (each ~2^-24 relative).
-_SCREEN_SLACK = 2.0 ** -20
-# Below this threshold (a screen with no usable peak) every direction is a candidate, so that no
-# comparison is made among subnormal float32 powers.
-_SCREEN_TINY_NEED = 2.0 ** -40
-
 
 def _check(snapshots: torch.Tensor, dictionary: torch.Tensor) -> None:
     if not snapshots.is_complex() or not dictionary.is_complex():
@@ -363,238 +339,8 @@ def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Diction
     return BeamformResult(index=index, amplitude=amplitude, sectors=sec)
 
 
-def screen_bound(snapshots: torch.Tensor, row_norm_max: float) -> tuple[float, torch.Tensor]:
-    """Error bound of the bfloat16 screen: ``| |s^_k| - |s_k| | <= alpha |s^_k| + beta_j``.
-
-    ``s^ = B v`` computed from ``v`` and ``B`` rounded to bfloat16 (unit roundoff ``u = 2^-8``),
-    products accumulated in float32 in any order (``gamma_n = n 2^-24 / (1 - n 2^-24)``,
-    ``n = 2 n_virtual`` terms) and the sum rounded to bfloat16. Per real output ``y`` (``Re`` or
-    ``Im`` of ``s_k``)::
-
-        |y^ - y| <= u / (1 - u) |y^| + c sum_p |x_p| |W_pk|,   c = 2u + u^2 + gamma_n (1 + u)^2,
-
-    and ``sum_p |x_p| |W_pk| <= ||v_j||_2 ||B[k]||_2`` (Cauchy-Schwarz; each real column of the
-    stacked form has the norm of ``B[k]``). Over the two components,
-    ``alpha = u / (1 - u)`` and ``beta_j = sqrt(2) c ||v_j|| max_k ||B[k]||``. ``beta`` is
-    inflated by ``1 + gamma_(n+2)`` for the float32 evaluation of ``||v_j||`` (and ``2^-20`` for
-    its own rounding), and gets an absolute ``2^-124 (n + sqrt(n) (max_k ||B[k]|| + ||v_j||))``
-    for GEMM kernels that flush subnormal inputs, products or partial sums to zero (AMX and
-    AVX512-BF16 do). Norms of snapshots outside ``[2^-40, 2^40]`` are taken on a power-of-two
-    rescaled copy, so they neither underflow nor overflow.
-
-    Returns
-    -------
-    alpha : float
-    beta : Tensor ``(P,)`` float32
-    """
-    v = snapshots.resolve_conj()
-    vnorm = _row_norms(v)
-    exps = _range_exponents(v, vnorm)
-    if exps is not None:
-        vnorm = torch.ldexp(_row_norms(_scaled(v, exps)), exps).to(vnorm.dtype)
-    return _bound_terms(vnorm, 2 * snapshots.shape[1], row_norm_max)
-
-
-def _bound_terms(vnorm: torch.Tensor, n: int, row_norm_max: float) -> tuple[float, torch.Tensor]:
-    """``alpha`` and ``beta_j`` of :func:`screen_bound` from the float32 row norms ``vnorm`` of
-    snapshots with ``n`` real entries each."""
-    u = _BF16_UNIT_ROUNDOFF
-    gamma = n * _FP32_UNIT_ROUNDOFF / (1.0 - n * _FP32_UNIT_ROUNDOFF)
-    c = 2.0 * u + u * u + gamma * (1.0 + u) ** 2
-    alpha = u / (1.0 - u)
-    m = (n + 2) * _FP32_UNIT_ROUNDOFF
-    norm_safety = (1.0 + m / (1.0 - m)) * (1.0 + 2.0 ** -20)       # float32 ||v||, then beta's rounding
-    vnorm = vnorm.to(torch.float32)
-    flush = 2.0 ** -124 * (n + math.sqrt(n) * (row_norm_max + vnorm))
-    beta = vnorm * (math.sqrt(2.0) * c * row_norm_max * norm_safety) + flush
-    return alpha, beta
-
-
-@contextlib.contextmanager
-def _fp32_accumulation(device: torch.device):
-    """cuBLAS may reduce bfloat16 products in reduced precision unless told not to; the screen's
-    bound assumes float32 accumulation."""
-    if device.type != "cuda":
-        yield
-        return
-    prev = torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction
-    torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction = False
-    try:
-        yield
-    finally:
-        torch.backends.cuda.matmul.allow_bf16_reduced_precision_reduction = prev
-
-
-def _screen_threshold(q2_max: torch.Tensor, beta: torch.Tensor, alpha: float) -> torch.Tensor:
-    """Squared candidate threshold ``need_j^2`` (float32 ``(m,)``) from the screen's peak power
-    ``max_k q_jk^2`` (float32) and ``beta_j``, evaluated in float64 as the C kernel does::
-
-        Q_j = sqrt(max_k q_jk^2),   need_j = ((1 - alpha) Q_j - 2 beta_j) / (1 + alpha) - 2^-20 Q_j
-
-    (``k`` is a candidate when ``(1 + alpha) q_jk + beta_j >= (1 - alpha) Q_j - beta_j``; the last
-    term covers the float32 rounding of the powers and of ``need_j^2``), and ``-1`` (every
-    direction a candidate) when ``need_j <= 2^-40``."""
-    q = q2_max.double().sqrt()
-    need = ((1.0 - alpha) * q - 2.0 * beta.double()) / (1.0 + alpha) - _SCREEN_SLACK * q
-    return torch.where(need > _SCREEN_TINY_NEED, need.square(), torch.full_like(need, -1.0)).to(torch.float32)
-
-
-def _screen_select(y16: torch.Tensor, v: torch.Tensor, t: DictionaryTables, beta: torch.Tensor,
-                   alpha: float, max_candidates: int, index: torch.Tensor, amplitude: torch.Tensor,
-                   ws: Workspace) -> torch.Tensor | None:
-    """Steps 2-4 of :func:`beamform_peaks_screened` in torch for one block of ``m`` screen rows
-    ``y16`` ``(m, 2K)``: writes ``index`` and ``amplitude`` ``(m,)`` of the rows it settles and
-    returns the block-relative indices of the rows left to the whole-grid beamformer (or None).
-    :func:`radarpc.dsp.native.screen_select_native` is the same step in C."""
-    n_az, n_el = t.grid
-    k_dir = t.n_dir
-    m = y16.shape[0]
-    dev = y16.device
-    y = ws.empty("screen.y32", (m, 2 * k_dir), torch.float32, dev).copy_(y16)   # (m, 2K) float32
-    q2 = torch.mul(y[:, :k_dir], y[:, :k_dir], out=ws.empty("screen.q2", (m, k_dir), torch.float32, dev))
-    q2.addcmul_(y[:, k_dir:], y[:, k_dir:])                               # q_jc^2
-    q2_az = q2.view(m, n_el, n_az).amax(dim=1)                            # (m, n_az) best elevation
-    need2 = _screen_threshold(q2_az.amax(dim=1), beta, alpha)[:, None]    # C_j: q_jk^2 >= need2_j
-    j, az = torch.nonzero(q2_az >= need2, as_tuple=True)                 # azimuths holding candidates
-    n_cand = torch.bincount(j, minlength=m)
-    finite = torch.isfinite(q2_az).all(dim=1) & torch.isfinite(beta)      # NaN/inf screen or bound
-    heavy = (n_cand > max_candidates) | (n_cand == 0) | ~finite
-    heavy_rows = None
-    if bool(heavy.any()):                                                # flat spectra: whole grid
-        heavy_rows = torch.nonzero(heavy).flatten()
-        light = ~heavy[j]
-        j, az = j[light], az[light]
-    j = j.repeat_interleave(n_el)                                        # every elevation of them
-    col = (torch.arange(n_el, device=dev).repeat(az.numel()) * n_az) + az.repeat_interleave(n_el)
-    keep = q2.reshape(-1).index_select(0, j * k_dir + col) >= need2.view(-1).index_select(0, j)
-    j, col = j[keep], col[keep]
-    k = column_to_direction(col, t.grid)
-    s = torch.mul(t.rows.index_select(0, k), v.index_select(0, j)).sum(dim=1).abs()   # |B[k] v_j|
-    kk = (k_dir - 1) - k                                                 # ties -> the smaller k
-    key = (s.view(torch.int32).to(torch.long) << 32) | kk
-    best = torch.full((m,), -1, dtype=torch.long, device=dev)
-    best.scatter_reduce_(0, j, key, reduce="amax", include_self=True)
-    index.copy_((k_dir - 1) - (best & 0xFFFFFFFF))
-    amplitude.copy_((best >> 32).to(torch.int32).view(torch.float32))
-    return heavy_rows
-
-
-def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor | DictionaryTables,
-                            grid: tuple[int, int], *, max_candidates: int = MAX_SCREEN_CANDIDATES,
-                            workspace: Workspace | None = None) -> BeamformResult:
-    """``k_j`` and ``Ae_j`` of :func:`beamform_peaks`, screened by a bfloat16 GEMM and certified.
-
-    0. snapshots whose norm lies outside ``[2^-40, 2^40]`` are scaled by a power of two (exact;
-       the amplitudes are scaled back at the end), so that no float32 value below underflows or
-       overflows; the exact beamformer does the same;
-    1. ``s^_j = B v_j`` over the whole grid from one bfloat16 GEMM (:func:`stack_real` form), and
-       its power ``q_jk^2 = |s^_jk|^2`` formed in float32;
-    2. with the rigorous bound of :func:`screen_bound`, ``|s_jk|`` lies in
-       ``[(1 - alpha) q_jk - beta_j, (1 + alpha) q_jk + beta_j]``, so the exact maximum is among
-       ``C_j = {k : (1 + alpha) q_jk + beta_j >= max_k' (1 - alpha) q_jk' - beta_j}``, tested as
-       ``q_jk^2 >= need_j^2`` with the threshold of :func:`_screen_threshold` (float64, lowered by
-       ``2^-20 max_k q_jk`` for the float32 rounding of the powers);
-    3. ``|B[k] v_j|`` is evaluated exactly (complex64 dot products) for ``k in C_j`` only, and
-       ``k_j = argmax_{k in C_j}``, ``Ae_j`` its value (ties to the smaller ``k``);
-    4. a snapshot whose candidates span more than ``max_candidates`` azimuths (a flat spectrum,
-       e.g. zeros), or none at all, or whose screen or bound is not finite (NaN/inf), is
-       beamformed over the whole grid by :func:`beamform_peaks`.
-
-    The result is the exact argmax and maximum, up to the float32 rounding of the dot products
-    (directions whose exact amplitudes tie to ~1e-7 may be ordered differently than by the GEMMs
-    of :func:`beamform_peaks`). No sector descriptor: it needs every direction. ``workspace``
-    holds the scratch buffers across calls, as in :func:`beamform_peaks`.
-    """
-    if snapshots.dtype != torch.complex64:
-        raise ValueError(f"the screened beamformer works on complex64 snapshots, got {snapshots.dtype}; "
-                         f"use beamform_peaks for other precisions")
-    t = _tables_for(snapshots, dictionary_t, grid)
-    if isinstance(max_candidates, bool) or int(max_candidates) < 1:
-        raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
-    ws = Workspace() if workspace is None else workspace
-    k_dir = t.n_dir
-    p = snapshots.shape[0]
-    dev = snapshots.device
-    v = snapshots.resolve_conj().contiguous()
-    vnorm = _row_norms(v)
-    exps = _range_exponents(v, vnorm)
-    if exps is not None:                                              # extreme magnitudes: 2^-e v
-        v = _scaled(v, exps)
-        vnorm = _row_norms(v)
-    alpha, beta = _bound_terms(vnorm, 2 * v.shape[1], t.row_norm_max)   # screen_bound of v
-    x = torch.view_as_real(v).reshape(p, 2 * v.shape[1])            # (P, 2N) interleaved
-    index = torch.empty(p, dtype=torch.long, device=dev)
-    amplitude = torch.empty(p, dtype=torch.float32, device=dev)
-    heavy_rows = []
-    blk = min(_BLOCK, max(p, 1))
-    gemm_rows = min(_SCREEN_GEMM_BLOCKS * blk, max(p, 1))             # one bf16 GEMM per few blocks
-    x16 = ws.empty("screen.x16", (gemm_rows, x.shape[1]), torch.bfloat16, dev)
-    y16 = ws.empty("screen.y16", (gemm_rows, 2 * k_dir), torch.bfloat16, dev)
-    select_natively = dev.type == "cpu" and native.native_available()
-    with _fp32_accumulation(dev):
-        for i in range(0, p, gemm_rows):
-            g = min(gemm_rows, p - i)
-            torch.mm(x16[:g].copy_(x[i:i + g]), t.screen_bf16, out=y16[:g])  # [Re | Im], el-major
-            if select_natively:                                             # steps 2-4 in C, per row
-                idx, amp, heavy = native.screen_select_native(y16[:g], v[i:i + g], t.rows, beta[i:i + g],
-                                                              t.grid, alpha, max_candidates)
-                index[i:i + g], amplitude[i:i + g] = idx, amp
-                if bool(heavy.any()):
-                    heavy_rows.append(torch.nonzero(heavy).flatten() + i)
-                continue
-            for b in range(0, g, blk):
-                m = min(blk, g - b)
-                heavy = _screen_select(y16[b:b + m], v[i + b:i + b + m], t, beta[i + b:i + b + m], alpha,
-                                       max_candidates, index[i + b:i + b + m], amplitude[i + b:i + b + m], ws)
-                if heavy is not None:
-                    heavy_rows.append(heavy + (i + b))
-    if heavy_rows:
-        rows = torch.cat(heavy_rows)
-        full = beamform_peaks(v[rows], t, grid, workspace=ws)
-        index[rows] = full.index
-        amplitude[rows] = full.amplitude
-    if exps is not None:                                              # back to the input's scale
-        amplitude = torch.ldexp(amplitude, exps).to(torch.float32)
-    return BeamformResult(index=index, amplitude=amplitude, sectors=None)
-
-
-def prefers_screened(device: torch.device | str) -> bool:
-    """True where :func:`beamform_peaks_screened` was measured faster than :func:`beamform_peaks`:
-    CPUs with AMX tiles (bfloat16 GEMMs ~10x float32 ones; ``docs/results/pointcloud.md``).
-    CUDA is not measured (no GPU was available), so ``"auto"`` keeps ``"exact"`` there; ask for
-    ``"screened"`` explicitly to try it."""
-    device = torch.device(device)
-    if device.type != "cpu":
-        return False
-    probe = getattr(torch.cpu, "_is_amx_tile_supported", None)
-    return bool(probe()) if probe is not None else False
-
-
 def check_beamforming(mode: str) -> str:
     """``mode`` if it is one of :data:`BEAMFORMING_MODES`, else ``ValueError``."""
     if mode not in BEAMFORMING_MODES:
         raise ValueError(f"beamforming must be one of {BEAMFORMING_MODES}, got {mode!r}")
     return mode
-
-
-def resolve_beamforming(mode: str, device: torch.device | str, sectors: tuple[int, int] | None) -> str:
-    """The beamformer that runs: ``"exact"`` or ``"screened"``.
-
-    Sector descriptors need the whole spectrum, so they always run ``"exact"``; ``"auto"`` runs
-    ``"screened"`` where :func:`prefers_screened` holds.
-    """
-    check_beamforming(mode)
-    if sectors is not None or mode == "exact":
-        return "exact"
-    if mode == "screened":
-        return "screened"
-    return "screened" if prefers_screened(device) else "exact"
-
-
-def beamform(snapshots: torch.Tensor, tables: torch.Tensor | DictionaryTables, grid: tuple[int, int],
-             sectors: tuple[int, int] | None = None, mode: str = "auto", *,
-             workspace: Workspace | None = None) -> BeamformResult:
-    """:func:`beamform_peaks` or :func:`beamform_peaks_screened`, as :func:`resolve_beamforming` picks."""
-    if resolve_beamforming(mode, snapshots.device, sectors) == "screened" and snapshots.dtype == torch.complex64:
-        return beamform_peaks_screened(snapshots, tables, grid, workspace=workspace)
-    return beamform_peaks(snapshots, tables, grid, sectors, workspace=workspace)

@@ -25,7 +25,8 @@ from dataclasses import dataclass, field
 
 import torch
 
-from radarpc.dsp.native import native_supports, rx_magnitude_sum_native
+import radarpc.dsp.accel as accel
+from radarpc.dsp.accel.rxsum import rx_magnitude_sum_fast
 from radarpc.sensors.radial import DDMARadarConfig
 
 __all__ = [
@@ -48,8 +49,6 @@ ENVELOPES = ("replicas", "all-slots")
 """Envelope kinds: the seed's sum over the ``n_tx`` replica bins, or RADIal rpl.py's sum over
 every slot (empty slots included)."""
 
-# Rows of the (B * Nr) axis processed per block on CPU: keeps the |.| intermediates in cache.
-_CPU_BLOCK_BYTES = 1 << 21
 # Bytes of A per block of the envelope on CPU (a block's slot sums G_s stay in cache).
 _ENVELOPE_BLOCK_BYTES = 1 << 21
 
@@ -81,32 +80,16 @@ def check_rd(rd: torch.Tensor, cfg: DDMARadarConfig) -> torch.Tensor:
 def rx_magnitude_sum(rd: torch.Tensor) -> torch.Tensor:
     """``A = sum_rx |rd|`` over the last axis: ``(..., Nr, Nd, Nrx)`` complex -> ``(..., Nr, Nd)`` real.
 
-    Magnitude, not power, as in RADIal's processing. On CPU a contiguous complex64 cube goes to
-    the compiled kernel of :mod:`radarpc.dsp.native` when it is built (one pass over the cube,
-    ~2.7x faster); otherwise the computation runs in row blocks with preallocated
-    ``re^2 + im^2`` and ``sqrt`` buffers (several times faster than ``rd.abs()``); elsewhere in
-    one pass. All give the same values up to float32 rounding of the receiver sum.
+    Magnitude, not power, as in RADIal's processing: ``|z| = sqrt(re^2 + im^2)`` (the formula,
+    not ``hypot``: NaN and inf propagate as it says, squares beyond float32 overflow to inf).
+    On CPU, when :func:`radarpc.dsp.accel.enabled`, the cube goes to
+    :func:`radarpc.dsp.accel.rxsum.rx_magnitude_sum_fast` (the C kernel, ~3x faster, or this
+    formula in cache-sized blocks): the same ``|z|``, the receiver sum rounded in another order.
     """
-    if native_supports(rd):
-        return rx_magnitude_sum_native(rd)
-    x = torch.view_as_real(rd.resolve_conj())                   # (..., Nd, Nrx, 2)
-    if rd.device.type != "cpu":
-        sq = x.square()
-        return torch.add(sq[..., 0], sq[..., 1]).sqrt_().sum(-1)
-    nd, nrx = rd.shape[-2], rd.shape[-1]
-    rows = x.reshape(-1, nd, nrx, 2)                             # (B*Nr, Nd, Nrx, 2)
-    n = rows.shape[0]
-    out = torch.empty(n, nd, dtype=x.dtype, device=x.device)
-    step = max(1, _CPU_BLOCK_BYTES // max(1, nd * nrx * 2 * x.element_size()))
-    sq = torch.empty(min(step, n), nd, nrx, 2, dtype=x.dtype, device=x.device)
-    mag = torch.empty(min(step, n), nd, nrx, dtype=x.dtype, device=x.device)
-    for i in range(0, n, step):
-        c = rows[i:i + step]
-        m = c.shape[0]
-        torch.mul(c, c, out=sq[:m])                              # contiguous re^2, im^2
-        torch.add(sq[:m, ..., 0], sq[:m, ..., 1], out=mag[:m]).sqrt_()
-        torch.sum(mag[:m], dim=-1, out=out[i:i + m])
-    return out.reshape(rd.shape[:-1])
+    if accel.enabled() and rd.device.type == "cpu":
+        return rx_magnitude_sum_fast(rd)
+    re_im = torch.view_as_real(rd.resolve_conj()).square()      # (..., Nd, Nrx, 2)
+    return torch.add(re_im[..., 0], re_im[..., 1]).sqrt_().sum(-1)
 
 
 def consolidate(a: torch.Tensor, cfg: DDMARadarConfig) -> torch.Tensor:

@@ -35,13 +35,15 @@ from typing import Iterable, Sequence
 import torch
 import torch.nn.functional as F
 
-from radarpc.dsp.beamform import DictionaryTables, beamform, check_beamforming, dictionary_tables
-from radarpc.dsp.workspace import Workspace
+from radarpc.dsp.accel.screened import beamform
+from radarpc.dsp.accel.workspace import Workspace
+from radarpc.dsp.beamform import DictionaryTables, check_beamforming, dictionary_tables
 from radarpc.dsp.cfar import RADIAL_TAU, CFARResult, ca_cfar, check_tau, check_window
 from radarpc.dsp.ddma import (DDMAEnvelope, check_envelope_kind, check_finite_envelope, check_rd,
                               ddma_envelope, rx_magnitude_sum, virtual_snapshots)
 from radarpc.dsp.density import (DENSITY_MODES, check_density, check_density_value, density_of_mask,
                                  neighbourhood_mask, tau_for_density)
+from radarpc.config import from_dict, to_dict
 from radarpc.points import PointCloudBatch, offset2batch
 from radarpc.sensors.radial import Calibration, DDMARadarConfig
 
@@ -143,9 +145,12 @@ class SpectralPointCloudConfig:
         return a, e
 
     def to_dict(self) -> dict:
-        """Plain dict (lists for tuples) for YAML/JSON/Parquet metadata."""
-        d = dataclasses.asdict(self)
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+        """Plain dict (lists for tuples) for YAML/JSON/Parquet metadata; :meth:`from_dict` inverts it."""
+        return to_dict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict, where: str = "point-cloud config") -> "SpectralPointCloudConfig":
+        return from_dict(cls, d, where=where)
 
 
 def _seq(v) -> tuple:
@@ -216,7 +221,8 @@ class SpectralPointCloud(torch.nn.Module):
 
     Examples
     --------
-    >>> from radarpc.sensors.radial import TINY, make_calibration
+    >>> from radarpc.sensors.radial import TINY
+    >>> from radarpc.sim.radial_calibration import make_calibration
     >>> spc = SpectralPointCloud(TINY, make_calibration(TINY), enrich=("rd3", "sector8"))
     >>> clouds = spc(torch.randn(2, 64, 32, 4, dtype=torch.complex64))
     >>> len(clouds), clouds.sector.shape[1]

@@ -5,7 +5,7 @@ the peak's resolved Tx-0 Doppler bin (see :mod:`radarpc.dsp.ddma`). ``|S(tau)| =
 
 The mask of a point cloud with the RD-neighbourhood enrichment ``rdN`` is ``S*(tau)``: pass
 ``P*(tau)`` (``SpectralPointCloud.encode(rd).kept``) with its ``d0`` (``EncodedSet.tx0_doppler()``),
-the set the cloud encodes and the one :func:`radarpc.dsp.convert.write_sparse_rd` writes.
+the set the cloud encodes and the one :func:`radarpc.pipelines.sparse_rd.write_sparse_rd` writes.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-/* radarpc.dsp._rxsum: native CPU kernel for the RD magnitude sum A = sum_rx |R|.
+/* radarpc.dsp.accel._rxsum: native CPU kernel for the RD magnitude sum A = sum_rx |R|.
  *
  * Input: n_cells contiguous cells of n_rx complex64 values (re, im interleaved), i.e. the
  * flattened (..., Nd, Nrx) cube; output: n_cells float32, A[c] = sum_r sqrt(re^2 + im^2).
@@ -287,7 +287,7 @@ static PyMethodDef rxsum_methods[] = {
 
 static struct PyModuleDef rxsum_module = {
     PyModuleDef_HEAD_INIT, "_rxsum",
-    "Native CPU kernel for radarpc.dsp.native: A = sum_rx |R| over complex64 cells.",
+    "Native CPU kernel for radarpc.dsp.accel.native: A = sum_rx |R| over complex64 cells.",
     -1, rxsum_methods, NULL, NULL, NULL, NULL,
 };
 

@@ -1,6 +1,6 @@
-/* radarpc.dsp._screen: native CPU kernel for the selection step of the screened beamformer.
+/* radarpc.dsp.accel._screen: native CPU kernel for the selection step of the screened beamformer.
  *
- * radarpc.dsp.beamform.beamform_peaks_screened computes, for every snapshot j, the bfloat16
+ * radarpc.dsp.accel.screened.beamform_peaks_screened computes, for every snapshot j, the bfloat16
  * screen y_j = [Re s^_j | Im s^_j] (2K values, directions in elevation-major column order
  * c = el * n_az + az) with one GEMM. This kernel does everything after that GEMM, one row at a
  * time, reading each row once:
@@ -52,7 +52,7 @@
 
 #define LANES 16
 
-/* The candidate threshold's slack and floor; the same values as radarpc.dsp.beamform's
+/* The candidate threshold's slack and floor; the same values as radarpc.dsp.accel.screened's
  * _SCREEN_SLACK and _SCREEN_TINY_NEED (the tests compare the two selections bit for bit). */
 #define SCREEN_SLACK 0x1p-20
 #define SCREEN_TINY_NEED 0x1p-40
@@ -325,7 +325,7 @@ static PyMethodDef screen_methods[] = {
 
 static struct PyModuleDef screen_module = {
     PyModuleDef_HEAD_INIT, "_screen",
-    "Native CPU kernel for radarpc.dsp.native: the selection step of the screened beamformer.",
+    "Native CPU kernel for radarpc.dsp.accel.native: the selection step of the screened beamformer.",
     -1, screen_methods, NULL, NULL, NULL, NULL,
 };
 

@@ -8,7 +8,7 @@ import threading
 import pytest
 import torch
 
-from radarpc.dsp.workspace import Workspace
+from radarpc.dsp.accel.workspace import Workspace
 
 
 def test_buffers_are_reused_and_grown():
@@ -43,8 +43,10 @@ def test_threads_get_their_own_buffers_and_copies_start_empty():
 
 
 def test_beamformers_give_the_same_result_with_a_reused_workspace():
-    from radarpc.dsp.beamform import beamform_peaks, beamform_peaks_screened
-    from radarpc.sensors.radial import TINY, make_calibration
+    from radarpc.dsp.accel.screened import beamform_peaks_screened
+    from radarpc.dsp.beamform import beamform_peaks
+    from radarpc.sensors.radial import TINY
+    from radarpc.sim.radial_calibration import make_calibration
     calib = make_calibration(TINY)
     bt = calib.dictionary().transpose(0, 1).contiguous()
     g = torch.Generator().manual_seed(2)

@@ -2,23 +2,24 @@
 
 Two C extensions, built by ``setup.py`` when a compiler is present and skipped otherwise:
 
-* :mod:`radarpc.dsp._rxsum` computes ``A(r, d) = sum_rx |R(rx, r, d)|`` in one pass over a
+* :mod:`radarpc.dsp.accel._rxsum` computes ``A(r, d) = sum_rx |R(rx, r, d)|`` in one pass over a
   complex64 cube: ``re``/``im`` deinterleaved in SIMD registers, exact IEEE ``sqrt`` of
-  ``re^2 + im^2`` per receiver, then the receiver sum (:func:`rx_magnitude_sum_native`;
-  :func:`radarpc.dsp.ddma.rx_magnitude_sum` remains the reference and the fallback). On a
+  ``re^2 + im^2`` per receiver, then the receiver sum (:func:`rx_magnitude_sum_native`, behind
+  :func:`radarpc.dsp.ddma.rx_magnitude_sum`, whose torch path is the reference). On a
   2-core Sapphire Rapids VM it takes ~0.6 ms per full RADIal frame (512 x 256 x 16) with 2
   threads, the speed of one read of the cube, against ~2.2 ms for the blocked torch code
   (``benchmarks/rx_magnitude_sum.py``).
-* :mod:`radarpc.dsp._screen` runs everything of
-  :func:`radarpc.dsp.beamform.beamform_peaks_screened` after its bfloat16 GEMM, one snapshot
+* :mod:`radarpc.dsp.accel._screen` runs everything of
+  :func:`radarpc.dsp.accel.screened.beamform_peaks_screened` after its bfloat16 GEMM, one snapshot
   at a time in a single read of its screen row: power, best elevation per azimuth, the
   certified candidate set, the exact dot products of the candidates and their argmax
-  (:func:`screen_select_native`; the torch code in ``beamform_peaks_screened`` remains the
-  reference and the fallback).
+  (:func:`screen_select_native`; the torch selection in :mod:`radarpc.dsp.accel.screened` is
+  its reference and fallback).
 
-Both release the GIL and split their work over a module-level thread pool. Setting the
-environment variable ``RADARPC_NO_NATIVE=1`` makes :func:`native_available` return ``False``
-(checked at every call), so the torch paths can be compared on the same install.
+Both release the GIL and split their work over a module-level thread pool. With the switch of
+:mod:`radarpc.dsp.accel` off (``RADARPC_NO_NATIVE=1`` or :func:`radarpc.dsp.accel.disabled`),
+:func:`native_available` returns ``False`` (checked at every call), so the torch paths can be
+compared on the same install.
 """
 from __future__ import annotations
 
@@ -31,8 +32,9 @@ from types import ModuleType
 
 import torch
 
+from radarpc.dsp.accel import DISABLE_ENV, enabled
+
 __all__ = [
-    "DISABLE_ENV",
     "KERNELS",
     "native_available",
     "native_kernels",
@@ -44,11 +46,11 @@ __all__ = [
 _rxsum: ModuleType | None
 _screen: ModuleType | None
 try:
-    from radarpc.dsp import _rxsum
+    from radarpc.dsp.accel import _rxsum
 except ImportError:                      # built without a compiler (setup.py: optional=True)
     _rxsum = None
 try:
-    from radarpc.dsp import _screen
+    from radarpc.dsp.accel import _screen
 except ImportError:
     _screen = None
 
@@ -56,9 +58,6 @@ KERNELS = ("auto", "avx", "scalar")
 """Kernel names accepted by :func:`rx_magnitude_sum_native` and :func:`screen_select_native`:
 ``auto`` picks the fastest one this CPU allows (``avx`` needs an x86 CPU with AVX and a GCC/Clang
 build, and for the magnitude sum ``Nrx % 8 == 0``, 8 cells per step; ``scalar`` runs anywhere)."""
-
-DISABLE_ENV = "RADARPC_NO_NATIVE"
-"""Environment variable: any value other than empty or ``0`` disables the native kernel."""
 
 # Input bytes per work item. The threads take items from a shared queue until it is empty
 # (dynamic sharing: a thread slowed down by another process, or by torch's OpenMP workers still
@@ -77,7 +76,7 @@ _pool_lock = threading.Lock()
 
 
 def native_available() -> bool:
-    """Whether the compiled extensions are importable and not disabled by ``RADARPC_NO_NATIVE``.
+    """Whether the compiled extensions are importable and the switch :func:`radarpc.dsp.accel.enabled` is on.
 
     Returns
     -------
@@ -85,15 +84,15 @@ def native_available() -> bool:
         ``True`` when :func:`rx_magnitude_sum_native` and :func:`screen_select_native` can run
         (both extensions come from the same compiler, so they are built together or not at all).
     """
-    return _rxsum is not None and _screen is not None and os.environ.get(DISABLE_ENV, "") in ("", "0")
+    return _rxsum is not None and _screen is not None and enabled()
 
 
 def _require_native(fallback: str) -> None:
     if not native_available():
         built = _rxsum is not None and _screen is not None
-        why = (f"disabled by {DISABLE_ENV}={os.environ.get(DISABLE_ENV)!r}" if built
-               else "not built (install with a C compiler: pip install -e .)")
-        raise RuntimeError(f"native extensions radarpc.dsp._rxsum/_screen are {why}; use {fallback}")
+        why = (f"disabled ({DISABLE_ENV}={os.environ.get(DISABLE_ENV)!r} or radarpc.dsp.accel.disabled())"
+               if built else "not built (install with a C compiler: pip install -e .)")
+        raise RuntimeError(f"native extensions radarpc.dsp.accel._rxsum/_screen are {why}; use {fallback}")
 
 
 def native_kernels(n_rx: int = 16) -> tuple[str, ...]:
@@ -219,7 +218,7 @@ def rx_magnitude_sum_native(rd: torch.Tensor, *, threads: int | None = None,
         ``rd`` not a CPU complex64 C-contiguous tensor with ``ndim >= 2``; ``threads < 1``; an
         unknown kernel, or one this CPU / ``Nrx`` cannot run.
     RuntimeError
-        The extension ``radarpc.dsp._rxsum`` is not built or is disabled by ``RADARPC_NO_NATIVE``.
+        The extension ``radarpc.dsp.accel._rxsum`` is not built or the switch is off.
 
     Notes
     -----
@@ -277,7 +276,7 @@ def screen_select_native(screen: torch.Tensor, snapshots: torch.Tensor, rows: to
                          beta: torch.Tensor, grid: tuple[int, int], alpha: float,
                          max_candidates: int, *, threads: int | None = None, kernel: str = "auto"
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Selection step of :func:`radarpc.dsp.beamform.beamform_peaks_screened`, natively.
+    """Selection step of :func:`radarpc.dsp.accel.screened.beamform_peaks_screened`, natively.
 
     For every snapshot ``j``: ``q_jc^2 = Re^2 + Im^2`` of its screen row, the best elevation
     per azimuth ``Q_j(az)``, ``need_j = ((1 - alpha) sqrt(max Q_j) - 2 beta_j) / (1 + alpha)``,
@@ -296,7 +295,7 @@ def screen_select_native(screen: torch.Tensor, snapshots: torch.Tensor, rows: to
     rows : Tensor ``(K, N)`` complex64, C-contiguous
         ``B``, row ``k = az n_el + el``.
     beta : Tensor ``(P,)`` float32
-        :func:`radarpc.dsp.beamform.screen_bound`'s ``beta_j``.
+        :func:`radarpc.dsp.accel.screened.screen_bound`'s ``beta_j``.
     grid : (n_az, n_el)
     alpha : float
         ``0 <= alpha < 1``, the bound's relative term.
@@ -320,7 +319,7 @@ def screen_select_native(screen: torch.Tensor, snapshots: torch.Tensor, rows: to
         Wrong device, dtype, shape or layout of an input; bad ``alpha``, ``max_candidates``,
         ``threads``; an unknown kernel, or one this CPU cannot run.
     RuntimeError
-        The extensions are not built or are disabled by ``RADARPC_NO_NATIVE``.
+        The extensions are not built or the switch is off.
     """
     n_az, n_el = (int(g) for g in grid)
     k_dir = n_az * n_el
@@ -346,7 +345,7 @@ def screen_select_native(screen: torch.Tensor, snapshots: torch.Tensor, rows: to
     if isinstance(max_candidates, bool) or int(max_candidates) < 1:
         raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
     threads = _check_threads_and_kernel(threads, kernel)
-    _require_native("the torch path of radarpc.dsp.beamform.beamform_peaks_screened")
+    _require_native("the torch selection of radarpc.dsp.accel.screened.beamform_peaks_screened")
     assert _screen is not None
     if kernel != "auto" and kernel not in _screen.kernels():
         raise ValueError(f"kernel {kernel!r} cannot run here; available: {_screen.kernels()}")

@@ -1,4 +1,4 @@
-"""Native selection step of the screened beamformer (radarpc.dsp.native.screen_select_native):
+"""Native selection step of the screened beamformer (radarpc.dsp.accel.native.screen_select_native):
 hand-worked rows, the torch selection on real screens, thread/stride invariance, bad input."""
 from __future__ import annotations
 
@@ -6,12 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from radarpc.dsp import native
-from radarpc.dsp.beamform import (_screen_select, column_to_direction, dictionary_tables, screen_bound,
-                                  stack_real)
-from radarpc.dsp.native import screen_select_native
-from radarpc.dsp.workspace import Workspace
-from radarpc.sensors.radial import TINY, make_calibration
+from radarpc.dsp.accel import DISABLE_ENV, native
+from radarpc.dsp.accel.native import screen_select_native
+from radarpc.dsp.accel.screened import _screen_select, screen_bound
+from radarpc.dsp.accel.workspace import Workspace
+from radarpc.dsp.beamform import column_to_direction, dictionary_tables, stack_real
+from radarpc.sensors.radial import TINY
+from radarpc.sim.radial_calibration import make_calibration
 
 
 def _screen_rows(s_em: torch.Tensor) -> torch.Tensor:
@@ -172,7 +173,7 @@ def test_disabled_raises(monkeypatch):
     for ext in ("_rxsum", "_screen"):
         if getattr(native, ext) is None:
             monkeypatch.setattr(native, ext, object())
-    monkeypatch.setenv(native.DISABLE_ENV, "1")
+    monkeypatch.setenv(DISABLE_ENV, "1")
     v, t, y16, alpha, beta = _real_screen(4, seed=4)
     with pytest.raises(RuntimeError, match="RADARPC_NO_NATIVE"):
         screen_select_native(y16, v, t.rows, beta, t.grid, alpha, 6)
