@@ -44,13 +44,14 @@ from radarpc.data.radial_format import (
     OFFICIAL_SPLITS,
     fft_path,
     freespace_path,
+    load_calibration,
     simulated_split,
 )
 from radarpc.io import DataFileError, atomic_write, load_array
-from radarpc.sensors.radial import RADIAL, Calibration, DDMARadarConfig, load_calibration
+from radarpc.sensors.radial import RADIAL, Calibration, DDMARadarConfig
 
 __all__ = [
-    "SPLITS",
+    "SPLIT_CHOICES",
     "SIMULATED_META_KEYS",
     "LabelTable",
     "SimulatedMeta",
@@ -76,7 +77,7 @@ __all__ = [
     "radial_collate",
 ]
 
-SPLITS: tuple[str, ...] = ("train", "val", "test", "all")
+SPLIT_CHOICES: tuple[str, ...] = ("train", "val", "test", "all")
 """Values accepted by ``RADIal(split=...)``."""
 
 SIMULATED_META_KEYS: tuple[str, ...] = ("seed", "n_sequences", "frames_per_sequence", "radarpc_version")
@@ -574,8 +575,8 @@ def select_frames(labels: LabelTable, split: str, *, difficult: bool = True,
         Unknown split, or a split without any frame (naming the split, the number of sequences
         and how splits are assigned).
     """
-    if split not in SPLITS:
-        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    if split not in SPLIT_CHOICES:
+        raise ValueError(f"split must be one of {SPLIT_CHOICES}, got {split!r}")
     frames = _group_frames(labels, difficult=difficult)                 # [(numSample, seq, rows)]
     all_names = sorted({seq for _, seq, _ in frames})
     if random_split is not None:
@@ -693,12 +694,19 @@ class RadialFrames(torch.utils.data.Dataset, abc.ABC):
         freespace : bool ``(256, 224)``
         """
         i = self._index(i)
-        rd = self.cube(i)
-        fs = freespace_to_model(self.freespace_mask(i))
-        lab = self.labels.tensor_rows(self._vehicle_rows[i])
-        return (rd,
-                torch.from_numpy(lab).to(self.device),
-                torch.from_numpy(np.ascontiguousarray(fs)).to(self.device))
+        return self.cube(i), self.label_tensor(i), self.freespace(i)
+
+    def label_tensor(self, i: int) -> torch.Tensor:
+        """The ``labels`` of item ``i`` (as :meth:`__getitem__`, without reading the cube):
+        float32 ``(n_vehicles, 14)``, columns ``LABEL_TENSOR_COLUMNS``, on :attr:`device`."""
+        lab = self.labels.tensor_rows(self._vehicle_rows[self._index(i)])
+        return torch.from_numpy(lab).to(self.device)
+
+    def freespace(self, i: int) -> torch.Tensor:
+        """The ``freespace`` target of item ``i`` (as :meth:`__getitem__`, without reading the
+        cube): bool ``FREESPACE_OUT`` (:func:`freespace_to_model` of :meth:`freespace_mask`)."""
+        fs = freespace_to_model(self.freespace_mask(self._index(i)))
+        return torch.from_numpy(np.ascontiguousarray(fs)).to(self.device)
 
     def frame_labels(self, i: int) -> list[dict[str, int | float | str]]:
         """The raw ``labels.csv`` rows (all :data:`LABEL_COLUMNS`) of item ``i``, -1 rows included."""
@@ -769,8 +777,8 @@ class RADIal(RadialFrames):
         device: torch.device | str | None = None,
         trust_pickle: bool = False,
     ) -> None:
-        if split not in SPLITS:
-            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+        if split not in SPLIT_CHOICES:
+            raise ValueError(f"split must be one of {SPLIT_CHOICES}, got {split!r}")
         self.root = Path(root)
         if not self.root.is_dir():
             raise DataFileError(self.root, "RADIal root folder is missing")
