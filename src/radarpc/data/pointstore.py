@@ -161,7 +161,10 @@ class PointStoreMetadata:
         if self.tau is not None and not math.isfinite(self.tau):
             raise ValueError(f"tau must be a finite linear SNR threshold, got {self.tau}")
         if self.target_density is not None:
-            check_density_value(self.target_density)
+            try:
+                check_density_value(self.target_density)
+            except ValueError as e:
+                raise ValueError(f"target_{e}") from None
 
     def to_dict(self) -> dict:
         """JSON-able dict; :meth:`from_dict` inverts it."""
