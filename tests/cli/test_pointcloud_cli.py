@@ -8,6 +8,7 @@ import pytest
 import torch
 from PIL import Image
 
+from radarpc import viz
 from radarpc.cli import pointcloud, show
 from radarpc.data.pointstore import PointStore
 from radarpc.data.radial import RADIal
@@ -135,19 +136,19 @@ def test_show_writes_a_png(root, tmp_path, capsys):
 
 def test_show_geometry_and_encoded_density(root, tmp_path):
     # the RD image rows, the peak markers and the points' range_m agree (no half-bin offset)
-    x0, x1, y0, y1 = show.rd_extent(TINY, TINY.slot_width)
+    x0, x1, y0, y1 = viz.rd_extent(TINY, TINY.slot_width)
     row_h = (y1 - y0) / TINY.n_range
     r = np.arange(TINY.n_range)
     centres = y0 + (r + 0.5) * row_h
-    np.testing.assert_allclose(centres, show.peak_marker_range_m(TINY, r), atol=1e-9)
+    np.testing.assert_allclose(centres, viz.peak_marker_range_m(TINY, r), atol=1e-9)
     cloud = PointStore(_store(root, tmp_path))[1]
-    np.testing.assert_allclose(show.peak_marker_range_m(TINY, cloud.range_bin.numpy()), cloud.range_m.numpy(),
+    np.testing.assert_allclose(viz.peak_marker_range_m(TINY, cloud.range_bin.numpy()), cloud.range_m.numpy(),
                                rtol=1e-6)
     assert (x0, x1) == (-0.5, TINY.slot_width - 0.5)
     # FramePlot.density is the encoded set's (S* with rd3), the CFAR peaks' S apart
-    from radarpc.dsp.convert import ConvertSettings
+    from radarpc.pipelines.pointclouds import ConvertSettings
 
-    res = show.plot_frame(root, 1, tmp_path / "f.png", ConvertSettings(density=0.1, enrich=("rd3",)))
+    res = viz.plot_frame(root, 1, tmp_path / "f.png", ConvertSettings(density=0.1, enrich=("rd3",)))
     assert res.density == pytest.approx(0.1, rel=0.1) and res.peak_density < res.density
     assert res.peak_density == pytest.approx(res.n_peaks * TINY.n_tx / (TINY.n_range * TINY.n_doppler))
 
@@ -232,7 +233,7 @@ def test_show_refuses_a_store_of_another_root_and_a_directory_as_figure(root, tm
     with pytest.raises(ValueError, match=f"was made from {root.resolve()}, not from {other}"):
         run_cli(["show", str(other), "--frame", "0", "--store", str(store), "--out", str(tmp_path / "f.png")])
     # a store made from the dataset object that wrote ROOT records its repr, not a path: accepted
-    from radarpc.dsp.convert import convert_dataset
+    from radarpc.pipelines.pointclouds import convert_dataset
     from radarpc.sim.radial_writer import SimulatedRADIal
 
     obj_store = tmp_path / "obj.parquet"

@@ -103,3 +103,24 @@ def test_baseline_with_given_config_and_bad_split(root, tmp_path, capsys):
     cfg.write_text("oscfar: {window: [8, 3, 3]}\n")
     assert main(["baseline", "os-cfar", str(root), "--out", str(tmp_path / "x"), "--config", str(cfg)]) == 2
     assert "cfg.yaml" in capsys.readouterr().err
+
+
+def test_baseline_owns_its_prediction_folder(root, tmp_path, capsys):
+    from radarpc.runs import OutputLock
+
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("oscfar: {window: [9, 3, 3], guard: [3, 1, 1], rank: 0.5, tau_db: 6.0}\n")
+    pred = tmp_path / "owned"
+    args = ["baseline", "os-cfar", str(root), "--split", "val", "--out", str(pred), "--config", str(cfg)]
+    with OutputLock(pred, "prediction folder"):                      # another writer holds the folder
+        assert main(args) == 2
+        assert "another radarpc process" in capsys.readouterr().err and not pred.exists()
+    assert main(args) == 0
+    # a killed job's temp file is removed by the next one, the kept frames are untouched
+    leftover = pred / "hallway_run1" / ".000000.npy.1234.tmp"
+    leftover.write_bytes(b"partial")
+    files = sorted(pred.glob("hallway_run1/*.npy"))
+    before = {f: f.read_bytes() for f in files}
+    assert main(args) == 0 and not leftover.exists()
+    assert {f: f.read_bytes() for f in files} == before
+    assert "wrote 0 new point clouds" in capsys.readouterr().out

@@ -17,10 +17,11 @@ from radarpc.data.coloradar import (
     frustum_mask,
     lidar_to_radar,
     pair_radar_lidar,
-    radar_cube,
     split_runs,
     upsample_intensity,
 )
+from radarpc.data.coloradar_format import load_calib
+from radarpc.dsp.tdm import radar_cube
 from radarpc.io import DataFileError
 from radarpc.sensors.coloradar import (
     AWR1843,
@@ -30,7 +31,6 @@ from radarpc.sensors.coloradar import (
     RadarFOV,
     Transform,
     beam_angles,
-    load_calib,
 )
 from radarpc.sim.coloradar_synth import (
     LidarConfig,
@@ -39,7 +39,7 @@ from radarpc.sim.coloradar_synth import (
     lidar_scan,
     radar_scatterers,
     sensor_pose,
-    synthesize_adc,
+    synthesize_tdm_adc,
 )
 from radarpc.sim.coloradar_writer import frame_generator, run_name, write_coloradar
 from radarpc.sim.indoor import make_scene
@@ -74,7 +74,7 @@ def test_reader_agrees_with_simulator(sim_root):
         t = float(run.radar_timestamps[i] - t0)
         pose, vel = sensor_pose(scene, t, CALIB.base_to_single_chip)
         scat = radar_scatterers(scene, t, pose, vel, cfg=RADAR, generator=frame_generator(7, "lab", 1, i, "radar"))
-        adc = synthesize_adc(scat, CALIB.single_chip, cfg=RADAR, generator=frame_generator(7, "lab", 1, i, "adc")).numpy()
+        adc = synthesize_tdm_adc(scat, CALIB.single_chip, cfg=RADAR, generator=frame_generator(7, "lab", 1, i, "adc")).numpy()
         got = run.adc(i)
         assert got.dtype == np.complex64 and got.shape == (3, 4, 8, 128)
         np.testing.assert_array_equal(got.real, adc[..., 0])
@@ -198,7 +198,7 @@ def test_bad_input_errors(sim_root, tmp_path):
     with pytest.raises(DataFileError, match=r"lidar_pointcloud_3\.bin.*expected 16384 bytes.*simulation\.json.*"
                                             r"found 16352 \(truncated\)"):
         run.lidar(3)
-    from radarpc.cli.info_coloradar import check_run
+    from radarpc.data.summary import check_run
     bad = check_run(ColoRadarRun(root / "lab_run0"))                  # what `radarpc info --check` lists
     assert any("lidar_pointcloud_3.bin" in line and "16352" in line for line in bad)
     run.lidar_path(3).write_bytes(good)
@@ -237,22 +237,11 @@ def test_bad_input_errors(sim_root, tmp_path):
         ColoRadar(root, "all")
 
 
-def test_radar_cube_validation_and_upsample():
+def test_upsample_intensity_is_ralds_angle_upsampling():
     chip = AWR1843.replace(num_chirps_per_frame=8)
-    with pytest.raises(ValueError, match="complex"):
-        radar_cube(np.zeros((3, 4, 8, 128), np.float32), chip)
-    with pytest.raises(ValueError, match="shape"):
-        radar_cube(np.zeros((3, 4, 8, 64), np.complex64), chip)
-    bad = np.zeros((3, 4, 8, 128), np.complex64)
-    bad[0, 0, 0, 0] = np.nan
-    with pytest.raises(ValueError, match="NaN"):
-        radar_cube(bad, chip)
     rng = np.random.default_rng(0)
-    x = (rng.normal(size=(2, 3, 4, 8, 128)) + 1j * rng.normal(size=(2, 3, 4, 8, 128))).astype(np.complex64)
-    batch = radar_cube(x, chip, n_doppler=8)
-    one = radar_cube(x[1], chip, n_doppler=8)
-    assert batch.intensity_db.shape == (2, 128, 8, 2) and batch.stacked().shape == (2, 128, 8, 2, 3)
-    torch.testing.assert_close(batch.intensity_db[1], one.intensity_db, rtol=1e-4, atol=1e-4)
+    x = (rng.normal(size=(3, 4, 8, 128)) + 1j * rng.normal(size=(3, 4, 8, 128))).astype(np.complex64)
+    one = radar_cube(x, chip, n_doppler=8)
     up = upsample_intensity(one.intensity_db, (128, 64, 32))
     assert up.shape == (128, 64, 32)
     torch.testing.assert_close(upsample_intensity(one), up)
@@ -261,6 +250,8 @@ def test_radar_cube_validation_and_upsample():
     torch.testing.assert_close(up, ref, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(up[:, 0, 0], one.intensity_db[:, 0, 0])     # align_corners keeps corners
     torch.testing.assert_close(up[:, -1, -1], one.intensity_db[:, -1, -1])
+    batch = upsample_intensity(torch.stack([one.intensity_db, one.intensity_db + 1]), (128, 64, 32))
+    torch.testing.assert_close(batch[1], up + 1)
 
 
 def test_cli_simulate_and_info(sim_root, tmp_path, capsys, monkeypatch):
@@ -298,79 +289,3 @@ def test_calib_beside_runs_folder(sim_root, tmp_path):
     assert [r.name for r in ds.runs] == ["lab_run2"] and ds.calib == CALIB
     with pytest.raises(DataFileError, match="calib"):
         ColoRadar(tmp_path / "kitti" / "lab_run2" / "lidar", "all")
-
-
-def _reference_cube(adc: np.ndarray, chip) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    # Independent NumPy version of RaLD's single-chip processing (loops, float64), (R, A, E) outputs.
-    ntx, nrx, nc, ns = adc.shape
-    x = adc.astype(np.complex128) - adc.mean()
-    x = x * np.blackman(ns)
-    d = np.fft.fftshift(np.fft.fft(np.fft.fft(x, 128, -1), nc, -2), -2)
-    for t in range(ntx):
-        for c in range(nc):
-            d[t, :, c, :] *= np.exp(-2j * np.pi * t * (c - nc // 2) / (ntx * nc))
-    va = np.zeros((2, 8, nc, 128), np.complex128)
-    for t, (ta, te) in enumerate(chip.antenna.tx_positions):
-        for r, (ra, re) in enumerate(chip.antenna.rx_positions):
-            va[int(te + re), int(ta + ra)] += d[t, r]
-    e = np.fft.fftshift(np.fft.fft(np.fft.fftshift(np.fft.fft(va, 8, 1), 1), 2, 0), 0)
-    e[..., :6] = 0
-    e[..., -6:] = 0
-    p = np.abs(e) ** 2                                              # (E, A, D, R)
-    srt = np.sort(p, axis=2)
-    valid = srt[:, :, -1] * 0.7 > srt[:, :, -2]
-    vel = (np.argmax(p, axis=2) - nc // 2) * chip.waveform.velocity_bin_width(nc)
-    ps = p.sum(2)
-    db = 10 * np.log10(ps / (np.quantile(ps, 0.3) + 1e-6) + 1)
-    return db.transpose(2, 1, 0), vel.transpose(2, 1, 0), valid.transpose(2, 1, 0)
-
-
-def test_radar_cube_matches_numpy_reference():
-    chip = AWR1843.replace(num_chirps_per_frame=16)
-    rng = np.random.default_rng(1)
-    adc = (rng.normal(size=(3, 4, 16, 128)) + 1j * rng.normal(size=(3, 4, 16, 128))).astype(np.complex64)
-    adc += 20 * np.exp(2j * np.pi * (0.2 * np.arange(128) + 0.1 * np.arange(16)[:, None]))  # a tone
-    cube = radar_cube(adc, chip, n_doppler=16)
-    db, vel, valid = _reference_cube(adc, chip)
-    np.testing.assert_allclose(cube.intensity_db.numpy(), db, rtol=1e-4, atol=1e-3)
-    np.testing.assert_allclose(cube.doppler.numpy(), vel, atol=1e-6)
-    agree = (cube.valid.numpy() == valid).mean()
-    assert agree > 0.995                                            # ties at float32 precision aside
-
-
-def _point_target(r: float, az_deg: float, el_deg: float):
-    from radarpc.sim.coloradar_synth import Scatterers
-    az, el = math.radians(az_deg), math.radians(el_deg)
-    p = torch.tensor([[r * math.cos(el) * math.cos(az), r * math.cos(el) * math.sin(az), r * math.sin(el)]],
-                     dtype=torch.float64)
-    return Scatterers(p, torch.tensor([1.0]), torch.tensor([0.0]), torch.tensor([0.0]))
-
-
-@pytest.mark.parametrize("el_deg", [15.0, -15.0])
-def test_point_reflector_at_elevation_in_radar_cube(el_deg):
-    # A reflector at +-15 deg elevation, on an azimuth bin centre, noise-free (the simulator's
-    # public beat_signal). The 8 x 2 virtual array has rows 0 and 1 (Tx 2 raised by one unit), so
-    # a zero-padded elevation FFT peaks at f_e = d sin(el): the elevation sign is recoverable
-    # only with n_elevation > 2.
-    from radarpc.sim.coloradar_synth import beat_signal
-    chip = AWR1843.replace(num_chirps_per_frame=8)
-    d = chip.element_spacing
-    az_deg = math.degrees(math.asin(1 / (8 * d)))                   # centre of azimuth bin 5
-    r = 40 * chip.waveform.range_bin_width(128)                     # range bin 40
-    adc = beat_signal(_point_target(r, az_deg, el_deg), chip)
-    cube = radar_cube(adc, chip, n_doppler=8, n_elevation=16)
-    ri, ai, ei = np.unravel_index(int(cube.intensity_db.argmax()), tuple(cube.intensity_db.shape))
-    assert ri == 40 and ai == 5
-    assert cube.azimuth_rad[ai].item() == pytest.approx(math.radians(az_deg), abs=1e-6)
-    el_bins = np.degrees(cube.elevation_rad.numpy())
-    want = int(np.argmin(np.abs(np.sin(np.radians(el_bins)) - math.sin(math.radians(el_deg)))))
-    assert ei == want and np.sign(el_bins[ei]) == np.sign(el_deg)   # up is +z, bins ascend
-    assert abs(el_bins[ei] - el_deg) < 5.0
-    # RaLD's 2-bin elevation FFT: bins f_e = -1/2 (about -79 deg) and 0; at the target's cell the
-    # magnitudes are the same for +el and -el (|a +- b e^{j phi}| = |a +- b e^{-j phi}| for the
-    # real row sums a, b at the azimuth peak), and the 0-deg bin holds most of the energy at 15 deg.
-    two = radar_cube(adc, chip, n_doppler=8, n_elevation=2)
-    mirror = radar_cube(beat_signal(_point_target(r, az_deg, -el_deg), chip), chip, n_doppler=8, n_elevation=2)
-    torch.testing.assert_close(two.intensity_db[40, 5], mirror.intensity_db[40, 5], rtol=1e-3, atol=1e-2)
-    assert np.degrees(two.elevation_rad.numpy())[1] == 0.0
-    assert two.intensity_db[40, 5, 1] > two.intensity_db[40, 5, 0] + 3.0

@@ -33,7 +33,9 @@ from radarpc.data.radial_format import (
     simulated_split,
 )
 from radarpc.io import DataFileError
-from radarpc.sensors.radial import RADIAL, TINY, make_calibration, save_calibration
+from radarpc.data.radial_format import save_calibration
+from radarpc.sensors.radial import RADIAL, TINY
+from radarpc.sim.radial_calibration import make_calibration
 
 
 # ---- a hand-made root -------------------------------------------------------------------------

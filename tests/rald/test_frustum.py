@@ -11,8 +11,8 @@ from radarpc.rald.frustum import (
     OccupancyGrid,
     cartesian_to_polar,
     cell_indices,
-    cells_to_points,
-    cells_to_polar,
+    occupancy_to_points,
+    occupancy_to_polar,
     denormalize,
     in_frustum,
     normalize,
@@ -64,12 +64,12 @@ def test_normalize_maps_grid_to_unit_cube_and_back():
     torch.testing.assert_close(denormalize(RALD_GRID, u), corners)
 
 
-def test_voxelize_then_cells_to_points_within_half_a_cell():
+def test_voxelize_then_occupancy_to_points_within_half_a_cell():
     xyz = _cloud_in(RALD_GRID, 3000, seed=1)
     occ = voxelize(RALD_GRID, xyz)
     assert occ.n_points == 3000 and occ.n_outside == 0
     assert torch.all(occ.cells[1:] > occ.cells[:-1])            # sorted, unique
-    centres = cells_to_polar(occ, dtype=torch.float64)          # (M, 3)
+    centres = occupancy_to_polar(occ, dtype=torch.float64)          # (M, 3)
     rae = cartesian_to_polar(xyz)
     cell = torch.tensor(RALD_GRID.cell, dtype=torch.float64)
     # every point is within half a cell (per polar axis) of the centre of an occupied cell: its own
@@ -79,7 +79,7 @@ def test_voxelize_then_cells_to_points_within_half_a_cell():
     # and every occupied cell is the cell of some point (so holds a point within half a cell)
     assert torch.equal(torch.unique(lin), occ.cells)
     # the decoded Cartesian points re-voxelize to the same cells
-    assert torch.equal(voxelize(RALD_GRID, cells_to_points(occ)).cells, occ.cells)
+    assert torch.equal(voxelize(RALD_GRID, occupancy_to_points(occ)).cells, occ.cells)
 
 
 def test_voxelize_drops_points_outside_and_keeps_upper_edge():

@@ -1,22 +1,16 @@
-"""Sensor configs and calibration table of the RADIal-like DDMA radar."""
+"""Sensor configs and array model of the RADIal-like DDMA radar."""
 import dataclasses
 import json
 
 import numpy as np
 import pytest
-import torch
 
-from radarpc.io import DataFileError
 from radarpc.sensors.radial import (
     RADIAL,
     RADIAL_S,
     TINY,
     DDMARadarConfig,
-    channel_errors,
-    load_calibration,
-    make_calibration,
     radial_sensor,
-    save_calibration,
     steering_vectors,
 )
 
@@ -59,21 +53,6 @@ def test_radar_equation_scales_with_r4_and_rcs():
     assert RADIAL.snr_per_sample(10.0, 10.0) == pytest.approx(10 * s1)
 
 
-@pytest.mark.parametrize("cfg", [TINY, RADIAL_S])
-@pytest.mark.parametrize("az,el", [(0.0, 0.0), (21.0, 5.0), (-47.0, -10.0)])
-def test_calibrated_beamformer_peaks_at_source(cfg, az, el):
-    calib = make_calibration(cfg)
-    v = torch.as_tensor(steering_vectors(cfg, az, el)).to(torch.complex64)
-    spec = (calib.dictionary() @ v).abs().reshape(calib.grid_shape)
-    # independent: Signal[az, :, el] @ (H * v), the RADIal formula, evaluated with numpy
-    ref = np.abs(np.einsum("avb,v->ab", calib.signal, calib.window * v.numpy()))
-    np.testing.assert_allclose(spec.numpy(), ref, rtol=1e-4, atol=1e-3 * ref.max())
-    ia, ie = np.unravel_index(np.argmax(ref), ref.shape)
-    step_az = np.diff(calib.azimuth_deg[:2])[0]
-    assert abs(calib.azimuth_deg[ia] - az) <= step_az / 2 + 1e-6
-    assert calib.elevation_deg[ie] == pytest.approx(np.clip(el, *cfg.el_grid_deg[:2]), abs=(cfg.el_grid_deg[1] - cfg.el_grid_deg[0]) / (cfg.el_grid_deg[2] - 1) / 2 + 1e-6)
-
-
 def test_array_phase_sign_is_the_physical_one():
     # IF = tx * conj(rx): phase +2 pi f_c tau. A target on the left (+y) is nearer the elements at
     # larger horizontal position, so their delay (and phase) is smaller by pi * p_h * sin(az):
@@ -86,61 +65,6 @@ def test_array_phase_sign_is_the_physical_one():
     up = steering_vectors(cfg, 0.0, 30.0, hardware=False)
     k = int(np.flatnonzero((p[:, 0] == 4.0) & (p[:, 1] == 1.0))[0])
     assert np.angle(up[k] / up[0]) == pytest.approx(np.angle(np.exp(-1j * np.pi * (4 * 0.0 + 0.5))))
-
-
-def test_hardware_errors_are_what_calibration_corrects():
-    cfg = RADIAL_S
-    err = channel_errors(cfg)
-    assert err.shape == (192,) and not np.allclose(err, 1.0)
-    ideal = steering_vectors(cfg, 10.0, 0.0, hardware=False)
-    np.testing.assert_allclose(steering_vectors(cfg, 10.0, 0.0), ideal * err)
-    # the calibration table equals the conjugate of the true (with errors) response
-    calib = make_calibration(cfg)
-    ia = int(np.argmin(np.abs(calib.azimuth_deg - 10.0)))
-    ie = int(np.argmin(np.abs(calib.elevation_deg - 0.0)))
-    np.testing.assert_allclose(calib.signal[ia, :, ie], np.conj(ideal * err).astype(np.complex64), rtol=1e-5, atol=1e-6)
-
-
-def test_calibration_npz_round_trip_with_radial_keys(tmp_path):
-    calib = make_calibration(TINY)
-    path = tmp_path / "calibration.npz"
-    save_calibration(path, calib)
-    with np.load(path, allow_pickle=False) as z:
-        assert set(z.files) == {"Signal", "H", "Azimuth_table", "Elevation_table"}
-        assert z["Signal"].shape == (61, 8, 5) and z["H"].shape == (1, 8)
-    back = load_calibration(path)
-    np.testing.assert_array_equal(back.signal, calib.signal)
-    np.testing.assert_array_equal(back.window, calib.window)
-    back.check_sensor(TINY)
-    with pytest.raises(ValueError, match="8 virtual channels.*192"):
-        back.check_sensor(RADIAL)
-
-
-def test_calibration_bad_files(tmp_path):
-    with pytest.raises(DataFileError, match="missing"):
-        load_calibration(tmp_path / "nope.npz")
-    bad = tmp_path / "bad.npz"
-    np.savez(bad, Signal=np.zeros((3, 8, 2), np.complex64))
-    with pytest.raises(DataFileError, match=r"bad.npz.*lacks keys \['Azimuth_table', 'Elevation_table', 'H'\]"):
-        load_calibration(bad)
-    junk = tmp_path / "junk.npz"
-    junk.write_bytes(b"not a zip file")
-    with pytest.raises(DataFileError, match="junk.npz"):
-        load_calibration(junk)
-    pickled = tmp_path / "CalibrationTable.npy"
-    np.save(pickled, np.array({"Signal": 1}, dtype=object), allow_pickle=True)
-    with pytest.raises(DataFileError, match="trust_pickle=True"):
-        load_calibration(pickled)
-
-
-def test_trusted_pickled_table_is_read(tmp_path):
-    calib = make_calibration(TINY)
-    table = {"Signal": calib.signal, "H": calib.window[None], "Azimuth_table": calib.azimuth_deg,
-             "Elevation_table": calib.elevation_deg}
-    path = tmp_path / "CalibrationTable.npy"
-    np.save(path, np.array(table, dtype=object), allow_pickle=True)
-    back = load_calibration(path, trust_pickle=True)
-    np.testing.assert_array_equal(back.signal, calib.signal)
 
 
 def test_config_dict_round_trip_and_validation():

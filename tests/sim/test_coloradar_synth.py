@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from radarpc.data.coloradar import radar_cube
+from radarpc.dsp.tdm import radar_cube
 from radarpc.sensors.coloradar import AWR1843, BASE_TO_SINGLE_CHIP, CASCADE, SPEED_OF_LIGHT
 from radarpc.sim.coloradar_synth import (
     LidarConfig,
@@ -21,7 +21,7 @@ from radarpc.sim.coloradar_synth import (
     radar_scatterers,
     sensor_pose,
     simulate_frame,
-    synthesize_adc,
+    synthesize_tdm_adc,
 )
 from radarpc.sim.indoor import Scene, Trajectory, make_scene
 
@@ -110,10 +110,10 @@ def test_coupling_group_size_bound_and_validation():
 def test_adc_quantization_and_noise():
     empty = Scatterers(torch.zeros((0, 3)), torch.zeros(0), torch.zeros(0), torch.zeros(0))
     g = torch.Generator().manual_seed(0)
-    adc = synthesize_adc(empty, TINY, cfg=RadarSimConfig(adc_noise_lsb=5.0), generator=g)
+    adc = synthesize_tdm_adc(empty, TINY, cfg=RadarSimConfig(adc_noise_lsb=5.0), generator=g)
     assert adc.dtype == torch.int16 and tuple(adc.shape) == TINY.adc_shape
     assert float(adc.float().std()) == pytest.approx(5.0, rel=0.05)
-    loud = synthesize_adc(_point(0.05, 0.0, 0.0, rcs=100.0), TINY)        # saturates the ADC
+    loud = synthesize_tdm_adc(_point(0.05, 0.0, 0.0, rcs=100.0), TINY)        # saturates the ADC
     assert int(loud.max()) == 32767 and int(loud.min()) == -32768
 
 

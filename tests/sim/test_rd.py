@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from radarpc.sensors.radial import RADIAL_S, TINY, make_calibration, steering_vectors
-from radarpc.sim.adc import migration_bins, narrowband_bins, rd_from_adc, synthesize_adc, synthesize_rd_exact
+from radarpc.sensors.radial import RADIAL_S, TINY, steering_vectors
+from radarpc.sim.radial_calibration import make_calibration
+from radarpc.sim.adc import migration_bins, narrowband_bins, rd_from_adc, synthesize_ddma_adc, synthesize_rd_exact
 from radarpc.sim.rd import (
     Scatterers,
     noise_power_rd,
@@ -166,7 +167,7 @@ def test_adc_phase_is_the_physical_path_length_per_element():
     lam = cfg.wavelength_m
     target = np.array([20.0, 8.0, 1.5])                           # left (+y), slightly up
     sc = Scatterers.from_xyz(target[None].astype(np.float64), np.zeros((1, 3)), np.array([5.0]))
-    adc = synthesize_adc(cfg, sc).numpy()                         # (k, n, r), Tx summed
+    adc = synthesize_ddma_adc(cfg, sc).numpy()                         # (k, n, r), Tx summed
     # isolate Tx m by its DDMA code: demodulate and average over chirps
     width = cfg.n_doppler // cfg.n_slots
     k = np.arange(cfg.n_doppler)
@@ -199,7 +200,7 @@ def test_target_on_the_left_beamforms_to_positive_azimuth_from_adc():
 def test_adc_noise_becomes_noise_power_rd():
     cfg = TINY
     g = torch.Generator().manual_seed(3)
-    rd = rd_from_adc(cfg, synthesize_adc(cfg, empty(), noise=True, generator=g))
+    rd = rd_from_adc(cfg, synthesize_ddma_adc(cfg, empty(), noise=True, generator=g))
     n = rd.numel()
     p = float((rd.abs() ** 2).mean())
     # the windowed FFT correlates neighbouring cells: allow 6 / sqrt(n / 4) relative

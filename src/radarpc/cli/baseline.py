@@ -15,105 +15,25 @@ Writes into ``--out``:
 
 Every file is written atomically. A rerun into the same folder keeps the existing
 ``config.yaml`` (unless ``--config`` or ``--retune`` is given) and skips frames already written
-with it, so an interrupted job resumes.
+with it, so an interrupted job resumes; a second job writing the same folder at the same time is
+refused. The driver is :mod:`radarpc.pipelines.oscfar`, the layout :mod:`radarpc.eval.predictions`.
 """
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
-import numpy as np
-
-from radarpc.io import atomic_write, load_array, save_npy_atomic
-
-__all__ = ["add_parser", "run_oscfar", "prediction_path"]
-
-
-def prediction_path(out: str | Path, run: str, frame: int) -> Path:
-    """``out/{run}/{frame:06d}.npy``: where a method's cloud for a radar frame lives."""
-    return Path(out) / run / f"{int(frame):06d}.npy"
-
-
-def _tuning_frames(ds, max_frames: int):
-    n = len(ds)
-    picks = np.unique(np.linspace(0, n - 1, min(n, max_frames)).round().astype(int)) if n else []
-    for i in picks:
-        yield ds.cube(int(i)).intensity_db, ds.lidar_points(int(i))
-
-
-def _axes(ds):
-    from radarpc.rald.oscfar_baseline import CubeAxes
-
-    cube = ds.cube(0)
-    return CubeAxes.from_radians(cube.range_m, cube.azimuth_rad, cube.elevation_rad)
+__all__ = ["add_parser", "run_oscfar"]
 
 
 def run_oscfar(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+    from radarpc.pipelines.oscfar import OSCFARJob, predict_oscfar
 
-    from radarpc.data.coloradar import ColoRadar
-    from radarpc.rald.oscfar_baseline import (
-        OSCFARConfig,
-        TuningGrid,
-        detect_points,
-        load_config,
-        save_config,
-        tune_oscfar,
-    )
-
-    out = Path(args.out)
-    cfg_path = out / "config.yaml"
-    if args.max_tune_frames < 1:
-        raise ValueError(f"--max-tune-frames must be >= 1, got {args.max_tune_frames}")
-    ds = ColoRadar(args.root, args.split, cube_size=None)
-    if len(ds) == 0:
-        raise ValueError(f"split {args.split!r} of {args.root} has no paired radar/LiDAR frame")
-    axes = _axes(ds)
-
-    if args.config is not None:
-        cfg, how = load_config(args.config), f"given ({args.config})"
-    elif cfg_path.is_file() and not args.retune:
-        cfg, how = load_config(cfg_path), f"reused ({cfg_path})"
-    else:
-        val = ColoRadar(args.root, args.tune_split, cube_size=None)
-        if len(val) == 0:
-            raise ValueError(f"tuning split {args.tune_split!r} of {args.root} has no paired frame; "
-                             "pass --tune-split with another split or --config FILE")
-        grid = TuningGrid() if not args.quick_tune else TuningGrid(
-            windows=((9, 3, 3),), guards=((3, 1, 1),), ranks=(0.75,), taus_db=(4.0, 8.0, 12.0), angle_bins=(None,))
-        res = tune_oscfar(_tuning_frames(val, args.max_tune_frames), axes, grid, progress=True)
-        cfg, how = res.best, f"tuned on {res.n_frames} {args.tune_split} frames (mean CD {res.best_chamfer:.3f} m)"
-        table = [{"config": c.to_dict(), "chamfer_m": cd, "points_per_frame": npts} for c, cd, npts in res.table]
-        with atomic_write(out / "tuning.json", "w") as f:
-            json.dump({"split": args.tune_split, "frames": res.n_frames, "best": cfg.to_dict(),
-                       "best_chamfer_m": res.best_chamfer, "candidates": table}, f, indent=1)
-    same = cfg_path.is_file() and load_config(cfg_path) == cfg
-    if not same:
-        save_config(cfg_path, cfg, method="os-cfar", root=str(args.root), split=args.split,
-                    tune_split=args.tune_split, how=how)
-    print(f"OS-CFAR config {how}: {cfg}")
-
-    index = []
-    n_done = 0
-    for i in tqdm(range(len(ds)), desc=f"OS-CFAR {args.split}", unit="frame"):
-        k, ri, li = ds.index[i]
-        run = ds.runs[k]
-        path = prediction_path(out, run.name, ri)
-        if same and path.is_file():
-            pts = load_array(path, shape=(None, 3))   # resume: keep a valid earlier result
-        else:
-            pts = detect_points(ds.cube(i).intensity_db, axes, cfg).cpu().numpy().astype(np.float32)
-            save_npy_atomic(path, pts)
-            n_done += 1
-        index.append({"run": run.name, "scene": run.scene, "frame": int(ri), "lidar_index": int(li),
-                      "lidar_file": str(run.lidar_path(li)), "radar_time": float(run.radar_timestamps[ri]),
-                      "lidar_time": float(run.lidar_timestamps[li]),
-                      "file": str(path.relative_to(out)), "n_points": int(pts.shape[0])})
-    with atomic_write(out / "index.json", "w") as f:
-        json.dump({"method": "os-cfar", "root": str(Path(args.root).resolve()), "split": args.split,
-                   "frames": index}, f, indent=1)
-    print(f"wrote {n_done} new point clouds ({len(index)} frames) to {out}")
+    job = OSCFARJob(root=args.root, out=args.out, split=args.split, tune_split=args.tune_split,
+                    max_tune_frames=args.max_tune_frames, config=args.config, retune=args.retune,
+                    quick_tune=args.quick_tune)
+    res = predict_oscfar(job, on_config=lambda cfg, how: print(f"OS-CFAR config {how}: {cfg}"))
+    print(f"wrote {res.n_new} new point clouds ({res.n_frames} frames) to {Path(args.out)}")
     return 0
 
 

@@ -6,7 +6,8 @@
 
 For every paired radar frame of the split, reads ``PRED_DIR/{run}/{frame:06d}.npy`` (float32
 ``(N, 3)``, radar frame; the layout ``radarpc baseline os-cfar`` writes) and scores it against
-the reader's LiDAR cropped to the radar frustum (:mod:`radarpc.eval.pointsets`, batched):
+the reader's LiDAR cropped to the radar frustum (:mod:`radarpc.eval.pointsets`, batched; the folder
+layout is :mod:`radarpc.eval.predictions`):
 
 * CD: RaLD's non-squared Chamfer distance on the full clouds (KD-trees, exact);
 * EMD: the exact Wasserstein-1 distance (POT's network simplex) between a fixed random subset of
@@ -25,56 +26,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-__all__ = ["add_parser", "check_index", "run_evaluate_points"]
-
-
-def _pairs(ds, pred_dir: Path):
-    from radarpc.cli.baseline import prediction_path
-    from radarpc.eval.pointsets import CloudPair
-    from radarpc.io import DataFileError, load_array
-
-    for i in range(len(ds)):
-        k, ri, _ = ds.index[i]
-        run = ds.runs[k]
-        path = prediction_path(pred_dir, run.name, ri)
-        if not path.is_file():
-            raise DataFileError(path, f"prediction for run {run.name!r} frame {ri} is missing "
-                                      f"(expected float32 (N, 3) points, one file per frame of the split)")
-        pred = load_array(path, shape=(None, 3), complex_=False)
-        if pred.shape[0] == 0:
-            raise DataFileError(path, "prediction is empty: Chamfer distance and EMD need at least one point")
-        yield CloudPair(run.name, int(ri), pred, ds.lidar_points(i))
-
-
-def check_index(pred_dir: Path, data: str | Path, split: str) -> None:
-    """Raise ``ValueError`` unless ``pred_dir/index.json`` names the dataset root ``data`` and ``split``.
-
-    Roots are compared after ``Path.resolve()``; a missing or unreadable index is an error too.
-    """
-    import json
-
-    from radarpc.io import DataFileError
-
-    path = pred_dir / "index.json"
-    if not path.is_file():
-        raise DataFileError(path, "prediction index is missing: cannot check which dataset root and split the "
-                                  "predictions were made on (pass --force to score them anyway)")
-    try:
-        idx = json.loads(path.read_text())
-        root, sp = idx["root"], idx["split"]
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise DataFileError(path, f"expected a JSON object with 'root' and 'split' ({e})") from e
-    if Path(root).resolve() != Path(data).resolve():
-        raise ValueError(f"{path} says the predictions were made on root {root!r}, but --data is {str(data)!r} "
-                         "(pass --force to score them anyway)")
-    if sp != split:
-        raise ValueError(f"{path} says the predictions were made on split {sp!r}, but --split is {split!r} "
-                         "(pass --force to score them anyway)")
+__all__ = ["add_parser", "run_evaluate_points"]
 
 
 def run_evaluate_points(args: argparse.Namespace) -> int:
     from radarpc.data.coloradar import ColoRadar, scene_of_run
     from radarpc.eval.pointsets import evaluate_clouds
+    from radarpc.eval.predictions import check_index, prediction_pairs
     from radarpc.io import DataFileError
 
     pred_dir = Path(args.pred_dir)
@@ -87,7 +45,7 @@ def run_evaluate_points(args: argparse.Namespace) -> int:
     ds = ColoRadar(args.data, args.split, cube_size=None)
     if len(ds) == 0:
         raise ValueError(f"split {args.split!r} of {args.data} has no paired radar/LiDAR frame")
-    report = evaluate_clouds(_pairs(ds, pred_dir), scene_of_run, emd_points=args.emd_points,
+    report = evaluate_clouds(prediction_pairs(ds, pred_dir), scene_of_run, emd_points=args.emd_points,
                              emd_seed=args.emd_seed, progress=True)
     report.extra = {"pred_dir": str(pred_dir), "data": str(Path(args.data).resolve()), "split": args.split,
                     "index_checked": not args.force}

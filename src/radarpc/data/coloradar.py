@@ -13,11 +13,8 @@ and on the simulator's output (:mod:`radarpc.sim.coloradar_writer`) alike.
   single-chip frame, ``p_radar = T_base_radar^-1 T_base_lidar p_lidar`` (``base_to_X`` files hold
   translation then quaternion ``qx qy qz qw``, scalar last, mapping X-frame points to base),
   then the radar frustum (range, azimuth ``atan2(y, x)``, elevation ``asin(z / r)``).
-* :func:`radar_cube` -- RaLD's single-chip processing: DC removal, Blackman window, range FFT
-  (128), Doppler FFT (128, fftshift), TDM velocity compensation, virtual array (8 x 2), azimuth
-  and elevation FFTs (8, 2; fftshift), range ends zeroed (5 %), then per cell the Doppler-summed
-  power normalised by its 30 % quantile, ``10 log10(P + 1)`` (dB), the velocity of the peak
-  Doppler bin and a validity mask (peak > second peak / (1 - 0.3)).
+* :meth:`ColoRadar.cube` -- a frame's RaLD radar cube, computed by
+  :func:`radarpc.dsp.tdm.radar_cube` (the single-chip TDM processing lives in the DSP package).
 * :func:`upsample_intensity` -- bilinear (``align_corners=True``) angle upsampling of the
   intensity to the model grid (128 x 64 x 32), as RaLD's dataset does.
 * :class:`ColoRadar` -- torch ``Dataset`` of paired frames of a split; items are
@@ -42,14 +39,16 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from radarpc.data.coloradar_format import load_calib
+from radarpc.dsp.tdm import RadarCube, radar_cube
 from radarpc.io import DataFileError
-from radarpc.sensors.coloradar import AWR1843_FOV, ColoRadarCalib, ColoRadarChipConfig, RadarFOV, load_calib
+from radarpc.sensors.coloradar import AWR1843_FOV, ColoRadarCalib, RadarFOV
 
 __all__ = [
     "RALD_SPLITS",
-    "SPLITS",
+    "DISJOINT_SPLITS",
+    "SPLIT_CHOICES",
     "ColoRadarRun",
-    "RadarCube",
     "ColoRadarItem",
     "ColoRadar",
     "find_calib",
@@ -63,12 +62,14 @@ __all__ = [
     "lidar_to_radar",
     "frustum_mask",
     "crop_to_frustum",
-    "radar_cube",
     "upsample_intensity",
     "collate_coloradar",
 ]
 
-SPLITS = ("train", "val", "test")
+DISJOINT_SPLITS: tuple[str, ...] = ("train", "val", "test")
+"""The three disjoint run-level splits."""
+SPLIT_CHOICES: tuple[str, ...] = DISJOINT_SPLITS + ("all",)
+"""What ``split`` arguments accept: a disjoint split or ``"all"`` runs."""
 
 # RaLD's published run lists (resource/split_files.tar.gz of RoyAPTX4869/RaLD).
 RALD_SPLITS: dict[str, tuple[str, ...]] = {
@@ -105,8 +106,8 @@ def _run_index(name: str) -> int:
 
 def split_runs(names: Sequence[str], split: str) -> list[str]:
     """Runs of ``names`` that belong to ``split`` (``train``/``val``/``test``/``all``), see module doc."""
-    if split not in SPLITS + ("all",):
-        raise ValueError(f"split must be one of {SPLITS + ('all',)}, got {split!r}")
+    if split not in SPLIT_CHOICES:
+        raise ValueError(f"split must be one of {SPLIT_CHOICES}, got {split!r}")
     names = sorted(set(names))
     if split == "all":
         return names
@@ -425,117 +426,6 @@ def crop_to_frustum(points, fov: RadarFOV = AWR1843_FOV):
 
 
 # ------------------------------------------------------------------------------------------------
-@dataclass
-class RadarCube:
-    """RaLD radar cube of one frame (or a batch, leading dims first)."""
-
-    intensity_db: torch.Tensor   # (..., R, A, E) 10 log10(P / noise + 1)
-    doppler: torch.Tensor        # (..., R, A, E) radial velocity of the peak Doppler bin (m/s)
-    valid: torch.Tensor          # (..., R, A, E) bool: peak clearly above the second Doppler peak
-    range_m: torch.Tensor        # (R,) bin ranges
-    azimuth_rad: torch.Tensor    # (A,) bin azimuths (fftshift order, ascending towards +y)
-    elevation_rad: torch.Tensor  # (E,) bin elevations
-
-    def stacked(self) -> torch.Tensor:
-        """``(..., R, A, E, 3)`` float32: intensity, Doppler, validity (RaLD's ``RAEIVVmap``)."""
-        return torch.stack([self.intensity_db, self.doppler, self.valid.to(self.doppler.dtype)], -1)
-
-
-def _virtual_grid(chip: ColoRadarChipConfig) -> tuple[np.ndarray, np.ndarray, int, int]:
-    pos = chip.virtual_positions
-    if not np.allclose(pos, np.round(pos)) or (pos < 0).any():
-        raise ValueError(f"{chip.name}: virtual positions must be non-negative integers for the FFT array")
-    pos = np.round(pos).astype(np.int64)
-    return pos[:, 0], pos[:, 1], int(pos[:, 0].max()) + 1, int(pos[:, 1].max()) + 1
-
-
-def radar_cube(adc, chip: ColoRadarChipConfig, *, n_range: int = 128, n_doppler: int = 128,
-               n_azimuth: int = 8, n_elevation: int = 2, crop: float = 0.05,
-               noise_quantile: float = 0.30) -> RadarCube:
-    """RaLD's ADC -> (range, azimuth, elevation) cube (see module docstring).
-
-    Parameters
-    ----------
-    adc : complex array or tensor
-        ``(..., tx, rx, chirps, samples)``; leading dims are a batch. Torch input keeps its device.
-    chip : ColoRadarChipConfig
-        Single-chip configuration (waveform for the bin axes, antenna for the virtual array).
-    n_range, n_doppler, n_azimuth, n_elevation : int
-        FFT sizes (RaLD: 128, 128, 8, 2).
-    crop : float
-        Fraction of range bins zeroed at each end (RaLD: 0.05).
-    noise_quantile : float
-        Quantile of the Doppler-summed power used as noise level and validity margin (0.3).
-
-    Returns
-    -------
-    RadarCube
-    """
-    x = torch.as_tensor(adc)
-    if not torch.is_complex(x):
-        raise ValueError(f"adc must be complex (I + jQ), got dtype {x.dtype}")
-    w = chip.waveform
-    want = (w.num_tx, w.num_rx, w.num_chirps_per_frame, w.num_adc_samples_per_chirp)
-    if x.ndim < 4 or tuple(x.shape[-4:]) != want:
-        raise ValueError(f"adc must have shape (..., {', '.join(map(str, want))}) for {chip.name}, "
-                         f"got {tuple(x.shape)}")
-    if not torch.isfinite(torch.view_as_real(x)).all():
-        raise ValueError("adc contains NaN or infinite values")
-    for k, v in dict(n_range=n_range, n_doppler=n_doppler, n_azimuth=n_azimuth, n_elevation=n_elevation).items():
-        if int(v) < 1:
-            raise ValueError(f"{k} must be >= 1, got {v}")
-    if not (0 <= crop < 0.5) or not (0 < noise_quantile < 1):
-        raise ValueError(f"crop must be in [0, 0.5) and noise_quantile in (0, 1), got {crop}, {noise_quantile}")
-    x = x.to(torch.complex64)
-    dev = x.device
-    lead = x.shape[:-4]
-    ntx, nrx, nc, ns = want
-    x = x - x.mean(dim=(-4, -3, -2, -1), keepdim=True)
-    win = torch.as_tensor(np.blackman(ns), dtype=torch.float32, device=dev)
-    x = x * win
-    rfft = torch.fft.fft(x, n=n_range, dim=-1)                                         # (..., tx, rx, c, R)
-    dfft = torch.fft.fftshift(torch.fft.fft(rfft, n=n_doppler, dim=-2), dim=-2)       # (..., tx, rx, D, R)
-    # TDM-MIMO velocity compensation: Tx t fires t T_c after Tx 0 within a loop
-    tl = torch.arange(ntx, device=dev, dtype=torch.float32)
-    cl = torch.arange(n_doppler, device=dev, dtype=torch.float32) - n_doppler // 2
-    vcomp = torch.exp(-2j * math.pi * tl[:, None] * cl[None, :] / (ntx * n_doppler))
-    dfft = dfft * vcomp[:, None, :, None]
-    # virtual array (elevation rows, azimuth columns), duplicates summed
-    ph, pv, na_v, ne_v = _virtual_grid(chip)
-    flat = dfft.reshape(*lead, ntx * nrx, n_doppler, n_range)
-    va = torch.zeros((*lead, ne_v * na_v, n_doppler, n_range), dtype=flat.dtype, device=dev)
-    va.index_add_(len(lead), torch.as_tensor(pv * na_v + ph, device=dev), flat)
-    va = va.reshape(*lead, ne_v, na_v, n_doppler, n_range)
-    afft = torch.fft.fftshift(torch.fft.fft(va, n=n_azimuth, dim=-3), dim=-3)
-    efft = torch.fft.fftshift(torch.fft.fft(afft, n=n_elevation, dim=-4), dim=-4)    # (..., E, A, D, R)
-    c = int(n_range * crop)
-    if c > 0:
-        efft[..., :c] = 0
-        efft[..., n_range - c:] = 0
-    power = efft.abs() ** 2
-    top2 = torch.topk(power, k=min(2, n_doppler), dim=-2).values                     # (..., E, A, 2, R)
-    peak = power.argmax(dim=-2)                                                        # (..., E, A, R)
-    vbin = w.velocity_bin_width(n_doppler)
-    velocity = (peak - n_doppler // 2).to(torch.float32) * vbin
-    if n_doppler > 1:
-        valid = top2[..., 0, :] * (1 - noise_quantile) > top2[..., 1, :]
-    else:
-        valid = torch.ones_like(peak, dtype=torch.bool)
-    p = power.sum(dim=-2)                                                              # (..., E, A, R)
-    noise = torch.quantile(p.reshape(*lead, -1).double(), noise_quantile, dim=-1).to(p.dtype)
-    p = p / (noise.reshape(*lead, 1, 1, 1) + 1e-6)
-    db = 10 * torch.log10(p + 1)
-    perm = (*range(len(lead)), -1, -2, -3)                                             # -> (..., R, A, E)
-    rbw = w.range_bin_width(n_range)
-    d = chip.element_spacing
-    fa = (torch.arange(n_azimuth, device=dev, dtype=torch.float32) - n_azimuth // 2) / n_azimuth
-    fe = (torch.arange(n_elevation, device=dev, dtype=torch.float32) - n_elevation // 2) / n_elevation
-    return RadarCube(db.permute(perm).contiguous(), velocity.permute(perm).contiguous(),
-                     valid.permute(perm).contiguous(),
-                     torch.arange(n_range, device=dev, dtype=torch.float32) * rbw,
-                     torch.asin((fa / d).clamp(-1, 1)), torch.asin((fe / d).clamp(-1, 1)))
-
-
 def upsample_intensity(intensity: "torch.Tensor | RadarCube", size: tuple[int, int, int] = (128, 64, 32)) -> torch.Tensor:
     """Resize ``(..., R, A, E)`` intensity (or a :class:`RadarCube`'s) to ``size``
     (trilinear, ``align_corners=True``; RaLD: 128 x 64 x 32).

@@ -4,7 +4,9 @@ One place for the format, shared by the simulator's writer and the reader::
 
     ROOT/
       labels.csv                         one row per vehicle; a row of -1 for a frame without any
-      calibration.npz                    Signal, H, Azimuth_table, Elevation_table (radarpc; plain npz)
+      calibration.npz                    Signal, H, Azimuth_table, Elevation_table (radarpc; plain npz;
+                                         RADIal ships it pickled as CalibrationTable.npy):
+                                         :func:`load_calibration` / :func:`save_calibration`
       sensor.json                        the DDMARadarConfig + seed and sizes (radarpc; absent on the real dataset)
       scene.json                         the RoadSceneConfig of a simulated root (radarpc; absent on the real dataset)
       radar_FFT/fft_{numSample:06d}.npy  complex RD cube (n_range, n_doppler, n_rx); .npz also accepted
@@ -19,6 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from radarpc.io import DataFileError, save_npz_atomic
+from radarpc.sensors.radial import Calibration
+
 __all__ = [
     "LABEL_COLUMNS",
     "LABEL_TENSOR_COLUMNS",
@@ -32,6 +37,8 @@ __all__ = [
     "freespace_azimuth_deg",
     "simulated_sequence_name",
     "simulated_split",
+    "save_calibration",
+    "load_calibration",
 ]
 
 LABEL_COLUMNS: tuple[str, ...] = (
@@ -112,3 +119,62 @@ def simulated_split(sequence_index: int, n_sequences: int) -> str:
     if n >= 6 and i % 6 in (4, 5):
         return "val" if i % 6 == 4 else "test"
     return "train"
+
+
+def save_calibration(path: str | os.PathLike, calib: Calibration) -> None:
+    """Write ``calib`` as a plain ``.npz`` with RADIal's keys (``Signal``, ``H``, tables); atomic."""
+    save_npz_atomic(path, Signal=calib.signal, H=calib.window[None, :],
+                    Azimuth_table=calib.azimuth_deg, Elevation_table=calib.elevation_deg)
+
+
+def load_calibration(path: str | os.PathLike, *, trust_pickle: bool = False) -> Calibration:
+    """Read a calibration table.
+
+    Parameters
+    ----------
+    path : path-like
+        ``calibration.npz`` (radarpc's format, also what real RADIal tables convert to), or the
+        official pickled ``CalibrationTable.npy``.
+    trust_pickle : bool
+        The official RADIal table is a pickled dict; unpickling runs code from the file, so it
+        is refused unless you pass ``trust_pickle=True`` for a file you obtained from RADIal
+        yourself. Convert it once with :func:`save_calibration` and use the ``.npz`` after.
+
+    Raises
+    ------
+    DataFileError
+        Missing file, missing keys, or inconsistent shapes, naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataFileError(path, "calibration table is missing (expected calibration.npz with keys "
+                                  "Signal, H, Azimuth_table, Elevation_table)")
+    try:
+        if path.suffix == ".npy":
+            if not trust_pickle:
+                raise DataFileError(path, "is a pickled .npy calibration table; loading it runs code from "
+                                          "the file. Pass trust_pickle=True (CLI: --trust-pickle) for the "
+                                          "official RADIal CalibrationTable.npy you downloaded yourself")
+            d = np.load(path, allow_pickle=True).item()  # explicit user opt-in, see docstring
+        else:
+            with np.load(path, allow_pickle=False) as z:
+                d = {k: z[k] for k in z.files}
+    except DataFileError:
+        raise
+    except Exception as e:  # noqa: BLE001 - any decoding failure is a bad file
+        raise DataFileError(path, f"is not a readable calibration table ({e})") from e
+    missing = {"Signal", "H", "Azimuth_table", "Elevation_table"} - set(d)
+    if missing:
+        raise DataFileError(path, f"calibration table lacks keys {sorted(missing)}")
+    signal = np.asarray(d["Signal"])
+    h = np.asarray(d["H"], dtype=np.float32)
+    h = h.reshape(-1, h.shape[-1])[0] if h.ndim > 1 else h
+    try:
+        calib = Calibration(signal=signal.astype(np.complex64), window=h,
+                            azimuth_deg=np.asarray(d["Azimuth_table"], dtype=np.float32).reshape(-1),
+                            elevation_deg=np.asarray(d["Elevation_table"], dtype=np.float32).reshape(-1))
+    except ValueError as e:
+        raise DataFileError(path, str(e)) from e
+    if not np.isfinite(calib.signal).all():
+        raise DataFileError(path, "calibration Signal contains NaN or infinite values")
+    return calib

@@ -1,4 +1,5 @@
-"""Metrics: point sets (Chamfer, EMD) and, from the other stages, detection and segmentation."""
+"""Metrics: point sets (Chamfer, EMD) and, from the other stages, detection and segmentation; the
+prediction-folder layout they read (:mod:`radarpc.eval.predictions`)."""
 from radarpc.eval.pointsets import (
     EMD_POINTS,
     EMD_SEED,
@@ -14,6 +15,7 @@ from radarpc.eval.pointsets import (
     emd_subset,
     evaluate_clouds,
 )
+from radarpc.eval.predictions import check_index, prediction_pairs, prediction_path
 
 __all__ = [
     "EMD_POINTS",
@@ -29,4 +31,7 @@ __all__ = [
     "earth_movers_distance_batch",
     "emd_subset",
     "evaluate_clouds",
+    "check_index",
+    "prediction_pairs",
+    "prediction_path",
 ]

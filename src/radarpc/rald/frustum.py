@@ -48,8 +48,8 @@ __all__ = [
     "occupancy",
     "sample_queries",
     "sample_queries_batch",
-    "cells_to_polar",
-    "cells_to_points",
+    "occupancy_to_polar",
+    "occupancy_to_points",
 ]
 
 Coords = Literal["cartesian", "polar", "normalized"]
@@ -496,13 +496,13 @@ def sample_queries_batch(
     return torch.stack(qs), torch.stack(ls)
 
 
-def cells_to_polar(occ: OccupancyGrid, *, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+def occupancy_to_polar(occ: OccupancyGrid, *, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """Polar centres ``(M, 3)`` of the occupied cells, ``lo + (ijk + 1/2) * cell``."""
     lo, _, cell = occ.grid._tensors(occ.cells.device, torch.float64)
     rae = lo + (occ.ijk().to(torch.float64) + 0.5) * cell
     return rae.to(dtype)
 
 
-def cells_to_points(occ: OccupancyGrid, *, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+def occupancy_to_points(occ: OccupancyGrid, *, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """Cartesian points ``(M, 3)`` at the centres of the occupied cells (the decoded point cloud)."""
-    return polar_to_cartesian(cells_to_polar(occ, dtype=torch.float64)).to(dtype)
+    return polar_to_cartesian(occupancy_to_polar(occ, dtype=torch.float64)).to(dtype)

@@ -63,7 +63,7 @@ __all__ = [
     "TuningResult",
     "upsample_angles",
     "detect_cells",
-    "cells_to_points",
+    "detections_to_points",
     "detect_points",
     "tune_oscfar",
     "save_config",
@@ -284,7 +284,7 @@ def _axis_value(values: Sequence[float], frac_idx: torch.Tensor) -> torch.Tensor
     return v[i0] + t * (v[i0 + 1] - v[i0])
 
 
-def cells_to_points(mask: torch.Tensor, cube_db: torch.Tensor, axes: CubeAxes, *, refine: bool = True,
+def detections_to_points(mask: torch.Tensor, cube_db: torch.Tensor, axes: CubeAxes, *, refine: bool = True,
                     clip_angles_deg: tuple[float, float] | None = None,
                     elevation_deg: float | None = None) -> torch.Tensor:
     """Detected cells of one frame -> Cartesian points ``(N, 3)`` (float32) in the radar frame.
@@ -337,9 +337,9 @@ def detect_points(cube_db, axes: CubeAxes, cfg: OSCFARConfig = OSCFARConfig()) -
     """
     mask, x, ax = detect_cells(cube_db, axes, cfg)
     if mask.ndim == 3:
-        return cells_to_points(mask, x, ax, refine=cfg.refine, clip_angles_deg=cfg.clip_angles_deg,
+        return detections_to_points(mask, x, ax, refine=cfg.refine, clip_angles_deg=cfg.clip_angles_deg,
                                elevation_deg=cfg.elevation_deg)
-    return [cells_to_points(m, c, ax, refine=cfg.refine, clip_angles_deg=cfg.clip_angles_deg,
+    return [detections_to_points(m, c, ax, refine=cfg.refine, clip_angles_deg=cfg.clip_angles_deg,
                             elevation_deg=cfg.elevation_deg) for m, c in zip(mask, x)]
 
 
@@ -425,7 +425,7 @@ def tune_oscfar(
             x, ax = (upsample_angles(cube, axes, ab) if ab is not None else (cube, axes))
             snr = os_cfar(torch.pow(10.0, x / 10.0), w, g, float(r)).snr
             for j, c in enumerate(group):
-                pts = cells_to_points(_threshold(snr, ax, c, x.device), x, ax, refine=c.refine,
+                pts = detections_to_points(_threshold(snr, ax, c, x.device), x, ax, refine=c.refine,
                                       clip_angles_deg=c.clip_angles_deg, elevation_deg=c.elevation_deg)
                 sums[j, 0] += target(pts)
                 sums[j, 1] += pts.shape[0]

@@ -1,5 +1,20 @@
-"""Sensor configs: the RADIal-like DDMA radar (:mod:`radarpc.sensors.radial`) and the
-ColoRadar radars (:mod:`radarpc.sensors.coloradar`)."""
+"""Sensor dataclasses and presets: the RADIal-like DDMA radar (:mod:`radarpc.sensors.radial`) and
+the ColoRadar radars (:mod:`radarpc.sensors.coloradar`).
+
+Reading and writing calibration files is in :mod:`radarpc.data.radial_format` and
+:mod:`radarpc.data.coloradar_format`; a simulated unit's calibration is synthesized by
+:func:`radarpc.sim.radial_calibration.make_calibration`.
+"""
+from radarpc.sensors.coloradar import (  # noqa: F401
+    AWR1843,
+    AWR1843_FOV,
+    CASCADE,
+    DEFAULT_CALIB,
+    ColoRadarCalib,
+    ColoRadarChipConfig,
+    RadarFOV,
+    Transform,
+)
 from radarpc.sensors.radial import (  # noqa: F401
     RADIAL,
     RADIAL_S,
@@ -7,11 +22,5 @@ from radarpc.sensors.radial import (  # noqa: F401
     TINY,
     Calibration,
     DDMARadarConfig,
-    channel_errors,
-    load_calibration,
-    make_calibration,
     radial_sensor,
-    save_calibration,
-    steering_vectors,
 )
-from radarpc.sensors.coloradar import AWR1843, CASCADE, AWR1843_FOV, ColoRadarCalib, ColoRadarChipConfig, RadarFOV, Transform, load_calib, write_calib  # noqa: F401

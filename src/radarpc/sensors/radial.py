@@ -22,7 +22,8 @@ own processing, so that a real ``CalibrationTable`` and real cubes work unchange
   and receding-positive Doppler: an element nearer the target sees a shorter delay, hence a
   smaller phase ``2 pi f_c tau`` (derivation in :mod:`radarpc.sim.adc`).
 * Calibration table (RADIal's ``CalibrationTable.npy`` content, stored by radarpc as
-  ``calibration.npz``): ``Signal`` ``(n_az, n_virtual, n_el)`` complex beamforming weights, the
+  ``calibration.npz``, read and written by :mod:`radarpc.data.radial_format`, synthesized for a
+  simulated unit by :func:`radarpc.sim.radial_calibration.make_calibration`): ``Signal`` ``(n_az, n_virtual, n_el)`` complex beamforming weights, the
   conjugate of the measured array response; ``H`` ``(1, n_virtual)`` channel taper;
   ``Azimuth_table`` ``(n_az,)`` and ``Elevation_table`` ``(n_el,)`` in degrees. The angle
   spectrum of a virtual snapshot ``v`` is ``|Signal[az, :, el] @ (H * v)|``.
@@ -33,12 +34,9 @@ import dataclasses
 import math
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
-
-from radarpc.io import DataFileError, save_npz_atomic
 
 __all__ = [
     "SPEED_OF_LIGHT",
@@ -51,9 +49,6 @@ __all__ = [
     "radial_sensor",
     "channel_errors",
     "steering_vectors",
-    "make_calibration",
-    "save_calibration",
-    "load_calibration",
 ]
 
 SPEED_OF_LIGHT = 299_792_458.0
@@ -385,84 +380,3 @@ class Calibration:
             raise ValueError(
                 f"{source}: calibration has {self.n_virtual} virtual channels, sensor {cfg.name!r} "
                 f"has {cfg.n_virtual} (n_tx * n_rx)")
-
-
-def _channel_taper(cfg: DDMARadarConfig) -> np.ndarray:
-    # Hamming taper on the horizontal virtual position: sidelobe control for azimuth.
-    h = cfg.virtual_positions[:, 0]
-    span = h.max() - h.min()
-    t = (h - h.min()) / span if span > 0 else np.zeros_like(h)
-    return (0.54 - 0.46 * np.cos(2 * np.pi * t)).astype(np.float32)
-
-
-def make_calibration(cfg: DDMARadarConfig) -> Calibration:
-    """The calibration table of ``cfg``'s radar unit, as a chamber measurement would give it.
-
-    ``Signal[az, :, el] = conj(a(az, el))`` with ``a`` the true array response including the
-    unit's hardware errors, on the grid ``cfg.az_grid_deg x cfg.el_grid_deg``.
-    """
-    az = cfg.azimuth_table_deg
-    el = cfg.elevation_table_deg
-    resp = steering_vectors(cfg, az[:, None], el[None, :])        # (n_az, n_el, n_virtual)
-    signal = np.conj(resp).transpose(0, 2, 1).astype(np.complex64)  # (n_az, n_virtual, n_el)
-    return Calibration(signal=signal, window=_channel_taper(cfg),
-                       azimuth_deg=az.astype(np.float32), elevation_deg=el.astype(np.float32))
-
-
-def save_calibration(path: str | os.PathLike, calib: Calibration) -> None:
-    """Write ``calib`` as a plain ``.npz`` with RADIal's keys (``Signal``, ``H``, tables); atomic."""
-    save_npz_atomic(path, Signal=calib.signal, H=calib.window[None, :],
-                    Azimuth_table=calib.azimuth_deg, Elevation_table=calib.elevation_deg)
-
-
-def load_calibration(path: str | os.PathLike, *, trust_pickle: bool = False) -> Calibration:
-    """Read a calibration table.
-
-    Parameters
-    ----------
-    path : path-like
-        ``calibration.npz`` (radarpc's format, also what real RADIal tables convert to), or the
-        official pickled ``CalibrationTable.npy``.
-    trust_pickle : bool
-        The official RADIal table is a pickled dict; unpickling runs code from the file, so it
-        is refused unless you pass ``trust_pickle=True`` for a file you obtained from RADIal
-        yourself. Convert it once with :func:`save_calibration` and use the ``.npz`` after.
-
-    Raises
-    ------
-    DataFileError
-        Missing file, missing keys, or inconsistent shapes, naming the file.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise DataFileError(path, "calibration table is missing (expected calibration.npz with keys "
-                                  "Signal, H, Azimuth_table, Elevation_table)")
-    try:
-        if path.suffix == ".npy":
-            if not trust_pickle:
-                raise DataFileError(path, "is a pickled .npy calibration table; loading it runs code from "
-                                          "the file. Pass trust_pickle=True (CLI: --trust-pickle) for the "
-                                          "official RADIal CalibrationTable.npy you downloaded yourself")
-            d = np.load(path, allow_pickle=True).item()  # explicit user opt-in, see docstring
-        else:
-            with np.load(path, allow_pickle=False) as z:
-                d = {k: z[k] for k in z.files}
-    except DataFileError:
-        raise
-    except Exception as e:  # noqa: BLE001 - any decoding failure is a bad file
-        raise DataFileError(path, f"is not a readable calibration table ({e})") from e
-    missing = {"Signal", "H", "Azimuth_table", "Elevation_table"} - set(d)
-    if missing:
-        raise DataFileError(path, f"calibration table lacks keys {sorted(missing)}")
-    signal = np.asarray(d["Signal"])
-    h = np.asarray(d["H"], dtype=np.float32)
-    h = h.reshape(-1, h.shape[-1])[0] if h.ndim > 1 else h
-    try:
-        calib = Calibration(signal=signal.astype(np.complex64), window=h,
-                            azimuth_deg=np.asarray(d["Azimuth_table"], dtype=np.float32).reshape(-1),
-                            elevation_deg=np.asarray(d["Elevation_table"], dtype=np.float32).reshape(-1))
-    except ValueError as e:
-        raise DataFileError(path, str(e)) from e
-    if not np.isfinite(calib.signal).all():
-        raise DataFileError(path, "calibration Signal contains NaN or infinite values")
-    return calib

@@ -63,7 +63,7 @@ import torch
 from radarpc.sensors.radial import SPEED_OF_LIGHT, DDMARadarConfig, channel_errors
 from radarpc.sim.rd import Scatterers, adc_noise_power, window
 
-__all__ = ["synthesize_adc", "rd_from_adc", "synthesize_rd_exact", "narrowband_bins", "migration_bins"]
+__all__ = ["synthesize_ddma_adc", "rd_from_adc", "synthesize_rd_exact", "narrowband_bins", "migration_bins"]
 
 
 def narrowband_bins(cfg: DDMARadarConfig, az_deg: float, el_deg: float) -> float:
@@ -81,7 +81,7 @@ def migration_bins(cfg: DDMARadarConfig, velocity_mps: float) -> float:
     return abs(float(velocity_mps)) * cfg.n_doppler * cfg.chirp_period_s / cfg.range_res_m
 
 
-def synthesize_adc(cfg: DDMARadarConfig, scatterers: Scatterers, *, noise: bool = False,
+def synthesize_ddma_adc(cfg: DDMARadarConfig, scatterers: Scatterers, *, noise: bool = False,
                    generator: torch.Generator | None = None, narrowband: bool = False) -> torch.Tensor:
     """ADC samples of one frame, summed over Tx (what the Rx antennas receive).
 
@@ -103,7 +103,7 @@ def synthesize_adc(cfg: DDMARadarConfig, scatterers: Scatterers, *, noise: bool 
         complex128 ``(n_chirps = n_doppler, n_samples = n_range, n_rx)`` on the CPU.
     """
     if not isinstance(scatterers, Scatterers):
-        raise ValueError(f"synthesize_adc expects Scatterers, got {type(scatterers).__name__}")
+        raise ValueError(f"synthesize_ddma_adc expects Scatterers, got {type(scatterers).__name__}")
     nk, nn, ntx, nrx = cfg.n_doppler, cfg.n_range, cfg.n_tx, cfg.n_rx
     c, lam, fc, slope = SPEED_OF_LIGHT, cfg.wavelength_m, cfg.carrier_hz, cfg.chirp_slope_hz_per_s
     rng = scatterers.range_m.detach().cpu().double().numpy()
@@ -171,9 +171,9 @@ def rd_from_adc(cfg: DDMARadarConfig, adc: torch.Tensor) -> torch.Tensor:
 
 def synthesize_rd_exact(cfg: DDMARadarConfig, scatterers: Scatterers, *,
                         narrowband: bool = False) -> torch.Tensor:
-    """Noise-free RD cube by the exact ADC route: ``rd_from_adc(cfg, synthesize_adc(cfg, s))``.
+    """Noise-free RD cube by the exact ADC route: ``rd_from_adc(cfg, synthesize_ddma_adc(cfg, s))``.
 
     complex128 ``(n_range, n_doppler, n_rx)``; cost ``O(S * n_doppler * n_range * n_virtual)``,
     meant for small configs.
     """
-    return rd_from_adc(cfg, synthesize_adc(cfg, scatterers, narrowband=narrowband))
+    return rd_from_adc(cfg, synthesize_ddma_adc(cfg, scatterers, narrowband=narrowband))

@@ -9,7 +9,7 @@ One scene (:mod:`radarpc.sim.indoor`) feeds every sensor:
   noisy radar clouds). Vertical box edges are added as strong point scatterers when visible;
   optional multipath ghosts are the mirror images of the strongest scatterers across the scene's
   dominant planes (floor, a wall). Radial velocity ``v_r = (v_obj - v_sensor) . u`` (receding > 0).
-* :func:`beat_signal` / :func:`synthesize_adc` -- TDM-MIMO FMCW beat signal of all scatterers,
+* :func:`beat_signal` / :func:`synthesize_tdm_adc` -- TDM-MIMO FMCW beat signal of all scatterers,
   every Tx x Rx x chirp x sample, vectorized in torch, chunked over scatterers::
 
       s[t, r, c, k] = sum_n A_n exp(j 2 pi [ f0 tau_n(t, c) - S tau_n(t, c)^2 / 2 + S tau_n t_k ])
@@ -75,7 +75,7 @@ __all__ = [
     "radar_scatterers",
     "coupling_group_size",
     "beat_signal",
-    "synthesize_adc",
+    "synthesize_tdm_adc",
     "cascade_heatmap",
     "lidar_directions",
     "lidar_scan",
@@ -451,7 +451,7 @@ def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_l
     return out.to(torch.complex64)
 
 
-def synthesize_adc(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *,
+def synthesize_tdm_adc(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *,
                    cfg: RadarSimConfig = RadarSimConfig(), generator: torch.Generator | None = None,
                    exact: bool = False) -> torch.Tensor:
     """Single-chip ADC frame: beat signal + complex noise, rounded to int16 I/Q.
@@ -639,7 +639,7 @@ def simulate_frame(scene: Scene, t: float, *, calib: ColoRadarCalib = DEFAULT_CA
     gen.manual_seed(int(seed))
     pose_sc, vel = sensor_pose(scene, t, calib.base_to_single_chip)
     scat = radar_scatterers(scene, t, pose_sc, vel, cfg=radar, generator=gen, device=dev)
-    adc = synthesize_adc(scat, calib.single_chip, cfg=radar, generator=gen).cpu().numpy()
+    adc = synthesize_tdm_adc(scat, calib.single_chip, cfg=radar, generator=gen).cpu().numpy()
     hm = None
     if heatmap and calib.cascade is not None and calib.base_to_cascade is not None:
         sc_to_cc = calib.base_to_cascade.inverse() @ calib.base_to_single_chip

@@ -1,0 +1,160 @@
+"""OS-CFAR predictions for a ColoRadar split: tune (or reuse) the parameters, then one cloud per frame.
+
+Fills a prediction folder (:mod:`radarpc.eval.predictions` for the layout):
+
+* ``config.yaml`` -- the OS-CFAR parameters used: given (``config``), reused from the folder, or
+  tuned on ``tune_split`` by :func:`radarpc.rald.oscfar_baseline.tune_oscfar`;
+* ``tuning.json`` -- mean Chamfer distance of every candidate of the grid search (when tuned);
+* ``{run}/{frame:06d}.npy`` and ``index.json``.
+
+Ownership and resume: the folder is locked for the whole job (:func:`radarpc.runs.locked_output`;
+a second writer is refused) and temp files of a killed job are removed. ``config.yaml`` is the
+run's key: a rerun keeps it (unless a config is given or ``retune``) and keeps the frames already
+written with it; a rerun with another config rewrites every frame. Every file is written
+atomically, so an interrupted job resumes to the same files.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from radarpc.data.coloradar import ColoRadar
+from radarpc.eval.predictions import prediction_path, write_index
+from radarpc.io import atomic_write, load_array, save_npy_atomic
+from radarpc.rald.oscfar_baseline import (
+    CubeAxes,
+    OSCFARConfig,
+    TuningGrid,
+    detect_points,
+    load_config,
+    save_config,
+    tune_oscfar,
+)
+from radarpc.runs import locked_output, remove_temp_files
+
+__all__ = ["OSCFARJob", "OSCFARRun", "QUICK_GRID", "predict_oscfar"]
+
+QUICK_GRID = TuningGrid(windows=((9, 3, 3),), guards=((3, 1, 1),), ranks=(0.75,), taus_db=(4.0, 8.0, 12.0),
+                        angle_bins=(None,))
+"""A 3-candidate grid (for smoke tests)."""
+
+
+@dataclass(frozen=True)
+class OSCFARJob:
+    """What to predict and where."""
+
+    root: str | os.PathLike                 # ColoRadar root (real or simulated)
+    out: str | os.PathLike                  # prediction folder
+    split: str = "test"                     # frames to predict
+    tune_split: str = "val"                 # split whose frames tune the parameters
+    max_tune_frames: int = 32               # evenly spaced frames of the tuning split in the search
+    config: str | os.PathLike | None = None  # use this config.yaml instead of tuning
+    retune: bool = False                    # tune again even if OUT/config.yaml exists
+    quick_tune: bool = False                # search QUICK_GRID instead of the full TuningGrid()
+
+    def __post_init__(self) -> None:
+        if self.max_tune_frames < 1:
+            raise ValueError(f"--max-tune-frames must be >= 1, got {self.max_tune_frames}")
+
+
+@dataclass(frozen=True)
+class OSCFARRun:
+    """What :func:`predict_oscfar` did."""
+
+    config: OSCFARConfig
+    how: str              # "given (...)", "reused (...)" or "tuned on ... frames (mean CD ... m)"
+    n_frames: int         # frames of the split (files in the folder)
+    n_new: int            # of which computed by this job (the rest were kept from an earlier one)
+
+
+def _tuning_frames(ds: ColoRadar, max_frames: int):
+    n = len(ds)
+    picks = np.unique(np.linspace(0, n - 1, min(n, max_frames)).round().astype(int)) if n else []
+    for i in picks:
+        yield ds.cube(int(i)).intensity_db, ds.lidar_points(int(i))
+
+
+def _axes(ds: ColoRadar) -> CubeAxes:
+    cube = ds.cube(0)
+    return CubeAxes.from_radians(cube.range_m, cube.azimuth_rad, cube.elevation_rad)
+
+
+def _choose_config(job: OSCFARJob, axes: CubeAxes, cfg_path: Path, progress: bool) -> tuple[OSCFARConfig, str]:
+    if job.config is not None:
+        return load_config(job.config), f"given ({job.config})"
+    if cfg_path.is_file() and not job.retune:
+        return load_config(cfg_path), f"reused ({cfg_path})"
+    val = ColoRadar(job.root, job.tune_split, cube_size=None)
+    if len(val) == 0:
+        raise ValueError(f"tuning split {job.tune_split!r} of {job.root} has no paired frame; "
+                         "pass --tune-split with another split or --config FILE")
+    grid = QUICK_GRID if job.quick_tune else TuningGrid()
+    res = tune_oscfar(_tuning_frames(val, job.max_tune_frames), axes, grid, progress=progress)
+    table = [{"config": c.to_dict(), "chamfer_m": cd, "points_per_frame": npts} for c, cd, npts in res.table]
+    with atomic_write(Path(job.out) / "tuning.json", "w") as f:
+        json.dump({"split": job.tune_split, "frames": res.n_frames, "best": res.best.to_dict(),
+                   "best_chamfer_m": res.best_chamfer, "candidates": table}, f, indent=1)
+    return res.best, f"tuned on {res.n_frames} {job.tune_split} frames (mean CD {res.best_chamfer:.3f} m)"
+
+
+def predict_oscfar(job: OSCFARJob, *, progress: bool = True,
+                   on_config: Callable[[OSCFARConfig, str], None] | None = None) -> OSCFARRun:
+    """Run ``job`` (see the module docstring).
+
+    Parameters
+    ----------
+    job : OSCFARJob
+    progress : bool
+        tqdm bars for the tuning and the predictions.
+    on_config : callable, optional
+        Called with ``(config, how)`` once the parameters are chosen, before the predictions.
+
+    Raises
+    ------
+    ValueError
+        The split (or tuning split) has no paired radar/LiDAR frame.
+    radarpc.runs.OutputBusyError
+        Another process writes the same prediction folder.
+    PermissionError
+        The prediction folder cannot be written.
+    """
+    from tqdm import tqdm
+
+    out = Path(job.out)
+    cfg_path = out / "config.yaml"
+    ds = ColoRadar(job.root, job.split, cube_size=None)
+    if len(ds) == 0:
+        raise ValueError(f"split {job.split!r} of {job.root} has no paired radar/LiDAR frame")
+    with locked_output(out, "prediction folder"):
+        remove_temp_files(out)
+        axes = _axes(ds)
+        cfg, how = _choose_config(job, axes, cfg_path, progress)
+        same = cfg_path.is_file() and load_config(cfg_path) == cfg
+        if not same:
+            save_config(cfg_path, cfg, method="os-cfar", root=str(job.root), split=job.split,
+                        tune_split=job.tune_split, how=how)
+        if on_config is not None:
+            on_config(cfg, how)
+        index = []
+        n_new = 0
+        for i in tqdm(range(len(ds)), desc=f"OS-CFAR {job.split}", unit="frame", disable=not progress):
+            k, ri, li = ds.index[i]
+            run = ds.runs[k]
+            path = prediction_path(out, run.name, ri)
+            if same and path.is_file():
+                pts = load_array(path, shape=(None, 3))   # resume: keep a valid earlier result
+            else:
+                pts = detect_points(ds.cube(i).intensity_db, axes, cfg).cpu().numpy().astype(np.float32)
+                save_npy_atomic(path, pts)
+                n_new += 1
+            index.append({"run": run.name, "scene": run.scene, "frame": int(ri), "lidar_index": int(li),
+                          "lidar_file": str(run.lidar_path(li)), "radar_time": float(run.radar_timestamps[ri]),
+                          "lidar_time": float(run.lidar_timestamps[li]),
+                          "file": str(path.relative_to(out)), "n_points": int(pts.shape[0])})
+        write_index(out, "os-cfar", job.root, job.split, index)
+    return OSCFARRun(cfg, how, len(index), n_new)
