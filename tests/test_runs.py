@@ -144,3 +144,22 @@ def test_read_only_output_fails_before_work(tmp_path):
 def test_check_writable_accepts_new_nested_paths(tmp_path):
     check_writable(tmp_path / "a" / "b" / "c.parquet")
     check_writable(tmp_path / "new_folder")
+
+
+def test_a_run_killed_while_writing_its_manifests_resumes(tmp_path):
+    d = tmp_path / "root"
+    d.mkdir()
+    (d / ".sensor.json.x1.tmp").write_text("{")              # killed during the first manifest write
+    manifests = {"sensor.json": {"seed": 0}, "scene.json": {"n": 1}}
+    with RunFolder(d, manifests) as run:
+        assert not run.resumed                                  # nothing of the run was there
+    (d / "scene.json").unlink()                                 # killed between the two writes
+    (d / "frame_0.npy").write_bytes(b"x")
+    with RunFolder(d, manifests) as run:
+        assert run.resumed and run.done(d / "frame_0.npy")
+    (d / "sensor.json").unlink()                                # no manifest at all: not this run's
+    with pytest.raises(RunMismatchError, match="missing or unreadable"):
+        RunFolder(d, manifests).start()
+    (d / "sensor.json").write_text('{"seed": 1}')               # one present and different
+    with pytest.raises(RunMismatchError, match=r"sensor\.json:seed"):
+        RunFolder(d, manifests).start()

@@ -269,18 +269,26 @@ class RunFolder:
         return {name: read_json(self.path / name) for name in self.manifests}
 
     def differences(self) -> list[str]:
-        """Keys (``file:key``) whose stored value differs from this run's; empty when they match."""
-        out = []
+        """Keys (``file:key``) whose stored value differs from this run's; empty when they match.
+
+        A manifest missing while the others are present and match is not a difference: the run
+        that wrote them was killed between two manifest writes. Without any readable manifest
+        the folder is not this run's.
+        """
+        out, missing = [], []
         for name, stored in self.stored().items():
             want, have = self._key(self.manifests[name]), self._key(stored)
             if not isinstance(have, dict):
-                out.append(f"{name} (missing or unreadable)")
+                missing.append(f"{name} (missing or unreadable)")
                 continue
             out += [f"{name}:{k}" for k in _differing(want, have)]
-        return out
+        return out + missing if out or len(missing) == len(self.manifests) else out
 
     def is_empty(self) -> bool:
-        return not self.path.exists() or (self.path.is_dir() and not any(self.path.iterdir()))
+        """No entry in the folder (temp files of interrupted writes aside)."""
+        if not self.path.exists():
+            return True
+        return all(p.name.startswith(".") and p.name.endswith(".tmp") and p.is_file() for p in self.path.iterdir())
 
     # ---- lifecycle ------------------------------------------------------------------------------
     def start(self, *, overwrite: bool = False, resume: bool = True, write_manifests: bool = True) -> "RunFolder":
@@ -327,6 +335,7 @@ class RunFolder:
     def _start(self, overwrite: bool, resume: bool, write_manifests: bool) -> None:
         self.resumed = False
         self._started = True
+        remove_temp_files(self.path)            # a killed run's leftovers: ours, since we hold the lock
         if not self.is_empty():
             diff = self.differences()
             if diff and not overwrite:
@@ -338,7 +347,6 @@ class RunFolder:
                 self.clear()
             else:
                 self.resumed = True
-                remove_temp_files(self.path)
         self.path.mkdir(parents=True, exist_ok=True)
         if write_manifests and not self.resumed:
             for name, content in self.manifests.items():

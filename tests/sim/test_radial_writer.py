@@ -2,6 +2,9 @@
 import argparse
 import json
 import shutil
+import subprocess
+import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -11,10 +14,13 @@ import torch
 from radarpc import __version__
 from radarpc.data.radial import RADIal, load_freespace, read_labels
 from radarpc.data.radial_format import FREESPACE_SHAPE, LABEL_COLUMNS, fft_path, freespace_path
-from radarpc.sensors.radial import TINY, load_calibration, make_calibration
+from radarpc.data.radial_format import load_calibration
+from radarpc.sensors.radial import TINY
+from radarpc.sim.radial_calibration import make_calibration
 from radarpc.sim import radial_writer
 from radarpc.sim.radial_writer import RadialSimulator, SimulatedRADIal, write_radial_dataset
 from radarpc.sim.road import RoadSceneConfig
+from radarpc.runs import OutputBusyError, RunMismatchError
 
 N_SEQ, N_FR, SEED = 3, 2, 11
 
@@ -43,7 +49,7 @@ def test_layout_and_files(root):
     assert json.loads((root / "scene.json").read_text())["frame_period_s"] == RoadSceneConfig().frame_period_s
     calib = load_calibration(root / "calibration.npz")
     np.testing.assert_array_equal(calib.signal, make_calibration(TINY).signal)
-    assert not list(root.rglob("*.tmp"))
+    assert not list(root.rglob("*.tmp")) and not (root.parent / ".root.lock").exists()
 
 
 def test_labels_round_trip_through_csv(root):
@@ -67,6 +73,7 @@ def test_resume_gives_the_identical_dataset(root, tmp_path, monkeypatch):
     freespace_path(part, 4).unlink()
     (part / "labels.csv").unlink()
     (part / "radar_FFT" / ".fft_000002.npy.abc.tmp").write_bytes(b"partial")
+    (part / ".labels.csv.def.tmp").write_text("numSample")
     untouched = fft_path(part, 3).stat().st_mtime_ns
     calls = []
     real = radial_writer.synthesize_rd
@@ -74,8 +81,7 @@ def test_resume_gives_the_identical_dataset(root, tmp_path, monkeypatch):
     write_radial_dataset(part, TINY, N_SEQ, N_FR, SEED, progress=False)
     assert len(calls) == 2                                 # only frames 1 and 4 were synthesised again
     assert fft_path(part, 3).stat().st_mtime_ns == untouched
-    (part / "radar_FFT" / ".fft_000002.npy.abc.tmp").unlink()
-    assert all_files(part) == ref
+    assert all_files(part) == ref                          # the killed run's temp files are removed
 
 
 def test_refuses_a_non_empty_folder_unless_overwrite(root, tmp_path):
@@ -84,15 +90,19 @@ def test_refuses_a_non_empty_folder_unless_overwrite(root, tmp_path):
     (other / "notes.txt").write_text("mine")
     with pytest.raises(FileExistsError, match="--overwrite"):
         write_radial_dataset(other, TINY, 1, 1, 0, progress=False)
-    # a partial run of another seed is not resumed either
-    with pytest.raises(FileExistsError, match="not a partial run"):
+    before = all_files(root)
+    # a partial run of another seed is not resumed either; the message names what differs
+    with pytest.raises(RunMismatchError, match=r"sensor\.json:seed.*--overwrite"):
         write_radial_dataset(root, TINY, N_SEQ, N_FR, SEED + 1, progress=False)
     # ... nor one with another scene config
-    with pytest.raises(FileExistsError, match="--overwrite"):
+    with pytest.raises(FileExistsError, match=r"scene\.json:clutter_per_100m.*--overwrite"):
         write_radial_dataset(root, TINY, N_SEQ, N_FR, SEED, progress=False,
                              scene_config=RoadSceneConfig(clutter_per_100m=1.0))
+    assert all_files(root) == before                       # refused before anything was written
     write_radial_dataset(other, TINY, 1, 1, 0, overwrite=True, progress=False)
     assert (other / "notes.txt").read_text() == "mine" and fft_path(other, 0).is_file()
+    with pytest.raises(NotADirectoryError, match="not a folder"):
+        write_radial_dataset(other / "notes.txt", TINY, 1, 1, 0, progress=False)
 
 
 def _count_synth(monkeypatch):
@@ -143,6 +153,49 @@ def test_overwrite_starts_over_even_on_a_matching_root(root, tmp_path, monkeypat
     write_radial_dataset(again, TINY, N_SEQ, N_FR, SEED, overwrite=True, progress=False)
     assert len(calls) == N_SEQ * N_FR                      # every frame synthesised again
     assert all_files(again) == ref                         # the stale cube is gone
+
+
+# A second real process writes the same root and stalls inside the atomic write of its first
+# freespace PNG (its temp file exists), like a job killed mid-write.
+_STALLING_WRITER = textwrap.dedent("""
+    import contextlib, sys, time
+    from radarpc.sensors.radial import TINY
+    from radarpc.sim import radial_writer
+    real = radial_writer.atomic_write
+
+    @contextlib.contextmanager
+    def stalling(path, mode="wb"):
+        with real(path, mode) as f:
+            if str(path).endswith(".png"):
+                print("writing", flush=True)
+                time.sleep(120)
+            yield f
+
+    radial_writer.atomic_write = stalling
+    radial_writer.write_radial_dataset(sys.argv[1], TINY, *map(int, sys.argv[2:]), progress=False)
+""")
+
+
+def test_second_writer_is_refused_and_a_killed_run_resumes(root, tmp_path):
+    out = tmp_path / "busy"
+    child = subprocess.Popen([sys.executable, "-c", _STALLING_WRITER, str(out), str(N_SEQ), str(N_FR), str(SEED)],
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "writing"
+        assert len(list(out.rglob(".*.tmp"))) == 1
+        before = all_files(out)
+        with pytest.raises(OutputBusyError, match=rf"pid {child.pid}\) is writing the dataset root .*busy"):
+            write_radial_dataset(out, TINY, N_SEQ, N_FR, SEED, progress=False)
+        with pytest.raises(FileExistsError, match="another radarpc process"):     # with overwrite too
+            write_radial_dataset(out, TINY, N_SEQ, N_FR, SEED, overwrite=True, progress=False)
+        assert all_files(out) == before                     # the refused writers touched nothing
+    finally:
+        child.kill()
+        child.wait()
+        child.stdout.close()
+    write_radial_dataset(out, TINY, N_SEQ, N_FR, SEED, progress=False)   # the kill released the lock
+    assert not list(out.rglob("*.tmp")) and not (tmp_path / ".busy.lock").exists()
+    assert all_files(out) == all_files(root)
 
 
 def test_empty_split_of_the_on_the_fly_dataset_is_a_clear_error():

@@ -25,7 +25,8 @@ def add_parser(kinds) -> argparse.ArgumentParser:
     p.add_argument("--lidar-beams", type=int, default=64, help="LiDAR beams (default 64, OS1-64-like)")
     p.add_argument("--lidar-azimuth-steps", type=int, default=1024, help="LiDAR azimuth steps (default 1024)")
     p.add_argument("--overwrite", action="store_true",
-                   help="write into a non-empty folder that is not a matching partial run")
+                   help="replace a non-empty folder that is not a matching partial run (its "
+                        "simulation.json, calib/ and this simulation's run folders are deleted first)")
     p.add_argument("--device", default="cpu", help="synthesis device, e.g. cpu or cuda (default cpu)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

@@ -21,8 +21,11 @@ Timestamps are Unix seconds. Radar frames are ~10 Hz (with jitter); LiDAR scans 
 run-specific phase offset and start one period before the first radar frame and end one after,
 so nearest-timestamp pairing is needed; poses are 20 Hz. The cascade heatmap of frame ``i`` is
 stamped 13 ms after single-chip frame ``i`` but drawn from the same scatterers (seen from the
-cascade's mount), a simplification of the real, independently triggered sensors. Every file is written atomically;
-an interrupted job resumes (existing files of the right size are kept) when called again with
+cascade's mount), a simplification of the real, independently triggered sensors.
+
+The root is a :class:`radarpc.runs.RunFolder` keyed by ``simulation.json``: it is locked against a
+second concurrent writer; every file is written atomically; an interrupted job resumes (existing
+files of the right size are kept, temp files of the killed job removed) when called again with
 the same settings; a non-empty folder written with other settings is refused unless
 ``overwrite=True``. Each frame draws its randomness from a generator seeded by
 ``(seed, scene, run, frame, sensor)``, so resumed output is identical to an uninterrupted one.
@@ -44,9 +47,12 @@ from typing import Sequence
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from radarpc.io import atomic_write
-from radarpc.sensors.coloradar import DEFAULT_CALIB, ColoRadarCalib, write_calib
+from radarpc.runs import RunFolder
+from radarpc.data.coloradar_format import write_calib
+from radarpc.sensors.coloradar import DEFAULT_CALIB, ColoRadarCalib
 from radarpc.sim.coloradar_synth import (
     LidarConfig,
     RadarSimConfig,
@@ -54,7 +60,7 @@ from radarpc.sim.coloradar_synth import (
     lidar_scan,
     radar_scatterers,
     sensor_pose,
-    synthesize_adc,
+    synthesize_tdm_adc,
 )
 from radarpc.sim.indoor import SCENE_KINDS, Scene, make_scene
 
@@ -111,17 +117,21 @@ def _write_lines(path: Path, lines: Sequence[str]) -> None:
         f.write("\n".join(lines) + "\n")
 
 
-def _done(path: Path, nbytes: int | None, resume: bool) -> bool:
-    if not resume or not path.is_file():
-        return False
-    return nbytes is None or path.stat().st_size == nbytes
+def _done(run: RunFolder | None, path: Path, nbytes: int) -> bool:
+    # a part of a resumed run is kept when it has its full size: files are written atomically, so
+    # a wrong size means a file damaged afterwards (or of another layout), which is redone
+    return run is not None and run.done(path, check=lambda p: p.stat().st_size == nbytes)
 
 
 def write_run(run_dir: str | os.PathLike, scene: Scene, frames: int, *, seed: int, key: tuple,
               calib: ColoRadarCalib = DEFAULT_CALIB, radar: RadarSimConfig = RadarSimConfig(),
-              lidar: LidarConfig = LidarConfig(), resume: bool = True,
+              lidar: LidarConfig = LidarConfig(), run: RunFolder | None = None,
               device: torch.device | str | None = None, progress=None) -> None:
-    """Write one run folder (see the module docstring). ``progress``: a tqdm bar or None."""
+    """Write one run folder (see the module docstring).
+
+    ``run``: the started dataset root ``run_dir`` is in, whose finished files are kept (None
+    writes every file). ``progress``: a tqdm bar or None.
+    """
     run_dir = Path(run_dir)
     rng = np.random.default_rng(zlib.crc32(json.dumps([int(seed), *key, "timeline"]).encode()))
     # slow the rig down if the path is too short for the requested number of frames
@@ -151,15 +161,15 @@ def write_run(run_dir: str | os.PathLike, scene: Scene, frames: int, *, seed: in
     hm_dir = run_dir / "cascade" / "heatmaps" / "data"
     for i, t in enumerate(times["radar"]):
         f_adc, f_hm = adc_dir / f"frame_{i}.bin", hm_dir / f"heatmap_{i}.bin"
-        need_adc = not _done(f_adc, calib.single_chip.adc_nbytes, resume)
-        need_hm = has_cc and not _done(f_hm, calib.cascade.heatmap_nbytes if has_cc else None, resume)
+        need_adc = not _done(run, f_adc, calib.single_chip.adc_nbytes)
+        need_hm = has_cc and not _done(run, f_hm, calib.cascade.heatmap_nbytes)
         if need_adc or need_hm:
             dev = torch.device(device) if device is not None else torch.device("cpu")
             gen = _to_device(frame_generator(seed, *key, i, "radar"), dev)
             pose, vel = sensor_pose(scene, float(t), calib.base_to_single_chip)
             scat = radar_scatterers(scene, float(t), pose, vel, cfg=radar, generator=gen, device=dev)
             if need_adc:
-                adc = synthesize_adc(scat, calib.single_chip, cfg=radar,
+                adc = synthesize_tdm_adc(scat, calib.single_chip, cfg=radar,
                                      generator=_to_device(frame_generator(seed, *key, i, "adc"), scat.points.device))
                 _write_bin(f_adc, adc.cpu().numpy())
             if need_hm:
@@ -171,7 +181,7 @@ def write_run(run_dir: str | os.PathLike, scene: Scene, frames: int, *, seed: in
     n_l = lidar.beams * lidar.azimuth_steps * 16
     for j, t in enumerate(times["lidar"]):
         f_l = run_dir / "lidar" / "pointclouds" / f"lidar_pointcloud_{j}.bin"
-        if not _done(f_l, n_l, resume):
+        if not _done(run, f_l, n_l):
             pose, _ = sensor_pose(scene, float(t), calib.base_to_lidar)
             dev = torch.device(device) if device is not None else torch.device("cpu")
             cloud = lidar_scan(scene, float(t), pose, cfg=lidar,
@@ -208,7 +218,9 @@ def write_coloradar(out: str | os.PathLike, scenes: Sequence[str], runs_per_scen
         Master seed; run ``k`` of scene kind ``s`` is ``make_scene(s, seed, k)``: its own layout,
         path and people (held-out layouts under the run-level splits).
     overwrite : bool
-        Allow writing into a non-empty folder made with other settings (files are rewritten).
+        Replace a non-empty folder made with other settings: its ``simulation.json``, ``calib/``
+        and the run folders of this simulation are deleted first (other entries stay). A partial
+        run with the same settings is resumed either way.
     lidar_beams, lidar_azimuth_steps : int
         LiDAR pattern (OS1-64: 64 x 1024).
     device : torch device, optional
@@ -220,6 +232,14 @@ def write_coloradar(out: str | os.PathLike, scenes: Sequence[str], runs_per_scen
     -------
     pathlib.Path
         ``out``.
+
+    Raises
+    ------
+    radarpc.runs.RunMismatchError
+        (a ``FileExistsError``) ``out`` is not empty and was not written with these settings,
+        without ``overwrite``.
+    radarpc.runs.OutputBusyError
+        (a ``FileExistsError``) another process is writing ``out``.
     """
     scenes = list(scenes)
     bad = [s for s in scenes if s not in SCENE_KINDS]
@@ -236,37 +256,17 @@ def write_coloradar(out: str | os.PathLike, scenes: Sequence[str], runs_per_scen
                 "seed": int(seed), "lidar": dataclasses.asdict(lidar), "radar": dataclasses.asdict(radar),
                 "single_chip": calib.single_chip.name,
                 "cascade": calib.cascade.name if calib.cascade is not None else None}
-    settings = json.loads(json.dumps(settings))
-    manifest = out / "simulation.json"
-    resume = True
-    if out.exists() and any(out.iterdir()):
-        same = False
-        if manifest.is_file():
-            try:
-                same = json.loads(manifest.read_text()) == settings
-            except (ValueError, OSError):
-                same = False
-        if not same:
-            if not overwrite:
-                raise FileExistsError(f"{out} is not empty and was not written with these settings; "
-                                      "pass overwrite=True (--overwrite) to write into it")
-            resume = False
-    with atomic_write(manifest, "w") as f:
-        json.dump(settings, f, indent=1)
-    write_calib(out / "calib", calib)
+    owned = [run_name(kind, k) for kind in scenes for k in range(runs_per_scene)] + ["calib"]
+    folder = RunFolder(out, {"simulation.json": settings}, what="dataset root", indent=1, owned=owned)
     total = len(scenes) * runs_per_scene * (2 * frames + 2)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=total, desc="simulate coloradar", unit="file")
-    try:
+    with folder.start(overwrite=overwrite, write_manifests=False), \
+            tqdm(total=total, desc="simulate coloradar", unit="file", disable=not progress) as bar:
+        folder.write_manifest("simulation.json", settings)    # on resume too, as a fresh run writes it
+        write_calib(out / "calib", calib)
         for kind in scenes:
             for k in range(runs_per_scene):
                 scene = make_scene(kind, seed, k)
                 write_run(out / run_name(kind, k), scene, frames, seed=seed, key=(kind, k), calib=calib,
-                          radar=radar, lidar=lidar, resume=resume, device=device, progress=bar)
-    finally:
-        if bar is not None:
-            bar.close()
+                          radar=radar, lidar=lidar, run=folder, device=device, progress=bar)
     return out
 

@@ -18,9 +18,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import io
-import json
 import os
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
@@ -32,7 +30,7 @@ from tqdm import tqdm
 
 from radarpc import __version__
 from radarpc.data.radial import (
-    SPLITS,
+    SPLIT_CHOICES,
     LabelTable,
     RadialFrames,
     check_cube,
@@ -40,9 +38,11 @@ from radarpc.data.radial import (
     load_rd,
     select_frames,
 )
-from radarpc.data.radial_format import LABEL_COLUMNS, fft_path, freespace_path
+from radarpc.data.radial_format import LABEL_COLUMNS, fft_path, freespace_path, save_calibration
 from radarpc.io import DataFileError, atomic_write, save_npy_atomic
-from radarpc.sensors.radial import Calibration, DDMARadarConfig, make_calibration, save_calibration
+from radarpc.runs import RunFolder
+from radarpc.sensors.radial import Calibration, DDMARadarConfig
+from radarpc.sim.radial_calibration import make_calibration
 from radarpc.sim.radial_labels import frame_label_rows, freespace_mask
 from radarpc.sim.rd import synthesize_rd
 from radarpc.sim.road import RoadFrame, RoadScene, RoadSceneConfig
@@ -214,24 +214,8 @@ def _png_complete(path: Path) -> bool:
     return True
 
 
+# what the writer owns in the root: ``overwrite`` deletes these (and only these)
 _OUTPUTS = ("radar_FFT", "radar_Freespace", "labels.csv", "calibration.npz", "sensor.json", "scene.json")
-
-
-_NOT_RESUME_KEYS = ("radarpc_version",)  # sensor.json keys that do not identify the run's frames
-
-
-def _read_json(path: Path):
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return None
-
-
-def _resume_key(d) -> dict | None:
-    """``sensor.json`` content without the keys that do not change the frames."""
-    if not isinstance(d, dict):
-        return None
-    return {k: v for k, v in d.items() if k not in _NOT_RESUME_KEYS}
 
 
 def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequences: int,
@@ -239,6 +223,10 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
                          progress: bool = True, device: torch.device | str | None = None,
                          scene_config: RoadSceneConfig | None = None) -> Path:
     """Write a simulated RADIal root (resumable, atomic per file).
+
+    The root is a :class:`radarpc.runs.RunFolder` keyed by ``sensor.json`` and ``scene.json``:
+    it is locked against a second concurrent writer, and the temp files a killed run left are
+    removed when a rerun takes it.
 
     Parameters
     ----------
@@ -267,54 +255,42 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
 
     Raises
     ------
-    FileExistsError
-        ``out`` is not empty and is not a matching partial run, without ``overwrite``.
+    radarpc.runs.RunMismatchError
+        (a ``FileExistsError``) ``out`` is not empty and is not a matching partial run, without
+        ``overwrite``.
+    radarpc.runs.OutputBusyError
+        (a ``FileExistsError``) another process is writing ``out``.
+    NotADirectoryError
+        ``out`` is a file.
     """
     sim = RadialSimulator(cfg, n_sequences, frames_per_sequence, seed, scene_config=scene_config,
                           device=device)
-    root = Path(out)
-    if root.exists() and not root.is_dir():
-        raise FileExistsError(f"{root} exists and is not a folder")
     meta = _sensor_json(cfg, seed, n_sequences, frames_per_sequence)
-    scene_meta = dataclasses.asdict(sim.scene_config)
-    sensor_path, scene_path = root / "sensor.json", root / "scene.json"
-    if root.is_dir() and any(root.iterdir()):
-        matching = (_resume_key(_read_json(sensor_path)) == _resume_key(json.loads(json.dumps(meta)))
-                    and _read_json(scene_path) == json.loads(json.dumps(scene_meta)))
-        if not matching and not overwrite:
-            raise FileExistsError(
-                f"{root} is not empty and is not a partial run of this simulation (sensor "
-                f"{cfg.name!r}, seed {seed}, {n_sequences} x {frames_per_sequence} frames); "
-                "pass --overwrite (overwrite=True) to replace it")
-        if overwrite:
-            for name in _OUTPUTS:
-                p = root / name
-                if p.is_dir():
-                    shutil.rmtree(p)
-                elif p.exists():
-                    p.unlink()
-    root.mkdir(parents=True, exist_ok=True)
-    with atomic_write(sensor_path, "w") as f:
-        json.dump(meta, f, indent=2)
-    with atomic_write(scene_path, "w") as f:
-        json.dump(scene_meta, f, indent=2)
-    save_calibration(root / "calibration.npz", make_calibration(cfg))
-
-    rows: list[tuple] = []
-    with tqdm(total=sim.n_frames, desc=f"simulate {cfg.name}", unit="frame", disable=not progress) as bar:
-        for q in range(sim.n_sequences):
-            for i in range(sim.frames_per_sequence):
-                num = q * sim.frames_per_sequence + i
-                fr, frame_rows, fs = sim.geometry(q, i)
-                rows.extend(frame_rows)
-                fpath, ppath = fft_path(root, num), freespace_path(root, num)
-                if not (_fft_complete(fpath, cfg) and _png_complete(ppath)):
-                    save_npy_atomic(fpath, sim.rd(q, i, fr).cpu().numpy())
-                    with atomic_write(ppath, "wb") as f:
-                        f.write(_png_bytes(fs))
-                bar.update(1)
-    with atomic_write(root / "labels.csv", "w") as f:
-        f.write(_labels_csv(rows))
+    # the package version is recorded but does not change the frames: it does not block a resume
+    manifests = {"sensor.json": meta, "scene.json": dataclasses.asdict(sim.scene_config)}
+    run = RunFolder(out, manifests, what="dataset root", ignore_keys=("radarpc_version",), indent=2,
+                    owned=_OUTPUTS)
+    with run.start(overwrite=overwrite, resume=not overwrite, write_manifests=False):
+        root = run.path
+        for name, content in manifests.items():      # on resume too: a root names the version that completed it
+            run.write_manifest(name, content)
+        save_calibration(root / "calibration.npz", make_calibration(cfg))
+        rows: list[tuple] = []
+        with tqdm(total=sim.n_frames, desc=f"simulate {cfg.name}", unit="frame", disable=not progress) as bar:
+            for q in range(sim.n_sequences):
+                for i in range(sim.frames_per_sequence):
+                    num = q * sim.frames_per_sequence + i
+                    fr, frame_rows, fs = sim.geometry(q, i)
+                    rows.extend(frame_rows)
+                    fpath, ppath = fft_path(root, num), freespace_path(root, num)
+                    if not (run.done(fpath, check=lambda p: _fft_complete(p, cfg))
+                            and run.done(ppath, check=_png_complete)):
+                        save_npy_atomic(fpath, sim.rd(q, i, fr).cpu().numpy())
+                        with atomic_write(ppath, "wb") as f:
+                            f.write(_png_bytes(fs))
+                    bar.update(1)
+        with atomic_write(root / "labels.csv", "w") as f:
+            f.write(_labels_csv(rows))
     return root
 
 
@@ -357,8 +333,8 @@ class SimulatedRADIal(RadialFrames):
                  skip: Iterable[int] | str | os.PathLike | None = None,
                  random_split: tuple[float, float, float] | None = None,
                  split_seed: int = 0) -> None:
-        if split not in SPLITS:
-            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+        if split not in SPLIT_CHOICES:
+            raise ValueError(f"split must be one of {SPLIT_CHOICES}, got {split!r}")
         self.sim = RadialSimulator(cfg, n_sequences, frames_per_sequence, seed,
                                    scene_config=scene_config, device=device)
         self.split = split
