@@ -219,7 +219,8 @@ class RunFolder:
         The folder (created on :meth:`start`).
     manifests : mapping of str to dict
         Files in the folder that record the run's key, ``{file name: JSON-able dict}``; written
-        at start, compared on rerun. Usually one (``{"run.json": config.to_dict()}``); a dataset
+        at start, compared on rerun. A stored manifest may hold more keys than the key (records
+        the job adds as it goes, with :meth:`write_manifest`): only the key's keys are compared. Usually one (``{"run.json": config.to_dict()}``); a dataset
         layout with its own description files passes those (e.g. ``sensor.json``).
     what : str
         What the folder is, for messages.
@@ -281,7 +282,9 @@ class RunFolder:
             if not isinstance(have, dict):
                 missing.append(f"{name} (missing or unreadable)")
                 continue
-            out += [f"{name}:{k}" for k in _differing(want, have)]
+            # the stored manifest may also hold records of the run (progress, calibrated values):
+            # only this run's key is compared
+            out += [f"{name}:{k}" for k in _differing(want, {k: have.get(k) for k in want})]
         return out + missing if out or len(missing) == len(self.manifests) else out
 
     def is_empty(self) -> bool:
@@ -358,7 +361,9 @@ class RunFolder:
 
         if name not in self.manifests:
             raise ValueError(f"{name} is not a manifest of {self.path}")
-        if self._key(_canonical(dict(content))) != self._key(self.manifests[name]):
+        want = self._key(self.manifests[name])
+        have = _canonical(dict(content))
+        if {k: have.get(k) for k in want} != want:
             raise ValueError(f"manifest {name} of {self.path} would not match this run's key")
         with atomic_write(self.path / name, "w") as f:
             json.dump(dict(content), f, indent=self.indent)

@@ -14,8 +14,11 @@ from PIL import Image
 
 from radarpc.cli import info
 from radarpc.data.radial_format import LABEL_COLUMNS, fft_path, freespace_path, simulated_sequence_name
+from radarpc.data.summary import summarize_radial
 from radarpc.io import DataFileError
-from radarpc.sensors.radial import TINY, make_calibration, save_calibration
+from radarpc.data.radial_format import save_calibration
+from radarpc.sensors.radial import TINY
+from radarpc.sim.radial_calibration import make_calibration
 
 
 def write_root(root: Path) -> Path:
@@ -100,7 +103,7 @@ def test_empty_split_warning(tmp_path: Path, capsys: pytest.CaptureFixture) -> N
 
 
 def test_summary_object(root: Path) -> None:
-    s = info.summarize_radial(root)
+    s = summarize_radial(root)
     assert s.simulated and s.n_frames == 8 and s.n_vehicles == 8 and s.n_empty_frames == 4
     assert s.split_frames == {"train": 4, "val": 2, "test": 2}
     assert s.split_sequences == {"train": 2, "val": 1, "test": 1}
@@ -180,3 +183,42 @@ def test_through_radarpc_main(tmp_path: Path, capsys: pytest.CaptureFixture,
     # a folder that is neither layout: one clear line on stderr, exit code 2
     assert main(["info", str(tmp_path)]) == 2
     assert "neither a RADIal root" in capsys.readouterr().err
+
+
+def test_coloradar_info_and_check(tmp_path: Path, capsys: pytest.CaptureFixture,
+                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    import dataclasses
+
+    from radarpc.data.summary import open_coloradar_runs, summarize_coloradar
+    from radarpc.sensors.coloradar import DEFAULT_CALIB
+    from radarpc.sim.coloradar_synth import RadarSimConfig
+    from radarpc.sim.coloradar_writer import write_coloradar
+
+    calib = dataclasses.replace(DEFAULT_CALIB, cascade=None, base_to_cascade=None)
+    radar = RadarSimConfig(az_step_deg=6.0, el_step_deg=8.0, edges=False, multipath=False, max_scatterers=200)
+    root = write_coloradar(tmp_path / "colo", ["hallway"], 3, 2, 0, lidar_beams=8, lidar_azimuth_steps=64,
+                           calib=calib, radar=radar, progress=False)
+    monkeypatch.chdir(tmp_path)
+    assert run([str(root), "--check"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    s = summarize_coloradar(root, *open_coloradar_runs(root))
+    assert out[0] == f"ColoRadar root {root} (simulated)" and out[1].startswith("single chip: ADC ")
+    assert out[2].startswith("run ") and "pts/scan" in out[2]             # no cascade line
+    for line, r in zip(out[3:6], s.runs):
+        assert line.split() == [r.name, r.scene, r.split, str(r.radar_frames), "0", str(r.lidar_scans),
+                                str(r.pairs), f"{r.duration_s:.1f}", f"{r.lidar_points[0]:.0f}",
+                                f"{r.lidar_points[1]:.0f}"]
+    assert out[6:10] == ["scenes:      1 (hallway)", "train:       1 runs, 2 paired frames",
+                         "val:         1 runs, 2 paired frames", "test:        1 runs, 2 paired frames"]
+    assert out[10] == (f"LiDAR:       {s.lidar_points[0]:.0f} points per scan, {s.lidar_points[1]:.0f} inside "
+                       f"the radar frustum (mean of sampled scans)")
+    assert out[11] == f"plot:        {tmp_path / 'info_colo.png'}" and (tmp_path / "info_colo.png").is_file()
+    n_files = sum(r.radar_frames + r.lidar_scans for r in s.runs)
+    assert out[12:] == [f"check:       {n_files} files, 0 bad"]
+    p = root / s.runs[0].name / "lidar" / "pointclouds" / "lidar_pointcloud_0.bin"
+    p.write_bytes(p.read_bytes()[:-32])
+    skip = tmp_path / "bad.txt"
+    assert run([str(root), "--write-skip", str(skip), "--no-plot"]) == 1
+    text = capsys.readouterr().out
+    assert f"check:       {n_files} files, 1 bad" in text and "lidar_pointcloud_0.bin" in skip.read_text()
+    assert f"skip list:   1 file(s) written to {skip}" in text and "plot:" not in text

@@ -416,8 +416,7 @@ def _convert_locked(ds: Any, source_id: str, out: Path, settings: ConvertSetting
                                  m.peak_density, m.tau, 0, -(-n // chunk), chunk)
 
     # The manifest fixes the settings, the frames, the chunk size, the calibrated tau and the date.
-    parts = RunFolder(pdir, {_MANIFEST: {"key": key}}, what="conversion parts folder",
-                      ignore_keys=("tau", "meta", "chunk_frames"), indent=None, lock=lock)
+    parts = RunFolder(pdir, {_MANIFEST: {"key": key}}, what="conversion parts folder", indent=None, lock=lock)
     if env.rank == 0:
         # a merge killed half-way leaves its temp file beside the store: ours, since we hold the lock
         for tmp in out.parent.glob(f".{out.name}.*.tmp"):

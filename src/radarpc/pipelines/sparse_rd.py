@@ -5,7 +5,8 @@
 :func:`radarpc.pipelines.pointclouds.convert_dataset`) as a new RADIal-layout root (labels,
 freespace, calibration and sensor description linked or copied) that the unchanged
 :class:`~radarpc.data.radial.RADIal` reader and the dense FFTRadNet read: the sparse-RD baseline.
-The root is locked for the run (:class:`radarpc.runs.OutputLock`) and resumes frame by frame.
+The root is a :class:`radarpc.runs.RunFolder` (locked for the run, ``sparse_rd.json`` its manifest)
+and resumes frame by frame.
 """
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ from radarpc.io import DataFileError, atomic_write, save_npy_atomic
 from radarpc.pipelines.pointclouds import (ConvertSettings, build_point_cloud, calibrate_tau,
                                            calibration_source_of, check_dsp_settings)
 from radarpc.pipelines.sources import Source, batched, open_source, prefetched, source_fingerprint
-from radarpc.runs import OutputLock, check_writable, remove_temp_files
+from radarpc.runs import OutputLock, RunFolder, RunMismatchError, check_writable, read_json
 
 __all__ = ["SparseRDResult", "write_sparse_rd"]
 
@@ -165,13 +166,14 @@ def write_sparse_rd(
     if out_root.exists() and not out_root.is_dir():
         raise NotADirectoryError(f"the sparse-RD root {out_root} exists and is not a folder")
     check_writable(out_root, "sparse-RD root")
-    with OutputLock(out_root, "sparse-RD root"):
-        return _write_locked(ds, source_id, out_root, settings, root, dev, cal_src, cal_id, batch_size=int(batch_size),
-                             calibrated_tau=calibrated_tau, resume=resume, progress=progress)
+    with OutputLock(out_root, "sparse-RD root") as lock:
+        return _write_locked(ds, source_id, out_root, settings, root, dev, cal_src, cal_id, lock,
+                             batch_size=int(batch_size), calibrated_tau=calibrated_tau, resume=resume,
+                             progress=progress)
 
 
 def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSettings, root: Path | None,
-                  dev: torch.device, cal_src: Any, cal_id: str | None, *, batch_size: int,
+                  dev: torch.device, cal_src: Any, cal_id: str | None, lock: OutputLock, *, batch_size: int,
                   calibrated_tau: float | None, resume: bool, progress: bool) -> SparseRDResult:
     info_path = out_root / "sparse_rd.json"
     if out_root.is_dir() and not info_path.is_file() and any(out_root.iterdir()):
@@ -179,15 +181,16 @@ def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSett
                               f"refusing to write masked cubes into it; choose a new or empty folder")
     key = {"source_root": source_id, "settings": settings.output_key(), "source_files": source_fingerprint(ds),
            "calibration_source": cal_id}
-    prev = None
-    if resume and info_path.is_file():
-        try:
-            prev = json.loads(info_path.read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as e:
-            raise DataFileError(info_path, f"is unreadable ({e}); delete it or pass resume=False") from e
-        if {k: prev.get(k) for k in key} != key:
-            raise ValueError(f"{out_root} holds a sparse-RD root made from other data or settings (see "
-                             f"{info_path}); write to another folder or pass resume=False (CLI: --no-resume)")
+    if resume and info_path.is_file() and not isinstance(read_json(info_path), dict):
+        raise DataFileError(info_path, "is unreadable; delete it or pass resume=False")
+    # sparse_rd.json is the run's manifest: the key, then the records of every frame written
+    run = RunFolder(out_root, {info_path.name: key}, what="sparse-RD root", indent=1, lock=lock)
+    try:
+        run.start(overwrite=not resume, resume=resume, write_manifests=False)
+    except RunMismatchError:
+        raise ValueError(f"{out_root} holds a sparse-RD root made from other data or settings (see "
+                         f"{info_path}); write to another folder or pass resume=False (CLI: --no-resume)") from None
+    prev = read_json(info_path) if run.resumed else None
     cal_tau = settings.tau
     if settings.mode == "per-dataset":
         if prev is not None:
@@ -201,13 +204,10 @@ def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSett
                              f"sparse root {out_root}; pass resume=False to rewrite it")
     spc = build_point_cloud(ds, settings, cal_tau, dev)
 
-    out_root.mkdir(parents=True, exist_ok=True)
-    remove_temp_files(out_root)                     # of a killed earlier run (we hold the lock)
     frames: dict[str, dict] = dict(prev.get("frames") or {}) if prev is not None else {}
     info = dict(key, tau=cal_tau, mode=settings.mode, radarpc_version=__version__, complete=False,
                 frames=frames)
-    with atomic_write(info_path, "w") as f:
-        json.dump(info, f, indent=1)
+    run.write_manifest(info_path.name, info)
     if root is not None:
         for name in ("calibration.npz", "CalibrationTable.npy", "sensor.json"):
             if (root / name).is_file():
@@ -245,8 +245,7 @@ def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSett
                 frames[str(num)] = {"tau": float(enc.tau[b]), "density": float(dens[b]),
                                     "peak_density": float(peak[b])}
                 written.append(float(dens[b]))
-            with atomic_write(info_path, "w") as f:                      # the records so far (resume)
-                json.dump(info, f, indent=1)
+            run.write_manifest(info_path.name, info)                         # the records so far (resume)
     has_freespace = root is not None or callable(getattr(ds, "freespace_mask", None))
     for i, num in enumerate(ds.frame_ids):
         dst = freespace_path(out_root, num)
@@ -260,8 +259,7 @@ def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSett
                 mean_density_last_run=float(np.mean(written)) if written else None,
                 mean_density=float(np.mean([r["density"] for r in recorded])) if recorded else None,
                 freespace=has_freespace)
-    with atomic_write(info_path, "w") as f:
-        json.dump(info, f, indent=1)
+    run.write_manifest(info_path.name, info)
     return SparseRDResult(out_root, len(ds), len(todo), float(np.mean(written)) if written else float("nan"),
                           cal_tau, frame_tau={int(k): v["tau"] for k, v in frames.items()},
                           frame_density={int(k): v["density"] for k, v in frames.items()})
