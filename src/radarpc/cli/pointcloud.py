@@ -24,9 +24,9 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from dataclasses import dataclass
 
 from radarpc.dsp.cfar import check_tau
+from radarpc.dsp.pointcloud import CFAR_PRESETS, SpectralPointCloudConfig
 from radarpc.distributed import DEFAULT_WAIT_S, dist_env
 from radarpc.pipelines.pointclouds import ConvertSettings, convert_dataset
 from radarpc.pipelines.sparse_rd import write_sparse_rd
@@ -35,22 +35,7 @@ from radarpc.dsp.ddma import ENVELOPES
 from radarpc.dsp.density import check_density_value
 
 __all__ = ["add_parser", "run", "parse_pair", "parse_enrich", "add_density_args", "check_density_args",
-           "CFARChoice", "CFAR_PRESETS", "resolve_cfar_args"]
-
-
-@dataclass(frozen=True)
-class CFARChoice:
-    """CFAR geometry and envelope of a command line (a preset, explicit flags, or the defaults)."""
-
-    window: tuple[int, int] = (9, 9)        # full odd sizes (range, Doppler)
-    guard: tuple[int, int] = (3, 3)
-    envelope: str = "replicas"
-
-
-CFAR_PRESETS: dict[str, CFARChoice] = {
-    # RADIal rpl.py: win_param (9, 9, 3, 3) are half widths; its envelope sums every slot
-    "radial": CFARChoice(window=(19, 19), guard=(7, 7), envelope="all-slots"),
-}
+           "resolve_cfar_args"]
 
 
 def parse_pair(text: str) -> tuple[int, int]:
@@ -114,18 +99,21 @@ def add_density_args(p: argparse.ArgumentParser):
     return g
 
 
-def resolve_cfar_args(args: argparse.Namespace) -> CFARChoice:
-    """``--cfar`` preset, overridden by nothing: explicit ``--window/--guard/--envelope`` that
-    contradict the preset are an error; without a preset the explicit values or the defaults."""
-    base = CFAR_PRESETS[args.cfar] if getattr(args, "cfar", None) is not None else CFARChoice()
+def resolve_cfar_args(args: argparse.Namespace) -> dict:
+    """``window``, ``guard`` and ``envelope`` of the point-cloud config from the command line: the
+    ``--cfar`` preset (:data:`radarpc.dsp.pointcloud.CFAR_PRESETS`), which explicit
+    ``--window/--guard/--envelope`` must not contradict; without a preset the explicit values or
+    the config's defaults."""
+    defaults = SpectralPointCloudConfig()
+    preset = getattr(args, "cfar", None)
+    base = CFAR_PRESETS[preset] if preset is not None else {k: getattr(defaults, k) for k in ("window", "guard", "envelope")}
     explicit = {k: getattr(args, k, None) for k in ("window", "guard", "envelope")}
-    if getattr(args, "cfar", None) is not None:
-        clash = [f"--{k} {v}" for k, v in explicit.items() if v is not None and v != getattr(base, k)]
+    if preset is not None:
+        clash = [f"--{k} {v}" for k, v in explicit.items() if v is not None and v != base[k]]
         if clash:
-            raise ValueError(f"--cfar {args.cfar} sets window {base.window}, guard {base.guard}, envelope "
-                             f"{base.envelope!r}; it contradicts {', '.join(clash)}")
-    return CFARChoice(window=tuple(explicit["window"] or base.window), guard=tuple(explicit["guard"] or base.guard),
-                      envelope=explicit["envelope"] or base.envelope)
+            raise ValueError(f"--cfar {preset} sets window {base['window']}, guard {base['guard']}, envelope "
+                             f"{base['envelope']!r}; it contradicts {', '.join(clash)}")
+    return {k: explicit[k] or base[k] for k in base}
 
 
 def check_density_args(args: argparse.Namespace) -> None:
@@ -170,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
     enrich = parse_enrich(args.enrich)
     # One config, validated once, passed whole to both writers.
     settings = ConvertSettings(tau=args.snr, density=args.density, density_mode=args.density_mode,
-                               window=cfar.window, guard=cfar.guard, envelope=cfar.envelope, enrich=enrich,
+                               enrich=enrich, **cfar,
                                split=args.split, chunk_frames=args.chunk_frames,
                                calibration_frames=args.calibration_frames, beamforming=args.beamforming)
     run_args = dict(batch_size=args.batch_size, device=args.device, resume=not args.no_resume,

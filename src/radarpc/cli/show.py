@@ -31,8 +31,7 @@ def run(args: argparse.Namespace) -> int:
     if args.store is None:
         cfar = resolve_cfar_args(args)
         settings = ConvertSettings(tau=args.snr, density=args.density, density_mode=args.density_mode,
-                                   enrich=parse_enrich(args.enrich), window=cfar.window, guard=cfar.guard,
-                                   envelope=cfar.envelope)
+                                   enrich=parse_enrich(args.enrich), **cfar)
     out = args.out if args.out is not None else f"frame{args.frame}.png"
     res = plot_frame(args.root, args.frame, out, settings, store=args.store, color_by=args.color,
                      device=args.device if args.device is not None else "cpu")

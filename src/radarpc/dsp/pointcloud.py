@@ -48,6 +48,7 @@ from radarpc.points import PointCloudBatch, offset2batch
 from radarpc.sensors.radial import Calibration, DDMARadarConfig
 
 __all__ = [
+    "CFAR_PRESETS",
     "SpectralPointCloudConfig",
     "EncodedSet",
     "SpectralPointCloud",
@@ -57,6 +58,13 @@ __all__ = [
 _RD = re.compile(r"rd(\d+)")
 _PATCH = re.compile(r"patch(\d+)")
 _SECTOR = re.compile(r"sector(\d+)(?:x(\d+))?")
+
+
+CFAR_PRESETS: dict[str, dict] = {
+    # RADIal rpl.py: its win_param (9, 9, 3, 3) are half widths, and its envelope sums every slot
+    "radial": {"window": (19, 19), "guard": (7, 7), "envelope": "all-slots"},
+}
+"""Named CFAR geometries and envelopes (fields of :class:`SpectralPointCloudConfig`)."""
 
 
 @dataclass(frozen=True)
