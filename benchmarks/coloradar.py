@@ -11,7 +11,7 @@ Usage::
   prediction against the ``--emd-points`` ground-truth subset (the OS-CFAR case).
 * ``chamfer_batch_s`` / ``emd_batch_s``: the batched API (:func:`chamfer_distance_batch`,
   :func:`earth_movers_distance_batch`) on ``--batch`` pairs in a pool of ``--threads`` threads.
-* ``frustum_*``: voxelizing one cloud into RaLD's 316 x 720 x 80 grid and drawing 10,000 queries.
+* ``frustum_*``: voxelizing one cloud into RaLD's 318 x 720 x 80 grid (``RALD_GRID``) and drawing 10,000 queries.
 * ``sim_frames_per_s``: frames written per second by
   :func:`radarpc.sim.coloradar_writer.write_coloradar` (one scene, one run, ``--frames`` frames,
   including LiDAR ray casting and file writing), measured after one warm-up call.

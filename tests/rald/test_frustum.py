@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 import torch
 
+from radarpc.data.coloradar import frustum_mask
 from radarpc.rald.frustum import (
+    RALD_CELL,
     RALD_GRID,
     FrustumGrid,
     OccupancyGrid,
@@ -23,6 +25,7 @@ from radarpc.rald.frustum import (
     voxelize,
     voxelize_batch,
 )
+from radarpc.sensors.coloradar import AWR1843_FOV, RadarFOV
 
 SMALL = FrustumGrid(range_m=(0.0, 2.0), azimuth_deg=(-30.0, 30.0), elevation_deg=(-10.0, 10.0),
                     cell=(0.25, 5.0, 4.0))   # 8 x 12 x 5 cells
@@ -38,9 +41,66 @@ def _cloud_in(grid: FrustumGrid, n: int, seed: int) -> torch.Tensor:
 
 
 def test_default_grid_is_ralds():
-    assert RALD_GRID.shape == (316, 720, 80)
-    assert RALD_GRID.lo == (0.0, -90.0, -20.0) and RALD_GRID.hi == (15.8, 90.0, 20.0)
+    # RaLD's cells (0.05 m, 0.25 deg, 0.5 deg) over the AWR1843 FOV: ceil(15.863 / 0.05) = 318 range cells
+    assert RALD_CELL == (0.05, 0.25, 0.5) and RALD_GRID.cell == RALD_CELL
+    assert RALD_GRID == FrustumGrid.from_fov(AWR1843_FOV, RALD_CELL)
+    assert RALD_GRID.shape == (318, 720, 80)
+    assert RALD_GRID.lo == (0.0, -90.0, -20.0) and RALD_GRID.hi == (15.9, 90.0, 20.0)
     assert SMALL.shape == (8, 12, 5)
+
+
+def test_from_fov_covers_the_fov_with_whole_cells():
+    # hand-worked: 1.01 m at 0.25 m -> 5 cells to 1.25 m; 60 deg at 5 deg -> 12; 20 deg at 4 deg -> 5
+    fov = RadarFOV(max_range_m=1.01, azimuth_deg=(-30.0, 30.0), elevation_deg=(-10.0, 10.0))
+    g = FrustumGrid.from_fov(fov, (0.25, 5.0, 4.0))
+    assert g.shape == (5, 12, 5) and g.lo == (0.0, -30.0, -10.0) and g.hi == (1.25, 30.0, 10.0)
+    # a span that is a whole number of cells up to rounding keeps that number (15.8 / 0.05 = 316)
+    assert FrustumGrid.from_fov(RadarFOV(max_range_m=15.8), RALD_CELL).shape == (316, 720, 80)
+    # a non-zero minimum range starts the grid there
+    g = FrustumGrid.from_fov(RadarFOV(max_range_m=2.0, min_range_m=0.5), (0.4, 0.25, 0.5))
+    assert g.range_m == (0.5, 0.5 + 4 * 0.4)
+    for bad in ((0.05, 0.25), (0.05, 0.0, 0.5), (0.05, float("nan"), 0.5)):
+        with pytest.raises(ValueError, match="cell"):
+            FrustumGrid.from_fov(AWR1843_FOV, bad)
+
+
+def test_grid_contains_every_lidar_point_the_fov_crop_keeps():
+    fov = AWR1843_FOV
+    # the grid's extent covers the FOV, by less than one cell on each axis
+    lo, hi, cell = np.array(RALD_GRID.lo), np.array(RALD_GRID.hi), np.array(RALD_GRID.cell)
+    f_lo = np.array([fov.min_range_m, fov.azimuth_deg[0], fov.elevation_deg[0]])
+    f_hi = np.array([fov.max_range_m, fov.azimuth_deg[1], fov.elevation_deg[1]])
+    assert np.all(lo == f_lo) and np.all(hi >= f_hi) and np.all(hi - f_hi < cell)
+    # LiDAR-like float32 clouds around the sensor, with points between RaLD's 15.8 m and the FOV's 15.863 m
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-16.5, 16.5, (400_000, 3)).astype(np.float32)
+    u = rng.normal(size=(20_000, 3))
+    shell = (u / np.linalg.norm(u, axis=1, keepdims=True) * rng.uniform(15.8, 15.87, (20_000, 1))).astype(np.float32)
+    pts = np.concatenate([pts, shell])
+    kept = pts[frustum_mask(pts, fov)]
+    assert len(kept) > 10_000 and (np.linalg.norm(kept.astype(np.float64), axis=1) > 15.8).sum() > 1000
+    assert bool(in_frustum(RALD_GRID, torch.from_numpy(kept)).all())
+    occ = voxelize(RALD_GRID, kept)
+    assert occ.n_outside == 0 and occ.n_points == len(kept)
+    assert int(occ.ijk()[:, 0].max()) == 317       # the cell holding 15.85..15.9 m, past RaLD's 316 cells
+    # float64 points exactly on the FOV's edges (corners, range bound, angular bounds)
+    r = [1e-3, 1.0, 15.8, fov.max_range_m]
+    rae = torch.tensor([(a, b, c) for a in r for b in (*fov.azimuth_deg, 0.0) for c in (*fov.elevation_deg, 0.0)],
+                       dtype=torch.float64)
+    edge = polar_to_cartesian(rae)
+    keep = torch.as_tensor(frustum_mask(edge, fov))
+    assert int(keep.sum()) > len(edge) // 2
+    assert bool(in_frustum(RALD_GRID, edge[keep]).all())
+    # in float32 an edge point can round to opposite sides of an angular bound in the crop's
+    # asin(z / r) and the grid's atan2(z, hypot(x, y)); it is then outside by no more than the
+    # angles' float32 rounding: a few ulps (sqrt, division, asin/atan2 each <= 1 ulp, plus the
+    # bound's own rounding), bounded here by 4 eps * 90 deg
+    e32 = edge.float()
+    kept32 = e32[torch.as_tensor(frustum_mask(e32, fov))]
+    p = cartesian_to_polar(kept32.double())
+    excess = torch.maximum(torch.tensor(RALD_GRID.lo, dtype=torch.float64) - p,
+                           p - torch.tensor(RALD_GRID.hi, dtype=torch.float64)).clamp_min(0)
+    assert float(excess.max()) <= 4 * torch.finfo(torch.float32).eps * 90.0
 
 
 def test_polar_convention_hand_worked():
@@ -58,7 +118,7 @@ def test_polar_cartesian_round_trip():
 
 
 def test_normalize_maps_grid_to_unit_cube_and_back():
-    corners = torch.tensor([RALD_GRID.lo, RALD_GRID.hi, [7.9, 0.0, 0.0]], dtype=torch.float64)
+    corners = torch.tensor([RALD_GRID.lo, RALD_GRID.hi, [7.95, 0.0, 0.0]], dtype=torch.float64)
     u = normalize(RALD_GRID, corners)
     torch.testing.assert_close(u, torch.tensor([[-1.0, -1, -1], [1, 1, 1], [0, 0, 0]], dtype=torch.float64))
     torch.testing.assert_close(denormalize(RALD_GRID, u), corners)
@@ -85,15 +145,16 @@ def test_voxelize_then_occupancy_to_points_within_half_a_cell():
 def test_voxelize_drops_points_outside_and_keeps_upper_edge():
     xyz = torch.tensor([[1.0, 0.0, 0.0],      # inside
                         [-1.0, 0.0, 0.0],     # behind: azimuth 180
-                        [20.0, 0.0, 0.0],     # beyond 15.8 m
+                        [20.0, 0.0, 0.0],     # beyond 15.9 m
                         [1.0, 0.0, 1.0],      # elevation 45 deg
-                        [15.8, 0.0, 0.0]])    # on the upper range edge: last cell
+                        [15.83, 0.0, 0.0],    # past RaLD's public 15.8 m, inside the FOV: cell 316
+                        [15.9, 0.0, 0.0]])    # on the upper range edge: last cell
     occ = voxelize(RALD_GRID, xyz)
-    assert occ.n_points == 2 and occ.n_outside == 3
-    assert in_frustum(RALD_GRID, xyz).tolist() == [True, False, False, False, True]
+    assert occ.n_points == 3 and occ.n_outside == 3
+    assert in_frustum(RALD_GRID, xyz).tolist() == [True, False, False, False, True, True]
     ijk = occ.ijk()
-    assert ijk[:, 0].tolist() == [20, 315]
-    assert ijk[:, 1].tolist() == [360, 360] and ijk[:, 2].tolist() == [40, 40]
+    assert ijk[:, 0].tolist() == [20, 316, 317]
+    assert ijk[:, 1].tolist() == [360] * 3 and ijk[:, 2].tolist() == [40] * 3
 
 
 def test_occupancy_lookup_matches_dense_brute_force():
@@ -170,7 +231,7 @@ def test_bad_inputs_raise_clear_errors():
     with pytest.raises(ValueError, match="coords"):
         occupancy(occ, torch.zeros(1, 3), coords="spherical")
     with pytest.raises(ValueError, match="whole number of cells"):
-        FrustumGrid(cell=(0.03, 0.25, 0.5))
+        FrustumGrid((0.0, 15.8), (-90.0, 90.0), (-20.0, 20.0), cell=(0.03, 0.25, 0.5))
     with pytest.raises(ValueError, match="every cell"):
         sample_queries(OccupancyGrid(SMALL, torch.arange(SMALL.n_cells)), n=10)
 

@@ -1,5 +1,6 @@
 """RaLD: frustum occupancy, latent diffusion models and baselines for dense radar point clouds."""
 from radarpc.rald.frustum import (
+    RALD_CELL,
     RALD_GRID,
     FrustumGrid,
     OccupancyGrid,
@@ -27,6 +28,7 @@ from radarpc.rald.oscfar_baseline import (
 )
 
 __all__ = [
+    "RALD_CELL",
     "RALD_GRID",
     "FrustumGrid",
     "OccupancyGrid",

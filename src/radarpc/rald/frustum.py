@@ -3,12 +3,18 @@
 A frustum cell :math:`\\mathcal{F}_{i,j,k}` is the set of points whose range, azimuth and
 elevation fall in ``[r_i, r_{i+1}) x [theta_j, theta_{j+1}) x [phi_k, phi_{k+1})``; it is occupied
 (:math:`O_{i,j,k} = 1`) if at least one LiDAR point falls inside it, and a query point takes the
-occupancy of the cell that contains it.  The default grid is the one of the RaLD autoencoder:
-range 0..15.8 m at 0.05 m, azimuth -90..90 deg at 0.25 deg, elevation -20..20 deg at 0.5 deg,
-i.e. 316 x 720 x 80 cells (the ``pc_range`` / ``voxel_size`` of RaLD's public configuration).
-The ColoRadar reader crops LiDAR to 15.863 m (the radar's last range bin); as in RaLD, the few
-points between 15.8 m and 15.863 m fall outside the grid and are dropped (counted in
-``OccupancyGrid.n_outside``).
+occupancy of the cell that contains it.
+
+One frustum: the sensor's field of view (:class:`radarpc.sensors.coloradar.RadarFOV`, the same
+object :func:`radarpc.data.coloradar.frustum_mask` crops the LiDAR ground truth to) is the
+frustum, and a :class:`FrustumGrid` is its discretisation into cells of a given size
+(:meth:`FrustumGrid.from_fov`).  :data:`RALD_GRID` discretises :data:`AWR1843_FOV` (range
+0..15.863 m, azimuth -90..90 deg, elevation -20..20 deg) with RaLD's cells (:data:`RALD_CELL`:
+0.05 m, 0.25 deg, 0.5 deg): ``ceil(15.863 / 0.05) = 318`` range cells to 15.9 m, i.e.
+318 x 720 x 80 cells.  RaLD's public configuration (``pc_range`` / ``voxel_size``) stops at
+15.8 m (316 range cells); radarpc's grid spans the FOV instead so that there is one frustum:
+otherwise the LiDAR points between 15.8 m and 15.863 m would be ground truth that the grid cannot
+represent.  Cells past the FOV's range (15.863..15.9 m) simply stay empty.
 
 Conventions (the same as :mod:`radarpc.sensors.radial`):
 
@@ -20,7 +26,7 @@ Conventions (the same as :mod:`radarpc.sensors.radial`):
 * Normalized coordinates: each polar axis mapped affinely to [-1, 1] over the grid's span,
   ``u = (p - (lo + hi) / 2) / ((hi - lo) / 2)`` (RaLD's anisotropic normalization).
 * Cells are stored sparsely as sorted unique linear indices ``(i * n_az + j) * n_el + k`` (int64);
-  the dense ``(n_r, n_az, n_el)`` grid (18 M cells at the default size) is never allocated unless
+  the dense ``(n_r, n_az, n_el)`` grid (18 M cells for :data:`RALD_GRID`) is never allocated unless
   :meth:`OccupancyGrid.dense` is called.
 
 Everything is torch and device-agnostic: outputs live on the device of the inputs.
@@ -33,9 +39,12 @@ from typing import Literal, Sequence
 
 import torch
 
+from radarpc.sensors.coloradar import AWR1843_FOV, RadarFOV
+
 __all__ = [
     "FrustumGrid",
     "OccupancyGrid",
+    "RALD_CELL",
     "RALD_GRID",
     "cartesian_to_polar",
     "polar_to_cartesian",
@@ -65,13 +74,13 @@ class FrustumGrid:
     """A regular grid in (range, azimuth, elevation): the frustum cells of RaLD.
 
     The number of cells per axis is ``round((hi - lo) / cell)``; the span must be a whole
-    number of cells.
+    number of cells.  Build the grid of a sensor with :meth:`from_fov`.
     """
 
-    range_m: tuple[float, float] = (0.0, 15.8)           # [r_min, r_max] in metres
-    azimuth_deg: tuple[float, float] = (-90.0, 90.0)     # [theta_min, theta_max], left positive
-    elevation_deg: tuple[float, float] = (-20.0, 20.0)   # [phi_min, phi_max], up positive
-    cell: tuple[float, float, float] = (0.05, 0.25, 0.5)  # cell size: metres, degrees, degrees
+    range_m: tuple[float, float]               # [r_min, r_max] in metres
+    azimuth_deg: tuple[float, float]           # [theta_min, theta_max], left positive
+    elevation_deg: tuple[float, float]         # [phi_min, phi_max], up positive
+    cell: tuple[float, float, float]           # cell size: metres, degrees, degrees
 
     def __post_init__(self) -> None:
         names = ("range_m", "azimuth_deg", "elevation_deg")
@@ -93,6 +102,31 @@ class FrustumGrid:
         if self.elevation_deg[0] < -90 or self.elevation_deg[1] > 90:
             raise ValueError(f"FrustumGrid.elevation_deg={self.elevation_deg} must lie in [-90, 90]")
 
+    @classmethod
+    def from_fov(cls, fov: RadarFOV, cell: tuple[float, float, float]) -> "FrustumGrid":
+        """The grid of ``cell``-sized cells that covers the field of view ``fov``.
+
+        Each polar axis starts at the FOV's lower bound and takes ``n = ceil((hi - lo) / cell)``
+        cells, so the grid spans the whole FOV; where the FOV's span is not a whole number of cells
+        the last cell reaches past it (AWR1843's 15.863 m at 0.05 m: 318 cells, to 15.9 m) and the
+        cells beyond the FOV stay empty, as the ground truth is cropped to the FOV.
+
+        Parameters
+        ----------
+        fov : RadarFOV
+            Range, azimuth and elevation intervals of the sensor (the LiDAR crop).
+        cell : tuple of 3 floats
+            Cell size in range (m), azimuth (deg) and elevation (deg).
+        """
+        if len(cell) != 3 or not all(math.isfinite(c) and c > 0 for c in cell):
+            raise ValueError(f"cell must be 3 positive sizes (range, azimuth, elevation), got {cell}")
+        edges = []
+        for (lo, hi), c in zip(((fov.min_range_m, fov.max_range_m), fov.azimuth_deg, fov.elevation_deg), cell):
+            q = (hi - lo) / c
+            n = math.ceil(q - 1e-6 * max(1.0, q))   # a whole-number span up to rounding keeps its n
+            edges.append((lo, lo + n * c))
+        return cls(*edges, cell=tuple(cell))
+
     @property
     def lo(self) -> tuple[float, float, float]:
         """Lower edges ``(r_min, theta_min, phi_min)``."""
@@ -105,7 +139,7 @@ class FrustumGrid:
 
     @property
     def shape(self) -> tuple[int, int, int]:
-        """Cells per axis ``(n_r, n_az, n_el)``; ``(316, 720, 80)`` for the default grid."""
+        """Cells per axis ``(n_r, n_az, n_el)``; ``(318, 720, 80)`` for :data:`RALD_GRID`."""
         return tuple(int(round((h - l) / c)) for l, h, c in zip(self.lo, self.hi, self.cell))
 
     @property
@@ -120,7 +154,11 @@ class FrustumGrid:
         return lo, hi, cell
 
 
-RALD_GRID = FrustumGrid()
+RALD_CELL = (0.05, 0.25, 0.5)
+"""RaLD's frustum cell: 0.05 m in range, 0.25 deg in azimuth, 0.5 deg in elevation."""
+
+RALD_GRID = FrustumGrid.from_fov(AWR1843_FOV, RALD_CELL)
+"""RaLD's occupancy grid over the AWR1843 field of view: 318 x 720 x 80 cells, range 0..15.9 m."""
 
 
 @dataclass
@@ -161,7 +199,7 @@ class OccupancyGrid:
         return self.cells.device
 
     def dense(self) -> torch.Tensor:
-        """The dense boolean grid ``(n_r, n_az, n_el)`` (18 M cells by default; only when asked)."""
+        """The dense boolean grid ``(n_r, n_az, n_el)`` (18 M cells for :data:`RALD_GRID`; only when asked)."""
         out = torch.zeros(self.grid.n_cells, dtype=torch.bool, device=self.cells.device)
         out[self.cells] = True
         return out.view(self.grid.shape)

@@ -244,7 +244,11 @@ class ColoRadarChipConfig:
 
 @dataclass(frozen=True)
 class RadarFOV:
-    """Radar frustum used to crop LiDAR ground truth (RaLD: 0-15.86 m, +-90 deg, +-20 deg)."""
+    """Radar frustum used to crop LiDAR ground truth (RaLD: 0-15.86 m, +-90 deg, +-20 deg).
+
+    The one frustum definition: :func:`radarpc.data.coloradar.frustum_mask` crops the LiDAR to it
+    and RaLD's occupancy grid discretises it (:meth:`radarpc.rald.frustum.FrustumGrid.from_fov`).
+    """
 
     max_range_m: float = 15.863025538680999
     azimuth_deg: tuple[float, float] = (-90.0, 90.0)
