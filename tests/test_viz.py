@@ -68,18 +68,43 @@ def test_encoded_cells_is_sparse_rd_mask(root):
 
 def test_frame_view_and_figure(root, tmp_path, figures):
     settings = ConvertSettings(density=0.1, enrich=("rd3",))
-    view = viz.frame_view(root, 1, settings)
-    assert view.set_name == "S*(tau)" and view.frame == 1 and view.title.startswith(f"{root.name}, frame 1 (")
+    labels = read_labels(root / "labels.csv")
+    fr = int(labels.num_sample[labels.has_vehicle][0])                    # a frame with vehicles
+    view = viz.frame_view(root, fr, settings)
+    assert view.set_name == "S*(tau)" and view.frame == fr
     assert view.rd_magnitude.shape == view.encoded.shape == (TINY.n_range, TINY.n_doppler)
     assert view.envelope.shape == view.peaks.shape == (TINY.n_range, TINY.slot_width)
     assert torch.equal(torch.from_numpy(view.encoded), viz.encoded_cells(view.cloud, TINY))
     out = tmp_path / "f.png"
     res = viz.plot_frame_view(view, out, color_by="amplitude")
-    assert res.path == out and _png_size(out) == (17 * 80, int(6.5 * 80))
-    assert len(figures[-1].axes) == 6                                     # 3 panels + 3 colour bars
+    assert res.path == out and _png_size(out) == (18 * 80, 7 * 80)
+    fig = figures[-1]
+    assert len(fig.axes) == 6                                             # 3 panels + 3 colour bars
+    assert [a.get_label() for a in fig.axes[3:]] == ["<colorbar>"] * 3
+    # the suptitle names the root, the frame and its sequence; tau carries its unit
+    ds = RADIal(root, split="all")
+    seq = ds.sequences[ds.index_of(fr)]
+    assert fig._suptitle.get_text().startswith(f"RADIal root '{root.name}': frame {fr} (numSample), sequence {seq}")
+    tau = float(view.cloud.tau[0])
+    assert f"(linear SNR, {10 * np.log10(tau):.2f} dB)" in fig.axes[2].get_title()
+    # Doppler in m/s on the RD panels, bins on a secondary (top) axis
+    assert "[m/s]" in fig.axes[0].get_xlabel() and "[m/s]" in fig.axes[1].get_xlabel()
+    assert [c.get_xlabel() for a in fig.axes[:2] for c in a.child_axes] == ["Doppler bin d of the cube",
+                                                                            "consolidated Doppler bin l"]
+    # one RADIal box (4 m x 1.8 m, near edge centred on the label) per labelled vehicle
+    polys = [pa for pa in fig.axes[2].patches]
+    assert len(polys) == len(view.vehicles_ra) > 0
+    want = viz.radial_box_corners(view.vehicles_ra[:, 0], view.vehicles_ra[:, 1])
+    for pa, w in zip(polys, want):
+        np.testing.assert_allclose(pa.get_xy()[:4], w[:, ::-1], atol=1e-9)      # drawn as (y, x)
+    lo, hi = fig.axes[2].get_ylim()
+    assert lo == 0.0 and hi >= float(want[..., 0].max())
+    half = fig.axes[2].get_xlim()[0]                                      # left (+y) drawn on the left
+    assert fig.axes[2].get_xlim()[1] == -half
+    assert min(float(np.abs(want[..., 1]).max()), TINY.max_range_m) <= half <= TINY.max_range_m
     assert not list(tmp_path.glob(".*.tmp"))                              # atomic write left no temp file
     assert res.n_points == view.cloud.num_points and res.n_peaks == int(view.peaks.sum())
-    assert res.n_vehicles == len(view.vehicles_xy)
+    assert res.n_vehicles == len(view.vehicles_ra)
     assert res.peak_density == pytest.approx(res.n_peaks * TINY.n_tx / (TINY.n_range * TINY.n_doppler))
     assert res.density == pytest.approx(view.encoded.sum() / (TINY.n_range * TINY.n_doppler), rel=1e-6)
     with pytest.raises(ValueError, match="color_by must be one of"):
@@ -96,7 +121,28 @@ def test_geometry_of_the_rd_panels():
     r = np.arange(TINY.n_range)
     np.testing.assert_allclose(y0 + (r + 0.5) * (y1 - y0) / TINY.n_range, viz.peak_marker_range_m(TINY, r),
                                atol=1e-9)
-    assert (x0, x1) == (-0.5, TINY.n_doppler - 0.5)
+    # columns in m/s, Doppler-centred: the fftshifted column j sits on the velocity of its cube bin
+    dv, n = TINY.velocity_res_mps, TINY.n_doppler
+    np.testing.assert_allclose((x0, x1), ((-n / 2 - 0.5) * dv, (n / 2 - 0.5) * dv))
+    d = np.arange(n)
+    shifted = np.fft.fftshift(d)                                           # cube bin drawn in column j
+    centres = x0 + (np.arange(n) + 0.5) * (x1 - x0) / n
+    np.testing.assert_allclose(centres, TINY.velocity_of_bin(shifted), atol=1e-9)
+    np.testing.assert_allclose(viz.doppler_mps_of_column(TINY, d, n), TINY.velocity_of_bin(d), atol=1e-12)
+    w = TINY.slot_width
+    xw0, xw1, _, _ = viz.rd_extent(TINY, w)
+    cw = xw0 + (np.arange(w) + 0.5) * (xw1 - xw0) / w
+    np.testing.assert_allclose(cw, viz.doppler_mps_of_column(TINY, np.fft.fftshift(np.arange(w)), w), atol=1e-9)
+
+
+def test_radial_box_corners_follow_radials_metrics():
+    # label R = 10 m, A = 30 deg: (X, Y) = (8.6603, 5.0); RADIal's RA_to_cartesian_box gives
+    # lateral [Y - 0.9, Y + 0.9], forward [X, X + 4], corners near right, near left, far left, far right
+    c = viz.radial_box_corners([10.0, 20.0], [30.0, -90.0])
+    x, y = 10 * np.sqrt(3) / 2, 5.0
+    np.testing.assert_allclose(c[0], [[x, y - 0.9], [x, y + 0.9], [x + 4, y + 0.9], [x + 4, y - 0.9]], atol=1e-12)
+    np.testing.assert_allclose(c[1], [[0, -20.9], [0, -19.1], [4, -19.1], [4, -20.9]], atol=1e-12)
+    assert viz.radial_box_corners([], []).shape == (0, 4, 2)
 
 
 def test_plot_radial_info(root, tmp_path, figures):
@@ -124,14 +170,91 @@ def _colo_view(heatmap: bool, cube: bool) -> ColoRadarView:
         heatmap_max_range_m=8.0 if heatmap else None)
 
 
+def _legend_matches_scatters(ax) -> None:
+    """Every legend entry of a scatter has the scatter's colour."""
+    from matplotlib.collections import PathCollection
+    from matplotlib.colors import to_rgba
+
+    leg = ax.get_legend()
+    scatters = {c.get_label(): c for c in ax.collections if isinstance(c, PathCollection)}
+    checked = 0
+    for h, t in zip(leg.legend_handles, leg.get_texts()):
+        if t.get_text() in scatters:
+            want = scatters[t.get_text()].get_facecolor()
+            assert len(want) == 1                                      # one colour per scatter
+            np.testing.assert_allclose(h.get_facecolor()[0], want[0])
+            checked += 1
+    assert checked == len(scatters) >= 2
+    assert to_rgba(viz.LIDAR_INSIDE_COLOR) != to_rgba(viz.LIDAR_OUTSIDE_COLOR)
+
+
 @pytest.mark.parametrize("heatmap,cube", [(True, True), (False, True), (False, False)])
 def test_plot_coloradar_info(tmp_path, figures, heatmap, cube):
     out = viz.plot_coloradar_info(_colo_view(heatmap, cube), tmp_path / "c.png")
     n = 3 if heatmap else 2
-    assert _png_size(out) == (int(5.5 * n * 110), 5 * 110) and len(figures[-1].axes) == n
-    assert figures[-1].axes[0].get_title().startswith("lab_run0 LiDAR 2:")
-    assert bool(figures[-1].axes[1].images) == cube
+    fig = figures[-1]
+    # one colour bar per dB heatmap
+    assert _png_size(out) == (6 * n * 110, 5 * 110) and len(fig.axes) == n + int(heatmap) + int(cube)
+    assert [a.get_label() for a in fig.axes[n:]] == ["<colorbar>"] * (int(heatmap) + int(cube))
+    assert fig.axes[0].get_title().startswith("lab_run0 LiDAR 2:")
+    assert bool(fig.axes[1].collections) == cube
+    _legend_matches_scatters(fig.axes[0])
     assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_plot_coloradar_view_with_prediction(tmp_path, figures):
+    import dataclasses
+
+    rng = np.random.default_rng(1)
+    view = dataclasses.replace(_colo_view(False, True), root_name="sim", pred_xyz=rng.uniform(0, 5, (30, 3)),
+                               pred_label="os-cfar (preds)")
+    viz.plot_coloradar_view(view, tmp_path / "v.png")
+    fig = figures[-1]
+    assert _png_size(tmp_path / "v.png") == (1800, 600) and len(fig.axes) == 4     # 3 panels + colour bar
+    assert fig.axes[3].get_label() == "<colorbar>"
+    _legend_matches_scatters(fig.axes[1])
+    _legend_matches_scatters(fig.axes[2])
+    assert any("prediction (30): os-cfar (preds)" == t.get_text() for t in fig.axes[1].get_legend().get_texts())
+    assert fig._suptitle.get_text().startswith("ColoRadar root 'sim', run lab_run0: radar frame 1")
+    # the cube is drawn on its true azimuth bins: edges between the sin-spaced centres
+    edges = viz._azimuth_edges_deg(np.array([-45.0, -15.0, 15.0, 45.0]))
+    assert np.all(np.diff(edges) > 0) and np.allclose(edges[1:-1], np.degrees(np.arcsin(
+        0.5 * (np.sin(np.radians([-45.0, -15.0, 15.0])) + np.sin(np.radians([-15.0, 15.0, 45.0]))))))
+    with pytest.raises(ValueError, match="no single-chip radar frame"):
+        viz.plot_coloradar_view(_colo_view(False, False), tmp_path / "w.png")
+
+
+def _tuning_json(path, rows):
+    import json
+
+    cands = [{"config": {"window": list(w), "guard": [3, 1, 1], "rank": 0.75, "tau_db": t, "angle_bins": None},
+              "chamfer_m": cd, "points_per_frame": n} for w, t, cd, n in rows]
+    path.write_text(json.dumps({"split": "val", "frames": 4, "best": cands[0]["config"],
+                                "best_chamfer_m": 0.0, "candidates": cands}))
+    return path
+
+
+def test_plot_oscfar_tuning(tmp_path, figures):
+    from radarpc.data.summary import read_tuning
+    from radarpc.io import DataFileError
+
+    rows = [((9, 3, 3), 4.0, 1.5, 300.0), ((9, 3, 3), 8.0, 1.2, 120.0), ((9, 3, 3), 12.0, 1.4, 40.0),
+            ((13, 5, 3), 4.0, 1.6, 280.0), ((13, 5, 3), 8.0, 1.1, 100.0), ((13, 5, 3), 12.0, 1.3, 30.0)]
+    table = read_tuning(_tuning_json(tmp_path / "tuning.json", rows))
+    assert table.best == 4 and table.setting[4] == "window 13x5x3, guard 3x1x1, rank 0.75"
+    assert read_tuning(tmp_path).best == 4                                   # the folder holding it
+    out = viz.plot_oscfar_tuning(table, tmp_path / "t.png")
+    fig = figures[-1]
+    assert _png_size(out) == (1300, 500) and len(fig.axes) == 3               # 2 panels + colour bar
+    chosen = [ln for ln in fig.axes[0].lines if ln.get_label().startswith("chosen")]
+    assert len(chosen) == 1
+    np.testing.assert_allclose(chosen[0].get_xydata(), [[4.0, 1.6], [8.0, 1.1], [12.0, 1.3]])
+    (tmp_path / "bad").mkdir()
+    with pytest.raises(DataFileError, match="tuning file is missing"):
+        read_tuning(tmp_path / "bad")
+    (tmp_path / "bad" / "tuning.json").write_text('{"split": "val"}')
+    with pytest.raises(DataFileError, match="is not an OS-CFAR tuning file"):
+        read_tuning(tmp_path / "bad")
 
 
 def test_no_pyplot_state(root, tmp_path):

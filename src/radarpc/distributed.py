@@ -123,17 +123,30 @@ def _worker_main(job: WorkerJob, q) -> None:  # pragma: no cover - runs in a spa
         raise SystemExit(130)
     except SystemExit:               # orphaned: nobody to report to
         raise
-    except BaseException:  # noqa: BLE001 - report any failure to the parent, then exit non-zero
-        q.put(("error", -1, traceback.format_exc()))
+    except BaseException as e:  # noqa: BLE001 - report any failure to the parent, then exit non-zero
+        q.put(("error", _picklable(e), traceback.format_exc()))
         raise SystemExit(1)
+
+
+def _picklable(e: BaseException) -> BaseException | None:
+    """``e`` when it survives pickling (to be raised again in the parent), else None."""
+    import pickle
+
+    try:
+        pickle.loads(pickle.dumps(e))
+    except Exception:  # noqa: BLE001 - any failure means: send the traceback text only
+        return None
+    return e
 
 
 def run_workers(job: WorkerJob, workers: int, on_done: Callable[[Any, int], None], what: str = "worker") -> int:
     """Spread ``job.items`` over ``workers`` spawned processes (the i-th item goes to worker
     ``i % workers``, each with ``torch`` threads = this process's threads / ``workers``); relay
-    their progress to ``on_done(item, n)`` and their errors as one ``RuntimeError``. On an error or
-    an interrupt the other workers are stopped (finished items stay). Returns the number of items
-    finished."""
+    their progress to ``on_done(item, n)``. On an error or an interrupt the other workers are
+    stopped (finished items stay). A worker's exception is raised again here as it was (bad input
+    then reads the same as in one process; the worker's traceback is attached as a note), or as a
+    ``RuntimeError`` holding the traceback when it cannot cross processes. Returns the number of
+    items finished."""
     import torch.multiprocessing as mp
 
     ctx = mp.get_context("spawn")
@@ -166,7 +179,7 @@ def run_workers(job: WorkerJob, workers: int, on_done: Callable[[Any, int], None
                 done += 1
                 on_done(k, payload)
             else:
-                errors.append(payload)
+                errors.append((k, payload))
         finished = True
     finally:
         for p in procs:
@@ -174,6 +187,11 @@ def run_workers(job: WorkerJob, workers: int, on_done: Callable[[Any, int], None
                 p.terminate()
             p.join()
     bad = [p.exitcode for p in procs if p.exitcode != 0]
+    for exc, tb in errors:
+        if isinstance(exc, Exception):
+            if hasattr(exc, "add_note"):                     # Python >= 3.11
+                exc.add_note(f"in a {what}:\n{tb}")
+            raise exc
     if errors or bad:
-        raise RuntimeError(f"{what} failed:\n" + ("\n".join(errors) or f"exit codes {bad}"))
+        raise RuntimeError(f"{what} failed:\n" + ("\n".join(tb for _, tb in errors) or f"exit codes {bad}"))
     return done

@@ -36,6 +36,10 @@ class DataFileError(ValueError):
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
 
+    def __reduce__(self):
+        # rebuilt from (path, problem), so that it crosses to the parent of a worker process
+        return (type(self), (self.path, self.problem))
+
 
 def _umask() -> int:
     mask = os.umask(0)

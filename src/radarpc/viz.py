@@ -2,7 +2,10 @@
 figures of ``radarpc info`` for RADIal and ColoRadar roots.
 
 The drawing functions take arrays (or the small dataclasses that hold them) and write a PNG
-atomically (:func:`radarpc.io.atomic_write`). Figures are built on matplotlib's object API
+atomically (:func:`radarpc.io.atomic_write`). ``radarpc show`` draws a RADIal frame
+(:func:`plot_frame`), a ColoRadar frame with its LiDAR and optionally a method's predicted cloud
+(:func:`plot_coloradar_frame`), or the OS-CFAR tuning search of a prediction folder
+(:func:`plot_oscfar_tuning`). Figures are built on matplotlib's object API
 (:class:`matplotlib.figure.Figure`, saved through the Agg canvas), so that neither pyplot's figure
 registry nor the global backend is touched. :func:`frame_view` prepares the inputs of the frame
 figure from a dataset root (and optionally a point store); :mod:`radarpc.data.summary` those of the
@@ -11,7 +14,7 @@ summary figures.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -22,7 +25,7 @@ from radarpc.data.point_dataset import check_store_root
 from radarpc.data.pointstore import PointStore
 from radarpc.data.radial import LabelTable, RADIal
 from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS
-from radarpc.data.summary import ColoRadarView, RadialSummary
+from radarpc.data.summary import ColoRadarView, RadialSummary, TuningTable, coloradar_frame_view
 from radarpc.dsp.ddma import rx_magnitude_sum
 from radarpc.dsp.sparse_rd import sparse_rd_mask
 from radarpc.io import atomic_write
@@ -36,7 +39,11 @@ if TYPE_CHECKING:
 
 __all__ = [
     "COLOR_BY",
+    "RADIAL_BOX_LENGTH_M",
+    "RADIAL_BOX_WIDTH_M",
+    "radial_box_corners",
     "rd_extent",
+    "doppler_mps_of_column",
     "peak_marker_range_m",
     "encoded_cells",
     "FrameView",
@@ -46,6 +53,9 @@ __all__ = [
     "plot_frame",
     "plot_radial_info",
     "plot_coloradar_info",
+    "plot_coloradar_view",
+    "plot_coloradar_frame",
+    "plot_oscfar_tuning",
 ]
 
 COLOR_BY = ("velocity", "amplitude")
@@ -66,11 +76,54 @@ def _save(fig: "Figure", out: Path, dpi: int) -> None:
 
 
 # ---- one frame: RD + CFAR + BEV points -----------------------------------------------------------
+RADIAL_BOX_LENGTH_M = 4.0
+RADIAL_BOX_WIDTH_M = 1.8
+"""RADIal's vehicle box (FFTRadNet ``utils/metrics.py``, ``RA_to_cartesian_box``: ``L = 4``, ``W = 1.8``)."""
+
+
+def radial_box_corners(range_m, azimuth_deg, length: float = RADIAL_BOX_LENGTH_M,
+                       width: float = RADIAL_BOX_WIDTH_M) -> np.ndarray:
+    """Corners ``(V, 4, 2)`` ``(x, y)`` (x forward, y left, metres) of RADIal's vehicle boxes.
+
+    RADIal's metrics turn a label ``(R, A)`` (``radar_R_m``, ``radar_A_deg``) into an axis-aligned
+    bird's-eye box ``width`` wide and ``length`` long whose near edge is centred on the label point
+    ``(X, Y) = (R cos A, R sin A)``: ``x`` in ``[X, X + length]``, ``y`` in ``[Y - width/2, Y + width/2]``.
+    Corners in RADIal's order: near right, near left, far left, far right (``y`` = left)."""
+    r = np.asarray(range_m, dtype=np.float64).reshape(-1)
+    a = np.radians(np.asarray(azimuth_deg, dtype=np.float64).reshape(-1))
+    x, y, h = r * np.cos(a), r * np.sin(a), 0.5 * width
+    return np.stack([np.stack([x, y - h], -1), np.stack([x, y + h], -1),
+                     np.stack([x + length, y + h], -1), np.stack([x + length, y - h], -1)], 1)
+
+
 def rd_extent(cfg: DDMARadarConfig, n_cols: int) -> tuple[float, float, float, float]:
-    """``imshow`` extent of an ``(Nr, n_cols)`` RD image (origin lower): row ``r`` spans
-    ``[(r - 0.5) res, (r + 0.5) res]``, centred on ``r * res`` = the points' ``range_m``."""
-    res = cfg.range_res_m
-    return (-0.5, n_cols - 0.5, -0.5 * res, (cfg.n_range - 0.5) * res)
+    """``imshow`` extent (m/s, m) of an ``(Nr, n_cols)`` RD image drawn Doppler-centred
+    (``np.fft.fftshift`` along the Doppler axis, origin lower): column ``j`` is centred on
+    ``(j - n_cols // 2) * velocity_res_mps`` (:func:`doppler_mps_of_column` of its unshifted bin),
+    row ``r`` spans ``[(r - 0.5) res, (r + 0.5) res]``, centred on ``r * res`` = the points' ``range_m``."""
+    res, dv, h = cfg.range_res_m, cfg.velocity_res_mps, n_cols // 2
+    return ((-h - 0.5) * dv, (n_cols - h - 0.5) * dv, -0.5 * res, (cfg.n_range - 0.5) * res)
+
+
+def doppler_mps_of_column(cfg: DDMARadarConfig, col, n_cols: int) -> np.ndarray:
+    """Where unshifted Doppler bin ``col`` of an ``n_cols``-bin axis is drawn (m/s): the signed bin
+    ``((col + n_cols // 2) mod n_cols - n_cols // 2)`` times ``velocity_res_mps``. On the full axis
+    (``n_cols = n_doppler``) this is Tx 0's radial velocity of the bin
+    (:meth:`DDMARadarConfig.velocity_of_bin`); on the consolidated axis (``slot_width``) the velocity
+    modulo ``slot_width * velocity_res_mps``."""
+    h = n_cols // 2
+    return ((np.asarray(col, dtype=np.float64) + h) % n_cols - h) * cfg.velocity_res_mps
+
+
+def _bins_axis(ax, cfg: DDMARadarConfig, n_cols: int, label: str) -> None:
+    """A top axis in Doppler bins (the cube's unshifted index, ``mod n_cols``) over an m/s axis."""
+    from matplotlib.ticker import FuncFormatter, MaxNLocator
+
+    dv = cfg.velocity_res_mps
+    top = ax.secondary_xaxis("top", functions=(lambda v: v / dv, lambda b: b * dv))
+    top.xaxis.set_major_locator(MaxNLocator(nbins=6, integer=True))
+    top.xaxis.set_major_formatter(FuncFormatter(lambda b, _: f"{int(round(b)) % n_cols}"))
+    top.set_xlabel(label, fontsize=9)
 
 
 def peak_marker_range_m(cfg: DDMARadarConfig, range_bin: np.ndarray) -> np.ndarray:
@@ -112,7 +165,7 @@ class FrameView:
     envelope: np.ndarray            # (Nr, W) E(r, l)
     peaks: np.ndarray               # (Nr, W) bool, P(tau)
     cloud: PointCloudBatch          # the frame's points
-    vehicles_xy: np.ndarray         # (V, 2) radar_X_m, radar_Y_m of the labelled vehicles
+    vehicles_ra: np.ndarray         # (V, 2) radar_R_m, radar_A_deg of the labelled vehicles
 
 
 def frame_view(root: str | os.PathLike, frame: int, settings: ConvertSettings | None = None, *,
@@ -154,12 +207,16 @@ def frame_view(root: str | os.PathLike, frame: int, settings: ConvertSettings | 
         cloud = spc(rd_b) if stored is None else stored
     cloud = cloud.to("cpu")
     lab = labels.cpu().numpy()
-    cols = [LABEL_TENSOR_COLUMNS.index("radar_X_m"), LABEL_TENSOR_COLUMNS.index("radar_Y_m")]
+    cols = [LABEL_TENSOR_COLUMNS.index("radar_R_m"), LABEL_TENSOR_COLUMNS.index("radar_A_deg")]
+    how = (f"points of {Path(store).name}" if store is not None else
+           f"target density {settings.density:g} ({settings.mode})" if settings.density is not None
+           else "fixed threshold")
     return FrameView(
-        title=f"{root.name}, frame {frame} ({ds.sequences[i]})", frame=int(frame), sensor=ds.sensor,
+        title=f"RADIal root '{root.name}': frame {frame} (numSample), sequence {ds.sequences[i]}; {how}",
+        frame=int(frame), sensor=ds.sensor,
         rd_magnitude=rx_magnitude_sum(rd_b)[0].cpu().numpy(), encoded=encoded_cells(cloud, ds.sensor).numpy(),
         set_name="S*(tau)" if settings.point_cloud_config().neighbourhood is not None else "S(tau)",
-        envelope=env[0].cpu().numpy(), peaks=peaks[0].cpu().numpy(), cloud=cloud, vehicles_xy=lab[:, cols])
+        envelope=env[0].cpu().numpy(), peaks=peaks[0].cpu().numpy(), cloud=cloud, vehicles_ra=lab[:, cols])
 
 
 @dataclass(frozen=True)
@@ -181,17 +238,38 @@ def _db(a: np.ndarray) -> np.ndarray:
     return 20.0 * np.log10(np.maximum(a, 1e-12 * max(float(a.max()), 1e-30)))
 
 
-def plot_frame_view(view: FrameView, out: str | os.PathLike, color_by: str = "velocity") -> FramePlot:
-    """Draw a :class:`FrameView` to ``out`` (PNG, atomic), 17 x 6.5 in at 80 dpi.
+def _tau_text(tau: float) -> str:
+    """The CFAR threshold with its unit: a linear SNR (power ratio) and the same in dB."""
+    return f"tau = {tau:.3g} (linear SNR, {10.0 * np.log10(tau):.2f} dB)"
 
-    Panels: (a) ``A(r, d)`` in dB on the full Doppler axis with the encoded set overlaid cell by
-    cell, (b) the envelope ``E(r, l)`` in dB with the CFAR peaks ``P(tau)``, (c) the points in
-    bird's-eye view (x forward, y left, left drawn on the left) coloured by radial velocity or by
-    angle-spectrum amplitude, with the labelled vehicle centres. Range bin ``r`` is drawn centred on
+
+def _bev_extent(cfg: DDMARadarConfig, y: np.ndarray, box_y: np.ndarray, box_x: np.ndarray) -> tuple[float, float]:
+    """Lateral half-width and forward extent (m) of the BEV panel: forward to the maximum range or
+    the farthest box end; laterally every box and 98 % of the points (a few wide-angle points must
+    not squash the panel to +-max range), at least 0.3 times the forward extent (a readable panel
+    at equal aspect) and at most the maximum range."""
+    rmax = cfg.max_range_m
+    top = max(rmax, float(box_x.max()) if box_x.size else 0.0)
+    wide = [float(np.abs(box_y).max())] if box_y.size else []
+    if y.size:
+        wide.append(float(np.quantile(np.abs(y), 0.98)))
+    half = min(max(1.1 * max(wide, default=0.0) + 2.0, 0.3 * top), rmax)
+    return half, top
+
+
+def plot_frame_view(view: FrameView, out: str | os.PathLike, color_by: str = "velocity") -> FramePlot:
+    """Draw a :class:`FrameView` to ``out`` (PNG, atomic), 18 x 7 in at 80 dpi.
+
+    Panels: (a) ``A(r, d)`` in dB against Doppler in m/s (Doppler-centred; the cube's bin index on
+    the top axis) with the encoded set overlaid cell by cell, (b) the envelope ``E(r, l)`` in dB
+    with the CFAR peaks ``P(tau)``, against the consolidated Doppler in m/s (modulo the slot width;
+    ``l`` on the top axis), (c) the points in bird's-eye view (x forward, y left, left drawn on the
+    left) coloured by radial velocity or by angle-spectrum amplitude, with RADIal's 4 m x 1.8 m
+    vehicle boxes (:func:`radial_box_corners`). Range bin ``r`` is drawn centred on
     ``r * range_res_m`` (the points' ``range_m``) in both RD panels.
     """
     from matplotlib.colors import ListedColormap
-    from matplotlib.patches import Patch
+    from matplotlib.patches import Patch, Polygon
 
     if color_by not in COLOR_BY:
         raise ValueError(f"color_by must be one of {COLOR_BY}, got {color_by!r}")
@@ -205,52 +283,60 @@ def plot_frame_view(view: FrameView, out: str | os.PathLike, color_by: str = "ve
         cval = cloud.velocity_mps.numpy()
     else:  # Ae in dB: amplitudes span decades
         cval = 20.0 * np.log10(np.maximum(cloud.amplitude.numpy(), 1e-30))
-    gx, gy = view.vehicles_xy[:, 0], view.vehicles_xy[:, 1]
+    boxes = radial_box_corners(view.vehicles_ra[:, 0], view.vehicles_ra[:, 1])       # (V, 4, 2)
+    nd, w = cfg.n_doppler, cfg.slot_width
 
-    fig = _figure((17, 6.5))
-    ax = fig.subplots(1, 3, gridspec_kw={"width_ratios": [1.4, 0.8, 1.4]})
-    rmax = cfg.max_range_m
-    im0 = ax[0].imshow(_db(view.rd_magnitude), aspect="auto", origin="lower", cmap="viridis",
-                       extent=rd_extent(cfg, cfg.n_doppler))
+    def shift(a):  # Doppler-centred columns, as rd_extent draws them
+        return np.fft.fftshift(a, axes=1)
+
+    fig = _figure((18, 7))
+    ax = fig.subplots(1, 3, gridspec_kw={"width_ratios": [1.4, 0.9, 1.2]})
+    im0 = ax[0].imshow(shift(_db(view.rd_magnitude)), aspect="auto", origin="lower", cmap="viridis",
+                       extent=rd_extent(cfg, nd))
     # S(tau) as an exact per-cell overlay (markers would hide the spectrum on a 512 x 256 grid)
-    ax[0].imshow(np.ma.masked_where(~mask_full, mask_full.astype(float)), aspect="auto", origin="lower",
-                 cmap=ListedColormap(["red"]), alpha=0.85, interpolation="nearest",
-                 extent=rd_extent(cfg, cfg.n_doppler))
+    ax[0].imshow(np.ma.masked_where(~shift(mask_full), shift(mask_full).astype(float)), aspect="auto",
+                 origin="lower", cmap=ListedColormap(["red"]), alpha=0.85, interpolation="nearest",
+                 extent=rd_extent(cfg, nd))
     ax[0].legend(handles=[Patch(color="red", label=f"{view.set_name}: {int(mask_full.sum())} cells")],
-                 loc="upper right", fontsize=8)
-    ax[0].set(xlabel="Doppler bin (full axis)", ylabel="range [m]",
-              title=f"sum_rx |R| [dB], frame {view.frame}")
-    fig.colorbar(im0, ax=ax[0], label="dB")
-    im1 = ax[1].imshow(_db(e), aspect="auto", origin="lower", cmap="magma",
-                       extent=rd_extent(cfg, cfg.slot_width))
+                 loc="upper right", fontsize=10)
+    ax[0].set(xlabel=f"Doppler of the full axis [m/s] (Tx 0's velocity; bin = {cfg.velocity_res_mps:.3f} m/s)",
+              ylabel="range [m]", title="sum_rx |R| [dB]")
+    _bins_axis(ax[0], cfg, nd, "Doppler bin d of the cube")
+    fig.colorbar(im0, ax=ax[0], label="sum_rx |R| [dB]")
+    im1 = ax[1].imshow(shift(_db(e)), aspect="auto", origin="lower", cmap="magma", extent=rd_extent(cfg, w))
     pr, pl = np.nonzero(pk)
-    ax[1].scatter(pl, peak_marker_range_m(cfg, pr), s=8, marker="x", c="cyan", linewidths=0.6,
-                  label=f"P(tau): {int(pk.sum())} peaks")
-    ax[1].set(xlabel="consolidated Doppler l", ylabel="range [m]", title="envelope E(r, l) [dB] + CFAR")
-    ax[1].legend(loc="upper right", fontsize=8)
-    fig.colorbar(im1, ax=ax[1], label="dB")
+    ax[1].scatter(doppler_mps_of_column(cfg, pl, w), peak_marker_range_m(cfg, pr), s=14, marker="x", c="cyan",
+                  linewidths=0.8, label=f"P(tau): {int(pk.sum())} CFAR peaks")
+    ax[1].set(xlabel=f"consolidated Doppler [m/s] (mod {w * cfg.velocity_res_mps:.2f} m/s)", ylabel="range [m]",
+              title="envelope E(r, l) [dB] + CFAR peaks")
+    _bins_axis(ax[1], cfg, w, "consolidated Doppler bin l")
+    ax[1].legend(loc="upper right", fontsize=10)
+    fig.colorbar(im1, ax=ax[1], label="E(r, l) [dB]")
     if color_by == "velocity":  # symmetric colour scale: white = 0 m/s
         vmax = max(float(np.abs(cval).max()) if cval.size else 0.0, cfg.velocity_res_mps)
-        sc = ax[2].scatter(y, x, c=cval, s=5, cmap="coolwarm", vmin=-vmax, vmax=vmax)
+        sc = ax[2].scatter(y, x, c=cval, s=6, cmap="coolwarm", vmin=-vmax, vmax=vmax)
     else:
-        sc = ax[2].scatter(y, x, c=cval, s=5, cmap="viridis")
+        sc = ax[2].scatter(y, x, c=cval, s=6, cmap="viridis")
     fig.colorbar(sc, ax=ax[2], label="radial velocity [m/s]" if color_by == "velocity" else "amplitude Ae [dB]")
-    ax[2].scatter(gy, gx, s=140, marker="s", facecolors="none", edgecolors="k", linewidths=1.5,
-                  label=f"labelled vehicles ({len(gx)})")
-    ax[2].set(xlabel="y [m] (left +)", ylabel="x [m] (forward)",
-              title=f"BEV: {len(x)} points, density {density:.4f}, tau {tau_used:.3g}")
-    # lateral half-width: every point and label, and at least 40 % of the range (a readable panel)
-    half = max(0.4 * rmax, 1.05 * float(np.abs(np.concatenate([y, gy])).max()) if len(y) + len(gy) else 0.0)
-    ax[2].set_xlim(min(half, rmax), -min(half, rmax))  # left of the car drawn on the left
-    ax[2].set_ylim(0.0, rmax)
-    ax[2].set_aspect("equal")
-    ax[2].legend(loc="upper left", fontsize=7, framealpha=0.6)
-    fig.suptitle(view.title)
+    for b in boxes:
+        ax[2].add_patch(Polygon(b[:, ::-1], closed=True, fill=False, edgecolor="k", linewidth=1.4))
+    half, top = _bev_extent(cfg, y, boxes[..., 1], boxes[..., 0])
+    hidden = int(np.sum((np.abs(y) > half) | (x > top)))
+    ax[2].set_xlim(half, -half)                                 # left of the car drawn on the left
+    ax[2].set_ylim(0.0, top)
+    ax[2].set_aspect("equal", adjustable="box")
+    ax[2].set(xlabel="y [m] (left +)" + (f"; {hidden} points beyond +-{half:.0f} m not shown" if hidden else ""),
+              ylabel="x [m] (forward)",
+              title=f"BEV: {len(x)} points, density {density:.4f}\n{_tau_text(tau_used)}")
+    ax[2].legend(handles=[Patch(facecolor="none", edgecolor="k", linewidth=1.4,
+                                label=f"vehicles ({len(boxes)}): 4 m x 1.8 m boxes")],
+                 loc="upper left", fontsize=10, framealpha=0.8)
+    fig.suptitle(view.title, fontsize=13)
     fig.tight_layout()
     _save(fig, out, dpi=80)
     peak_density = float(pk.sum()) * cfg.n_tx / (cfg.n_range * cfg.n_doppler)
     return FramePlot(path=out, frame=view.frame, n_points=int(len(x)), n_peaks=int(pk.sum()),
-                     density=density, tau=tau_used, n_vehicles=int(len(gx)), peak_density=peak_density)
+                     density=density, tau=tau_used, n_vehicles=int(len(boxes)), peak_density=peak_density)
 
 
 def plot_frame(root: str | os.PathLike, frame: int, out: str | os.PathLike, settings: ConvertSettings | None = None,
@@ -337,41 +423,197 @@ def plot_radial_info(summary: RadialSummary, labels: LabelTable, out: str | os.P
     return out
 
 
-# ---- radarpc info: ColoRadar ---------------------------------------------------------------------
-def plot_coloradar_info(view: ColoRadarView, out: str | os.PathLike) -> Path:
-    """The ColoRadar summary figure (PNG, atomic, 5.5 in per panel x 5 in at 110 dpi): the LiDAR
-    scan in bird's-eye view (radar frame) with the frustum, the single-chip cube and, if the view
-    has one, the cascade heatmap (both max over elevation, dB)."""
-    out = Path(out)
-    n_ax = 2 + int(view.heatmap_db is not None)
-    fig = _figure((5.5 * n_ax, 5))
-    axes = fig.subplots(1, n_ax)
-    pts, inside, fov = view.lidar_xyz, view.inside_xyz, view.fov
-    ax = axes[0]
-    lim = fov.max_range_m + 2
-    near = np.abs(pts[:, :2]).max(1) < lim
-    ax.scatter(pts[near, 1], pts[near, 0], s=0.3, c="0.75", label="LiDAR (radar frame)")
-    ax.scatter(inside[:, 1], inside[:, 0], s=0.5, c=inside[:, 2], cmap="viridis", label="inside frustum")
+# ---- ColoRadar: radarpc info and radarpc show ---------------------------------------------------
+LIDAR_OUTSIDE_COLOR = "0.7"
+LIDAR_INSIDE_COLOR = "tab:blue"
+PRED_COLOR = "tab:red"
+FRUSTUM_COLOR = "tab:green"
+
+
+def _azimuth_edges_deg(az_deg: np.ndarray) -> np.ndarray:
+    """Bin edges (deg) of sin-spaced azimuth bins: midpoints in ``sin(az)``, the outer edges half a
+    step beyond the end bins (clipped to +-90 deg)."""
+    s = np.sin(np.radians(np.asarray(az_deg, dtype=np.float64)))
+    if s.size < 2:
+        return np.degrees(np.arcsin(np.clip(np.r_[s - 0.5, s + 0.5], -1, 1)))
+    mid = 0.5 * (s[1:] + s[:-1])
+    e = np.r_[s[0] - (mid[0] - s[0]), mid, s[-1] + (s[-1] - mid[-1])]
+    return np.degrees(np.arcsin(np.clip(e, -1.0, 1.0)))
+
+
+def _range_edges(r: np.ndarray) -> np.ndarray:
+    r = np.asarray(r, dtype=np.float64)
+    step = float(r[1] - r[0]) if r.size > 1 else 1.0
+    return np.r_[r - 0.5 * step, r[-1] + 0.5 * step]
+
+
+def _frustum_bev(ax, fov) -> None:
     a = np.radians(np.linspace(*fov.azimuth_deg, 181))
     r = fov.max_range_m
-    ax.plot(np.r_[0, r * np.sin(a), 0], np.r_[0, r * np.cos(a), 0], "r-", lw=1, label="radar frustum")
-    ax.set(xlim=(lim, -lim), ylim=(-lim, lim), aspect="equal", xlabel="y (m, left)", ylabel="x (m, forward)",
-           title=f"{view.run} LiDAR {view.lidar_index}: {len(inside)} pts in frustum")
-    ax.legend(loc="lower left", fontsize=7, markerscale=8)
-    ax = axes[1]
+    ax.plot(np.r_[0, r * np.sin(a), 0], np.r_[0, r * np.cos(a), 0], "-", color=FRUSTUM_COLOR, lw=1.2,
+            label=f"radar frustum ({fov.max_range_m:.1f} m)")
+
+
+def _lidar_bev(ax, view: ColoRadarView, lim: float) -> None:
+    """LiDAR (grey outside the frustum, blue inside), the prediction (red) and the frustum, x
+    forward up, y left on the left; legend colours are the scatter colours."""
+    pts, inside = view.lidar_xyz, view.inside_xyz
+    near = np.abs(pts[:, :2]).max(1) < lim
+    ax.scatter(pts[near, 1], pts[near, 0], s=0.5, c=LIDAR_OUTSIDE_COLOR, label="LiDAR outside the frustum")
+    ax.scatter(inside[:, 1], inside[:, 0], s=1.0, c=LIDAR_INSIDE_COLOR, label=f"LiDAR in the frustum ({len(inside)})")
+    if view.pred_xyz is not None:
+        q = view.pred_xyz
+        ax.scatter(q[:, 1], q[:, 0], s=6, c=PRED_COLOR, label=f"prediction ({len(q)}): {view.pred_label}")
+    _frustum_bev(ax, view.fov)
+    ax.set(xlim=(lim, -lim), ylim=(-0.25 * lim, lim), aspect="equal", xlabel="y [m] (left +)",
+           ylabel="x [m] (forward)")
+    ax.legend(loc="lower left", fontsize=9, markerscale=6, framealpha=0.85)
+
+
+def _cube_panel(fig, ax, view: ColoRadarView) -> None:
+    """The single-chip cube, max over elevation (dB), on its true (sin-spaced) azimuth bins."""
+    img, rr, az = view.cube_db, view.cube_range_m, view.cube_azimuth_deg
+    im = ax.pcolormesh(_azimuth_edges_deg(az), _range_edges(rr), img, cmap="magma", shading="flat")
+    ax.set_xlim(ax.get_xlim()[::-1])                           # left (+azimuth) on the left, as in the BEV
+    ax.set(xlabel="azimuth [deg] (left +; sin-spaced FFT bins)", ylabel="range [m]",
+           title=f"single-chip cube, frame {view.radar_index}: max over elevation")
+    fig.colorbar(im, ax=ax, label="intensity [dB] (10 log10(P / noise + 1))")
+
+
+def plot_coloradar_info(view: ColoRadarView, out: str | os.PathLike) -> Path:
+    """The ColoRadar summary figure (PNG, atomic, 6 in per panel x 5 in at 110 dpi): the LiDAR
+    scan in bird's-eye view (radar frame) with the frustum, the single-chip cube and, if the view
+    has one, the cascade heatmap (both max over elevation, dB, with colour bars)."""
+    out = Path(out)
+    n_ax = 2 + int(view.heatmap_db is not None)
+    fig = _figure((6 * n_ax, 5))
+    axes = fig.subplots(1, n_ax)
+    ax = axes[0]
+    _lidar_bev(ax, view, view.fov.max_range_m + 2)
+    ax.set_title(f"{view.run} LiDAR {view.lidar_index}: {len(view.inside_xyz)} pts in frustum")
     if view.cube_db is not None:
-        img, rr, az = view.cube_db, view.cube_range_m, view.cube_azimuth_deg
-        ax.imshow(img, origin="lower", aspect="auto", cmap="magma",
-                  extent=(-0.5, img.shape[1] - 0.5, float(rr[0]), float(rr[-1])))
-        ax.set_xticks(range(img.shape[1]), [f"{a:.0f}" for a in az])
-        ax.set(xlabel="azimuth bin centre (deg; sin-spaced FFT bins)", ylabel="range (m)",
-               title=f"single-chip cube {view.radar_index}: max over elevation (dB)")
+        _cube_panel(fig, axes[1], view)
+    else:
+        axes[1].text(0.5, 0.5, "no single-chip radar frames", ha="center", va="center")
+        axes[1].set_axis_off()
     if view.heatmap_db is not None:
         ax = axes[2]
         az = view.heatmap_azimuth_deg
-        ax.imshow(view.heatmap_db.T, origin="lower", aspect="auto", cmap="magma",
-                  extent=(float(az[0]), float(az[-1]), 0.0, view.heatmap_max_range_m))
-        ax.set(xlabel="azimuth (deg)", ylabel="range (m)", title="cascade heatmap: max over elevation (dB)")
+        im = ax.imshow(view.heatmap_db.T, origin="lower", aspect="auto", cmap="magma",
+                       extent=(float(az[0]), float(az[-1]), 0.0, view.heatmap_max_range_m))
+        ax.set_xlim(ax.get_xlim()[::-1])
+        ax.set(xlabel="azimuth [deg] (left +)", ylabel="range [m]", title="cascade heatmap: max over elevation")
+        fig.colorbar(im, ax=ax, label="intensity [dB]")
+    if view.root_name:
+        fig.suptitle(f"ColoRadar root '{view.root_name}', run {view.run}: radar frame {view.radar_index}, "
+                     f"LiDAR scan {view.lidar_index}")
     fig.tight_layout()
     _save(fig, out, dpi=110)
+    return out
+
+
+def plot_coloradar_view(view: ColoRadarView, out: str | os.PathLike) -> Path:
+    """One ColoRadar frame (PNG, atomic, 18 x 6 in at 100 dpi): (a) the single-chip cube, max over
+    elevation (dB), range against azimuth, (b) the bird's-eye view of the paired LiDAR scan (grey
+    outside the frustum, blue inside) with the predicted cloud (red) if the view has one, (c) the
+    side view (x forward, z up) of the in-frustum LiDAR and the prediction."""
+    if view.cube_db is None:
+        raise ValueError(f"run {view.run} has no single-chip radar frame to draw")
+    out = Path(out)
+    fig = _figure((18, 6))
+    ax = fig.subplots(1, 3, gridspec_kw={"width_ratios": [1.0, 1.1, 1.1]})
+    _cube_panel(fig, ax[0], view)
+    lim = view.fov.max_range_m + 1
+    _lidar_bev(ax[1], view, lim)
+    ax[1].set_title("bird's-eye view (radar frame)")
+    inside = view.inside_xyz
+    ax[2].scatter(inside[:, 0], inside[:, 2], s=1.0, c=LIDAR_INSIDE_COLOR, label=f"LiDAR in the frustum ({len(inside)})")
+    if view.pred_xyz is not None:
+        q = view.pred_xyz
+        ax[2].scatter(q[:, 0], q[:, 2], s=6, c=PRED_COLOR, label=f"prediction ({len(q)})")
+    e = np.radians(view.fov.elevation_deg)
+    r = view.fov.max_range_m
+    ax[2].plot([0, r * np.cos(e[0]), np.nan, 0, r * np.cos(e[1])], [0, r * np.sin(e[0]), np.nan, 0, r * np.sin(e[1])],
+               "-", color=FRUSTUM_COLOR, lw=1.2, label=f"frustum, elevation {view.fov.elevation_deg[0]:g} to "
+                                                      f"{view.fov.elevation_deg[1]:g} deg")
+    ax[2].set(xlim=(0, lim), ylim=(-0.5 * lim, 0.5 * lim), aspect="equal", xlabel="x [m] (forward)",
+              ylabel="z [m] (up)", title="side view (radar frame)")
+    ax[2].legend(loc="upper left", fontsize=9, markerscale=6, framealpha=0.85)
+    dt = "" if not np.isfinite(view.lidar_dt_s) else f" ({1e3 * view.lidar_dt_s:+.0f} ms)"
+    fig.suptitle(f"ColoRadar root '{view.root_name}', run {view.run}: radar frame {view.radar_index}, "
+                 f"paired LiDAR scan {view.lidar_index}{dt}", fontsize=13)
+    fig.tight_layout()
+    _save(fig, out, dpi=100)
+    return out
+
+
+def plot_coloradar_frame(root: str | os.PathLike, frame: int, out: str | os.PathLike, *, run: str | None = None,
+                         pred: str | os.PathLike | None = None) -> ColoRadarView:
+    """Draw radar frame ``frame`` of ``run`` (default the first run) of a ColoRadar root to ``out``
+    (:func:`radarpc.data.summary.coloradar_frame_view` then :func:`plot_coloradar_view`); ``pred``, a
+    prediction folder (:mod:`radarpc.eval.predictions`), adds its cloud for that frame. Returns
+    the view drawn."""
+    from radarpc.eval.predictions import load_prediction
+
+    if Path(out).is_dir():
+        raise IsADirectoryError(f"the figure path {out} is a directory; give the path of a .png file")
+    view = coloradar_frame_view(root, frame, run)
+    if pred is not None:
+        pts = load_prediction(pred, view.run, view.radar_index)
+        method = _prediction_method(pred)
+        view = replace(view, pred_xyz=np.asarray(pts, dtype=np.float64),
+                       pred_label=f"{method} ({Path(pred).name})" if method else Path(pred).name)
+    plot_coloradar_view(view, out)
+    return view
+
+
+def _prediction_method(pred: str | os.PathLike) -> str:
+    import json
+
+    from radarpc.eval.predictions import INDEX_FILE
+
+    try:
+        return str(json.loads((Path(pred) / INDEX_FILE).read_text()).get("method", ""))
+    except (OSError, ValueError, AttributeError):
+        return ""
+
+
+# ---- OS-CFAR tuning ------------------------------------------------------------------------------
+def plot_oscfar_tuning(table: TuningTable, out: str | os.PathLike) -> Path:
+    """The OS-CFAR grid search (PNG, atomic, 13 x 5 in at 100 dpi): (a) mean Chamfer distance
+    against the threshold ``tau_db``, one line per other setting (window, guard, rank, angle
+    upsampling), the chosen setting's line and candidate highlighted; (b) mean Chamfer distance
+    against mean predicted points per frame, coloured by ``tau_db`` (colour bar)."""
+    out = Path(out)
+    fig = _figure((13, 5))
+    ax = fig.subplots(1, 2)
+    b = table.best
+    settings = list(dict.fromkeys(table.setting))
+    for st in settings:
+        rows = np.array([i for i, s in enumerate(table.setting) if s == st])
+        rows = rows[np.argsort(table.tau_db[rows], kind="stable")]
+        mine = st == table.setting[b]
+        ax[0].plot(table.tau_db[rows], table.chamfer_m[rows], "-o", ms=3 if not mine else 5,
+                   color="tab:red" if mine else "0.65", lw=2.0 if mine else 0.8, zorder=3 if mine else 2,
+                   label=f"chosen: {st}" if mine else None)
+    if len(settings) > 1:
+        ax[0].plot([], [], "-o", ms=3, color="0.65", lw=0.8, label=f"the other {len(settings) - 1} settings")
+    ax[0].scatter([table.tau_db[b]], [table.chamfer_m[b]], marker="*", s=250, c="gold", edgecolors="k", zorder=4,
+                  label=f"best: tau {table.tau_db[b]:g} dB, {table.chamfer_m[b]:.3f} m")
+    ax[0].set(xlabel="OS-CFAR threshold tau [dB]", ylabel="mean Chamfer distance to the LiDAR [m]",
+              title="Chamfer distance against the threshold")
+    ax[0].legend(fontsize=9, loc="best")
+    sc = ax[1].scatter(table.points_per_frame, table.chamfer_m, c=table.tau_db, cmap="viridis", s=18)
+    ax[1].scatter([table.points_per_frame[b]], [table.chamfer_m[b]], marker="*", s=250, c="gold", edgecolors="k",
+                  zorder=4, label=f"best: {table.points_per_frame[b]:.0f} points per frame")
+    if np.all(table.points_per_frame > 0):
+        ax[1].set_xscale("log")
+    ax[1].set(xlabel="mean predicted points per frame", ylabel="mean Chamfer distance to the LiDAR [m]",
+              title="Chamfer distance against cloud size")
+    ax[1].legend(fontsize=9, loc="best")
+    fig.colorbar(sc, ax=ax[1], label="tau [dB]")
+    fig.suptitle(f"OS-CFAR tuning ({table.path}): {len(table.tau_db)} candidates, mean over {table.n_frames} "
+                 f"{table.split} frames", fontsize=12)
+    fig.tight_layout()
+    _save(fig, out, dpi=100)
     return out

@@ -118,7 +118,7 @@ def test_pointcloud_rd3_density_sparse_rd_matches_store(root, tmp_path, capsys):
 def test_show_writes_a_png(root, tmp_path, capsys):
     png = tmp_path / "frame1.png"
     assert run_cli(["show", str(root), "--frame", "1", "--density", "0.1", "--out", str(png)]) == 0
-    assert "wrote" in capsys.readouterr().out
+    assert "(linear SNR)" in capsys.readouterr().out
     with Image.open(png) as im:
         assert im.format == "PNG" and im.size[0] > 800 and im.size[1] > 300
         arr = np.asarray(im.convert("L"))
@@ -144,7 +144,8 @@ def test_show_geometry_and_encoded_density(root, tmp_path):
     cloud = PointStore(_store(root, tmp_path))[1]
     np.testing.assert_allclose(viz.peak_marker_range_m(TINY, cloud.range_bin.numpy()), cloud.range_m.numpy(),
                                rtol=1e-6)
-    assert (x0, x1) == (-0.5, TINY.slot_width - 0.5)
+    w, dv = TINY.slot_width, TINY.velocity_res_mps
+    np.testing.assert_allclose((x0, x1), ((-w // 2 - 0.5) * dv, (w - w // 2 - 0.5) * dv))   # m/s, Doppler-centred
     # FramePlot.density is the encoded set's (S* with rd3), the CFAR peaks' S apart
     from radarpc.pipelines.pointclouds import ConvertSettings
 
@@ -175,6 +176,10 @@ def test_bad_input(root, tmp_path):
         run_cli(["pointcloud", str(root), "--snr", "2"])
     with pytest.raises(ValueError, match="unknown enrichment 'rdx'"):
         run_cli(["pointcloud", str(root), "--snr", "2", "--enrich", "rdx", "--out", out, "--quiet"])
+    with pytest.raises(ValueError, match="on a RADIal root give one of --density, --snr or --store"):
+        run_cli(["show", str(root), "--frame", "1", "--out", str(tmp_path / "f.png")])
+    with pytest.raises(ValueError, match="--run and --pred apply to ColoRadar roots"):
+        run_cli(["show", str(root), "--frame", "1", "--snr", "2", "--run", "x", "--out", str(tmp_path / "f.png")])
     with pytest.raises(ValueError, match="frame 99 is not in"):
         run_cli(["show", str(root), "--frame", "99", "--snr", "2", "--out", str(tmp_path / "f.png")])
     bad = tmp_path / "bad.parquet"
@@ -203,9 +208,18 @@ def test_pointcloud_beamforming_flag(root, tmp_path, capsys):
         assert torch.equal(ca.range_bin, cb.range_bin) and torch.equal(ca.doppler_full, cb.doppler_full)
         assert torch.equal(ca.azimuth_deg, cb.azimuth_deg)
         torch.testing.assert_close(ca.amplitude, cb.amplitude, rtol=1e-5, atol=1e-6)
-    # changing the mode is an output-shaping setting: the old store is not reused
+    # the mode is a recorded setting: another mode on the same --out is refused, not silently
+    # replaced (one clear line, exit 2), and replaces the store with --overwrite
+    from radarpc.cli import main
+
+    capsys.readouterr()
+    assert main(["pointcloud", str(root), "--snr", "1.585", "--out", str(exact), "--quiet",
+                 "--beamforming", "screened"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "other settings" in err and "--overwrite" in err
+    assert PointStore(exact).metadata.settings["beamforming"] == "exact"
     assert run_cli(["pointcloud", str(root), "--snr", "1.585", "--out", str(exact), "--quiet",
-                    "--beamforming", "screened"]) == 0
+                    "--beamforming", "screened", "--overwrite"]) == 0
     assert PointStore(exact).metadata.settings["beamforming"] == "screened"
 
 
@@ -252,7 +266,7 @@ def test_interrupt_and_bad_device_are_one_line_messages(root, tmp_path, capsys, 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pointcloud, "convert_dataset", interrupted)
+    monkeypatch.setattr("radarpc.pipelines.pointclouds.convert_dataset", interrupted)   # imported by run()
     assert cli.main(["pointcloud", str(root), "--snr", "3", "--out", str(tmp_path / "pc.parquet")]) == 130
     assert "interrupted; finished work is kept, run the same command again to resume" in capsys.readouterr().err
     monkeypatch.undo()

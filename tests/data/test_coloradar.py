@@ -280,6 +280,38 @@ def test_cli_simulate_and_info(sim_root, tmp_path, capsys, monkeypatch):
     assert not list(sim_root.glob("*.png")) and not list(out.glob("*.png"))
 
 
+def test_short_lidar_timestamps_are_reported(sim_root, tmp_path, capsys):
+    # a lidar/timestamps.txt with fewer lines than scan files used to pass `info --check` with
+    # "0 bad" while the scans without a line were silently never paired
+    import shutil
+    from radarpc.cli import main
+    from radarpc.data.summary import check_run
+
+    root = tmp_path / "short"
+    shutil.copytree(sim_root, root)
+    ts = root / "lab_run2" / "lidar" / "timestamps.txt"
+    lines = ts.read_text().splitlines()
+    n_scans = len(list((root / "lab_run2" / "lidar" / "pointclouds").glob("lidar_pointcloud_*.bin")))
+    assert len(lines) == n_scans > 2
+    ts.write_text("\n".join(lines[:2]) + "\n")
+    want = rf"lab_run2/lidar/timestamps\.txt: 2 timestamp lines but {n_scans} LiDAR scan files in lidar/pointclouds/"
+    with pytest.raises(DataFileError, match=want):
+        ColoRadar(root, "test", cube_size=None)
+    assert len(ColoRadar(root, "train", cube_size=None)) > 0          # other runs still read
+    bad = check_run(ColoRadarRun(root / "lab_run2"))
+    assert len(bad) == 1 and "2 timestamp lines" in bad[0]
+    assert main(["info", str(root), "--check", "--no-plot"]) == 1
+    out = capsys.readouterr().out
+    assert "1 bad" in out and f"2 timestamp lines but {n_scans} LiDAR scan files" in out
+    # more lines than ADC frame files: named too
+    (root / "lab_run2" / "lidar" / "timestamps.txt").write_text("\n".join(lines) + "\n")
+    run = ColoRadarRun(root / "lab_run2")
+    run.adc_path(run.num_radar_frames - 1).unlink()
+    with pytest.raises(DataFileError, match=r"adc_samples/timestamps\.txt: \d+ timestamp lines but \d+ "
+                                            r"single-chip ADC frame files"):
+        run.check_counts()
+
+
 def test_calib_beside_runs_folder(sim_root, tmp_path):
     # coloradar-library layout: <dir>/kitti/<run>/ and <dir>/calib/
     import shutil

@@ -13,11 +13,12 @@ from PIL import Image
 
 from radarpc.data.pointstore import PointStore
 from radarpc.data.radial import RADIal
-from radarpc.data.radial_format import LABEL_COLUMNS, fft_path, freespace_path, simulated_sequence_name
+from radarpc.data.radial_format import (LABEL_COLUMNS, fft_path, freespace_path, simulated_sequence_name,
+                                        stored_fft_path)
 from radarpc.pipelines.pointclouds import ConvertSettings, build_point_cloud, convert_dataset, part_path, parts_dir
 from radarpc.pipelines.sparse_rd import write_sparse_rd
 from radarpc.dsp.density import tau_for_density
-from radarpc.io import DataFileError, save_npy_atomic
+from radarpc.io import DataFileError, load_array, save_npy_atomic
 from radarpc.data.radial_format import save_calibration
 from radarpc.sensors.radial import TINY, steering_vectors
 from radarpc.sim.radial_calibration import make_calibration
@@ -69,6 +70,11 @@ def make_tiny_root(root, seed=0):
 @pytest.fixture(scope="module")
 def root(tmp_path_factory):
     return make_tiny_root(tmp_path_factory.mktemp("tiny_radial"))
+
+
+def stored_cube(root, num):
+    """The RD cube file of frame ``num`` of ``root`` (``.npy`` or a sparse root's ``.npz``), as stored."""
+    return load_array(stored_fft_path(root, num))
 
 
 def read_all(path):
@@ -132,16 +138,22 @@ def test_resume_after_kill_gives_same_file(root, tmp_path):
     t_ref, m_ref, f_ref = read_all(ref)
     t_out, m_out, f_out = read_all(out)
     assert t_out.equals(t_ref) and m_out == m_ref and f_out == f_ref
-    # once finished, the same call returns at once; other settings on top of parts are refused
+    # once finished, the same call returns at once
     again = convert_dataset(root, out, density=0.1, chunk_frames=2, progress=False)
-    assert again.chunks_converted == 0
+    assert again.chunks_converted == 0 and again.already_finished and again.frames_reused == 9
+    # a finished store made with other settings is refused, never silently replaced
+    with pytest.raises(FileExistsError, match=r"other settings; pass overwrite=True \(CLI: --overwrite\)"):
+        convert_dataset(root, out, density=0.2, chunk_frames=3, progress=False)
+    assert PointStore(out).metadata.target_density == 0.1 and not parts_dir(out).exists()
     seen.clear()
     with pytest.raises(KeyboardInterrupt):
-        convert_dataset(root, out, density=0.2, chunk_frames=3, progress=False, on_chunk_done=kill_after_two)
-    with pytest.raises(ValueError, match="other settings"):
-        convert_dataset(root, out, density=0.3, chunk_frames=3, progress=False)
-    res = convert_dataset(root, out, density=0.3, chunk_frames=3, progress=False, resume=False)
-    assert res.chunks_converted == 3 and PointStore(out).metadata.target_density == 0.3
+        convert_dataset(root, out, density=0.2, chunk_frames=3, progress=False, overwrite=True,
+                        on_chunk_done=kill_after_two)
+    assert PointStore(out).metadata.target_density == 0.1          # replaced only at the very end
+    # parts of an interrupted run with other settings are stale: discarded, not an error
+    res = convert_dataset(root, out, density=0.3, chunk_frames=3, progress=False, overwrite=True)
+    assert res.chunks_converted == 3 and res.chunks_skipped == 0 and res.frames_reused == 0
+    assert PointStore(out).metadata.target_density == 0.3
     assert not parts_dir(out).exists()
 
 
@@ -225,7 +237,8 @@ def test_torchrun_ranks_shard_chunks_and_rank0_merges(root, tmp_path, monkeypatc
     assert r1.path is None and r1.chunks_converted == 2 and not out.exists()
     monkeypatch.setenv("RANK", "0")
     r0 = convert_dataset(root, out, tau=3.0, chunk_frames=2, progress=False)
-    assert r0.path == out and r0.chunks_skipped == 3
+    # rank 0 reports the job's totals (every rank's parts), here all from the earlier calls
+    assert r0.path == out and r0.chunks_skipped == 5 and r0.chunks_converted == 0 and r0.frames_reused == 9
     t_ref, m_ref, f_ref = read_all(ref)
     t_out, m_out, f_out = read_all(out)
     assert t_out.equals(t_ref) and m_out == m_ref and f_out == f_ref
@@ -253,14 +266,71 @@ def test_sparse_rd_root_reads_back_as_masked_cube(root, tmp_path):
         assert torch.equal(rd2, torch.where(mask[..., None], rd, torch.zeros((), dtype=rd.dtype))), i
         assert float(mask.float().mean()) == pytest.approx(float(cloud.density[0]), rel=1e-6)
     # resume: only the missing cube is recomputed
-    fft_path(out_root, 3).unlink()
+    assert stored_fft_path(out_root, 3) == fft_path(out_root, 3, ".npz")      # stored compressed
+    fft_path(out_root, 3, ".npz").unlink()
     again = write_sparse_rd(root, out_root, tau=4.0, progress=False)
     assert again.frames_written == 1
     assert torch.equal(RADIal(out_root, split="all")[3][0], dst[3][0])
-    with pytest.raises(ValueError, match="other data or settings"):
+    with pytest.raises(FileExistsError, match=r"other settings .*overwrite=True \(CLI: --overwrite\)"):
         write_sparse_rd(root, out_root, tau=5.0, progress=False)
-    assert write_sparse_rd(root, out_root, tau=5.0, progress=False, resume=False).frames_written == 9
+    with pytest.raises(FileExistsError, match="other settings"):          # --no-resume does not replace it
+        write_sparse_rd(root, out_root, tau=5.0, progress=False, resume=False)
+    assert json.loads((out_root / "sparse_rd.json").read_text())["tau"] == 4.0
+    assert write_sparse_rd(root, out_root, tau=5.0, progress=False, overwrite=True).frames_written == 9
     assert json.loads((out_root / "sparse_rd.json").read_text())["tau"] == 5.0
+
+
+def test_sparse_rd_root_size_follows_its_density(root, tmp_path):
+    # The cubes are stored as zlib-compressed .npz; bound the size from the deflate format, not from
+    # what one machine printed. A cube of D = 8 Nr Nd Nrx bytes at mask density d keeps k = d Nr Nd
+    # runs of 8 Nrx nonzero (noise: incompressible) bytes, separated by runs of zero bytes. Deflate's
+    # fixed code spends <= 9 bits per literal (zlib emits a dynamic code only when smaller; its tree,
+    # <= ~300 bytes per 16 K symbols, adds < 2 %): <= 1.25 d D for the kept bytes. A zero run costs
+    # one literal plus matches of <= 258 bytes at <= 31 bits each: <= 4 bytes per run (k of them,
+    # = d D / (2 Nrx)) plus 31/(8 * 258) < 0.015 of the zero bytes. The zip and .npy headers take
+    # < 1 KiB per file. So size <= (1.25 + 1/(2 Nrx)) d D + 0.015 D + 1024, about 0.10 D at d = 0.05.
+    out = tmp_path / "srd05"
+    write_sparse_rd(root, out, density=0.05, progress=False)
+    frames = json.loads((out / "sparse_rd.json").read_text())["frames"]
+    dense_total = sparse_total = bound_total = 0.0
+    for num in range(N_SEQ * PER_SEQ):
+        f = stored_fft_path(out, num)
+        assert f == fft_path(out, num, ".npz") and not fft_path(out, num).exists()
+        d, size, dense = frames[str(num)]["density"], f.stat().st_size, fft_path(root, num).stat().st_size
+        assert d <= 0.05 + 1e-9, num
+        bound = (1.25 + 1 / (2 * TINY.n_rx)) * d * dense + 0.015 * dense + 1024
+        assert size <= bound, (num, size, bound, dense)
+        dense_total, sparse_total, bound_total = dense_total + dense, sparse_total + size, bound_total + bound
+    assert sparse_total <= bound_total <= 0.11 * dense_total      # vs 1.0 x when stored dense
+    # the unchanged reader and info --check read the compressed root; the fingerprint of a root
+    # of .npz cubes sees a cube of another size (it used to look for .npy only)
+    from radarpc.data.radial import check_root
+    from radarpc.pipelines.sources import source_fingerprint
+
+    rep = check_root(out)
+    assert rep.ok and rep.n_frames == 9, rep.format()
+    fp = source_fingerprint(RADIal(out, split="all"))
+    cube = load_array(fft_path(out, 2, ".npz"))
+    np.savez_compressed(fft_path(out, 2, ".npz"), cube.astype(np.complex128))
+    assert source_fingerprint(RADIal(out, split="all")) != fp
+
+
+def test_sparse_rd_rewrite_removes_a_dense_cube_of_an_older_root(root, tmp_path):
+    # a root written densely (older radarpc) resumes: its .npy cubes count as done; rewritten, a
+    # frame's .npy is removed so that it cannot shadow the new .npz (the reader prefers .npy)
+    out = tmp_path / "srd"
+    write_sparse_rd(root, out, tau=4.0, progress=False)
+    ref = {num: stored_cube(out, num) for num in range(9)}
+    fft_path(out, 1, ".npz").unlink()
+    save_npy_atomic(fft_path(out, 1), ref[1])                       # as the old writer stored it
+    assert write_sparse_rd(root, out, tau=4.0, progress=False).frames_written == 0
+    assert stored_fft_path(out, 1) == fft_path(out, 1)
+    save_npy_atomic(fft_path(out, 1), ref[1] + 1)                   # stale content of another run
+    assert write_sparse_rd(root, out, tau=4.0, progress=False, resume=False).frames_written == 9
+    assert not fft_path(out, 1).exists() and stored_fft_path(out, 1) == fft_path(out, 1, ".npz")
+    ds = RADIal(out, split="all")
+    for num in range(9):
+        assert np.array_equal(ds[ds.index_of(num)][0].numpy(), ref[num]), num
 
 
 def test_sparse_rd_split_keeps_only_its_labels(root, tmp_path):
@@ -280,7 +350,7 @@ def test_corrupt_cube_names_the_file_and_keeps_finished_parts(root, tmp_path):
     with pytest.raises(DataFileError, match="fft_000005.npy"):
         convert_dataset(bad_root, out, tau=3.0, chunk_frames=3, progress=False)
     assert not out.exists() and part_path(out, 0).is_file() and not part_path(out, 1).exists()
-    with pytest.raises(RuntimeError, match="fft_000005.npy"):   # the same error through spawned workers
+    with pytest.raises(DataFileError, match="fft_000005.npy"):  # the same error through spawned workers
         convert_dataset(bad_root, out, tau=3.0, chunk_frames=3, workers=2, progress=False)
     assert not out.exists() and part_path(out, 2).is_file()
 
@@ -318,8 +388,11 @@ def test_changed_calibration_frames_is_a_new_conversion(root, tmp_path):
     assert PointStore(out).metadata.settings["calibration_frames"] is None
     same = convert_dataset(root, out, density=0.1, density_mode="per-dataset", chunk_frames=4, progress=False)
     assert same.chunks_converted == 0 and same.tau == first.tau
+    with pytest.raises(FileExistsError, match="other settings"):
+        convert_dataset(root, out, density=0.1, density_mode="per-dataset", chunk_frames=4, calibration_frames=2,
+                        progress=False)
     two = convert_dataset(root, out, density=0.1, density_mode="per-dataset", chunk_frames=4,
-                          calibration_frames=2, progress=False)
+                          calibration_frames=2, progress=False, overwrite=True)
     assert two.chunks_converted == 3 and two.chunks_skipped == 0
     m = PointStore(out).metadata
     assert m.settings["calibration_frames"] == 2 and m.tau == two.tau
@@ -332,7 +405,7 @@ def test_changed_calibration_frames_is_a_new_conversion(root, tmp_path):
     assert two.tau != first.tau
     # the envelope is recorded and compared too
     env = convert_dataset(root, out, density=0.1, density_mode="per-dataset", chunk_frames=4,
-                          calibration_frames=2, envelope="all-slots", progress=False)
+                          calibration_frames=2, envelope="all-slots", progress=False, overwrite=True)
     assert env.chunks_converted == 3 and PointStore(out).metadata.envelope == "all-slots"
 
 
@@ -395,7 +468,7 @@ def test_simulated_dataset_object_converts_like_its_written_root(tmp_path):
     write_sparse_rd(sim_root, s1, tau=3.0, progress=False)
     write_sparse_rd(SimulatedRADIal(TINY, 3, 2, 0, split="all"), s2, tau=3.0, progress=False)
     for num in range(6):
-        assert np.array_equal(np.load(fft_path(s1, num)), np.load(fft_path(s2, num))), num
+        assert np.array_equal(stored_cube(s1, num), stored_cube(s2, num)), num
     r1, r2 = RADIal(s1, split="all"), RADIal(s2, split="all")
     assert r1.frame_ids == r2.frame_ids and r1.sequences == r2.sequences and r2.sensor == TINY
     np.testing.assert_array_equal(r1.labels.values, r2.labels.values)
@@ -430,10 +503,11 @@ def test_changed_source_files_are_noticed_on_resume(root, tmp_path):
         raise KeyboardInterrupt("simulated kill")
 
     with pytest.raises(KeyboardInterrupt):
-        convert_dataset(src, out, tau=3.0, chunk_frames=3, progress=False, on_chunk_done=stop)
+        convert_dataset(src, out, tau=3.0, chunk_frames=3, progress=False, on_chunk_done=stop, overwrite=True)
     np.save(fft_path(src, 7), np.load(fft_path(src, 7)).astype(np.complex128))   # another size
-    with pytest.raises(ValueError, match="other source_files"):
-        convert_dataset(src, out, tau=3.0, chunk_frames=3, progress=False)
+    # the interrupted run's part was made from the old files: discarded, every chunk converted again
+    res = convert_dataset(src, out, tau=3.0, chunk_frames=3, progress=False, overwrite=True)
+    assert res.chunks_skipped == 0 and res.chunks_converted == 3
     # per-dataset tau: a changed training cube is noticed when another split is converted
     out_val = tmp_path / "val.parquet"
     first = convert_dataset(src, out_val, density=0.1, density_mode="per-dataset", split="val", progress=False)
@@ -445,8 +519,8 @@ def test_changed_source_files_are_noticed_on_resume(root, tmp_path):
     sparse = tmp_path / "sparse"
     write_sparse_rd(src, sparse, tau=4.0, progress=False)
     (src / "labels.csv").write_bytes(labels)
-    with pytest.raises(ValueError, match="other data or settings"):
-        write_sparse_rd(src, sparse, tau=4.0, progress=False)
+    # the same request on changed files: written again (nothing of the old files is kept)
+    assert write_sparse_rd(src, sparse, tau=4.0, progress=False).frames_written == 9
 
 
 def test_sparse_rd_resume_after_kill_keeps_every_frame_record(root, tmp_path, monkeypatch):
@@ -455,18 +529,18 @@ def test_sparse_rd_resume_after_kill_keeps_every_frame_record(root, tmp_path, mo
     ref = write_sparse_rd(root, tmp_path / "ref", density=0.1, batch_size=2, progress=False)
     out = tmp_path / "sparse"
     calls = []
-    real_save = convert.save_npy_atomic
+    real_save = convert.save_fft_npz
 
-    def dying_save(path, array):                  # killed after the 5th cube, before its record
+    def dying_save(out_root, num, array):         # killed after the 5th cube, before its record
         if len(calls) == 5:
             raise KeyboardInterrupt("simulated kill")
-        calls.append(path)
-        real_save(path, array)
+        calls.append(num)
+        real_save(out_root, num, array)
 
-    monkeypatch.setattr(convert, "save_npy_atomic", dying_save)
+    monkeypatch.setattr(convert, "save_fft_npz", dying_save)
     with pytest.raises(KeyboardInterrupt):
         write_sparse_rd(root, out, density=0.1, batch_size=2, progress=False)
-    monkeypatch.setattr(convert, "save_npy_atomic", real_save)
+    monkeypatch.setattr(convert, "save_fft_npz", real_save)
     info = json.loads((out / "sparse_rd.json").read_text())
     assert not info["complete"] and sorted(info["frames"]) == ["0", "1", "2", "3"]   # two whole batches
     res = write_sparse_rd(root, out, density=0.1, batch_size=2, progress=False)
@@ -476,7 +550,7 @@ def test_sparse_rd_resume_after_kill_keeps_every_frame_record(root, tmp_path, mo
     assert info["complete"] and info["frames"] == want["frames"] and info["mean_density"] == want["mean_density"]
     assert res.frame_tau == ref.frame_tau
     for num in range(9):
-        assert np.array_equal(np.load(fft_path(out, num)), np.load(fft_path(tmp_path / "ref", num))), num
+        assert np.array_equal(stored_cube(out, num), stored_cube(tmp_path / "ref", num)), num
 
 
 def test_sparse_rd_refuses_a_folder_that_is_not_a_sparse_root(root, tmp_path):
@@ -498,9 +572,11 @@ def test_output_path_problems_are_named_before_any_work(root, tmp_path):
     assert not parts_dir(tmp_path / "adir").exists()
     foreign = tmp_path / "foreign.parquet"
     foreign.write_text("not a store")
-    with pytest.raises(DataFileError, match="in the way of this conversion.*resume=False"):
+    with pytest.raises(DataFileError, match=r"in the way of this conversion.*overwrite=True \(CLI: --overwrite\)"):
         convert_dataset(root, foreign, tau=4.0, progress=False)
-    assert convert_dataset(root, foreign, tau=4.0, progress=False, resume=False).n_frames == 9
+    with pytest.raises(DataFileError, match="in the way"):                 # --no-resume does not replace it
+        convert_dataset(root, foreign, tau=4.0, progress=False, resume=False)
+    assert convert_dataset(root, foreign, tau=4.0, progress=False, overwrite=True).n_frames == 9
     with pytest.raises(ValueError, match="is not a torch device"):
         convert_dataset(root, tmp_path / "x.parquet", tau=4.0, progress=False, device="gpu0")
     if not torch.cuda.is_available():
@@ -531,3 +607,50 @@ def test_orphaned_worker_stops_before_its_next_batch(root, tmp_path):
     with pytest.raises(SystemExit, match="is gone, stopping"):
         convert._run_chunks(dataclasses.replace(job, parent_pid=os.getppid() + 1), job.items, lambda k, n: None)
     assert list(parts_dir(out).iterdir()) == []
+
+
+def test_two_conversions_to_one_store_never_mix(root, tmp_path):
+    # a second process converting to the same --out (here with other settings) while the first
+    # runs is refused at once, naming the holder; the first finishes a store of its own settings
+    import subprocess
+    import sys
+    import textwrap
+    import time
+
+    from radarpc.runs import OutputBusyError, OutputLock
+
+    out = tmp_path / "pc.parquet"
+    ref = tmp_path / "ref.parquet"
+    convert_dataset(root, ref, tau=3.0, chunk_frames=2, progress=False)
+    code = textwrap.dedent(f"""
+        import time
+        from radarpc.pipelines.pointclouds import convert_dataset
+        convert_dataset({str(root)!r}, {str(out)!r}, tau=3.0, chunk_frames=2, progress=False,
+                        on_chunk_done=lambda k: time.sleep(0.5))
+    """)
+    child = subprocess.Popen([sys.executable, "-c", code])
+    try:
+        lock = OutputLock(out).path
+        t0 = time.monotonic()
+        while not lock.exists() and child.poll() is None and time.monotonic() - t0 < 120:
+            time.sleep(0.05)
+        assert lock.exists(), "the first conversion did not start"
+        with pytest.raises(OutputBusyError, match=rf"pid {child.pid}.*point store"):
+            convert_dataset(root, out, tau=4.0, chunk_frames=2, progress=False, overwrite=True)
+        with pytest.raises(OutputBusyError):                      # the same settings too
+            convert_dataset(root, out, tau=3.0, chunk_frames=2, progress=False)
+    finally:
+        assert child.wait(timeout=300) == 0
+    t_ref, m_ref, f_ref = read_all(ref)
+    t_out, m_out, f_out = read_all(out)
+    assert t_out.equals(t_ref) and m_out == m_ref and f_out == f_ref
+    assert not lock.exists() and not parts_dir(out).exists()
+
+
+def test_a_merge_killed_half_way_leaves_nothing_behind(root, tmp_path):
+    out = tmp_path / "pc.parquet"
+    orphan = tmp_path / ".pc.parquet.x1y2.tmp"                     # what a kill during the merge leaves
+    orphan.write_bytes(b"PAR1 half")
+    res = convert_dataset(root, out, tau=3.0, chunk_frames=4, progress=False)
+    assert res.n_frames == 9 and not orphan.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pc.parquet"]

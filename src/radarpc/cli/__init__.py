@@ -13,13 +13,13 @@ from radarpc import __version__
 
 
 # Commands that keep finished work and resume it when run again.
-RESUMABLE_COMMANDS = ("simulate", "pointcloud", "demo", "baseline")
+RESUMABLE_COMMANDS = ("simulate", "pointcloud", "demo", "baseline", "export")
 
 
 def _command_modules():
     # Imported lazily so that `radarpc --help` stays fast and one broken stage cannot hide the others.
-    from radarpc.cli import simulate, info, pointcloud, show, demo, baseline, evaluate_points
-    return [simulate, info, pointcloud, show, demo, baseline, evaluate_points]
+    from radarpc.cli import simulate, info, pointcloud, show, demo, baseline, evaluate_points, export
+    return [simulate, info, pointcloud, show, demo, baseline, evaluate_points, export]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -28,7 +28,25 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for mod in _command_modules():
         mod.add_parser(sub)
+    _plain_help(parser)
     return parser
+
+
+def _plain_help(parser: argparse.ArgumentParser) -> None:
+    """Make every description and option help of the parser tree plain text: the descriptions
+    come from module docstrings written in reStructuredText (double backticks, ``Example::``)."""
+    from radarpc.cli.options import plain_text
+
+    parser.description = plain_text(parser.description)
+    parser.epilog = plain_text(parser.epilog)
+    for action in parser._actions:
+        if isinstance(action.help, str):
+            action.help = plain_text(action.help)
+        if isinstance(action, argparse._SubParsersAction):
+            for choice in action._choices_actions:
+                choice.help = plain_text(choice.help)
+            for sub in action.choices.values():
+                _plain_help(sub)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -36,7 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError) as e:
+    except (ValueError, FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError,
+            PermissionError, TimeoutError) as e:
         # Bad input is reported as one clear line, not a traceback.
         print(f"radarpc {args.command}: error: {e}", file=sys.stderr)
         return 2

@@ -44,7 +44,7 @@ def add_parser(sub) -> None:
     q = kinds.add_parser("os-cfar", help="3-D OS-CFAR on the radar cube, tuned for Chamfer distance",
                          description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     q.add_argument("root", help="ColoRadar root (real or simulated)")
-    q.add_argument("--split", default="test", choices=("train", "val", "test", "all"), help="frames to predict")
+    q.add_argument("--split", default="test", choices=("train", "val", "test", "all"), help="split whose paired frames are predicted (default test)")
     q.add_argument("--out", required=True, help="prediction folder")
     q.add_argument("--tune-split", default="val", choices=("train", "val", "test", "all"),
                    help="split whose frames tune the parameters (default val)")

@@ -15,11 +15,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import torch
-
 from radarpc import __version__
-from radarpc.io import atomic_write
-from radarpc.machine import cpu_model
 
 __all__ = ["DemoConfig", "run_demo", "add_parser"]
 
@@ -64,6 +60,11 @@ def _run(step: _Step) -> None:
 
 def run_demo(cfg: DemoConfig) -> Path:
     """Run every step of the demo into ``cfg.out``; return the path of ``REPORT.md``."""
+    import torch
+
+    from radarpc.io import atomic_write
+    from radarpc.machine import cpu_model
+
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     radial_root = out / "sim_radial"
@@ -132,11 +133,15 @@ def add_parser(sub) -> None:
     p.add_argument("--out", default=str(d.out), help=f"run folder (default {d.out})")
     p.add_argument("--sensor", choices=("radial-s", "radial"), default=d.sensor,
                    help=f"RADIal-like sensor (default {d.sensor}; radial = full 512x256x16 cubes)")
-    p.add_argument("--sequences", type=int, default=d.sequences)
-    p.add_argument("--frames-per-sequence", type=int, default=d.frames_per_sequence)
-    p.add_argument("--colo-frames", type=int, default=d.colo_frames, help="frames per ColoRadar run")
-    p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--device", default=d.device, help="torch device (cpu, cuda, cuda:1, ...)")
+    p.add_argument("--sequences", type=int, default=d.sequences,
+                   help=f"simulated RADIal sequences (default {d.sequences}: 4 train, 1 val, 1 test)")
+    p.add_argument("--frames-per-sequence", type=int, default=d.frames_per_sequence,
+                   help=f"frames per RADIal sequence (default {d.frames_per_sequence})")
+    p.add_argument("--colo-frames", type=int, default=d.colo_frames,
+                   help=f"radar frames per ColoRadar run (default {d.colo_frames}; scenes {d.colo_scenes}, "
+                        f"{d.colo_runs_per_scene} runs each)")
+    p.add_argument("--seed", type=int, default=d.seed, help=f"simulator seed (default {d.seed})")
+    p.add_argument("--device", default=d.device, help=f"torch device: cpu, cuda, cuda:1, ... (default {d.device})")
     p.set_defaults(func=lambda a: run_demo(DemoConfig(
         out=Path(a.out), sensor=a.sensor, sequences=a.sequences, frames_per_sequence=a.frames_per_sequence,
         colo_frames=a.colo_frames, seed=a.seed, device=a.device)) and 0)

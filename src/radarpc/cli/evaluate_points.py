@@ -60,7 +60,8 @@ def add_parser(sub) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("pred_dir", help="prediction folder ({run}/{frame:06d}.npy)")
     p.add_argument("--data", required=True, help="ColoRadar root the predictions were made on")
-    p.add_argument("--split", default="test", choices=("train", "val", "test", "all"))
+    p.add_argument("--split", default="test", choices=("train", "val", "test", "all"),
+                   help="split the predictions were made on (default test; must match PRED_DIR/index.json)")
     p.add_argument("--emd-points", type=int, default=2048,
                    help="EMD subset size n: min(n, |gt|) LiDAR and min(n, |pred|) predicted points (default 2048)")
     p.add_argument("--emd-seed", type=int, default=0, help="seed of the EMD subsets (default 0)")

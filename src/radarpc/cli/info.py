@@ -8,10 +8,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from radarpc.data.radial import CheckReport, check_root, read_labels, write_skip_file
-from radarpc.data.summary import RadialSummary, first_rd_power_db, summarize_radial
+from typing import TYPE_CHECKING
+
 from radarpc.io import DataFileError
-from radarpc.viz import plot_radial_info
+
+if TYPE_CHECKING:                  # the readers import torch: loaded when a command runs, not for --help
+    from radarpc.data.radial import CheckReport
+    from radarpc.data.summary import RadialSummary
 
 __all__ = ["add_parser", "run", "format_summary", "info_radial", "default_plot_path"]
 
@@ -46,6 +49,8 @@ def format_summary(s: RadialSummary) -> str:
 
 
 def _print_check(report: CheckReport, write_skip: str | None) -> int:
+    from radarpc.data.radial import write_skip_file
+
     print(report.format())
     if write_skip is not None:
         write_skip_file(write_skip, report.bad_frames)
@@ -60,6 +65,10 @@ def default_plot_path(root: str | Path) -> Path:
 
 def info_radial(args: argparse.Namespace) -> int:
     """``radarpc info`` on a RADIal root. Returns 1 if ``--check`` found a bad file, else 0."""
+    from radarpc.data.radial import check_root, read_labels
+    from radarpc.data.summary import first_rd_power_db, summarize_radial
+    from radarpc.viz import plot_radial_info
+
     root = Path(args.root)
     check = bool(args.check or args.write_skip)
     try:

@@ -43,6 +43,9 @@ def info_coloradar(args: argparse.Namespace) -> int:
     print(f"scenes:      {len(summary.scenes)} ({', '.join(summary.scenes)})")
     for sp, n in summary.split_runs.items():
         print(f"{sp + ':':<13}{n} runs, {summary.split_pairs[sp]} paired frames")
+    for run in runs:                    # timestamp lines vs data files (also counted as bad by --check)
+        for e in run.count_problems():
+            print(f"warning:     {e}")
     if summary.lidar_points is not None:
         raw, inside = summary.lidar_points
         print(f"LiDAR:       {raw:.0f} points per scan, {inside:.0f} inside the radar frustum (mean of sampled scans)")

@@ -11,11 +11,14 @@ Examples::
     torchrun --nproc-per-node 4 -m radarpc pointcloud data/radial --density 0.057 --out pc.parquet
 
 A killed conversion resumes when the same command is run again (``--no-resume`` starts over).
+An existing --out or --sparse-rd-out made with other settings is refused unless ``--overwrite``
+(the same command on changed source files converts again); a second conversion to the same
+output while one runs is refused.
 Under torchrun each rank converts its share of the chunks (on ``cuda:LOCAL_RANK`` when CUDA is
 available) and rank 0 merges; ``--sparse-rd-out`` is written by rank 0 alone.
 
-CFAR geometry: ``--window`` / ``--guard`` are *full* odd side lengths (seed: 9 x 9 window, 3 x 3
-guard). RADIal's ``rpl.py`` writes ``(9, 9, 3, 3)`` as *half* widths, i.e. ``--window 19,19 --guard
+CFAR geometry: ``--window`` / ``--guard`` are *full* odd side lengths (the paper's default: 9 x 9
+window, 3 x 3 guard). RADIal's ``rpl.py`` writes ``(9, 9, 3, 3)`` as *half* widths, i.e. ``--window 19,19 --guard
 7,7``, sums every DDMA slot into its envelope (``--envelope all-slots``) and thresholds at 2 dB
 (``--snr 1.585``), a value chosen for that geometry; ``--cfar radial`` selects the first two.
 """
@@ -25,14 +28,9 @@ import argparse
 import math
 import sys
 
-from radarpc.dsp.cfar import check_tau
-from radarpc.dsp.pointcloud import CFAR_PRESETS, SpectralPointCloudConfig
-from radarpc.distributed import DEFAULT_WAIT_S, dist_env
-from radarpc.pipelines.pointclouds import ConvertSettings, convert_dataset
-from radarpc.pipelines.sparse_rd import write_sparse_rd
-from radarpc.dsp.beamform import BEAMFORMING_MODES
-from radarpc.dsp.ddma import ENVELOPES
-from radarpc.dsp.density import check_density_value
+# The parsers use torch-free copies of the choices (`radarpc --help` imports no torch); the
+# library is imported inside the functions that run a command.
+from radarpc.cli.options import BEAMFORMING_MODES, CFAR_PRESET_NAMES, DEFAULT_WAIT_S, ENVELOPES
 
 __all__ = ["add_parser", "run", "parse_pair", "parse_enrich", "add_density_args", "check_density_args",
            "resolve_cfar_args"]
@@ -91,9 +89,9 @@ def add_density_args(p: argparse.ArgumentParser):
                         "CPUs with AMX unless sector descriptors are asked for, else exact)")
     p.add_argument("--envelope", choices=ENVELOPES, default=None,
                    help="RD envelope: 'replicas' = sum over the n_tx replica bins of each consolidated cell "
-                        "(seed eq. 1, default); 'all-slots' = RADIal rpl.py, sum over every DDMA slot "
+                        "(the spectral point-cloud paper's eq. 1, default); 'all-slots' = RADIal rpl.py, sum over every DDMA slot "
                         "including the empty ones")
-    p.add_argument("--cfar", choices=tuple(CFAR_PRESETS), default=None,
+    p.add_argument("--cfar", choices=CFAR_PRESET_NAMES, default=None,
                    help="preset: 'radial' = RADIal rpl.py's processing, --window 19,19 --guard 7,7 "
                         "--envelope all-slots (use with --snr 1.585)")
     return g
@@ -104,6 +102,8 @@ def resolve_cfar_args(args: argparse.Namespace) -> dict:
     ``--cfar`` preset (:data:`radarpc.dsp.pointcloud.CFAR_PRESETS`), which explicit
     ``--window/--guard/--envelope`` must not contradict; without a preset the explicit values or
     the config's defaults."""
+    from radarpc.dsp.pointcloud import CFAR_PRESETS, SpectralPointCloudConfig
+
     defaults = SpectralPointCloudConfig()
     preset = getattr(args, "cfar", None)
     base = CFAR_PRESETS[preset] if preset is not None else {k: getattr(defaults, k) for k in ("window", "guard", "envelope")}
@@ -118,6 +118,9 @@ def resolve_cfar_args(args: argparse.Namespace) -> dict:
 
 def check_density_args(args: argparse.Namespace) -> None:
     """Range checks of ``--density`` / ``--snr`` (the library's checks), messages naming the flag."""
+    from radarpc.dsp.cfar import check_tau
+    from radarpc.dsp.density import check_density_value
+
     for flag, attr, check in (("--density", "density", check_density_value), ("--snr", "snr", check_tau)):
         v = getattr(args, attr, None)
         if v is not None:
@@ -151,6 +154,11 @@ def density_warning(target: float | None, achieved: float, enrich: tuple[str, ..
 
 
 def run(args: argparse.Namespace) -> int:
+    from radarpc.distributed import dist_env
+    from radarpc.pipelines.pointclouds import ConvertSettings, convert_dataset
+    from radarpc.pipelines.sparse_rd import write_sparse_rd
+    from radarpc.runs import check_writable
+
     check_density_args(args)
     cfar = resolve_cfar_args(args)
     if args.out is None and args.sparse_rd_out is None:
@@ -161,8 +169,13 @@ def run(args: argparse.Namespace) -> int:
                                enrich=enrich, **cfar,
                                split=args.split, chunk_frames=args.chunk_frames,
                                calibration_frames=args.calibration_frames, beamforming=args.beamforming)
+    # Both outputs are checked before any work: a store must not be written when the sparse
+    # root cannot be.
+    for path, what in ((args.out, "point store"), (args.sparse_rd_out, "sparse-RD root")):
+        if path is not None:
+            check_writable(path, what)
     run_args = dict(batch_size=args.batch_size, device=args.device, resume=not args.no_resume,
-                    progress=not args.quiet)
+                    progress=not args.quiet, overwrite=args.overwrite)
     calibrated = None
     if args.out is not None:
         res = convert_dataset(args.root, args.out, settings, workers=args.workers,
@@ -174,11 +187,14 @@ def run(args: argparse.Namespace) -> int:
             # the achieved (and target) density is that of the encoded set: S*(tau) with rdN, else S(tau)
             extra = "" if rd is None else \
                 f" of S*(tau) with {rd} neighbourhoods; CFAR peaks S(tau) alone {res.peak_density:.5f}"
-            print(f"wrote {res.path}: {res.n_frames} frames, {res.n_points} points, tau {tau}, "
+            head = (f"{res.path} already holds this conversion (nothing to do)" if res.already_finished else
+                    f"wrote {res.path}: {res.n_frames - res.frames_reused} frames converted now, "
+                    f"{res.frames_reused} reused from an earlier run")
+            print(f"{head}; {res.n_frames} frames, {res.n_points} points, tau {tau}, "
                   f"achieved density {res.achieved_density:.5f}"
                   + (f" (target {args.density})" if args.density is not None else "") + extra
-                  + f"; {res.chunks_converted} chunk(s) of {res.chunk_frames} frames converted, "
-                  f"{res.chunks_skipped} resumed")
+                  + f"; parts of {res.chunk_frames} frames: {res.chunks_converted} converted, "
+                  f"{res.chunks_skipped} reused")
             warn = density_warning(args.density, res.achieved_density, enrich)
             if warn is not None:
                 print(warn, file=sys.stderr)
@@ -203,7 +219,8 @@ def add_parser(sub) -> None:
                    help="also write a RADIal-layout root whose RD cubes are masked to exactly the set the "
                         "point store encodes: S(tau), or S*(tau) with an rdN enrichment (the replica bins of "
                         "the n x n neighbourhoods), with the same envelope, CFAR and per-frame taus "
-                        "(recorded with the achieved densities in DIR/sparse_rd.json)")
+                        "(recorded with the achieved densities in DIR/sparse_rd.json); cubes are stored "
+                        "compressed (radar_FFT/fft_*.npz), so the root's size follows the density")
     add_density_args(p)
     p.add_argument("--enrich", default="none", metavar="LIST",
                    help="comma-separated enrichments, e.g. rd3,sector32 (default none)")
@@ -222,6 +239,10 @@ def add_parser(sub) -> None:
                         f"files (default {DEFAULT_WAIT_S:.0f} s)")
     p.add_argument("--device", default=None,
                    help="torch device (default cuda:LOCAL_RANK if CUDA is available, else cpu)")
-    p.add_argument("--no-resume", action="store_true", help="discard finished parts of an earlier run")
+    p.add_argument("--no-resume", action="store_true",
+                   help="compute every frame again instead of reusing an earlier run's finished parts or store")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing --out (or --sparse-rd-out) that holds another conversion (other "
+                        "settings or source) or another file; without it such an output is refused")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

@@ -1,31 +1,85 @@
-"""``radarpc show ROOT --frame N``: one frame's RD spectrum with its CFAR detections and its
-spectral point cloud in bird's-eye view, beside the ground-truth vehicles.
+"""``radarpc show``: look at one frame of a RADIal or ColoRadar root, or at an OS-CFAR tuning search.
 
-Example::
+RADIal root (``labels.csv``)::
 
     radarpc show data/sim_radial --frame 10 --density 0.057 --out frame10.png
 
-Panels: (a) ``A(r, d) = sum_rx |R|`` in dB on the full Doppler axis with the encoded set marked
-(``S(tau)``, or ``S*(tau)`` with an ``rdN`` enrichment: the replica bins of every point), (b) the
-consolidated envelope ``E(r, l)`` in dB with the CFAR peaks ``P(tau)``, (c) the points in BEV (x forward, y left; drawn with left on the left) coloured by
-radial velocity or by angle-spectrum amplitude, with the labelled vehicle centres. Range bin ``r``
-is drawn centred on ``r * range_res_m`` (the points' ``range_m``) in both RD panels.
+  (a) ``A(r, d) = sum_rx |R|`` in dB against Doppler in m/s (the cube's bin index on the top axis)
+  with the encoded set marked (S(tau), or S*(tau) with an rdN enrichment: the replica bins of every
+  point), (b) the consolidated envelope E(r, l) in dB with the CFAR peaks P(tau), against the
+  consolidated Doppler in m/s (l on the top axis), (c) the points in bird's-eye view (x forward,
+  y left, drawn with left on the left) coloured by radial velocity or by angle-spectrum amplitude,
+  with the labelled vehicles as RADIal's 4 m x 1.8 m boxes (near edge centred on the label). tau
+  is a linear SNR (power ratio); the title gives it in dB too. With --density-mode per-dataset tau
+  is calibrated on the training split at every call (one pass over the train cubes).
 
-With ``--density-mode per-dataset`` tau is calibrated on the training split at every call (one
-pass over the train cubes); :func:`plot_frame` takes ``tau=`` to reuse a calibrated value.
+ColoRadar root (``calib/`` and run folders)::
+
+    radarpc show data/sim_coloradar --run lab_run2 --frame 3 --pred preds/oscfar --out colo3.png
+
+  (a) the single-chip radar cube, max over elevation, in dB (range against azimuth), (b) the
+  paired LiDAR scan in bird's-eye view (blue inside the radar frustum, grey outside) with the
+  predicted cloud of --pred (red), (c) the same in side view. --frame is the radar (ADC) frame
+  index in its run, as in a prediction folder; --run defaults to the first run.
+
+OS-CFAR tuning search of ``radarpc baseline os-cfar``::
+
+    radarpc show --tuning preds/oscfar --out tuning.png
+
+  Mean Chamfer distance of every candidate against its threshold and against its cloud size
+  (--tuning takes tuning.json or the prediction folder holding it).
 """
 from __future__ import annotations
 
 import argparse
-
-from radarpc.cli.pointcloud import add_density_args, check_density_args, parse_enrich, resolve_cfar_args
-from radarpc.pipelines.pointclouds import ConvertSettings
-from radarpc.viz import COLOR_BY, plot_frame
+from pathlib import Path
 
 __all__ = ["add_parser", "run"]
 
 
-def run(args: argparse.Namespace) -> int:
+def _run_tuning(args: argparse.Namespace) -> int:
+    from radarpc.data.summary import read_tuning
+    from radarpc.viz import plot_oscfar_tuning
+
+    if args.root is not None or args.frame is not None or args.pred is not None:
+        raise ValueError("--tuning draws the tuning search alone: give no ROOT, --frame or --pred with it")
+    out = Path(args.out) if args.out is not None else Path("tuning.png")
+    if out.is_dir():
+        raise IsADirectoryError(f"the figure path {out} is a directory; give the path of a .png file")
+    table = read_tuning(args.tuning)
+    plot_oscfar_tuning(table, out)
+    b = table.best
+    print(f"wrote {out}: {len(table.tau_db)} OS-CFAR candidates on {table.n_frames} {table.split} frames; best "
+          f"{table.setting[b]}, tau {table.tau_db[b]:g} dB: mean Chamfer {table.chamfer_m[b]:.3f} m, "
+          f"{table.points_per_frame[b]:.0f} points per frame")
+    return 0
+
+
+def _run_coloradar(args: argparse.Namespace) -> int:
+    from radarpc.viz import plot_coloradar_frame
+
+    given = [f for f, v in (("--density", args.density), ("--snr", args.snr), ("--store", args.store)) if v is not None]
+    if given:
+        raise ValueError(f"{', '.join(given)} apply to RADIal roots; {args.root} is a ColoRadar root "
+                         "(give --frame, optionally --run and --pred)")
+    out = args.out if args.out is not None else (f"{args.run}_frame{args.frame}.png" if args.run
+                                                 else f"frame{args.frame}.png")
+    view = plot_coloradar_frame(args.root, args.frame, out, run=args.run, pred=args.pred)
+    pred = "" if view.pred_xyz is None else f", {len(view.pred_xyz)} predicted points ({view.pred_label})"
+    print(f"wrote {out}: run {view.run}, radar frame {view.radar_index}, LiDAR scan {view.lidar_index} "
+          f"({len(view.inside_xyz)} of {len(view.lidar_xyz)} points in the radar frustum){pred}")
+    return 0
+
+
+def _run_radial(args: argparse.Namespace) -> int:
+    from radarpc.cli.pointcloud import check_density_args, parse_enrich, resolve_cfar_args
+    from radarpc.pipelines.pointclouds import ConvertSettings
+    from radarpc.viz import plot_frame
+
+    if args.run is not None or args.pred is not None:
+        raise ValueError(f"--run and --pred apply to ColoRadar roots; {args.root} is a RADIal root")
+    if args.density is None and args.snr is None and args.store is None:
+        raise ValueError("on a RADIal root give one of --density, --snr or --store")
     check_density_args(args)
     settings = None
     if args.store is None:
@@ -36,21 +90,53 @@ def run(args: argparse.Namespace) -> int:
     res = plot_frame(args.root, args.frame, out, settings, store=args.store, color_by=args.color,
                      device=args.device if args.device is not None else "cpu")
     print(f"wrote {res.path}: frame {res.frame}, {res.n_peaks} CFAR peaks, {res.n_points} points, "
-          f"tau {res.tau:.4g}, achieved density {res.density:.5f} (CFAR peaks S(tau) alone "
+          f"tau {res.tau:.4g} (linear SNR), achieved density {res.density:.5f} (CFAR peaks S(tau) alone "
           f"{res.peak_density:.5f}), {res.n_vehicles} labelled vehicles")
     return 0
 
 
+def run(args: argparse.Namespace) -> int:
+    from radarpc.io import DataFileError
+
+    if args.tuning is not None:
+        return _run_tuning(args)
+    if args.root is None:
+        raise ValueError("give a dataset ROOT (RADIal or ColoRadar) with --frame, or --tuning FILE")
+    if args.frame is None:
+        raise ValueError("--frame is required with a dataset ROOT")
+    root = Path(args.root)
+    if not root.is_dir():
+        raise DataFileError(root, "dataset root folder is missing")
+    if (root / "labels.csv").is_file():
+        return _run_radial(args)
+    if (root / "calib").is_dir():
+        return _run_coloradar(args)
+    raise DataFileError(root, "is neither a RADIal root (labels.csv, radar_FFT/) nor a ColoRadar root "
+                              "(calib/ and run folders)")
+
+
 def add_parser(sub) -> None:
-    p = sub.add_parser("show", help="plot one frame: RD spectrum + CFAR cells + BEV point cloud",
+    from radarpc.cli.pointcloud import add_density_args
+
+    p = sub.add_parser("show", help="plot a RADIal or ColoRadar frame, or an OS-CFAR tuning search",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("root", help="RADIal-layout root")
-    p.add_argument("--frame", type=int, required=True, help="RADIal numSample of the frame")
-    p.add_argument("--out", default=None, metavar="PNG", help="figure path (default frame{N}.png)")
+    p.add_argument("root", nargs="?", default=None, help="dataset root: RADIal or ColoRadar layout")
+    p.add_argument("--frame", type=int, default=None,
+                   help="RADIal: numSample of the frame; ColoRadar: radar (ADC) frame index in its run")
+    p.add_argument("--out", default=None, metavar="PNG",
+                   help="figure path (default frame{N}.png, {run}_frame{N}.png with --run, tuning.png with --tuning)")
+    colo = p.add_argument_group("ColoRadar roots")
+    colo.add_argument("--run", default=None, help="run folder name (default: the first run)")
+    colo.add_argument("--pred", default=None, metavar="FOLDER",
+                      help="prediction folder (e.g. of radarpc baseline os-cfar): draw its cloud for this frame")
+    colo.add_argument("--tuning", default=None, metavar="FILE",
+                      help="draw the OS-CFAR tuning search of this tuning.json (or prediction folder) instead of a frame")
     group = add_density_args(p)
+    group.required = False                  # RADIal roots only: checked in run()
     group.add_argument("--store", metavar="FILE.parquet", default=None,
                        help="plot the points of this point store (made from ROOT) instead of recomputing")
     p.add_argument("--enrich", default="none", metavar="LIST", help="enrichments, e.g. rd3 (default none)")
-    p.add_argument("--color", choices=COLOR_BY, default="velocity", help="point colour (default velocity)")
+    p.add_argument("--color", choices=("velocity", "amplitude"), default="velocity",
+                   help="point colour (default velocity)")
     p.add_argument("--device", default=None, help="torch device (default cpu)")
     p.set_defaults(func=run)

@@ -8,7 +8,7 @@ __all__ = ["add_parser", "run"]
 
 def add_parser(kinds) -> argparse.ArgumentParser:
     """Register ``coloradar`` on the ``simulate`` sub-command's parsers; sets ``func``."""
-    from radarpc.sim.indoor import SCENE_KINDS
+    from radarpc.cli.options import SCENE_KINDS
 
     p = kinds.add_parser(
         "coloradar", help="ColoRadar layout: single-chip ADC, cascade heatmaps, LiDAR, poses, calib/ (resumable)",

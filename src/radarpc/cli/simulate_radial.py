@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from radarpc.sensors.radial import RADIAL_SENSORS, radial_sensor
+from radarpc.cli.options import RADIAL_SENSOR_NAMES
 
 __all__ = ["add_parser", "run"]
 
@@ -20,7 +20,7 @@ def add_parser(kinds) -> argparse.ArgumentParser:
     p.add_argument("--sequences", type=int, default=6, help="number of sequences (default 6)")
     p.add_argument("--frames-per-sequence", type=int, default=50, help="frames per sequence (default 50)")
     p.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
-    p.add_argument("--sensor", choices=sorted(RADIAL_SENSORS), default="radial",
+    p.add_argument("--sensor", choices=sorted(RADIAL_SENSOR_NAMES), default="radial",
                    help="sensor config (default radial: 512 x 256 x 16 cubes)")
     p.add_argument("--overwrite", action="store_true",
                    help="start over: delete the dataset files of a non-empty folder (even a matching "
@@ -34,7 +34,7 @@ def add_parser(kinds) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Write the dataset described by ``args``; returns the exit code."""
     from radarpc.machine import check_device
-
+    from radarpc.sensors.radial import radial_sensor
     from radarpc.sim.radial_writer import write_radial_dataset
 
     cfg = radial_sensor(args.sensor)

@@ -133,6 +133,10 @@ def find_calib(root: str | os.PathLike) -> Path:
     for cand in (root / "calib", root.parent / "calib"):
         if cand.is_dir():
             return cand
+    if (root / "labels.csv").is_file():                                       # the other layout
+        raise DataFileError(root, "this is a RADIal root (labels.csv, radar_FFT/); the ColoRadar reader and "
+                                  "`radarpc baseline` / `evaluate-points` need a ColoRadar root (calib/ and "
+                                  "run folders)")
     raise DataFileError(root / "calib", "calibration folder is missing (expected ROOT/calib/ or ROOT/../calib/)")
 
 
@@ -296,6 +300,46 @@ class ColoRadarRun:
             raise DataFileError(self.path / "groundtruth" / "groundtruth_poses.txt",
                                 f"{len(p)} poses but {len(self.pose_timestamps)} timestamps")
         return p
+
+    # timestamps file, data folder, data file name (index as group 1), what the files are
+    _STREAMS = {
+        "radar": ("single_chip/adc_samples/timestamps.txt", "single_chip/adc_samples/data",
+                  re.compile(r"^frame_(\d+)\.bin$"), "single-chip ADC frame files"),
+        "heatmap": ("cascade/heatmaps/timestamps.txt", "cascade/heatmaps/data",
+                    re.compile(r"^heatmap_(\d+)\.bin$"), "cascade heatmap files"),
+        "lidar": ("lidar/timestamps.txt", "lidar/pointclouds",
+                  re.compile(r"^lidar_pointcloud_(\d+)\.bin$"), "LiDAR scan files"),
+    }
+
+    def count_problems(self) -> list[DataFileError]:
+        """One error per stream whose ``timestamps.txt`` does not have one line per data file.
+
+        A frame file without a timestamp line can never be paired (and one with a line but no
+        file fails when read), so a short ``lidar/timestamps.txt`` would silently drop frames.
+        Each line names the timestamps file, its line count and the file count, e.g.
+        ``.../lidar/timestamps.txt: 4 timestamp lines but 6 LiDAR scan files in lidar/pointclouds/``.
+        """
+        out = []
+        for key, (rel, folder, pattern, what) in self._STREAMS.items():
+            ts_path = self.path / rel
+            if key == "radar" and not self.has_adc or key == "heatmap" and not self.has_heatmaps:
+                continue
+            n_lines = len(self._timestamps(key, rel))
+            data = self.path / folder
+            n_files = sum(1 for f in data.iterdir() if pattern.match(f.name)) if data.is_dir() else 0
+            if n_lines != n_files:
+                why = ("the files without a line are never paired" if n_lines < n_files
+                       else "the lines without a file cannot be read")
+                out.append(DataFileError(ts_path, f"{n_lines} timestamp lines but {n_files} {what} in "
+                                                  f"{folder}/ ({why})"))
+        return out
+
+    def check_counts(self) -> None:
+        """Raise the first error of :meth:`count_problems`: a stream's timestamp lines and data
+        files differ in number."""
+        problems = self.count_problems()
+        if problems:
+            raise problems[0]
 
     def check_poses(self) -> None:
         """Parse and validate the ground-truth poses (NaN/inf, malformed lines, count against the
@@ -480,7 +524,9 @@ class ColoRadar(torch.utils.data.Dataset):
     ------
     DataFileError
         Missing or malformed calibration, timestamps or ground-truth poses (every run's poses are
-        parsed up front, so a NaN pose fails here, naming the file); frames are checked when read.
+        parsed up front, so a NaN pose fails here, naming the file), or a ``timestamps.txt`` whose
+        line count differs from its stream's data files (:meth:`ColoRadarRun.count_problems`);
+        frames are checked when read.
     """
 
     def __init__(self, root: str | os.PathLike, split: str = "train", *, runs: Sequence[str] | None = None,
@@ -500,6 +546,7 @@ class ColoRadar(torch.utils.data.Dataset):
         self.runs = [ColoRadarRun(self.root / n, self.calib) for n in names]
         for run in self.runs:
             run.check_poses()
+            run.check_counts()
         index = []
         for k, run in enumerate(self.runs):
             for ri, li in pair_radar_lidar(run, max_dt=max_dt):

@@ -46,6 +46,7 @@ from radarpc.data.radial_format import (
     freespace_path,
     load_calibration,
     simulated_split,
+    stored_fft_path,
 )
 from radarpc.io import DataFileError, atomic_write, load_array
 from radarpc.sensors.radial import RADIAL, Calibration, DDMARadarConfig
@@ -226,6 +227,10 @@ def read_labels(path: str | os.PathLike) -> LabelTable:
     """
     path = Path(path)
     if not path.is_file():
+        if (path.parent / "calib").is_dir() and path.name == "labels.csv":     # the other layout
+            raise DataFileError(path.parent, "this is a ColoRadar root (calib/ and run folders, no labels.csv); "
+                                             "the RADIal reader and `radarpc pointcloud` / `show` need a RADIal "
+                                             "root (labels.csv, radar_FFT/, radar_Freespace/)")
         raise DataFileError(path, f"labels file is missing (expected a CSV with columns {', '.join(LABEL_COLUMNS)})")
     n_int, n_float = len(_INT_COLUMNS), len(_FLOAT_COLUMNS)
     nums: list[int] = []
@@ -368,20 +373,19 @@ def _skip_set(skip: Iterable[int] | str | os.PathLike | None) -> set[int]:
 
 # ---- files --------------------------------------------------------------------------------------
 def find_fft_file(root: str | os.PathLike, num_sample: int) -> Path:
-    """``radar_FFT/fft_{:06d}.npy``, else the ``.npz`` of the newer public release.
+    """``radar_FFT/fft_{:06d}.npy``, else the ``.npz`` (the newer public release; radarpc's
+    compressed sparse-RD roots).
 
     Raises
     ------
     DataFileError
         If neither exists (naming the ``.npy``).
     """
-    npy = fft_path(root, num_sample, ".npy")
-    if npy.is_file():
-        return npy
-    npz = fft_path(root, num_sample, ".npz")
-    if npz.is_file():
-        return npz
-    raise DataFileError(npy, f"RD cube of frame {int(num_sample)} is missing (no .npy nor .npz)")
+    found = stored_fft_path(root, num_sample)
+    if found is None:
+        raise DataFileError(fft_path(root, num_sample, ".npy"),
+                            f"RD cube of frame {int(num_sample)} is missing (no .npy nor .npz)")
+    return found
 
 
 def load_rd(path: str | os.PathLike, sensor: DDMARadarConfig, *, validate: bool = True) -> np.ndarray:
@@ -390,7 +394,7 @@ def load_rd(path: str | os.PathLike, sensor: DDMARadarConfig, *, validate: bool 
     Parameters
     ----------
     path : path-like
-        ``.npy``, or ``.npz`` holding a single array.
+        ``.npy``, or ``.npz`` (compressed or not) holding a single array.
     sensor : DDMARadarConfig
         Gives the expected shape ``sensor.rd_shape``.
     validate : bool

@@ -9,7 +9,9 @@ One place for the format, shared by the simulator's writer and the reader::
                                          :func:`load_calibration` / :func:`save_calibration`
       sensor.json                        the DDMARadarConfig + seed and sizes (radarpc; absent on the real dataset)
       scene.json                         the RoadSceneConfig of a simulated root (radarpc; absent on the real dataset)
-      radar_FFT/fft_{numSample:06d}.npy  complex RD cube (n_range, n_doppler, n_rx); .npz also accepted
+      radar_FFT/fft_{numSample:06d}.npy  complex RD cube (n_range, n_doppler, n_rx); or .npz holding one
+                                         array (``arr_0``), compressed in radarpc's sparse-RD roots
+                                         (:func:`save_fft_npz`); the .npy wins if both exist
       radar_Freespace/freespace_{numSample:06d}.png   uint8 512 x 900, 255 = free, 0 = not free
 
 Camera pixel columns (``x1_pix .. y2_pix``) are -1 in simulated data: no camera is rendered.
@@ -21,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from radarpc.io import DataFileError, save_npz_atomic
+from radarpc.io import DataFileError, atomic_write, save_npz_atomic
 from radarpc.sensors.radial import Calibration
 
 __all__ = [
@@ -32,7 +34,10 @@ __all__ = [
     "FREESPACE_CROP",
     "FREESPACE_OUT",
     "OFFICIAL_SPLITS",
+    "FFT_SUFFIXES",
     "fft_path",
+    "stored_fft_path",
+    "save_fft_npz",
     "freespace_path",
     "freespace_azimuth_deg",
     "simulated_sequence_name",
@@ -78,6 +83,34 @@ sequence of the real dataset is training data."""
 def fft_path(root: str | os.PathLike, num_sample: int, suffix: str = ".npy") -> Path:
     """``ROOT/radar_FFT/fft_{num_sample:06d}{suffix}``."""
     return Path(root) / "radar_FFT" / f"fft_{int(num_sample):06d}{suffix}"
+
+
+FFT_SUFFIXES: tuple[str, ...] = (".npy", ".npz")
+"""Suffixes an RD cube file may have, in the order a reader looks for them."""
+
+
+def stored_fft_path(root: str | os.PathLike, num_sample: int) -> Path | None:
+    """The RD cube file of frame ``num_sample`` that exists (``.npy``, else ``.npz``), or None."""
+    for suffix in FFT_SUFFIXES:
+        p = fft_path(root, num_sample, suffix)
+        if p.is_file():
+            return p
+    return None
+
+
+def save_fft_npz(root: str | os.PathLike, num_sample: int, cube: np.ndarray) -> Path:
+    """Write frame ``num_sample``'s RD cube as a compressed ``.npz`` (one array, ``arr_0``); atomic.
+
+    zlib stores a run of zero cells in a few bytes, so a masked (mostly zero) cube takes about as
+    many bytes as its kept cells. A ``.npy`` of the same frame is removed first (a reader would
+    prefer it); a kill in between leaves neither file, never a stale one. Returns the path.
+    """
+    path = fft_path(root, num_sample, ".npz")
+    fft_path(root, num_sample, ".npy").unlink(missing_ok=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path, "wb") as f:
+        np.savez_compressed(f, np.ascontiguousarray(cube))
+    return path
 
 
 def freespace_path(root: str | os.PathLike, num_sample: int) -> Path:
@@ -153,8 +186,12 @@ def load_calibration(path: str | os.PathLike, *, trust_pickle: bool = False) -> 
         if path.suffix == ".npy":
             if not trust_pickle:
                 raise DataFileError(path, "is a pickled .npy calibration table; loading it runs code from "
-                                          "the file. Pass trust_pickle=True (CLI: --trust-pickle) for the "
-                                          "official RADIal CalibrationTable.npy you downloaded yourself")
+                                          "the file. If it is the official RADIal CalibrationTable.npy you "
+                                          "downloaded yourself, convert it once to calibration.npz beside it, "
+                                          "which every command reads: python -c \"from radarpc.data.radial_format "
+                                          "import load_calibration, save_calibration; save_calibration("
+                                          "'calibration.npz', load_calibration('CalibrationTable.npy', "
+                                          "trust_pickle=True))\" (in Python: RADIal(..., trust_pickle=True))")
             d = np.load(path, allow_pickle=True).item()  # explicit user opt-in, see docstring
         else:
             with np.load(path, allow_pickle=False) as z:

@@ -4,12 +4,16 @@ ColoRadar roots, and the arrays its summary figures draw (:mod:`radarpc.viz` dra
 RADIal roots: :func:`summarize_radial` reads ``labels.csv`` and ``sensor.json`` only;
 :func:`first_rd_power_db` loads the first readable RD cube. ColoRadar roots: :func:`summarize_coloradar`
 counts every run from its timestamp files and a few LiDAR scans, :func:`check_runs` opens every
-file, :func:`coloradar_view` prepares one LiDAR scan, radar cube and heatmap of a run.
+file, :func:`coloradar_view` prepares one LiDAR scan, radar cube and heatmap of a run (the middle
+pair for ``radarpc info``, a chosen radar frame for ``radarpc show``: :func:`coloradar_frame_view`).
+:func:`read_tuning` reads the OS-CFAR grid search of a prediction folder (``tuning.json``).
 """
 from __future__ import annotations
 
+import json
+import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -53,6 +57,9 @@ __all__ = [
     "write_check_list",
     "ColoRadarView",
     "coloradar_view",
+    "coloradar_frame_view",
+    "TuningTable",
+    "read_tuning",
 ]
 
 
@@ -225,6 +232,7 @@ def check_run(run: ColoRadarRun, progress=None) -> list[str]:
         run.poses
     except DataFileError as e:
         bad.append(str(e))
+    bad += [str(e) for e in run.count_problems()]    # timestamp lines vs data files, per stream
     for kind, i in jobs:
         try:
             getattr(run, kind)(i)
@@ -270,14 +278,33 @@ class ColoRadarView:
     heatmap_db: np.ndarray | None           # (A, R) cascade heatmap, max over elevation (dB); None without one
     heatmap_azimuth_deg: np.ndarray | None  # (A,)
     heatmap_max_range_m: float | None       # num_range_bins * range_bin_width
+    root_name: str = ""                     # the root folder's name
+    lidar_dt_s: float = math.nan            # LiDAR time - radar time of the pair (s)
+    pred_xyz: np.ndarray | None = None      # (P, 3) a method's predicted cloud for the radar frame (radar frame)
+    pred_label: str = ""                    # e.g. "os-cfar (preds/oscfar)"
 
 
-def coloradar_view(run: ColoRadarRun, calib: ColoRadarCalib) -> ColoRadarView:
-    """The middle radar/LiDAR pair of ``run`` (the first frames if none pair): the LiDAR scan in
-    the radar frame and its frustum crop, the single-chip cube of the radar frame and the cascade
-    heatmap of the same index (clipped to the last heatmap)."""
+def coloradar_view(run: ColoRadarRun, calib: ColoRadarCalib, radar_index: int | None = None) -> ColoRadarView:
+    """One radar frame of ``run`` with its paired LiDAR scan: the scan in the radar frame and its
+    frustum crop, the single-chip cube of the radar frame and the cascade heatmap of the same
+    index (clipped to the last heatmap).
+
+    ``radar_index`` None takes the middle radar/LiDAR pair (the first frames if none pair); a
+    given index must be paired (:func:`radarpc.data.coloradar.pair_radar_lidar`), else ValueError.
+    """
     pairs = pair_radar_lidar(run)
-    ri, li = (int(v) for v in pairs[len(pairs) // 2]) if len(pairs) else (0, 0)
+    if radar_index is None:
+        ri, li = (int(v) for v in pairs[len(pairs) // 2]) if len(pairs) else (0, 0)
+    else:
+        n = run.num_radar_frames if run.has_adc else 0
+        if not 0 <= int(radar_index) < n:
+            raise ValueError(f"radar frame {radar_index} is not in run {run.name} (it has {n} single-chip "
+                             f"frames: 0 to {n - 1})" if n else f"run {run.name} has no single-chip radar frame")
+        hit = pairs[pairs[:, 0] == int(radar_index)]
+        if not len(hit):
+            raise ValueError(f"radar frame {radar_index} of run {run.name} has no LiDAR scan close enough in time "
+                             f"(paired frames: {_ranges(pairs[:, 0])})")
+        ri, li = int(radar_index), int(hit[0, 1])
     pts = lidar_to_radar(run.lidar(li), calib)[:, :3]
     cube_db = cube_range = cube_az = None
     if run.has_adc:
@@ -292,7 +319,104 @@ def coloradar_view(run: ColoRadarRun, calib: ColoRadarCalib) -> ColoRadarView:
         hm_db = 10 * np.log10(np.maximum(hm[..., 0].max(0), 1e-6))  # (A, R)
         hm_az = np.degrees(hm_cfg.azimuth_bins)
         hm_range = hm_cfg.num_range_bins * hm_cfg.range_bin_width
+    dt = float(run.lidar_timestamps[li] - run.radar_timestamps[ri]) if run.has_adc and len(pairs) else math.nan
     return ColoRadarView(run=run.name, lidar_index=li, radar_index=ri, fov=AWR1843_FOV, lidar_xyz=pts,
                          inside_xyz=crop_to_frustum(pts, AWR1843_FOV), cube_db=cube_db, cube_range_m=cube_range,
                          cube_azimuth_deg=cube_az, heatmap_db=hm_db, heatmap_azimuth_deg=hm_az,
-                         heatmap_max_range_m=hm_range)
+                         heatmap_max_range_m=hm_range, root_name=run.path.parent.name, lidar_dt_s=dt)
+
+
+def _ranges(idx) -> str:
+    """``0-4, 7, 9-12``: sorted integers as runs of consecutive values."""
+    v = sorted(int(i) for i in idx)
+    if not v:
+        return "none"
+    out, start = [], v[0]
+    for a, b in zip(v, v[1:] + [None]):
+        if b != a + 1:
+            out.append(f"{start}" if start == a else f"{start}-{a}")
+            start = b
+    return ", ".join(out)
+
+
+def coloradar_frame_view(root: str | os.PathLike, frame: int, run: str | None = None,
+                         pred: tuple[np.ndarray, str] | None = None) -> ColoRadarView:
+    """Radar frame ``frame`` (ADC frame index in its run, as in a prediction folder) of run ``run``
+    of a ColoRadar root (default: the first run, sorted by name) and its paired LiDAR scan, for
+    ``radarpc show``; ``pred`` ``((P, 3) points, label)`` is carried into the view.
+
+    Raises
+    ------
+    ValueError
+        Unknown run, frame out of range or without a paired LiDAR scan.
+    DataFileError
+        Missing or malformed calibration or frame files.
+    """
+    calib, runs = open_coloradar_runs(root)
+    names = [r.name for r in runs]
+    if run is None:
+        sel = runs[0]
+    elif run in names:
+        sel = runs[names.index(run)]
+    else:
+        raise ValueError(f"run {run!r} is not in {root} (runs: {', '.join(names)})")
+    view = coloradar_view(sel, calib, int(frame))
+    if pred is not None:
+        pts = np.asarray(pred[0], dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"a predicted cloud must be (N, 3), got shape {pts.shape}")
+        view = replace(view, pred_xyz=pts, pred_label=str(pred[1]))
+    return view
+
+
+# ---- OS-CFAR tuning ----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class TuningTable:
+    """The OS-CFAR grid search of a prediction folder's ``tuning.json``
+    (written by :mod:`radarpc.pipelines.oscfar`), one row per candidate."""
+
+    path: Path
+    split: str                      # the tuning split
+    n_frames: int                   # frames the search averaged over
+    tau_db: np.ndarray              # (K,) threshold of each candidate (dB)
+    chamfer_m: np.ndarray           # (K,) mean Chamfer distance to the LiDAR (m)
+    points_per_frame: np.ndarray    # (K,) mean predicted points per frame
+    setting: tuple[str, ...]        # (K,) the candidate's other parameters, e.g. "window 9x3x3, guard 3x1x1, rank 0.75"
+    best: int                       # row of the chosen candidate (lowest Chamfer distance, first on ties)
+
+
+def _setting(c: dict) -> str:
+    ab = c.get("angle_bins")
+    return (f"window {'x'.join(map(str, c['window']))}, guard {'x'.join(map(str, c['guard']))}, "
+            f"rank {c['rank']:g}" + (f", angles upsampled to {ab[0]}x{ab[1]}" if ab else ""))
+
+
+def read_tuning(path: str | os.PathLike) -> TuningTable:
+    """Read ``tuning.json`` (or the ``tuning.json`` of a prediction folder ``path``).
+
+    Raises
+    ------
+    DataFileError
+        Missing file, or not the JSON that ``radarpc baseline os-cfar`` writes.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / "tuning.json"
+    if not path.is_file():
+        raise DataFileError(path, "OS-CFAR tuning file is missing (radarpc baseline os-cfar writes it when it tunes; "
+                                  "a run given --config or reusing config.yaml does not)")
+    try:
+        d = json.loads(path.read_text())
+        rows = d["candidates"]
+        tau = np.array([float(r["config"]["tau_db"]) for r in rows])
+        cd = np.array([float(r["chamfer_m"]) for r in rows])
+        npts = np.array([float(r["points_per_frame"]) for r in rows])
+        setting = tuple(_setting(r["config"]) for r in rows)
+        split, n = str(d["split"]), int(d["frames"])
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError, UnicodeDecodeError) as e:
+        raise DataFileError(path, f"is not an OS-CFAR tuning file (expected 'split', 'frames' and 'candidates' "
+                                  f"with config.tau_db, chamfer_m, points_per_frame; {type(e).__name__}: {e})") from e
+    if not len(rows):
+        raise DataFileError(path, "OS-CFAR tuning file lists no candidate")
+    return TuningTable(path=path, split=split, n_frames=n, tau_db=tau, chamfer_m=cd, points_per_frame=npts,
+                       setting=setting, best=int(np.argmin(cd)))

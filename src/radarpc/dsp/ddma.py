@@ -101,7 +101,7 @@ def consolidate(a: torch.Tensor, cfg: DDMARadarConfig) -> torch.Tensor:
 def check_envelope_kind(envelope: str) -> str:
     """Validate an envelope kind (one of :data:`ENVELOPES`)."""
     if envelope not in ENVELOPES:
-        raise ValueError(f"envelope must be one of {ENVELOPES} ('replicas' = seed eq. 1, sum over the "
+        raise ValueError(f"envelope must be one of {ENVELOPES} ('replicas' = the paper's eq. 1, sum over the "
                          f"n_tx replica bins; 'all-slots' = RADIal rpl.py, sum over every slot), got {envelope!r}")
     return envelope
 

@@ -249,6 +249,11 @@ class SpectralPointCloud(torch.nn.Module):
             check_density(self.config.density, sensor)
         calibration.check_sensor(sensor)
         self.sensor = sensor
+        # A CFAR window larger than the RD cube it slides over is a mistake, not a setting.
+        if any(w > n for w, n in zip(self.config.window, (sensor.n_range, sensor.n_doppler))):
+            raise ValueError(f"CFAR window {self.config.window} is larger than the {sensor.n_range} x "
+                             f"{sensor.n_doppler} (range x Doppler) RD cube of sensor {sensor.name!r}: "
+                             f"each side at most {sensor.n_range},{sensor.n_doppler}")
         self.grid = calibration.grid_shape                          # (n_az, n_el)
         if self.config.sectors is not None:
             sa, se = self.config.sectors

@@ -55,7 +55,7 @@ from radarpc.distributed import (DEFAULT_WAIT_S, DistEnv, WorkerJob, barrier, di
 from radarpc.dsp.density import check_density
 from radarpc.dsp.pointcloud import SpectralPointCloud, SpectralPointCloudConfig
 from radarpc.io import DataFileError
-from radarpc.runs import OutputLock, RunFolder, RunMismatchError, check_writable, read_json
+from radarpc.runs import OutputLock, RunFolder, check_writable, read_json
 from radarpc.pipelines.sources import Source, batched, open_source, prefetched, source_fingerprint
 
 __all__ = [
@@ -152,9 +152,11 @@ class ConvertResult:
     achieved_density: float          # mean density of the encoded set, |S*| with rdN, else |S| (nan off rank 0)
     peak_density: float              # mean |S(tau)| / (Nr * ND), CFAR peaks only (nan on ranks other than 0)
     tau: float | None                # the fixed or calibrated threshold (None in per-frame mode)
-    chunks_converted: int            # chunks computed by this process (and its workers)
-    chunks_skipped: int              # chunks found complete from an earlier run
+    chunks_converted: int            # chunks computed in this call (on rank 0: by every rank)
+    chunks_skipped: int              # chunks found complete from an earlier run (on rank 0: of every rank)
     chunk_frames: int = 0            # frames per chunk actually used (shrunk for many processes; from the manifest on resume)
+    frames_reused: int = 0           # frames taken from an earlier run (finished parts, or the whole finished store)
+    already_finished: bool = False   # ``out`` already held this conversion: nothing was computed
 
 
 def parts_dir(out: str | os.PathLike) -> Path:
@@ -307,6 +309,7 @@ def convert_dataset(
     workers: int = 1,
     device: torch.device | str | None = None,
     resume: bool = True,
+    overwrite: bool = False,
     progress: bool = True,
     wait_timeout_s: float = DEFAULT_WAIT_S,
     on_chunk_done: Callable[[int], None] | None = None,
@@ -346,7 +349,14 @@ def convert_dataset(
         Default ``cuda:LOCAL_RANK`` when CUDA is available, else CPU.
     resume : bool
         Reuse finished parts of an earlier run with the same settings (and return at once if
-        ``out`` already holds this conversion). False starts over.
+        ``out`` already holds this conversion). False starts over. Parts of an interrupted run
+        with other settings or other source files are always discarded (the parts folder is this
+        job's scratch space; fixing the input is enough to rerun).
+    overwrite : bool
+        Replace an existing ``out`` that is not this conversion (a store made with other
+        settings or from another source, or another file). Without it such a file is refused,
+        never silently replaced. A store of the same conversion whose source files have changed
+        since is converted again without it.
     progress : bool
         tqdm progress bar over frames.
     wait_timeout_s : float
@@ -391,29 +401,41 @@ def convert_dataset(
         lock.acquire()
     try:
         return _convert_locked(ds, source_id, out, settings, key, cal_src, env, dev, n, lock,
-                               batch_size=int(batch_size), workers=int(workers), resume=resume, progress=progress,
-                               wait_timeout_s=wait_timeout_s, on_chunk_done=on_chunk_done)
+                               batch_size=int(batch_size), workers=int(workers), resume=resume, overwrite=overwrite,
+                               progress=progress, wait_timeout_s=wait_timeout_s, on_chunk_done=on_chunk_done)
     finally:
         lock.release()
 
 
 def _convert_locked(ds: Any, source_id: str, out: Path, settings: ConvertSettings, key: dict, cal_src: Any,
                     env: DistEnv, dev: torch.device, n: int, lock: OutputLock, *, batch_size: int, workers: int,
-                    resume: bool, progress: bool, wait_timeout_s: float,
+                    resume: bool, overwrite: bool, progress: bool, wait_timeout_s: float,
                     on_chunk_done: Callable[[int], None] | None) -> ConvertResult:
     pdir = parts_dir(out)
-    # A finished conversion with these settings: nothing to do.
-    if env.rank == 0 and resume and out.is_file() and not pdir.exists():
+    if env.rank == 0 and out.exists():
         try:
             store = PointStore(out)
         except DataFileError as e:
-            raise DataFileError(out, f"{e.problem}; it is in the way of this conversion: remove it, or pass "
-                                     f"resume=False (CLI: --no-resume) to overwrite it") from e
-        m = store.metadata
-        if m.settings.get("key") == key:
-            chunk = int(m.settings.get("chunk_frames") or settings.chunk_frames)
-            return ConvertResult(out, n, int(store.frame_table.n_points.sum()), m.achieved_density,
-                                 m.peak_density, m.tau, 0, -(-n // chunk), chunk)
+            if not overwrite:
+                raise DataFileError(out, f"{e.problem}; it is in the way of this conversion: remove it, or pass "
+                                         f"overwrite=True (CLI: --overwrite) to replace it") from e
+            store = None
+        if store is not None:
+            m = store.metadata
+            same = m.settings.get("key") == key
+            if same and resume and not pdir.exists():
+                # A finished conversion with these settings: nothing to do.
+                chunk = int(m.settings.get("chunk_frames") or settings.chunk_frames)
+                return ConvertResult(out, n, int(store.frame_table.n_points.sum()), m.achieved_density,
+                                     m.peak_density, m.tau, 0, -(-n // chunk), chunk, frames_reused=n,
+                                     already_finished=True)
+            old = m.settings.get("key") or {}
+            # Another request (other settings or another source) is refused; the same request on
+            # changed source files (a re-simulated root, edited labels) is converted again.
+            other = [k for k in ("source", "settings") if old.get(k) != key[k]]
+            if other and not overwrite:
+                raise FileExistsError(f"{out} holds a point store made with other {' and '.join(other)}; pass "
+                                      f"overwrite=True (CLI: --overwrite) to replace it, or choose another --out")
 
     # The manifest fixes the settings, the frames, the chunk size, the calibrated tau and the date.
     parts = RunFolder(pdir, {_MANIFEST: {"key": key}}, what="conversion parts folder", indent=None, lock=lock)
@@ -421,15 +443,11 @@ def _convert_locked(ds: Any, source_id: str, out: Path, settings: ConvertSetting
         # a merge killed half-way leaves its temp file beside the store: ours, since we hold the lock
         for tmp in out.parent.glob(f".{out.name}.*.tmp"):
             tmp.unlink(missing_ok=True)
-        if not resume:
+        # Parts of another run (other settings, changed source files, or resume=False) are stale:
+        # the folder is this output's scratch space and we hold its lock, so they go.
+        if not resume or (pdir.exists() and parts.differences()):
             _remove_parts_dir(pdir)
-        try:
-            parts.start(write_manifests=False)
-        except RunMismatchError:
-            what = sorted({d.split(":", 1)[1].removeprefix("key.").split(".")[0] for d in parts.differences()})
-            raise ValueError(f"{pdir} holds parts of a conversion with other {', '.join(what) or 'settings'} "
-                             f"(recorded in {pdir / _MANIFEST}); delete it or pass resume=False "
-                             f"(CLI: --no-resume) to start over") from None
+        parts.start(write_manifests=False)
         manifest = read_json(pdir / _MANIFEST) if parts.resumed else None
         if manifest is None:
             chunk = settings.chunk_frames
@@ -455,6 +473,8 @@ def _convert_locked(ds: Any, source_id: str, out: Path, settings: ConvertSetting
             raise ValueError(f"rank {env.rank}: {pdir / _MANIFEST} does not match this rank's settings")
     chunk = int(manifest["chunk_frames"])
     n_chunks = -(-n // chunk)
+    # Rank 0 sees which parts existed before any rank starts (the barrier above): the job's totals.
+    existed = [k for k in range(n_chunks) if part_path(out, k).is_file()] if env.rank == 0 else []
 
     mine = tuple(k for k in range(n_chunks) if k % env.world_size == env.rank)
     todo = tuple(k for k in mine if not part_path(out, k).is_file())
@@ -500,8 +520,10 @@ def _convert_locked(ds: Any, source_id: str, out: Path, settings: ConvertSetting
             w.append_store(PointStore(p))
     _remove_parts_dir(pdir)
     store = PointStore(out)
+    reused = sum(len(_chunk_positions(n, chunk, k)) for k in existed)
     return ConvertResult(out, n, int(store.frame_table.n_points.sum()), store.metadata.achieved_density,
-                         store.metadata.peak_density, manifest["tau"], converted, skipped, chunk)
+                         store.metadata.peak_density, manifest["tau"], n_chunks - len(existed), len(existed), chunk,
+                         frames_reused=reused)
 
 
 def _remove_parts_dir(d: Path) -> None:

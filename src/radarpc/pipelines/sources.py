@@ -17,7 +17,7 @@ from typing import Any, Iterator, Protocol, Sequence, Union
 import torch
 
 from radarpc.data.radial import RADIal
-from radarpc.data.radial_format import fft_path
+from radarpc.data.radial_format import fft_path, stored_fft_path
 from radarpc.sensors.radial import Calibration, DDMARadarConfig
 
 __all__ = ["RadarDataset", "Source", "open_source", "source_fingerprint", "read_cube", "load_batch",
@@ -98,7 +98,7 @@ def source_fingerprint(ds: Any) -> str | None:
     root = Path(root)
     h = hashlib.sha256()
     for num in ds.frame_ids:
-        f = fft_path(root, num)
+        f = stored_fft_path(root, num) or fft_path(root, num)        # .npy, else .npz
         try:
             h.update(f"{f.relative_to(root)} {f.stat().st_size}\n".encode())
         except FileNotFoundError:

@@ -5,6 +5,9 @@
 :func:`radarpc.pipelines.pointclouds.convert_dataset`) as a new RADIal-layout root (labels,
 freespace, calibration and sensor description linked or copied) that the unchanged
 :class:`~radarpc.data.radial.RADIal` reader and the dense FFTRadNet read: the sparse-RD baseline.
+Each masked cube is stored compressed (``radar_FFT/fft_*.npz``,
+:func:`~radarpc.data.radial_format.save_fft_npz`), so the root's size follows the density of the
+kept set, not the size of the source.
 The root is a :class:`radarpc.runs.RunFolder` (locked for the run, ``sparse_rd.json`` its manifest)
 and resumes frame by frame.
 """
@@ -23,10 +26,11 @@ import numpy as np
 import torch
 
 from radarpc import __version__
-from radarpc.data.radial_format import LABEL_COLUMNS, fft_path, freespace_path, save_calibration
+from radarpc.data.radial_format import (LABEL_COLUMNS, freespace_path, save_calibration, save_fft_npz,
+                                        stored_fft_path)
 from radarpc.distributed import DistEnv, rank_device
 from radarpc.dsp.sparse_rd import sparse_rd, sparse_rd_mask
-from radarpc.io import DataFileError, atomic_write, save_npy_atomic
+from radarpc.io import DataFileError, atomic_write
 from radarpc.pipelines.pointclouds import (ConvertSettings, build_point_cloud, calibrate_tau,
                                            calibration_source_of, check_dsp_settings)
 from radarpc.pipelines.sources import Source, batched, open_source, prefetched, source_fingerprint
@@ -108,6 +112,7 @@ def write_sparse_rd(
     calibrated_tau: float | None = None,
     device: torch.device | str | None = None,
     resume: bool = True,
+    overwrite: bool = False,
     progress: bool = True,
     **fields: Any,
 ) -> SparseRDResult:
@@ -124,7 +129,10 @@ def write_sparse_rd(
     ``labels.csv`` is written from ``frame_labels(i)``, ``calibration.npz`` and ``sensor.json``
     from its calibration and sensor, and the freespace PNGs from ``freespace_mask(i)`` (when the
     object has it; ``sparse_rd.json`` records ``"freespace"``). Each cube is written
-    atomically and existing cubes are kept when ``resume`` (so a killed run resumes).
+    atomically as a compressed ``radar_FFT/fft_{numSample:06d}.npz`` (one complex64 array,
+    ``arr_0``): the zero cells cost almost nothing, so at density ``d`` a cube takes roughly ``d``
+    of the bytes of its dense ``.npy``. Existing cubes (``.npz``, or ``.npy`` of a root written by
+    an older radarpc) are kept when ``resume`` (so a killed run resumes).
 
     ``sparse_rd.json`` records the source, the settings and the tau (a resumed run must match
     them), every frame's tau and achieved density (``frames``: numSample -> ``{"tau",
@@ -169,12 +177,12 @@ def write_sparse_rd(
     with OutputLock(out_root, "sparse-RD root") as lock:
         return _write_locked(ds, source_id, out_root, settings, root, dev, cal_src, cal_id, lock,
                              batch_size=int(batch_size), calibrated_tau=calibrated_tau, resume=resume,
-                             progress=progress)
+                             overwrite=overwrite, progress=progress)
 
 
 def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSettings, root: Path | None,
                   dev: torch.device, cal_src: Any, cal_id: str | None, lock: OutputLock, *, batch_size: int,
-                  calibrated_tau: float | None, resume: bool, progress: bool) -> SparseRDResult:
+                  calibrated_tau: float | None, resume: bool, overwrite: bool, progress: bool) -> SparseRDResult:
     info_path = out_root / "sparse_rd.json"
     if out_root.is_dir() and not info_path.is_file() and any(out_root.iterdir()):
         raise FileExistsError(f"{out_root} is not empty and is not a sparse-RD root (no sparse_rd.json): "
@@ -185,11 +193,16 @@ def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSett
         raise DataFileError(info_path, "is unreadable; delete it or pass resume=False")
     # sparse_rd.json is the run's manifest: the key, then the records of every frame written
     run = RunFolder(out_root, {info_path.name: key}, what="sparse-RD root", indent=1, lock=lock)
+    # Another request (other settings or source root) needs overwrite; the same request on changed
+    # source files is written again (as a point store is converted again).
+    other = sorted({d.split(":", 1)[1].split(".")[0] for d in run.differences()} - {"source_files", "calibration_source"}) \
+        if info_path.is_file() else []
     try:
-        run.start(overwrite=not resume, resume=resume, write_manifests=False)
+        run.start(overwrite=overwrite or not other, resume=resume, write_manifests=False)
     except RunMismatchError:
-        raise ValueError(f"{out_root} holds a sparse-RD root made from other data or settings (see "
-                         f"{info_path}); write to another folder or pass resume=False (CLI: --no-resume)") from None
+        raise FileExistsError(f"{out_root} holds a sparse-RD root made with other {' and '.join(other)} (see "
+                              f"{info_path}); pass overwrite=True (CLI: --overwrite) to replace it, or choose "
+                              f"another folder") from None
     prev = read_json(info_path) if run.resumed else None
     cal_tau = settings.tau
     if settings.mode == "per-dataset":
@@ -225,7 +238,7 @@ def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSett
 
     # a frame is done when its cube is on disk and recorded (a run killed between the two redoes it)
     todo = [p for p in range(len(ds)) if not (resume and str(ds.frame_ids[p]) in frames
-                                              and fft_path(out_root, ds.frame_ids[p]).is_file())]
+                                              and stored_fft_path(out_root, ds.frame_ids[p]) is not None)]
     it = prefetched(ds, batched(todo, batch_size), dev)
     if progress:
         from tqdm import tqdm
@@ -241,7 +254,7 @@ def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSett
                 ds.sensor.n_range * ds.sensor.n_doppler)                   # (B,) |S(tau)| / (Nr ND)
             for b, p in enumerate(pos):
                 num = ds.frame_ids[p]
-                save_npy_atomic(fft_path(out_root, num), sparse[b].cpu().numpy().astype(np.complex64))
+                save_fft_npz(out_root, num, sparse[b].cpu().numpy().astype(np.complex64))
                 frames[str(num)] = {"tau": float(enc.tau[b]), "density": float(dens[b]),
                                     "peak_density": float(peak[b])}
                 written.append(float(dens[b]))

@@ -1,0 +1,67 @@
+"""radarpc export: one point-cloud file per frame (npy, bin or ply) for OpenPCDet, KITTI-style tools, viewers.
+
+  radarpc export STORE.parquet --out OUT [--format npy|bin|ply] [--columns x,y,z,...]
+  radarpc export PRED_DIR --out OUT            (a ColoRadar prediction folder, as PLY)
+
+A point store is written in OpenPCDet's custom-dataset layout:
+
+  OUT/points/{frame:06d}.npy|.bin|.ply   one file per RADIal frame (numSample), float32
+  OUT/ImageSets/{split}.txt              the sample ids, one a line
+  OUT/columns.txt                        the column order, units and how to read a file
+  OUT/export.json                        the settings, the store's metadata, an OpenPCDet
+                                         POINT_FEATURE_ENCODING for these columns
+
+Every file holds an (N, C) float32 little-endian table, one row per point. Default column order:
+
+  x y z amplitude velocity_mps snr range_m azimuth_deg elevation_deg
+
+(metres, x forward / y left / z up; amplitude is the linear beamformed amplitude, OpenPCDet's
+intensity slot, not normalised; velocity in m/s; snr linear; angles in degrees, left/up positive).
+npy is np.load-able; bin is the raw buffer like KITTI velodyne files, read it with
+np.fromfile(path, dtype="<f4").reshape(-1, C); ply is binary little-endian PLY with one float
+property per column. A frame without points gives a valid empty file.
+
+A prediction folder ({run}/{frame:06d}.npy, from radarpc baseline) becomes OUT/{run}/{frame:06d}.ply
+with float properties x, y, z.
+
+Every file is written atomically; a rerun with the same settings keeps the finished frames and
+writes the rest; a folder holding anything else is refused unless --overwrite (which removes only
+the export's own entries); a second job writing the same folder is refused.
+"""
+from __future__ import annotations
+
+import argparse
+
+__all__ = ["add_parser", "run_export"]
+
+
+def run_export(args: argparse.Namespace) -> int:
+    from radarpc.pipelines.export import export
+
+    columns = None if args.columns is None else [c for c in args.columns.split(",") if c.strip()]
+    res = export(args.source, args.out, args.format, columns, overwrite=args.overwrite,
+                 progress=not args.no_progress)
+    reused = f", kept {res.n_reused} from an earlier run" if res.n_reused else ""
+    empty = f", {res.n_empty} without points" if res.n_empty else ""
+    print(f"wrote {res.n_new} {res.fmt} files ({res.n_frames} frames{empty}{reused}) to {res.out}")
+    print(f"columns (float32, in order): {' '.join(res.columns)}  (see {res.out / 'columns.txt'})")
+    return 0
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("export", help="per-frame point clouds (npy, bin, ply) from a point store or predictions",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("source", help="a point store (.parquet, from radarpc pointcloud) or a ColoRadar "
+                                  "prediction folder (from radarpc baseline)")
+    p.add_argument("--out", required=True, help="export folder")
+    p.add_argument("--format", default=None, choices=("npy", "bin", "ply"),
+                   help="file format per frame (default: npy for a store, ply for a prediction folder, "
+                        "its only format)")
+    p.add_argument("--columns", default=None, metavar="NAME,NAME,...",
+                   help="column order for a store, starting with x,y,z (default: x,y,z,amplitude,velocity_mps,"
+                        "snr,range_m,azimuth_deg,elevation_deg; also range_bin, doppler_bin, doppler_full, "
+                        "is_neighbour)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an export with other settings in --out (removes only the export's own files)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_export)
