@@ -273,3 +273,51 @@ def test_interrupt_and_bad_device_are_one_line_messages(root, tmp_path, capsys, 
     assert cli.main(["pointcloud", str(root), "--snr", "3", "--out", str(tmp_path / "pc.parquet"),
                      "--device", "nodevice"]) == 2
     assert "device 'nodevice' is not a torch device" in capsys.readouterr().err
+
+
+def test_the_summary_says_what_was_reused(root, tmp_path, capsys, monkeypatch):
+    # an interrupted conversion, resumed: the line says how many frames were converted now and how
+    # many were reused; a finished one says there was nothing to do
+    import radarpc.pipelines.pointclouds as pipeline
+    from radarpc import cli
+
+    out = tmp_path / "pc.parquet"
+    real = pipeline.convert_dataset
+    n_frames = len(RADIal(root, split="all"))
+
+    def killed_after_first_chunk(*args, **kwargs):
+        def stop(k):
+            raise KeyboardInterrupt
+        return real(*args, **kwargs, on_chunk_done=stop)
+
+    monkeypatch.setattr(pipeline, "convert_dataset", killed_after_first_chunk)
+    argv = ["pointcloud", str(root), "--snr", "3", "--out", str(out), "--chunk-frames", "2", "--quiet"]
+    assert cli.main(argv) == 130
+    monkeypatch.undo()
+    capsys.readouterr()
+    assert cli.main(argv) == 0
+    line = capsys.readouterr().out
+    assert f"wrote {out}: {n_frames - 2} frames converted now, 2 reused from an earlier run" in line
+    assert cli.main(argv) == 0
+    assert f"{out} already holds this conversion (nothing to do)" in capsys.readouterr().out
+
+
+def test_a_nan_cube_under_workers_is_one_line(root, tmp_path, capsys):
+    # the worker's error reaches the command line as in one process: one line naming the file
+    import shutil
+
+    import numpy as np
+
+    from radarpc import cli
+    from radarpc.data.radial_format import fft_path
+
+    bad = tmp_path / "bad"
+    shutil.copytree(root, bad)
+    cube = np.load(fft_path(bad, 3))
+    cube[0, 0, 0] = np.nan
+    np.save(fft_path(bad, 3), cube)
+    capsys.readouterr()
+    assert cli.main(["pointcloud", str(bad), "--snr", "3", "--out", str(tmp_path / "pc.parquet"), "--quiet",
+                     "--workers", "2", "--chunk-frames", "2"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "fft_000003.npy" in err[0] and "NaN" in err[0] and "Traceback" not in err[0]

@@ -63,6 +63,16 @@ def default_plot_path(root: str | Path) -> Path:
     return Path.cwd() / f"info_{Path(root).resolve().name}.png"
 
 
+def check_outputs(args: argparse.Namespace, default_plot: Path) -> None:
+    """Fail before any work when the figure or the skip list cannot be written (one clear line)."""
+    from radarpc.runs import check_writable
+
+    if not getattr(args, "no_plot", False):
+        check_writable(Path(args.plot) if getattr(args, "plot", None) else default_plot, "figure")
+    if getattr(args, "write_skip", None):
+        check_writable(args.write_skip, "skip list")
+
+
 def info_radial(args: argparse.Namespace) -> int:
     """``radarpc info`` on a RADIal root. Returns 1 if ``--check`` found a bad file, else 0."""
     from radarpc.data.radial import check_root, read_labels
@@ -71,6 +81,7 @@ def info_radial(args: argparse.Namespace) -> int:
 
     root = Path(args.root)
     check = bool(args.check or args.write_skip)
+    check_outputs(args, default_plot_path(root))
     try:
         labels = read_labels(root / "labels.csv")
         summary = summarize_radial(root, labels)

@@ -25,7 +25,10 @@ def default_plot_path(root: str | Path) -> Path:
 
 def info_coloradar(args: argparse.Namespace) -> int:
     """``radarpc info`` on a ColoRadar root; returns 1 if ``--check`` found a bad file, else 0."""
+    from radarpc.cli.info import check_outputs
+
     root = Path(args.root)
+    check_outputs(args, default_plot_path(root))
     calib, runs = open_coloradar_runs(root)
     summary = summarize_coloradar(root, calib, runs)
     sc, cc = calib.single_chip, calib.cascade

@@ -34,6 +34,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from radarpc.runs import check_writable
+
 __all__ = ["add_parser", "run"]
 
 
@@ -46,6 +48,7 @@ def _run_tuning(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out is not None else Path("tuning.png")
     if out.is_dir():
         raise IsADirectoryError(f"the figure path {out} is a directory; give the path of a .png file")
+    check_writable(out, "figure")
     table = read_tuning(args.tuning)
     plot_oscfar_tuning(table, out)
     b = table.best
@@ -64,6 +67,7 @@ def _run_coloradar(args: argparse.Namespace) -> int:
                          "(give --frame, optionally --run and --pred)")
     out = args.out if args.out is not None else (f"{args.run}_frame{args.frame}.png" if args.run
                                                  else f"frame{args.frame}.png")
+    check_writable(out, "figure")
     view = plot_coloradar_frame(args.root, args.frame, out, run=args.run, pred=args.pred)
     pred = "" if view.pred_xyz is None else f", {len(view.pred_xyz)} predicted points ({view.pred_label})"
     print(f"wrote {out}: run {view.run}, radar frame {view.radar_index}, LiDAR scan {view.lidar_index} "
@@ -87,6 +91,7 @@ def _run_radial(args: argparse.Namespace) -> int:
         settings = ConvertSettings(tau=args.snr, density=args.density, density_mode=args.density_mode,
                                    enrich=parse_enrich(args.enrich), **cfar)
     out = args.out if args.out is not None else f"frame{args.frame}.png"
+    check_writable(out, "figure")
     res = plot_frame(args.root, args.frame, out, settings, store=args.store, color_by=args.color,
                      device=args.device if args.device is not None else "cpu")
     print(f"wrote {res.path}: frame {res.frame}, {res.n_peaks} CFAR peaks, {res.n_points} points, "
