@@ -41,10 +41,12 @@ def run(args: argparse.Namespace) -> int:
 
     scenes = [s.strip() for s in str(args.scenes).split(",") if s.strip()]
     check_device(args.device, "--device")
+    counts = {}
     root = write_coloradar(args.out, scenes, args.runs_per_scene, args.frames, args.seed,
                            overwrite=args.overwrite, lidar_beams=args.lidar_beams,
                            lidar_azimuth_steps=args.lidar_azimuth_steps, device=args.device,
-                           progress=not args.no_progress)
-    print(f"wrote {len(scenes)} scenes x {args.runs_per_scene} runs x {args.frames} radar frames "
-          f"({', '.join(scenes)}) to {root}")
+                           progress=not args.no_progress, on_finish=lambda w, k: counts.update(written=w, kept=k))
+    print(f"{root}: {len(scenes)} scenes x {args.runs_per_scene} runs x {args.frames} radar frames "
+          f"({', '.join(scenes)}); {counts['written']} radar frames and LiDAR scans simulated now, "
+          f"{counts['kept']} kept from an earlier run")
     return 0

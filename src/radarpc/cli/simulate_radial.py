@@ -39,10 +39,12 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = radial_sensor(args.sensor)
     check_device(args.device, "--device")
+    counts = {}
     root = write_radial_dataset(args.out, cfg, args.sequences, args.frames_per_sequence, args.seed,
                                 overwrite=args.overwrite, progress=not args.no_progress,
-                                device=args.device)
+                                device=args.device, on_finish=lambda w, k: counts.update(written=w, kept=k))
     n = args.sequences * args.frames_per_sequence
-    print(f"wrote {n} frames ({args.sequences} sequences x {args.frames_per_sequence}) of sensor "
-          f"{cfg.name!r} {cfg.rd_shape} to {root}")
+    print(f"{root}: {n} frames ({args.sequences} sequences x {args.frames_per_sequence}) of sensor "
+          f"{cfg.name!r} {cfg.rd_shape}; {counts['written']} simulated now, {counts['kept']} kept from an "
+          f"earlier run")
     return 0

@@ -43,7 +43,7 @@ import os
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -126,12 +126,14 @@ def _done(run: RunFolder | None, path: Path, nbytes: int) -> bool:
 def write_run(run_dir: str | os.PathLike, scene: Scene, frames: int, *, seed: int, key: tuple,
               calib: ColoRadarCalib = DEFAULT_CALIB, radar: RadarSimConfig = RadarSimConfig(),
               lidar: LidarConfig = LidarConfig(), run: RunFolder | None = None,
-              device: torch.device | str | None = None, progress=None) -> None:
+              device: torch.device | str | None = None, progress=None) -> tuple[int, int]:
     """Write one run folder (see the module docstring).
 
     ``run``: the started dataset root ``run_dir`` is in, whose finished files are kept (None
-    writes every file). ``progress``: a tqdm bar or None.
+    writes every file). ``progress``: a tqdm bar or None. Returns ``(written, kept)``: radar
+    frames and LiDAR scans simulated now, and those kept from an earlier run.
     """
+    written = kept = 0
     run_dir = Path(run_dir)
     rng = np.random.default_rng(zlib.crc32(json.dumps([int(seed), *key, "timeline"]).encode()))
     # slow the rig down if the path is too short for the requested number of frames
@@ -163,6 +165,7 @@ def write_run(run_dir: str | os.PathLike, scene: Scene, frames: int, *, seed: in
         f_adc, f_hm = adc_dir / f"frame_{i}.bin", hm_dir / f"heatmap_{i}.bin"
         need_adc = not _done(run, f_adc, calib.single_chip.adc_nbytes)
         need_hm = has_cc and not _done(run, f_hm, calib.cascade.heatmap_nbytes)
+        written, kept = (written + 1, kept) if need_adc or need_hm else (written, kept + 1)
         if need_adc or need_hm:
             dev = torch.device(device) if device is not None else torch.device("cpu")
             gen = _to_device(frame_generator(seed, *key, i, "radar"), dev)
@@ -181,7 +184,10 @@ def write_run(run_dir: str | os.PathLike, scene: Scene, frames: int, *, seed: in
     n_l = lidar.beams * lidar.azimuth_steps * 16
     for j, t in enumerate(times["lidar"]):
         f_l = run_dir / "lidar" / "pointclouds" / f"lidar_pointcloud_{j}.bin"
-        if not _done(run, f_l, n_l):
+        if _done(run, f_l, n_l):
+            kept += 1
+        else:
+            written += 1
             pose, _ = sensor_pose(scene, float(t), calib.base_to_lidar)
             dev = torch.device(device) if device is not None else torch.device("cpu")
             cloud = lidar_scan(scene, float(t), pose, cfg=lidar,
@@ -189,6 +195,7 @@ def write_run(run_dir: str | os.PathLike, scene: Scene, frames: int, *, seed: in
             _write_bin(f_l, cloud.cpu().numpy().astype(np.float32))
         if progress is not None:
             progress.update(1)
+    return written, kept
 
 
 def _to_device(gen: torch.Generator, device: torch.device) -> torch.Generator:
@@ -203,7 +210,8 @@ def write_coloradar(out: str | os.PathLike, scenes: Sequence[str], runs_per_scen
                     seed: int = 0, *, overwrite: bool = False, lidar_beams: int = 64,
                     lidar_azimuth_steps: int = 1024, calib: ColoRadarCalib = DEFAULT_CALIB,
                     radar: RadarSimConfig = RadarSimConfig(), device: torch.device | str | None = None,
-                    progress: bool = True) -> Path:
+                    progress: bool = True,
+                    on_finish: Callable[[int, int], None] | None = None) -> Path:
     """Simulate ``runs_per_scene`` runs of each scene, ``frames`` radar frames each, into ``out``.
 
     Parameters
@@ -227,6 +235,9 @@ def write_coloradar(out: str | os.PathLike, scenes: Sequence[str], runs_per_scen
         Where to synthesize (CPU default; CUDA when given).
     progress : bool
         Show a tqdm bar.
+    on_finish : callable, optional
+        Told ``(written, kept)``: radar frames and LiDAR scans simulated now, and those kept
+        from an earlier, interrupted run.
 
     Returns
     -------
@@ -259,6 +270,7 @@ def write_coloradar(out: str | os.PathLike, scenes: Sequence[str], runs_per_scen
     owned = [run_name(kind, k) for kind in scenes for k in range(runs_per_scene)] + ["calib"]
     folder = RunFolder(out, {"simulation.json": settings}, what="dataset root", indent=1, owned=owned)
     total = len(scenes) * runs_per_scene * (2 * frames + 2)
+    written = kept = 0
     with folder.start(overwrite=overwrite, write_manifests=False), \
             tqdm(total=total, desc="simulate coloradar", unit="file", disable=not progress) as bar:
         folder.write_manifest("simulation.json", settings)    # on resume too, as a fresh run writes it
@@ -266,7 +278,10 @@ def write_coloradar(out: str | os.PathLike, scenes: Sequence[str], runs_per_scen
         for kind in scenes:
             for k in range(runs_per_scene):
                 scene = make_scene(kind, seed, k)
-                write_run(out / run_name(kind, k), scene, frames, seed=seed, key=(kind, k), calib=calib,
-                          radar=radar, lidar=lidar, run=folder, device=device, progress=bar)
+                w, kp = write_run(out / run_name(kind, k), scene, frames, seed=seed, key=(kind, k), calib=calib,
+                                  radar=radar, lidar=lidar, run=folder, device=device, progress=bar)
+                written, kept = written + w, kept + kp
+    if on_finish is not None:
+        on_finish(written, kept)
     return out
 

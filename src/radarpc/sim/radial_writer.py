@@ -21,7 +21,7 @@ import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
+from typing import Callable, Iterable
 
 import numpy as np
 import torch
@@ -221,8 +221,12 @@ _OUTPUTS = ("radar_FFT", "radar_Freespace", "labels.csv", "calibration.npz", "se
 def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequences: int,
                          frames_per_sequence: int, seed: int, *, overwrite: bool = False,
                          progress: bool = True, device: torch.device | str | None = None,
-                         scene_config: RoadSceneConfig | None = None) -> Path:
+                         scene_config: RoadSceneConfig | None = None,
+                         on_finish: Callable[[int, int], None] | None = None) -> Path:
     """Write a simulated RADIal root (resumable, atomic per file).
+
+    ``on_finish(written, kept)``, when given, is told how many frames were simulated now and how
+    many were kept from an earlier, interrupted run.
 
     The root is a :class:`radarpc.runs.RunFolder` keyed by ``sensor.json`` and ``scene.json``:
     it is locked against a second concurrent writer, and the temp files a killed run left are
@@ -276,6 +280,7 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
             run.write_manifest(name, content)
         save_calibration(root / "calibration.npz", make_calibration(cfg))
         rows: list[tuple] = []
+        written = 0
         with tqdm(total=sim.n_frames, desc=f"simulate {cfg.name}", unit="frame", disable=not progress) as bar:
             for q in range(sim.n_sequences):
                 for i in range(sim.frames_per_sequence):
@@ -288,9 +293,12 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
                         save_npy_atomic(fpath, sim.rd(q, i, fr).cpu().numpy())
                         with atomic_write(ppath, "wb") as f:
                             f.write(_png_bytes(fs))
+                        written += 1
                     bar.update(1)
         with atomic_write(root / "labels.csv", "w") as f:
             f.write(_labels_csv(rows))
+    if on_finish is not None:
+        on_finish(written, sim.n_frames - written)
     return root
 
 
