@@ -4,31 +4,12 @@ from __future__ import annotations
 import pytest
 import torch
 
-from radarpc.dsp.beamform import beamform_peaks, dictionary_tables, reduced_fp32_matmul
-from radarpc.sensors.radial import RADIAL_S
-from radarpc.sim.radial_calibration import make_calibration
+from radarpc.dsp.beamform import beamform_peaks, reduced_fp32_matmul
 
 
-@pytest.fixture(scope="module")
-def radial_s():
-    calib = make_calibration(RADIAL_S)
-    bt = calib.dictionary().transpose(0, 1).contiguous()                  # (n_virtual, K)
-    return bt, dictionary_tables(bt, calib.grid_shape), calib.grid_shape
-
-
-def _targets(bt: torch.Tensor, n: int, seed: int) -> torch.Tensor:
-    """``n`` snapshots: one or two steering vectors of the dictionary plus weak noise."""
-    g = torch.Generator().manual_seed(seed)
-    rows = bt.transpose(0, 1)
-    k1, k2 = (torch.randint(0, rows.shape[0], (n,), generator=g) for _ in range(2))
-    second = (torch.rand(n, generator=g) * 0.9).to(torch.complex64)
-    noise = torch.randn(n, bt.shape[0], dtype=torch.complex64, generator=g) * 0.05
-    return rows[k1].conj() + second[:, None] * rows[k2].conj() + noise
-
-
-def test_reduced_float32_matmul_precision_is_warned_not_changed(radial_s):
+def test_reduced_float32_matmul_precision_is_warned_not_changed(radial_s, dictionary_snapshots):
     bt, tables, grid = radial_s
-    v = _targets(bt, 50, seed=4)
+    v = dictionary_snapshots(bt, 50, seed=4)
     assert not reduced_fp32_matmul("cpu")                              # torch's default: exact
     prev = torch.get_float32_matmul_precision()
     try:

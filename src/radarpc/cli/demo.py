@@ -8,7 +8,6 @@ so the demo doubles as a tour; the run folder ends with ``REPORT.md``. Re-runnin
 """
 from __future__ import annotations
 
-import argparse
 import json
 import shlex
 import time

@@ -27,7 +27,6 @@ point; ``"patchN"`` fills ``rd_patch`` only; ``"sectorA"`` / ``"sectorAxE"`` add
 """
 from __future__ import annotations
 
-import dataclasses
 import re
 from dataclasses import dataclass
 from typing import Iterable, Sequence
@@ -44,7 +43,7 @@ from radarpc.dsp.ddma import (DDMAEnvelope, check_envelope_kind, check_finite_en
 from radarpc.dsp.density import (DENSITY_MODES, check_density, check_density_value, density_of_mask,
                                  neighbourhood_mask, tau_for_density)
 from radarpc.config import from_dict, to_dict
-from radarpc.points import PointCloudBatch, offset2batch
+from radarpc.points import PointCloudBatch
 from radarpc.sensors.radial import Calibration, DDMARadarConfig
 
 __all__ = [

@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -392,7 +391,6 @@ def convert_dataset(
         cal_src, cal_id = calibration_source_of(source, ds, calibration_source)
     n = len(ds)
     key = _manifest_key(source_id, settings, ds.frame_ids, cal_id, source_fingerprint(ds))
-    pdir = parts_dir(out)
     # Rank 0 owns the output for the whole run: a second conversion to the same store is refused
     # rather than mixing its parts in. Other ranks write their own parts under rank 0's manifest.
     lock = OutputLock(out, "point store")

@@ -12,26 +12,7 @@ from radarpc.dsp import accel
 from radarpc.dsp.accel import native
 from radarpc.dsp.accel.screened import _screen_select, beamform_peaks_screened, screen_bound
 from radarpc.dsp.accel.workspace import Workspace
-from radarpc.dsp.beamform import beamform_peaks, dictionary_tables
-from radarpc.sensors.radial import RADIAL_S
-from radarpc.sim.radial_calibration import make_calibration
-
-
-@pytest.fixture(scope="module")
-def radial_s():
-    calib = make_calibration(RADIAL_S)
-    bt = calib.dictionary().transpose(0, 1).contiguous()                  # (n_virtual, K)
-    return bt, dictionary_tables(bt, calib.grid_shape), calib.grid_shape
-
-
-def _targets(bt: torch.Tensor, n: int, seed: int) -> torch.Tensor:
-    """``n`` snapshots: one or two steering vectors of the dictionary plus weak noise."""
-    g = torch.Generator().manual_seed(seed)
-    rows = bt.transpose(0, 1)
-    k1, k2 = (torch.randint(0, rows.shape[0], (n,), generator=g) for _ in range(2))
-    second = (torch.rand(n, generator=g) * 0.9).to(torch.complex64)
-    noise = torch.randn(n, bt.shape[0], dtype=torch.complex64, generator=g) * 0.05
-    return rows[k1].conj() + second[:, None] * rows[k2].conj() + noise
+from radarpc.dsp.beamform import beamform_peaks
 
 
 def _float64_spectra(v: torch.Tensor, bt: torch.Tensor) -> np.ndarray:
@@ -49,11 +30,11 @@ def _beamformers(v, tables, grid):
 
 
 @pytest.mark.parametrize("exponent", [-90, -75, 66, 70, 100])
-def test_extreme_magnitudes_give_the_float64_maximum(radial_s, exponent):
+def test_extreme_magnitudes_give_the_float64_maximum(radial_s, dictionary_snapshots, exponent):
     # |B v| ~ 2^(exponent + 8): beyond 2^64 the float32 power overflows, below ~2^-63 it goes
     # subnormal; the beamformers rescale such snapshots by a power of two first
     bt, tables, grid = radial_s
-    v = torch.ldexp(torch.view_as_real(_targets(bt, 200, seed=1)), torch.tensor(exponent))
+    v = torch.ldexp(torch.view_as_real(dictionary_snapshots(bt, 200, seed=1)), torch.tensor(exponent))
     v = torch.view_as_complex(v.contiguous())
     spectra = _float64_spectra(v, bt)
     best = spectra.max(1)
@@ -64,11 +45,11 @@ def test_extreme_magnitudes_give_the_float64_maximum(radial_s, exponent):
         np.testing.assert_allclose(res.amplitude.double().numpy(), best, rtol=2e-6, err_msg=name)
 
 
-def test_power_of_two_scaling_is_exact(radial_s):
+def test_power_of_two_scaling_is_exact(radial_s, dictionary_snapshots):
     # in range, scaling by 2^k scales every float32 value exactly: the same directions, the
     # amplitudes scaled bit for bit; out of range (2^80) the rescaled copy gives the same again
     bt, tables, grid = radial_s
-    v = _targets(bt, 300, seed=2)
+    v = dictionary_snapshots(bt, 300, seed=2)
     ref = dict(_beamformers(v, tables, grid))
     for k in (-30, 25, 80, -100):
         w = torch.view_as_complex(torch.ldexp(torch.view_as_real(v), torch.tensor(k)).contiguous())
@@ -81,11 +62,11 @@ def test_power_of_two_scaling_is_exact(radial_s):
     assert torch.equal(big.sectors, torch.ldexp(sec.sectors, torch.tensor(90)))
 
 
-def test_a_non_finite_screen_row_is_left_to_the_exact_path(radial_s):
+def test_a_non_finite_screen_row_is_left_to_the_exact_path(radial_s, dictionary_snapshots):
     # a screen value that overflowed to inf, with a finite bound: both selections must give the
     # row up (its candidates would otherwise be only the overflowed directions)
     bt, tables, grid = radial_s
-    v = _targets(bt, 4, seed=3)
+    v = dictionary_snapshots(bt, 4, seed=3)
     alpha, beta = screen_bound(v, tables.row_norm_max)
     y16 = torch.mm(torch.view_as_real(v).reshape(len(v), -1).to(torch.bfloat16), tables.screen_bf16)
     y16[1, 7] = float("inf")
