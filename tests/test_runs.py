@@ -157,9 +157,60 @@ def test_a_run_killed_while_writing_its_manifests_resumes(tmp_path):
     (d / "frame_0.npy").write_bytes(b"x")
     with RunFolder(d, manifests) as run:
         assert run.resumed and run.done(d / "frame_0.npy")
+    assert json.loads((d / "scene.json").read_text()) == {"n": 1}   # the resumed run completed it
     (d / "sensor.json").unlink()                                # no manifest at all: not this run's
+    (d / "scene.json").unlink()
     with pytest.raises(RunMismatchError, match="missing or unreadable"):
         RunFolder(d, manifests).start()
     (d / "sensor.json").write_text('{"seed": 1}')               # one present and different
     with pytest.raises(RunMismatchError, match=r"sensor\.json:seed"):
         RunFolder(d, manifests).start()
+
+
+def test_the_current_folder_is_locked_beside_it(tmp_path, monkeypatch):
+    # "." names the folder itself: its lock goes in the parent, not inside the output
+    d = tmp_path / "here"
+    d.mkdir()
+    monkeypatch.chdir(d)
+    with RunFolder(".", {"run.json": {"k": 1}}).start(overwrite=True) as run:
+        assert run.lock.path == tmp_path / ".here.lock" and run.lock.path.exists()
+        with pytest.raises(OutputBusyError):
+            OutputLock(d).acquire()                             # the same output, named otherwise
+    assert sorted(p.name for p in d.iterdir()) == ["run.json"]
+
+
+def test_clear_removes_the_manifests_last(tmp_path, monkeypatch):
+    # a kill while an overwrite clears the folder leaves a folder that still says whose it is
+    import shutil as _shutil
+
+    d = tmp_path / "run"
+    with RunFolder(d, {"run.json": {"k": 1}}, owned=("a", "b")):
+        for name in ("a", "b"):
+            (d / name).mkdir()
+            (d / name / "x").write_text("x")
+    calls = []
+    real = _shutil.rmtree
+
+    def dying_rmtree(path, *args, **kwargs):
+        calls.append(path)
+        if len(calls) == 2:
+            raise KeyboardInterrupt("simulated kill")
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr("radarpc.runs.shutil.rmtree", dying_rmtree)
+    with pytest.raises(KeyboardInterrupt):
+        RunFolder(d, {"run.json": {"k": 2}}, owned=("a", "b")).start(overwrite=True)
+    monkeypatch.undo()
+    assert (d / "run.json").is_file()                           # still a run folder, of the old key
+    with pytest.raises(RunMismatchError, match=r"run\.json:k"):
+        RunFolder(d, {"run.json": {"k": 2}}, owned=("a", "b")).start()
+    with RunFolder(d, {"run.json": {"k": 2}}, owned=("a", "b")).start(overwrite=True):
+        pass
+    assert sorted(p.name for p in d.iterdir()) == ["run.json"]
+
+
+def test_only_atomic_write_temp_names_are_removed(tmp_path):
+    from radarpc.runs import is_temp_name
+
+    assert is_temp_name(".part-3.parquet.abc123_x.tmp") and is_temp_name(".frame_1.bin.1234.tmp")
+    assert not is_temp_name("notes.tmp") and not is_temp_name(".tmp") and not is_temp_name(".x.tmp")

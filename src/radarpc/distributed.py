@@ -67,11 +67,13 @@ def rank_device(device: torch.device | str | None, env: DistEnv) -> torch.device
     return torch.device("cpu")
 
 
-def wait_for_files(files: Sequence[Path], owners: Sequence[str], timeout_s: float, poll_s: float = 1.0) -> None:
-    """Wait until every file exists; on timeout a ``TimeoutError`` names the missing ones and who writes them."""
+def wait_for_files(files: Sequence[Path], owners: Sequence[str], timeout_s: float, poll_s: float = 1.0,
+                   ready: Callable[[Path], bool] | None = None) -> None:
+    """Wait until every file exists (and ``ready(file)`` holds, when given); on timeout a
+    ``TimeoutError`` names the missing ones and who writes them."""
     t0 = time.monotonic()
     while True:
-        missing = [(f, o) for f, o in zip(files, owners) if not f.is_file()]
+        missing = [(f, o) for f, o in zip(files, owners) if not f.is_file() or (ready is not None and not ready(f))]
         if not missing:
             return
         if time.monotonic() - t0 > timeout_s:
@@ -83,16 +85,17 @@ def wait_for_files(files: Sequence[Path], owners: Sequence[str], timeout_s: floa
         time.sleep(poll_s)
 
 
-def barrier(env: DistEnv, files: Sequence[Path], owners: Sequence[str], timeout_s: float) -> None:
+def barrier(env: DistEnv, files: Sequence[Path], owners: Sequence[str], timeout_s: float,
+            ready: Callable[[Path], bool] | None = None) -> None:
     """Synchronise torchrun ranks: a process-group barrier if one is initialised, else wait for
-    ``files`` (written by ``owners``) to exist. Nothing to wait for outside torchrun."""
+    ``files`` (written by ``owners``) to exist and be ``ready``. Nothing to wait for outside torchrun."""
     if env.world_size == 1:
         return
     if torch.distributed.is_available() and torch.distributed.is_initialized():
         torch.distributed.barrier()
         return
     if files:
-        wait_for_files(files, owners, timeout_s)
+        wait_for_files(files, owners, timeout_s, ready=ready)
 
 
 # ---- local workers ------------------------------------------------------------------------------
@@ -180,6 +183,7 @@ def run_workers(job: WorkerJob, workers: int, on_done: Callable[[Any, int], None
                 on_done(k, payload)
             else:
                 errors.append((k, payload))
+                break                    # stop the others now (finally), not when they are done
         finished = True
     finally:
         for p in procs:

@@ -31,6 +31,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
 from pathlib import Path
 from typing import Callable, Iterator, Mapping, Sequence
@@ -42,6 +43,7 @@ __all__ = [
     "RunFolder",
     "check_writable",
     "remove_temp_files",
+    "is_temp_name",
     "read_json",
     "locked_output",
 ]
@@ -86,6 +88,14 @@ def check_writable(path: str | os.PathLike, what: str = "output") -> None:
         raise PermissionError(f"cannot write the {what} {path}: {target} is not writable")
 
 
+_TEMP_NAME = re.compile(r"\..+\.[A-Za-z0-9_]+\.tmp")
+
+
+def is_temp_name(name: str) -> bool:
+    """Whether ``name`` is that of an atomic write's temp file: ``.NAME.RANDOM.tmp``."""
+    return _TEMP_NAME.fullmatch(name) is not None
+
+
 def remove_temp_files(folder: str | os.PathLike, recursive: bool = True) -> int:
     """Delete the temp files of interrupted atomic writes (``.NAME.*.tmp``) under ``folder``.
 
@@ -98,7 +108,7 @@ def remove_temp_files(folder: str | os.PathLike, recursive: bool = True) -> int:
     files = folder.rglob(".*.tmp") if recursive else folder.glob(".*.tmp")
     n = 0
     for p in files:
-        if p.is_file():
+        if p.is_file() and is_temp_name(p.name):
             with contextlib.suppress(FileNotFoundError):
                 p.unlink()
                 n += 1
@@ -129,7 +139,9 @@ class OutputLock:
     def __init__(self, output: str | os.PathLike, what: str = "output") -> None:
         self.output = Path(output)
         self.what = what
-        self.path = self.output.parent / f".{self.output.name}.lock"
+        # absolute and normalised: "." and "sub/.." name the folder itself, whose lock is beside it
+        absolute = Path(os.path.abspath(self.output))
+        self.path = absolute.parent / f".{absolute.name or 'root'}.lock"
         self._fd: int | None = None
 
     def acquire(self) -> "OutputLock":
@@ -137,13 +149,18 @@ class OutputLock:
             raise RuntimeError(f"{self.path} is already held by this object")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         while True:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+            try:
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+            except PermissionError:
+                raise PermissionError(f"cannot write the {self.what} {self.output}: {self.path.parent} is not "
+                                      f"writable (the output's lock file goes there)") from None
             try:
                 _lock_fd(fd)
             except BlockingIOError:
                 holder = ""
                 with contextlib.suppress(OSError, ValueError):
-                    holder = f" (pid {int(os.pread(fd, 32, 0).decode().strip())})"
+                    os.lseek(fd, 0, os.SEEK_SET)
+                    holder = f" (pid {int(os.read(fd, 32).decode().strip())})"
                 os.close(fd)
                 raise OutputBusyError(
                     f"another radarpc process{holder} is writing the {self.what} {self.output}; wait for it "
@@ -158,15 +175,18 @@ class OutputLock:
                 break
             os.close(fd)
         os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        os.lseek(fd, 0, os.SEEK_SET)
+        os.write(fd, f"{os.getpid()}\n".encode())
         self._fd = fd
         return self
 
     def release(self) -> None:
         if self._fd is None:
             return
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(self.path)        # before unlocking: a waiter then retries on a fresh file
+        # before unlocking: a waiter then retries on a fresh file (Windows cannot remove an open
+        # file: the lock file then stays, which is harmless)
+        with contextlib.suppress(FileNotFoundError, PermissionError):
+            os.unlink(self.path)
         os.close(self._fd)
         self._fd = None
 
@@ -291,7 +311,7 @@ class RunFolder:
         """No entry in the folder (temp files of interrupted writes aside)."""
         if not self.path.exists():
             return True
-        return all(p.name.startswith(".") and p.name.endswith(".tmp") and p.is_file() for p in self.path.iterdir())
+        return all(is_temp_name(p.name) and p.is_file() for p in self.path.iterdir())
 
     # ---- lifecycle ------------------------------------------------------------------------------
     def start(self, *, overwrite: bool = False, resume: bool = True, write_manifests: bool = True) -> "RunFolder":
@@ -351,9 +371,11 @@ class RunFolder:
             else:
                 self.resumed = True
         self.path.mkdir(parents=True, exist_ok=True)
-        if write_manifests and not self.resumed:
+        if write_manifests:
             for name, content in self.manifests.items():
-                self.write_manifest(name, content)
+                # a resumed run keeps what it finds, and completes what a kill left unwritten
+                if not self.resumed or not isinstance(read_json(self.path / name), dict):
+                    self.write_manifest(name, content)
 
     def write_manifest(self, name: str, content: Mapping) -> None:
         """Write manifest ``name`` atomically (its key part must be this run's)."""
@@ -372,8 +394,9 @@ class RunFolder:
         """Delete the job's entries of the folder (the owned ones and the manifests)."""
         if not self.path.is_dir():
             return
-        names = set(self.manifests) | (set(self.owned) if self.owned is not None else
-                                       {p.name for p in self.path.iterdir()})
+        owned = set(self.owned) if self.owned is not None else {p.name for p in self.path.iterdir()}
+        # The manifests go last: a kill half-way leaves a folder that still says whose it is.
+        names = sorted(owned - set(self.manifests)) + sorted(self.manifests)
         for name in names:
             p = self.path / name
             if p.is_dir() and not p.is_symlink():

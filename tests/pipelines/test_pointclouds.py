@@ -352,7 +352,9 @@ def test_corrupt_cube_names_the_file_and_keeps_finished_parts(root, tmp_path):
     assert not out.exists() and part_path(out, 0).is_file() and not part_path(out, 1).exists()
     with pytest.raises(DataFileError, match="fft_000005.npy"):  # the same error through spawned workers
         convert_dataset(bad_root, out, tau=3.0, chunk_frames=3, workers=2, progress=False)
-    assert not out.exists() and part_path(out, 2).is_file()
+    # the first error stops the other worker (whether it finished chunk 2 first is a race); what
+    # was finished stays
+    assert not out.exists() and part_path(out, 0).is_file() and not part_path(out, 1).exists()
 
 
 def test_bad_settings(root, tmp_path):
@@ -654,3 +656,50 @@ def test_a_merge_killed_half_way_leaves_nothing_behind(root, tmp_path):
     res = convert_dataset(root, out, tau=3.0, chunk_frames=4, progress=False)
     assert res.n_frames == 9 and not orphan.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["pc.parquet"]
+
+
+def test_sparse_root_left_by_a_kill_can_be_rewritten(root, tmp_path):
+    # killed during its first manifest write: only a temp file; an unreadable sparse_rd.json:
+    # refused with an option that works, and rewritten with it
+    out = tmp_path / "sparse"
+    out.mkdir()
+    (out / ".sparse_rd.json.ab12cd34.tmp").write_text("{")
+    assert write_sparse_rd(root, out, tau=4.0, progress=False).frames_written == 9
+    assert not list(out.glob(".*.tmp"))
+    (out / "sparse_rd.json").write_text('{"source_root": ')
+    for resume in (True, False):
+        with pytest.raises(DataFileError, match=r"unreadable; pass overwrite=True \(CLI: --overwrite\)"):
+            write_sparse_rd(root, out, tau=4.0, progress=False, resume=resume)
+    assert write_sparse_rd(root, out, tau=4.0, progress=False, overwrite=True).frames_written == 9
+    assert json.loads((out / "sparse_rd.json").read_text())["complete"]
+
+
+def test_torchrun_ranks_wait_for_this_jobs_manifest(root, tmp_path, monkeypatch):
+    # without a process group, rank 1 polls for the manifest: a stale one of an earlier job (other
+    # settings) must not be taken; it waits for rank 0's of this job (TORCHELASTIC_RUN_ID)
+    out = tmp_path / "pc.parquet"
+    seen = []
+
+    def stop(k):
+        seen.append(k)
+        raise KeyboardInterrupt("simulated kill")
+
+    with pytest.raises(KeyboardInterrupt):                    # leaves parts and a manifest of tau=3
+        convert_dataset(root, out, tau=3.0, chunk_frames=2, progress=False, on_chunk_done=stop)
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("TORCHELASTIC_RUN_ID", "job-2")
+    monkeypatch.setenv("RANK", "1")
+    with pytest.raises(TimeoutError, match="rank 0"):           # rank 0 has not written job-2's yet
+        convert_dataset(root, out, tau=4.0, chunk_frames=2, progress=False, wait_timeout_s=0.0)
+    monkeypatch.setenv("RANK", "0")
+    with pytest.raises(TimeoutError, match="from rank 1"):       # rank 0 cleans up, writes, waits for rank 1
+        convert_dataset(root, out, tau=4.0, chunk_frames=2, progress=False, wait_timeout_s=0.0)
+    monkeypatch.setenv("RANK", "1")
+    r1 = convert_dataset(root, out, tau=4.0, chunk_frames=2, progress=False, wait_timeout_s=0.0)
+    assert r1.chunks_converted == 2
+    monkeypatch.setenv("RANK", "0")
+    r0 = convert_dataset(root, out, tau=4.0, chunk_frames=2, progress=False)
+    assert r0.path == out and PointStore(out).metadata.tau == 4.0
+    # a finished store: every rank returns at once, none waits for a job that will not run
+    monkeypatch.setenv("RANK", "1")
+    assert convert_dataset(root, out, tau=4.0, chunk_frames=2, progress=False, wait_timeout_s=0.0).already_finished

@@ -152,3 +152,15 @@ def test_second_writer_is_refused_and_a_killed_run_resumes(ref, tmp_path):
     write(out)                                              # the kill released the lock
     assert not list(out.rglob("*.tmp")) and not (tmp_path / ".busy.lock").exists()
     assert all_files(out) == all_files(ref)
+
+
+def test_overwrite_removes_the_runs_of_the_old_simulation(tmp_path):
+    # a root of 2 runs per scene overwritten by 1 run per scene holds only the new run, never a
+    # mix of two simulations
+    from radarpc.data.coloradar import find_runs
+
+    out = tmp_path / "colo"
+    small = dict(lidar_beams=4, lidar_azimuth_steps=16, progress=False)
+    write_coloradar(out, ["lab"], 2, 1, seed=7, **small)
+    write_coloradar(out, ["lab"], 1, 1, seed=8, overwrite=True, **small)
+    assert find_runs(out) == ["lab_run0"]

@@ -54,7 +54,7 @@ from radarpc.distributed import (DEFAULT_WAIT_S, DistEnv, WorkerJob, barrier, di
 from radarpc.dsp.density import check_density
 from radarpc.dsp.pointcloud import SpectralPointCloud, SpectralPointCloudConfig
 from radarpc.io import DataFileError
-from radarpc.runs import OutputLock, RunFolder, check_writable, read_json
+from radarpc.runs import OutputLock, RunFolder, check_writable, is_temp_name, read_json
 from radarpc.pipelines.sources import Source, batched, open_source, prefetched, source_fingerprint
 
 __all__ = [
@@ -410,7 +410,9 @@ def _convert_locked(ds: Any, source_id: str, out: Path, settings: ConvertSetting
                     resume: bool, overwrite: bool, progress: bool, wait_timeout_s: float,
                     on_chunk_done: Callable[[int], None] | None) -> ConvertResult:
     pdir = parts_dir(out)
-    if env.rank == 0 and out.exists():
+    # Every rank makes the same decision about an existing store (rank 0 under the lock), so that
+    # no rank waits for a job that rank 0 has finished or refused.
+    if out.exists():
         try:
             store = PointStore(out)
         except DataFileError as e:
@@ -424,6 +426,9 @@ def _convert_locked(ds: Any, source_id: str, out: Path, settings: ConvertSetting
             if same and resume and not pdir.exists():
                 # A finished conversion with these settings: nothing to do.
                 chunk = int(m.settings.get("chunk_frames") or settings.chunk_frames)
+                if env.rank != 0:
+                    return ConvertResult(None, n, 0, float("nan"), float("nan"), m.tau, 0, 0, chunk,
+                                         already_finished=True)
                 return ConvertResult(out, n, int(store.frame_table.n_points.sum()), m.achieved_density,
                                      m.peak_density, m.tau, 0, -(-n // chunk), chunk, frames_reused=n,
                                      already_finished=True)
@@ -436,11 +441,13 @@ def _convert_locked(ds: Any, source_id: str, out: Path, settings: ConvertSetting
                                       f"overwrite=True (CLI: --overwrite) to replace it, or choose another --out")
 
     # The manifest fixes the settings, the frames, the chunk size, the calibrated tau and the date.
+    job_id = os.environ.get("TORCHELASTIC_RUN_ID") if env.world_size > 1 else None
     parts = RunFolder(pdir, {_MANIFEST: {"key": key}}, what="conversion parts folder", indent=None, lock=lock)
     if env.rank == 0:
         # a merge killed half-way leaves its temp file beside the store: ours, since we hold the lock
         for tmp in out.parent.glob(f".{out.name}.*.tmp"):
-            tmp.unlink(missing_ok=True)
+            if is_temp_name(tmp.name) and "." not in tmp.name[len(out.name) + 2:-4]:   # not another output's
+                tmp.unlink(missing_ok=True)
         # Parts of another run (other settings, changed source files, or resume=False) are stale:
         # the folder is this output's scratch space and we hold its lock, so they go.
         if not resume or (pdir.exists() and parts.differences()):
@@ -463,8 +470,16 @@ def _convert_locked(ds: Any, source_id: str, out: Path, settings: ConvertSetting
                 envelope=settings.envelope,
                 settings=dict(dataclasses.replace(settings, chunk_frames=chunk).to_dict(), key=key))
             manifest = dict(key=key, tau=cal_tau, meta=meta.to_dict(), chunk_frames=chunk)
-            parts.write_manifest(_MANIFEST, manifest)
-    barrier(env, [pdir / _MANIFEST], ["rank 0 (manifest)"], wait_timeout_s)
+        # The job's id (torchrun's, the same on every rank) tells the other ranks, when they poll
+        # without a process group, that this manifest is this job's and not a stale one.
+        manifest["job"] = job_id
+        parts.write_manifest(_MANIFEST, manifest)
+
+    def current(path: Path) -> bool:
+        m = read_json(path)
+        return isinstance(m, dict) and (job_id is None or m.get("job") == job_id)
+
+    barrier(env, [pdir / _MANIFEST], ["rank 0 (manifest)"], wait_timeout_s, ready=current)
     if env.rank != 0:
         manifest = read_json(pdir / _MANIFEST)
         if not isinstance(manifest, dict) or manifest.get("key") != key:

@@ -34,7 +34,7 @@ from radarpc.io import DataFileError, atomic_write
 from radarpc.pipelines.pointclouds import (ConvertSettings, build_point_cloud, calibrate_tau,
                                            calibration_source_of, check_dsp_settings)
 from radarpc.pipelines.sources import Source, batched, open_source, prefetched, source_fingerprint
-from radarpc.runs import OutputLock, RunFolder, RunMismatchError, check_writable, read_json
+from radarpc.runs import OutputLock, RunFolder, RunMismatchError, check_writable, is_temp_name, read_json
 
 __all__ = ["SparseRDResult", "write_sparse_rd"]
 
@@ -184,19 +184,19 @@ def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSett
                   dev: torch.device, cal_src: Any, cal_id: str | None, lock: OutputLock, *, batch_size: int,
                   calibrated_tau: float | None, resume: bool, overwrite: bool, progress: bool) -> SparseRDResult:
     info_path = out_root / "sparse_rd.json"
-    if out_root.is_dir() and not info_path.is_file() and any(out_root.iterdir()):
+    if out_root.is_dir() and not info_path.exists() and any(not is_temp_name(p.name) for p in out_root.iterdir()):
         raise FileExistsError(f"{out_root} is not empty and is not a sparse-RD root (no sparse_rd.json): "
                               f"refusing to write masked cubes into it; choose a new or empty folder")
     key = {"source_root": source_id, "settings": settings.output_key(), "source_files": source_fingerprint(ds),
            "calibration_source": cal_id}
-    if resume and info_path.is_file() and not isinstance(read_json(info_path), dict):
-        raise DataFileError(info_path, "is unreadable; delete it or pass resume=False")
+    if not overwrite and info_path.exists() and not isinstance(read_json(info_path), dict):
+        raise DataFileError(info_path, "is unreadable; pass overwrite=True (CLI: --overwrite) to rewrite the root")
     # sparse_rd.json is the run's manifest: the key, then the records of every frame written
     run = RunFolder(out_root, {info_path.name: key}, what="sparse-RD root", indent=1, lock=lock)
     # Another request (other settings or source root) needs overwrite; the same request on changed
     # source files is written again (as a point store is converted again).
-    other = sorted({d.split(":", 1)[1].split(".")[0] for d in run.differences()} - {"source_files", "calibration_source"}) \
-        if info_path.is_file() else []
+    other = sorted({d.split(":", 1)[1].split(".")[0] if ":" in d else "settings" for d in run.differences()}
+                   - {"source_files", "calibration_source"}) if info_path.exists() else []
     try:
         run.start(overwrite=overwrite or not other, resume=resume, write_manifests=False)
     except RunMismatchError:

@@ -50,7 +50,7 @@ import torch
 from tqdm import tqdm
 
 from radarpc.io import atomic_write
-from radarpc.runs import RunFolder
+from radarpc.runs import RunFolder, read_json
 from radarpc.data.coloradar_format import write_calib
 from radarpc.sensors.coloradar import DEFAULT_CALIB, ColoRadarCalib
 from radarpc.sim.coloradar_synth import (
@@ -268,6 +268,13 @@ def write_coloradar(out: str | os.PathLike, scenes: Sequence[str], runs_per_scen
                 "single_chip": calib.single_chip.name,
                 "cascade": calib.cascade.name if calib.cascade is not None else None}
     owned = [run_name(kind, k) for kind in scenes for k in range(runs_per_scene)] + ["calib"]
+    stored = read_json(out / "simulation.json")
+    if isinstance(stored, dict):                 # an overwrite also removes the old simulation's runs
+        try:
+            owned += [run_name(kind, k) for kind in stored["scenes"] for k in range(int(stored["runs_per_scene"]))
+                      if run_name(kind, k) not in owned]
+        except (KeyError, TypeError, ValueError):
+            pass
     folder = RunFolder(out, {"simulation.json": settings}, what="dataset root", indent=1, owned=owned)
     total = len(scenes) * runs_per_scene * (2 * frames + 2)
     written = kept = 0
