@@ -222,3 +222,18 @@ def test_coloradar_info_and_check(tmp_path: Path, capsys: pytest.CaptureFixture,
     text = capsys.readouterr().out
     assert f"check:       {n_files} files, 1 bad" in text and "lidar_pointcloud_0.bin" in skip.read_text()
     assert f"skip list:   1 file(s) written to {skip}" in text and "plot:" not in text
+
+
+def test_a_directory_as_plot_or_skip_list_is_refused_before_work(tmp_path, capsys):
+    from radarpc.cli import main
+    from radarpc.sensors.radial import TINY
+    from radarpc.sim.radial_writer import write_radial_dataset
+
+    root = write_radial_dataset(tmp_path / "root", TINY, 1, 1, seed=0, progress=False)
+    d = tmp_path / "figs"
+    d.mkdir()
+    for args in (["--plot", str(d)], ["--no-plot", "--write-skip", str(d)]):
+        capsys.readouterr()
+        assert main(["info", str(root), *args]) == 2
+        captured = capsys.readouterr()
+        assert "is a directory; give a file name" in captured.err and captured.out == ""

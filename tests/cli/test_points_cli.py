@@ -124,3 +124,38 @@ def test_baseline_owns_its_prediction_folder(root, tmp_path, capsys):
     assert main(args) == 0 and not leftover.exists()
     assert {f: f.read_bytes() for f in files} == before
     assert "wrote 0 new point clouds" in capsys.readouterr().out
+
+
+def test_baseline_never_mixes_roots_or_splits_in_one_folder(root, tmp_path, capsys):
+    import shutil
+
+    other = tmp_path / "other"
+    shutil.copytree(root, other)
+    pred = tmp_path / "oscfar"
+    argv = ["baseline", "os-cfar", str(root), "--split", "test", "--out", str(pred), "--quick-tune",
+            "--max-tune-frames", "1"]
+    assert main(argv) == 0
+    first = {p.name: p.read_bytes() for p in (pred / "hallway_run2").iterdir()}
+    capsys.readouterr()
+    # another root, or another split, into the same folder: refused before any work, nothing changed
+    for args in (["baseline", "os-cfar", str(other), "--split", "test"], ["baseline", "os-cfar", str(root), "--split", "val"]):
+        assert main(args + ["--out", str(pred), "--quick-tune", "--max-tune-frames", "1"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "holds predictions of" in err and "--overwrite" in err
+    assert {p.name: p.read_bytes() for p in (pred / "hallway_run2").iterdir()} == first
+    assert json.loads((pred / "index.json").read_text())["root"] == str(root.resolve())
+    # --overwrite replaces them: only the new split's clouds are left
+    assert main(["baseline", "os-cfar", str(root), "--split", "val", "--out", str(pred), "--quick-tune",
+                 "--max-tune-frames", "1", "--overwrite"]) == 0
+    assert sorted(p.name for p in pred.iterdir() if p.is_dir()) == ["hallway_run1"]
+    # a non-empty folder that is not a prediction folder, and a file in place of the folder
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "notes.txt").write_text("mine")
+    capsys.readouterr()
+    assert main(["baseline", "os-cfar", str(root), "--out", str(busy), "--quick-tune"]) == 2
+    assert "is not empty and is not a prediction folder" in capsys.readouterr().err
+    afile = tmp_path / "afile.txt"
+    afile.write_text("hi")
+    assert main(["baseline", "os-cfar", str(root), "--out", str(afile), "--quick-tune"]) == 2
+    assert "exists and is not a folder" in capsys.readouterr().err

@@ -31,7 +31,7 @@ def run_oscfar(args: argparse.Namespace) -> int:
 
     job = OSCFARJob(root=args.root, out=args.out, split=args.split, tune_split=args.tune_split,
                     max_tune_frames=args.max_tune_frames, config=args.config, retune=args.retune,
-                    quick_tune=args.quick_tune)
+                    quick_tune=args.quick_tune, overwrite=args.overwrite)
     res = predict_oscfar(job, on_config=lambda cfg, how: print(f"OS-CFAR config {how}: {cfg}"))
     print(f"wrote {res.n_new} new point clouds ({res.n_frames} frames) to {Path(args.out)}")
     return 0
@@ -53,4 +53,7 @@ def add_parser(sub) -> None:
     q.add_argument("--config", default=None, help="use this config.yaml instead of tuning")
     q.add_argument("--retune", action="store_true", help="tune again even if OUT/config.yaml exists")
     q.add_argument("--quick-tune", action="store_true", help="a 3-candidate grid (for smoke tests)")
+    q.add_argument("--overwrite", action="store_true",
+                   help="replace the predictions of another root or split (or write into a non-empty folder "
+                        "that is not a prediction folder); without it such a folder is refused")
     q.set_defaults(func=run_oscfar)

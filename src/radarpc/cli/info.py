@@ -67,10 +67,13 @@ def check_outputs(args: argparse.Namespace, default_plot: Path) -> None:
     """Fail before any work when the figure or the skip list cannot be written (one clear line)."""
     from radarpc.runs import check_writable
 
+    outputs = [(Path(args.write_skip), "skip list")] if getattr(args, "write_skip", None) else []
     if not getattr(args, "no_plot", False):
-        check_writable(Path(args.plot) if getattr(args, "plot", None) else default_plot, "figure")
-    if getattr(args, "write_skip", None):
-        check_writable(args.write_skip, "skip list")
+        outputs.append((Path(args.plot) if getattr(args, "plot", None) else default_plot, "figure"))
+    for path, what in outputs:
+        if path.is_dir():
+            raise IsADirectoryError(f"the {what} path {path} is a directory; give a file name")
+        check_writable(path, what)
 
 
 def info_radial(args: argparse.Namespace) -> int:

@@ -17,14 +17,16 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import yaml
 
 from radarpc.data.coloradar import ColoRadar
-from radarpc.eval.predictions import prediction_path, write_index
+from radarpc.eval.predictions import INDEX_FILE, prediction_path, write_index
 from radarpc.io import atomic_write, load_array, save_npy_atomic
 from radarpc.rald.oscfar_baseline import (
     CubeAxes,
@@ -35,7 +37,7 @@ from radarpc.rald.oscfar_baseline import (
     save_config,
     tune_oscfar,
 )
-from radarpc.runs import locked_output, remove_temp_files
+from radarpc.runs import locked_output, read_json, remove_temp_files
 
 __all__ = ["OSCFARJob", "OSCFARRun", "QUICK_GRID", "predict_oscfar"]
 
@@ -56,6 +58,7 @@ class OSCFARJob:
     config: str | os.PathLike | None = None  # use this config.yaml instead of tuning
     retune: bool = False                    # tune again even if OUT/config.yaml exists
     quick_tune: bool = False                # search QUICK_GRID instead of the full TuningGrid()
+    overwrite: bool = False                 # replace a folder of another root or split, or a foreign one
 
     def __post_init__(self) -> None:
         if self.max_tune_frames < 1:
@@ -102,6 +105,47 @@ def _choose_config(job: OSCFARJob, axes: CubeAxes, cfg_path: Path, progress: boo
     return res.best, f"tuned on {res.n_frames} {job.tune_split} frames (mean CD {res.best_chamfer:.3f} m)"
 
 
+def _made_from(out: Path) -> tuple[str | None, str | None]:
+    """``(resolved root, split)`` the predictions in ``out`` were made from (index.json, else the
+    provenance of config.yaml); ``(None, None)`` when neither says."""
+    idx = read_json(out / INDEX_FILE)
+    if isinstance(idx, dict) and "root" in idx:
+        return str(idx["root"]), idx.get("split")
+    try:
+        doc = yaml.safe_load((out / "config.yaml").read_text())
+        prov = doc["provenance"]
+        return str(Path(prov["root"]).resolve()), prov.get("split")
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return None, None
+
+
+def _own_folder(out: Path, job: OSCFARJob) -> None:
+    """Refuse (unless ``job.overwrite``) a non-empty folder that is not a prediction folder of this
+    root and split: its clouds would be mixed with this job's. With ``overwrite`` the earlier
+    predictions (config, tuning, index and run folders of clouds) are removed first."""
+    entries = [p for p in out.iterdir()] if out.is_dir() else []
+    if not entries:
+        return
+    root, split = _made_from(out)
+    want = str(Path(job.root).resolve())
+    if root == want and split == job.split:
+        return
+    foreign = [p for p in entries if not (p.name in ("config.yaml", "tuning.json", INDEX_FILE) or (
+        p.is_dir() and all(f.suffix == ".npy" for f in p.iterdir())))]
+    if root is None and not foreign:
+        return                              # a run killed before it recorded its root: resume it
+    if not job.overwrite:
+        what = ("is not empty and is not a prediction folder" if root is None else
+                f"holds predictions of {root} (split {split}), not of {want} (split {job.split})")
+        raise FileExistsError(f"{out} {what}; pass --overwrite (overwrite=True) to replace them, or choose "
+                              f"another --out")
+    for p in entries:
+        if p.name in ("config.yaml", "tuning.json", INDEX_FILE):
+            p.unlink()
+        elif p.is_dir() and not p.is_symlink() and all(f.suffix == ".npy" for f in p.iterdir()):
+            shutil.rmtree(p)                # a run folder of clouds
+
+
 def predict_oscfar(job: OSCFARJob, *, progress: bool = True,
                    on_config: Callable[[OSCFARConfig, str], None] | None = None) -> OSCFARRun:
     """Run ``job`` (see the module docstring).
@@ -120,6 +164,9 @@ def predict_oscfar(job: OSCFARJob, *, progress: bool = True,
         The split (or tuning split) has no paired radar/LiDAR frame.
     radarpc.runs.OutputBusyError
         Another process writes the same prediction folder.
+    FileExistsError
+        The folder holds predictions of another root or split, or other files, without
+        ``job.overwrite``.
     PermissionError
         The prediction folder cannot be written.
     """
@@ -130,8 +177,11 @@ def predict_oscfar(job: OSCFARJob, *, progress: bool = True,
     ds = ColoRadar(job.root, job.split, cube_size=None)
     if len(ds) == 0:
         raise ValueError(f"split {job.split!r} of {job.root} has no paired radar/LiDAR frame")
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(f"the prediction folder {out} exists and is not a folder")
     with locked_output(out, "prediction folder"):
         remove_temp_files(out)
+        _own_folder(out, job)
         axes = _axes(ds)
         cfg, how = _choose_config(job, axes, cfg_path, progress)
         same = cfg_path.is_file() and load_config(cfg_path) == cfg
