@@ -246,14 +246,14 @@ def _tau_text(tau: float) -> str:
 def _bev_extent(cfg: DDMARadarConfig, y: np.ndarray, box_y: np.ndarray, box_x: np.ndarray) -> tuple[float, float]:
     """Lateral half-width and forward extent (m) of the BEV panel: forward to the maximum range or
     the farthest box end; laterally every box and 98 % of the points (a few wide-angle points must
-    not squash the panel to +-max range), at least 0.3 times the forward extent (a readable panel
-    at equal aspect) and at most the maximum range."""
+    not squash the panel to +-max range), at least 0.3 and at most 0.6 times the forward extent (a
+    readable panel at equal aspect; what lies wider is counted below the panel)."""
     rmax = cfg.max_range_m
     top = max(rmax, float(box_x.max()) if box_x.size else 0.0)
     wide = [float(np.abs(box_y).max())] if box_y.size else []
     if y.size:
         wide.append(float(np.quantile(np.abs(y), 0.98)))
-    half = min(max(1.1 * max(wide, default=0.0) + 2.0, 0.3 * top), rmax)
+    half = min(max(1.1 * max(wide, default=0.0) + 2.0, 0.3 * top), 0.6 * top)
     return half, top
 
 
@@ -319,7 +319,7 @@ def plot_frame_view(view: FrameView, out: str | os.PathLike, color_by: str = "ve
         sc = ax[2].scatter(y, x, c=cval, s=6, cmap="viridis")
     fig.colorbar(sc, ax=ax[2], label="radial velocity [m/s]" if color_by == "velocity" else "amplitude Ae [dB]")
     for b in boxes:
-        ax[2].add_patch(Polygon(b[:, ::-1], closed=True, fill=False, edgecolor="k", linewidth=1.4))
+        ax[2].add_patch(Polygon(b[:, ::-1], closed=True, fill=False, edgecolor="k", linewidth=1.4, clip_on=True))
     half, top = _bev_extent(cfg, y, boxes[..., 1], boxes[..., 0])
     hidden = int(np.sum((np.abs(y) > half) | (x > top)))
     ax[2].set_xlim(half, -half)                                 # left of the car drawn on the left
