@@ -321,3 +321,19 @@ def test_calib_beside_runs_folder(sim_root, tmp_path):
     assert [r.name for r in ds.runs] == ["lab_run2"] and ds.calib == CALIB
     with pytest.raises(DataFileError, match="calib"):
         ColoRadar(tmp_path / "kitti" / "lab_run2" / "lidar", "all")
+
+
+def test_check_lists_every_run_that_cannot_be_opened(sim_root, tmp_path, capsys):
+    # an empty and a decreasing timestamps file in two runs: --check names both, not only the first
+    import shutil
+    from radarpc.cli import main
+
+    root = tmp_path / "bad_ts"
+    shutil.copytree(sim_root, root)
+    (root / "lab_run0" / "lidar" / "timestamps.txt").write_text("")
+    ts = root / "lab_run1" / "lidar" / "timestamps.txt"
+    ts.write_text("\n".join(reversed(ts.read_text().splitlines())) + "\n")
+    assert main(["info", str(root), "--check", "--no-plot"]) == 1
+    out = capsys.readouterr().out
+    assert "lab_run0/lidar/timestamps.txt" in out and "lab_run1/lidar/timestamps.txt" in out
+    assert "2 bad" in out

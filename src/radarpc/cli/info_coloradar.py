@@ -29,7 +29,11 @@ def info_coloradar(args: argparse.Namespace) -> int:
 
     root = Path(args.root)
     check_outputs(args, default_plot_path(root))
-    calib, runs = open_coloradar_runs(root)
+    # --check lists every run that cannot be opened instead of stopping at the first
+    unopened = [] if (getattr(args, "check", False) or getattr(args, "write_skip", None)) else None
+    calib, runs = open_coloradar_runs(root, errors=unopened)
+    if not runs:
+        raise unopened[0]
     summary = summarize_coloradar(root, calib, runs)
     sc, cc = calib.single_chip, calib.cascade
     print(f"ColoRadar root {root} ({'simulated' if summary.simulated else 'dataset'})")
@@ -46,6 +50,8 @@ def info_coloradar(args: argparse.Namespace) -> int:
     print(f"scenes:      {len(summary.scenes)} ({', '.join(summary.scenes)})")
     for sp, n in summary.split_runs.items():
         print(f"{sp + ':':<13}{n} runs, {summary.split_pairs[sp]} paired frames")
+    for e in unopened or []:            # runs left out of the summary (counted as bad below)
+        print(f"warning:     {e}")
     for run in runs:                    # timestamp lines vs data files (also counted as bad by --check)
         for e in run.count_problems():
             print(f"warning:     {e}")
@@ -60,6 +66,7 @@ def info_coloradar(args: argparse.Namespace) -> int:
     write_skip = getattr(args, "write_skip", None)
     if getattr(args, "check", False) or write_skip:
         total, bad = check_runs(runs)
+        bad = [str(e) for e in unopened] + bad
         print(f"check:       {total} files, {len(bad)} bad")
         for line in bad:
             print(f"  {line}")

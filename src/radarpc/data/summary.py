@@ -184,20 +184,36 @@ class ColoRadarSummary:
     lidar_points: tuple[float, float] | None        # mean over runs of RunSummary.lidar_points
 
 
-def open_coloradar_runs(root: str | os.PathLike) -> tuple[ColoRadarCalib, list[ColoRadarRun]]:
+def open_coloradar_runs(root: str | os.PathLike, errors: list[DataFileError] | None = None
+                        ) -> tuple[ColoRadarCalib, list[ColoRadarRun]]:
     """The calibration of ``root/calib`` and every run of ``root`` (sorted by name).
+
+    With ``errors`` (a list), a run that cannot be opened (e.g. an empty or decreasing
+    ``timestamps.txt``) is left out and its error appended, so that a check can list every bad
+    run instead of stopping at the first.
 
     Raises
     ------
     DataFileError
-        ``root`` holds no run folder.
+        ``root`` holds no run folder, or (without ``errors``) a run cannot be opened.
     """
     root = Path(root)
     calib = load_calib(root / "calib")
     names = find_runs(root)
     if not names:
         raise DataFileError(root, "holds calib/ but no run folder (expected e.g. lab_run0/ with lidar/, single_chip/)")
-    return calib, [ColoRadarRun(root / n, calib) for n in names]
+    runs = []
+    for n in names:
+        try:
+            run = ColoRadarRun(root / n, calib)
+            if errors is not None:
+                run.count_problems()            # reads every timestamps file: unreadable ones raise here
+            runs.append(run)
+        except DataFileError as e:
+            if errors is None:
+                raise
+            errors.append(e)
+    return calib, runs
 
 
 def summarize_coloradar(root: str | os.PathLike, calib: ColoRadarCalib,
