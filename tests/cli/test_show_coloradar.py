@@ -3,7 +3,6 @@ OS-CFAR tuning file, on a tiny simulated root."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 
 import numpy as np
@@ -15,17 +14,10 @@ from radarpc.cli import show
 from radarpc.data.coloradar import ColoRadarRun, pair_radar_lidar
 from radarpc.eval.predictions import prediction_path, write_index
 from radarpc.io import DataFileError, save_npy_atomic
-from radarpc.sensors.coloradar import AWR1843, CASCADE, DEFAULT_CALIB, beam_angles
-from radarpc.sim.coloradar_synth import RadarSimConfig
 from radarpc.sim.coloradar_writer import write_coloradar
+from testkit import TINY_KW as KW
 
 # the tiny simulated ColoRadar of tests/data/test_coloradar.py, one run of 2 radar frames
-TINY_CASCADE = CASCADE.replace(num_range_bins=64, num_azimuth_bins=16, num_elevation_bins=4,
-                               azimuth_bins=beam_angles(16, CASCADE.element_spacing, half_bin=True),
-                               elevation_bins=beam_angles(4, CASCADE.element_spacing, half_bin=True))
-CALIB = dataclasses.replace(DEFAULT_CALIB, single_chip=AWR1843.replace(num_chirps_per_frame=8), cascade=TINY_CASCADE)
-KW = dict(lidar_beams=8, lidar_azimuth_steps=128, calib=CALIB, radar=RadarSimConfig(az_step_deg=4.0, el_step_deg=5.0),
-          progress=False)
 
 
 def run_cli(argv: list[str]) -> int:

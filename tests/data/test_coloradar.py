@@ -1,7 +1,6 @@
 """Tests for radarpc.data.coloradar: reader vs simulator, pairing, transforms, crop, bad input."""
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -25,16 +24,13 @@ from radarpc.dsp.tdm import radar_cube
 from radarpc.io import DataFileError
 from radarpc.sensors.coloradar import (
     AWR1843,
-    CASCADE,
     DEFAULT_CALIB,
     ColoRadarCalib,
     RadarFOV,
     Transform,
-    beam_angles,
 )
 from radarpc.sim.coloradar_synth import (
     LidarConfig,
-    RadarSimConfig,
     cascade_heatmap,
     lidar_scan,
     radar_scatterers,
@@ -43,13 +39,8 @@ from radarpc.sim.coloradar_synth import (
 )
 from radarpc.sim.coloradar_writer import frame_generator, run_name, write_coloradar
 from radarpc.sim.indoor import make_scene
+from testkit import TINY_CALIB as CALIB, TINY_RADAR as RADAR, TINY_KW as KW
 
-TINY_CASCADE = CASCADE.replace(num_range_bins=64, num_azimuth_bins=16, num_elevation_bins=4,
-                               azimuth_bins=beam_angles(16, CASCADE.element_spacing, half_bin=True),
-                               elevation_bins=beam_angles(4, CASCADE.element_spacing, half_bin=True))
-CALIB = dataclasses.replace(DEFAULT_CALIB, single_chip=AWR1843.replace(num_chirps_per_frame=8), cascade=TINY_CASCADE)
-RADAR = RadarSimConfig(az_step_deg=4.0, el_step_deg=5.0)
-KW = dict(lidar_beams=8, lidar_azimuth_steps=128, calib=CALIB, radar=RADAR, progress=False)
 
 
 @pytest.fixture(scope="module")

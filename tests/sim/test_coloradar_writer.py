@@ -1,28 +1,20 @@
 """The simulated ColoRadar root as a run folder: resume, refusal, overwrite, lock, leftovers."""
 from __future__ import annotations
 
-import dataclasses
+import os
 import json
 import shutil
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import pytest
 
 from radarpc.runs import OutputBusyError, RunMismatchError
-from radarpc.sensors.coloradar import AWR1843, CASCADE, DEFAULT_CALIB, beam_angles
 from radarpc.sim import coloradar_writer
-from radarpc.sim.coloradar_synth import RadarSimConfig
 from radarpc.sim.coloradar_writer import write_coloradar
+from testkit import TINY_KW as KW, stalling_writer_script
 
-TINY_CASCADE = CASCADE.replace(num_range_bins=64, num_azimuth_bins=16, num_elevation_bins=4,
-                               azimuth_bins=beam_angles(16, CASCADE.element_spacing, half_bin=True),
-                               elevation_bins=beam_angles(4, CASCADE.element_spacing, half_bin=True))
-CALIB = dataclasses.replace(DEFAULT_CALIB, single_chip=AWR1843.replace(num_chirps_per_frame=8), cascade=TINY_CASCADE)
-KW = dict(lidar_beams=8, lidar_azimuth_steps=128, calib=CALIB, radar=RadarSimConfig(az_step_deg=4.0, el_step_deg=5.0),
-          progress=False)
 SCENES, RUNS, FRAMES, SEED = ["lab"], 1, 2, 7
 
 
@@ -112,30 +104,16 @@ def test_overwrite_replaces_a_run_of_other_settings(ref, tmp_path, monkeypatch):
 
 # A second real process writes the same root and stalls inside the atomic write of its first
 # .bin file (its temp file exists), like a job killed mid-write.
-_STALLING_WRITER = textwrap.dedent("""
-    import contextlib, importlib.util, sys, time
-    spec = importlib.util.spec_from_file_location("writer_test", sys.argv[1])
-    t = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(t)
-    real = t.coloradar_writer.atomic_write
-
-    @contextlib.contextmanager
-    def stalling(path, mode="wb"):
-        with real(path, mode) as f:
-            if str(path).endswith(".bin"):
-                print("writing", flush=True)
-                time.sleep(120)
-            yield f
-
-    t.coloradar_writer.atomic_write = stalling
-    t.write(sys.argv[2])
-""")
+_STALLING_WRITER = stalling_writer_script(
+    "radarpc.sim.coloradar_writer", ".bin",
+    f"from testkit import TINY_KW\nwriter.write_coloradar(sys.argv[1], {SCENES!r}, {RUNS}, {FRAMES}, {SEED}, **TINY_KW)")
 
 
 def test_second_writer_is_refused_and_a_killed_run_resumes(ref, tmp_path):
     out = tmp_path / "busy"
-    child = subprocess.Popen([sys.executable, "-c", _STALLING_WRITER, __file__, str(out)],
-                             stdout=subprocess.PIPE, text=True)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+    child = subprocess.Popen([sys.executable, "-c", _STALLING_WRITER, str(out)], stdout=subprocess.PIPE, text=True,
+                             env=env)
     try:
         assert child.stdout.readline().strip() == "writing"
         assert len(list(out.rglob(".*.tmp"))) == 1

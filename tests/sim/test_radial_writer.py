@@ -4,7 +4,6 @@ import json
 import shutil
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +20,7 @@ from radarpc.sim import radial_writer
 from radarpc.sim.radial_writer import RadialSimulator, SimulatedRADIal, write_radial_dataset
 from radarpc.sim.road import RoadSceneConfig
 from radarpc.runs import OutputBusyError, RunMismatchError
+from testkit import stalling_writer_script
 
 N_SEQ, N_FR, SEED = 3, 2, 11
 
@@ -157,23 +157,10 @@ def test_overwrite_starts_over_even_on_a_matching_root(root, tmp_path, monkeypat
 
 # A second real process writes the same root and stalls inside the atomic write of its first
 # freespace PNG (its temp file exists), like a job killed mid-write.
-_STALLING_WRITER = textwrap.dedent("""
-    import contextlib, sys, time
-    from radarpc.sensors.radial import TINY
-    from radarpc.sim import radial_writer
-    real = radial_writer.atomic_write
-
-    @contextlib.contextmanager
-    def stalling(path, mode="wb"):
-        with real(path, mode) as f:
-            if str(path).endswith(".png"):
-                print("writing", flush=True)
-                time.sleep(120)
-            yield f
-
-    radial_writer.atomic_write = stalling
-    radial_writer.write_radial_dataset(sys.argv[1], TINY, *map(int, sys.argv[2:]), progress=False)
-""")
+_STALLING_WRITER = stalling_writer_script(
+    "radarpc.sim.radial_writer", ".png",
+    "from radarpc.sensors.radial import TINY\n"
+    "writer.write_radial_dataset(sys.argv[1], TINY, *map(int, sys.argv[2:]), progress=False)")
 
 
 def test_second_writer_is_refused_and_a_killed_run_resumes(root, tmp_path):
