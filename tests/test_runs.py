@@ -214,3 +214,14 @@ def test_only_atomic_write_temp_names_are_removed(tmp_path):
 
     assert is_temp_name(".part-3.parquet.abc123_x.tmp") and is_temp_name(".frame_1.bin.1234.tmp")
     assert not is_temp_name("notes.tmp") and not is_temp_name(".tmp") and not is_temp_name(".x.tmp")
+
+
+def test_changed_keys_names_the_top_level_keys_that_differ(tmp_path):
+    d = tmp_path / "run"
+    with RunFolder(d, {"a.json": {"x": 1, "s": {"w": 9}}, "b.json": {"y": 2}}):
+        pass
+    assert RunFolder(d, {"a.json": {"x": 1, "s": {"w": 9}}, "b.json": {"y": 2}}).changed_keys() == set()
+    assert RunFolder(d, {"a.json": {"x": 1, "s": {"w": 7}}, "b.json": {"y": 3}}).changed_keys() == {"s", "y"}
+    (d / "a.json").write_text("{")
+    (d / "b.json").unlink()
+    assert RunFolder(d, {"a.json": {"x": 1}, "b.json": {"y": 2}}).changed_keys() == {"*"}

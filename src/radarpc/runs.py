@@ -307,6 +307,19 @@ class RunFolder:
             out += [f"{name}:{k}" for k in _differing(want, {k: have.get(k) for k in want})]
         return out + missing if out or len(missing) == len(self.manifests) else out
 
+    def changed_keys(self) -> set[str]:
+        """The top-level key names whose stored value differs from this run's (in any manifest);
+        ``{"*"}`` when no manifest is readable."""
+        stored = self.stored()
+        if not any(isinstance(v, dict) for v in stored.values()):
+            return {"*"}
+        out: set[str] = set()
+        for name, have in stored.items():
+            if isinstance(have, dict):
+                want = self._key(self.manifests[name])
+                out |= {k for k in want if want[k] != have.get(k)}
+        return out
+
     def is_empty(self) -> bool:
         """No entry in the folder (temp files of interrupted writes aside)."""
         if not self.path.exists():

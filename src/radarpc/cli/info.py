@@ -104,16 +104,12 @@ def info_radial(args: argparse.Namespace) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Dispatch on the kind of root: RADIal (``labels.csv``) or ColoRadar (``calib/``)."""
-    root = Path(args.root)
-    if not root.is_dir():
-        raise DataFileError(root, "dataset root folder is missing")
-    if (root / "labels.csv").is_file():
+    from radarpc.data.layout import root_layout
+
+    if root_layout(args.root) == "radial":
         return info_radial(args)
-    if (root / "calib").is_dir():
-        from radarpc.cli.info_coloradar import info_coloradar
-        return info_coloradar(args)
-    raise DataFileError(root, "is neither a RADIal root (labels.csv, radar_FFT/, radar_Freespace/) "
-                              "nor a ColoRadar root (calib/ and sequence folders)")
+    from radarpc.cli.info_coloradar import info_coloradar
+    return info_coloradar(args)
 
 
 def add_parser(sub) -> None:

@@ -101,7 +101,7 @@ def _run_radial(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from radarpc.io import DataFileError
+    from radarpc.data.layout import root_layout
 
     if args.tuning is not None:
         return _run_tuning(args)
@@ -109,15 +109,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("give a dataset ROOT (RADIal or ColoRadar) with --frame, or --tuning FILE")
     if args.frame is None:
         raise ValueError("--frame is required with a dataset ROOT")
-    root = Path(args.root)
-    if not root.is_dir():
-        raise DataFileError(root, "dataset root folder is missing")
-    if (root / "labels.csv").is_file():
-        return _run_radial(args)
-    if (root / "calib").is_dir():
-        return _run_coloradar(args)
-    raise DataFileError(root, "is neither a RADIal root (labels.csv, radar_FFT/) nor a ColoRadar root "
-                              "(calib/ and run folders)")
+    return _run_radial(args) if root_layout(args.root) == "radial" else _run_coloradar(args)
 
 
 def add_parser(sub) -> None:

@@ -121,6 +121,15 @@ class ConvertSettings:
                                         enrich=tuple(self.enrich), envelope=self.envelope,
                                         beamforming=self.beamforming)
 
+    @classmethod
+    def given(cls, settings: "ConvertSettings | None", fields: dict) -> "ConvertSettings":
+        """``settings``, or one built from ``fields`` (a writer's ``**fields``); not both."""
+        if settings is None:
+            return cls(**fields)
+        if fields:
+            raise TypeError(f"give settings or its fields, not both (got {sorted(fields)})")
+        return settings
+
     @property
     def mode(self) -> str:
         """``"fixed-tau"``, ``"per-frame"`` or ``"per-dataset"`` (:data:`radarpc.data.pointstore.THRESHOLD_MODES`)."""
@@ -368,10 +377,7 @@ def convert_dataset(
     -------
     ConvertResult
     """
-    if settings is None:
-        settings = ConvertSettings(**fields)
-    elif fields:
-        raise TypeError(f"give settings or its fields, not both (got {sorted(fields)})")
+    settings = ConvertSettings.given(settings, fields)
     if int(batch_size) < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     if int(workers) < 1:

@@ -147,10 +147,7 @@ def write_sparse_rd(
     -------
     SparseRDResult
     """
-    if settings is None:
-        settings = ConvertSettings(**fields)
-    elif fields:
-        raise TypeError(f"give settings or its fields, not both (got {sorted(fields)})")
+    settings = ConvertSettings.given(settings, fields)
     # The mask does not depend on how directions are found, nor the root on the part size.
     settings = dataclasses.replace(settings, beamforming="auto", chunk_frames=64)
     if int(batch_size) < 1:
@@ -195,7 +192,7 @@ def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSett
     run = RunFolder(out_root, {info_path.name: key}, what="sparse-RD root", indent=1, lock=lock)
     # Another request (other settings or source root) needs overwrite; the same request on changed
     # source files is written again (as a point store is converted again).
-    other = sorted({d.split(":", 1)[1].split(".")[0] if ":" in d else "settings" for d in run.differences()}
+    other = sorted({"settings" if k == "*" else k for k in run.changed_keys()}
                    - {"source_files", "calibration_source"}) if info_path.exists() else []
     try:
         run.start(overwrite=overwrite or not other, resume=resume, write_manifests=False)

@@ -206,6 +206,16 @@ def _to_device(gen: torch.Generator, device: torch.device) -> torch.Generator:
     return g
 
 
+def _recorded_runs(manifest: Path) -> list[str]:
+    """The run folders an earlier simulation recorded in its ``simulation.json`` (none when the file
+    is missing or malformed: then the folder is not a simulation's and nothing more is owned)."""
+    stored = read_json(manifest)
+    if not isinstance(stored, dict) or not isinstance(stored.get("scenes"), list) \
+            or not isinstance(stored.get("runs_per_scene"), int):
+        return []
+    return [run_name(str(kind), k) for kind in stored["scenes"] for k in range(stored["runs_per_scene"])]
+
+
 def write_coloradar(out: str | os.PathLike, scenes: Sequence[str], runs_per_scene: int, frames: int,
                     seed: int = 0, *, overwrite: bool = False, lidar_beams: int = 64,
                     lidar_azimuth_steps: int = 1024, calib: ColoRadarCalib = DEFAULT_CALIB,
@@ -267,14 +277,9 @@ def write_coloradar(out: str | os.PathLike, scenes: Sequence[str], runs_per_scen
                 "seed": int(seed), "lidar": dataclasses.asdict(lidar), "radar": dataclasses.asdict(radar),
                 "single_chip": calib.single_chip.name,
                 "cascade": calib.cascade.name if calib.cascade is not None else None}
-    owned = [run_name(kind, k) for kind in scenes for k in range(runs_per_scene)] + ["calib"]
-    stored = read_json(out / "simulation.json")
-    if isinstance(stored, dict):                 # an overwrite also removes the old simulation's runs
-        try:
-            owned += [run_name(kind, k) for kind in stored["scenes"] for k in range(int(stored["runs_per_scene"]))
-                      if run_name(kind, k) not in owned]
-        except (KeyError, TypeError, ValueError):
-            pass
+    # an overwrite also removes the runs of the simulation it replaces
+    owned = sorted({run_name(kind, k) for kind in scenes for k in range(runs_per_scene)}
+                   | set(_recorded_runs(out / "simulation.json"))) + ["calib"]
     folder = RunFolder(out, {"simulation.json": settings}, what="dataset root", indent=1, owned=owned)
     total = len(scenes) * runs_per_scene * (2 * frames + 2)
     written = kept = 0
