@@ -38,6 +38,7 @@ def format_summary(s: RadialSummary) -> str:
         f"range:       {rng(s.range_m, 'm')}",
         f"azimuth:     {rng(s.azimuth_deg, 'deg')}",
         f"velocity:    {rng(s.doppler_mps, 'm/s')}",
+        *s.statistics.format(),
     ]
     for k in s.split_frames:
         if s.split_frames[k] == 0:

@@ -37,6 +37,7 @@ from radarpc.data.radial import (
     root_sensor,
     split_of_sequence,
 )
+from radarpc.data.radial_truth import LabelStatistics, label_statistics
 from radarpc.io import DataFileError, atomic_write
 from radarpc.data.coloradar_format import load_calib
 from radarpc.dsp.tdm import radar_cube
@@ -81,10 +82,13 @@ class RadialSummary:
     range_m: tuple[float, float] | None        # min/max radar_R_m of vehicles
     azimuth_deg: tuple[float, float] | None    # min/max radar_A_deg
     doppler_mps: tuple[float, float] | None    # min/max radar_D
+    statistics: LabelStatistics                # per-frame counts, distributions, scene mix
 
 
 def summarize_radial(root: str | os.PathLike, labels: LabelTable | None = None) -> RadialSummary:
-    """Summarize a RADIal root from its ``labels.csv`` and ``sensor.json`` (no cube is read).
+    """Summarize a RADIal root from its ``labels.csv`` and ``sensor.json`` (no cube is read), with
+    the label statistics of :func:`radarpc.data.radial_truth.label_statistics` (the simulator's
+    sidecars included when the root has them).
 
     Parameters
     ----------
@@ -119,7 +123,8 @@ def summarize_radial(root: str | os.PathLike, labels: LabelTable | None = None) 
         n_sequences=len(names), split_frames=split_frames, split_sequences=split_sequences,
         n_vehicles=int(veh.sum()), n_difficult=int((labels.difficult[veh] == 1).sum()),
         n_empty_frames=len(seq_of) - len(frames_with),
-        range_m=span("radar_R_m"), azimuth_deg=span("radar_A_deg"), doppler_mps=span("radar_D"))
+        range_m=span("radar_R_m"), azimuth_deg=span("radar_A_deg"), doppler_mps=span("radar_D"),
+        statistics=label_statistics(labels, root))
 
 
 def first_rd_power_db(root: str | os.PathLike, labels: LabelTable,
