@@ -1,0 +1,1 @@
+"""Training: one loop for every model (:mod:`radarpc.training.loop`), safetensors checkpoints."""
