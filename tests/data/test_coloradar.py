@@ -1,6 +1,7 @@
 """Tests for radarpc.data.coloradar: reader vs simulator, pairing, transforms, crop, bad input."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -26,8 +27,10 @@ from radarpc.sensors.coloradar import (
     AWR1843,
     DEFAULT_CALIB,
     ColoRadarCalib,
+    HeatmapConfig,
     RadarFOV,
     Transform,
+    beam_angles,
 )
 from radarpc.sim.coloradar_synth import (
     LidarConfig,
@@ -226,6 +229,23 @@ def test_bad_input_errors(sim_root, tmp_path):
         ColoRadarRun(root / "lab_run0")
     with pytest.raises(DataFileError, match="antenna_cfg.txt"):
         ColoRadar(root, "all")
+
+
+def test_rald_cube_keeps_its_grid_whatever_the_calib_heatmap(sim_root):
+    # calib/single_chip/heatmap_cfg.txt holds the dataset's grid (8 x 64 x 64); RaLD's cube keeps its
+    # 128 range x 8 azimuth x 2 elevation bins, identical to the cube of a chip whose heatmap grid is
+    # RaLD's (what the calib files held before)
+    ds = ColoRadar(sim_root, "all", cube_size=None)
+    assert ds.calib.single_chip.heatmap.shape == (8, 64, 64, 2)
+    chip = ds.calib.single_chip
+    d = chip.element_spacing
+    rald_grid = HeatmapConfig(128, 2, 8, chip.waveform.range_bin_width(128), beam_angles(8, d), beam_angles(2, d))
+    k, ri, _ = ds.index[0]
+    cube = ds.cube(0)
+    ref = radar_cube(ds.runs[k].adc(ri), dataclasses.replace(chip, heatmap=rald_grid))
+    assert cube.intensity_db.shape == (128, 8, 2)
+    torch.testing.assert_close(cube.intensity_db, ref.intensity_db, rtol=0, atol=0)
+    torch.testing.assert_close(cube.azimuth_rad, ref.azimuth_rad, rtol=0, atol=0)
 
 
 def test_upsample_intensity_is_ralds_angle_upsampling():

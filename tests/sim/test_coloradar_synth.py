@@ -117,6 +117,36 @@ def test_adc_quantization_and_noise():
     assert int(loud.max()) == 32767 and int(loud.min()) == -32768
 
 
+def test_default_adc_scale():
+    # closed form: one 1 m^2 scatterer at r has |I + jQ| = gain / r^2 (+- the rounding of I and Q)
+    cfg = RadarSimConfig()
+    quiet = RadarSimConfig(adc_noise_lsb=0.0)
+    for r in (0.5, 2.0, 6.0):
+        adc = synthesize_tdm_adc(_point(r, 10.0, 0.0), TINY, cfg=quiet).double()
+        np.testing.assert_allclose(torch.linalg.vector_norm(adc, dim=-1).numpy(), cfg.adc_gain_lsb / r ** 2,
+                                   atol=math.sqrt(0.5))
+    # the rescale keeps every scatterer's SNR: gain / noise as at the earlier 1000 LSB / 4 LSB
+    assert cfg.adc_gain_lsb / cfg.adc_noise_lsb == pytest.approx(1000.0 / 4.0)
+    # frames of the indoor scene kinds with the strongest near returns stay inside +-2048, where a
+    # float16 cast (azinke/coloradar's reader) is exact; at the earlier scale some did not
+    chip = AWR1843.replace(num_chirps_per_frame=4)
+    coarse = dict(az_step_deg=4.0, el_step_deg=5.0)
+    largest = {}
+    for kind in ("hallway", "lab", "classroom"):
+        scene = make_scene(kind, 0, 0)
+        pose, vel = sensor_pose(scene, 0.5, BASE_TO_SINGLE_CHIP)
+        scat = radar_scatterers(scene, 0.5, pose, vel, cfg=RadarSimConfig(**coarse),
+                                generator=torch.Generator().manual_seed(0))
+        for name, c in (("now", RadarSimConfig(**coarse)),
+                        ("before", RadarSimConfig(adc_gain_lsb=1000.0, adc_noise_lsb=4.0, **coarse))):
+            adc = synthesize_tdm_adc(scat, chip, cfg=c, generator=torch.Generator().manual_seed(1)).numpy()
+            largest[name, kind] = int(np.abs(adc.astype(np.int32)).max())
+            if name == "now":
+                np.testing.assert_array_equal(adc.astype(np.float16).astype(np.int32), adc)
+    assert max(v for (n, _), v in largest.items() if n == "now") <= 2048
+    assert sum(v > 2048 for (n, _), v in largest.items() if n == "before") >= 1
+
+
 def test_lidar_pattern():
     cfg = LidarConfig(beams=64, azimuth_steps=32)
     d = lidar_directions(cfg)
@@ -241,7 +271,7 @@ def test_fast_beat_signal_matches_its_formula_in_float64():
                 ph = (slow + arr + s.phase.double().numpy())[:, None] + fast
                 corr = 1 + 1j * 2 * math.pi * w.frequency_slope * b[:, None] * (tt - t_g) * (tk - t_ctr)[None, :]
                 want[t, q, c] = (amp[:, None] * np.exp(1j * ph) * corr).sum(0)
-    got = beat_signal(s, chip).numpy()
+    got = beat_signal(s, chip, gain_lsb=1000.0).numpy()
     assert np.abs(got - want).max() < 2e-6 * np.abs(want).max()
 
 

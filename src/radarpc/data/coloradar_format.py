@@ -16,11 +16,18 @@ File formats (as read by ColoRadar's own tools):
   radians, ascending).
 * ``antenna_cfg.txt``: ``num_rx N``, ``num_tx N``, ``F_design f`` (GHz), then ``rx i az el`` and
   ``tx i az el`` rows; positions are in half wavelengths of ``F_design``.
-* ``coupling_calib.txt``: ``key:value`` lines; ``data:`` holds interleaved real/imag values,
-  ``num_tx * num_rx * num_range_bins`` complex numbers.
-* ``transforms/base_to_X.txt``: first line the translation ``x y z`` (m), second line the
-  rotation quaternion ``qx qy qz qw`` (scalar last, Hamilton). The transform maps points of
-  sensor ``X``'s frame into the rig ``base`` frame: ``p_base = R(q) p_X + t``.
+* ``coupling_calib.txt``: ``key:value`` lines (``num_tx``, ``num_rx``, ``num_range_bins``,
+  ``num_doppler_bins``, ``data``); ``data:`` holds interleaved real/imag values,
+  ``num_tx * num_rx * num_range_bins`` complex numbers, ``num_range_bins`` being the heatmap's
+  (half the ADC samples per chirp; see
+  :attr:`radarpc.sensors.coloradar.ColoRadarChipConfig.coupling_shape`). The simulator writes
+  zeros (it models no Tx-Rx leakage).
+* ``transforms/base_to_X.txt`` (``X`` in ``single_chip``, ``cascade``, ``lidar``, ``imu``): first
+  line the translation ``x y z`` (m), second line the rotation quaternion ``qx qy qz qw`` (scalar
+  last, Hamilton). The transform maps points of sensor ``X``'s frame into the rig ``base`` frame:
+  ``p_base = R(q) p_X + t``. The dataset also ships ``base_to_vicon.txt`` (the motion-capture
+  marker frame of its Vicon runs); its values are not public outside the dataset, so it is
+  neither written nor read here.
 
 Validation: integer keys (``num_rx``, bin counts, ...) must be integers (``4`` or ``4.0``; ``4.5``
 is a :class:`radarpc.io.DataFileError` naming the file and key, never truncated); NaN/inf and
@@ -185,8 +192,12 @@ def parse_heatmap_cfg(path: str | os.PathLike) -> HeatmapConfig:
         raise DataFileError(path, str(e)) from e
 
 
-def parse_coupling_calib(path: str | os.PathLike) -> np.ndarray:
-    """Read ``coupling_calib.txt`` -> complex ``(num_tx, num_rx, num_range_bins)``."""
+def parse_coupling_calib(path: str | os.PathLike, chip: ColoRadarChipConfig | None = None) -> np.ndarray:
+    """Read ``coupling_calib.txt`` -> complex ``(num_tx, num_rx, num_range_bins)``.
+
+    With ``chip``, the shape must also be the chip's :attr:`ColoRadarChipConfig.coupling_shape`
+    (the size ColoRadar's tools reshape the file to).
+    """
     path = Path(path)
     if not path.is_file():
         raise DataFileError(path, "calibration file is missing")
@@ -204,6 +215,10 @@ def parse_coupling_calib(path: str | os.PathLike) -> np.ndarray:
         raise DataFileError(path, f"data holds {data.size} values, expected 2 * {ntx} * {nrx} * {nr} = {2 * ntx * nrx * nr}")
     if not np.isfinite(data).all():
         raise DataFileError(path, "data holds NaN or infinite values")
+    if chip is not None and (ntx, nrx, nr) != chip.coupling_shape:
+        raise DataFileError(path, f"holds {ntx} x {nrx} x {nr} complex values, but the {chip.name} config implies "
+                                  f"{' x '.join(map(str, chip.coupling_shape))} (num_tx x num_rx x heatmap_cfg.txt's "
+                                  "num_range_bins)")
     return (data[0::2] + 1j * data[1::2]).reshape(ntx, nrx, nr)
 
 
@@ -319,6 +334,9 @@ def load_calib(calib_dir: str | os.PathLike, *, cascade: bool | None = None) -> 
         transform if ``base_to_cascade.txt`` exists (single-chip work never needs it;
         :meth:`ColoRadarCalib.lidar_to_cascade` raises when it is absent).
 
+    ``transforms/base_to_imu.txt`` is read when present (radarpc does not need it; roots written
+    before it was simulated lack it).
+
     Raises
     ------
     DataFileError
@@ -336,7 +354,8 @@ def load_calib(calib_dir: str | os.PathLike, *, cascade: bool | None = None) -> 
         cc = load_chip_config(calib_dir / "cascade", "cascade")
         if cascade or (tdir / "base_to_cascade.txt").is_file():
             b_cc = read_transform(tdir / "base_to_cascade.txt")
-    return ColoRadarCalib(sc, cc, b_sc, b_l, b_cc)
+    b_imu = read_transform(tdir / "base_to_imu.txt") if (tdir / "base_to_imu.txt").is_file() else None
+    return ColoRadarCalib(sc, cc, b_sc, b_l, b_cc, b_imu)
 
 
 def write_calib(calib_dir: str | os.PathLike, calib: ColoRadarCalib) -> None:
@@ -348,8 +367,7 @@ def write_calib(calib_dir: str | os.PathLike, calib: ColoRadarCalib) -> None:
         write_waveform_cfg(d / "waveform_cfg.txt", chip.waveform)
         write_antenna_cfg(d / "antenna_cfg.txt", chip.antenna)
         write_heatmap_cfg(d / "heatmap_cfg.txt", chip.heatmap)
-        write_coupling_calib(d / "coupling_calib.txt",
-                             np.zeros((chip.num_tx, chip.num_rx, chip.heatmap.num_range_bins), np.complex128),
+        write_coupling_calib(d / "coupling_calib.txt", np.zeros(chip.coupling_shape, np.complex128),
                              chip.waveform.num_chirps_per_frame)
         if sub == "cascade":
             write_phase_frequency_calib(d / "phase_frequency_calib.txt", chip)
@@ -357,3 +375,5 @@ def write_calib(calib_dir: str | os.PathLike, calib: ColoRadarCalib) -> None:
     write_transform(calib_dir / "transforms" / "base_to_lidar.txt", calib.base_to_lidar)
     if calib.base_to_cascade is not None:
         write_transform(calib_dir / "transforms" / "base_to_cascade.txt", calib.base_to_cascade)
+    if calib.base_to_imu is not None:
+        write_transform(calib_dir / "transforms" / "base_to_imu.txt", calib.base_to_imu)

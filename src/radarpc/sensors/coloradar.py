@@ -18,7 +18,13 @@ Conventions shared with the simulator and the reader (:mod:`radarpc.data.colorad
 * ADC frames: int16, ``[num_tx, num_rx, num_chirps, num_samples, 2]`` (I, Q), TDM-MIMO (one Tx
   per chirp, Tx ``t`` of loop ``c`` starts at ``(c * num_tx + t) * (idle_time + ramp_end_time)``).
 * Heatmaps: float32 ``[num_elevation_bins, num_azimuth_bins, num_range_bins, 2]`` (intensity,
-  Doppler in m/s).
+  Doppler in m/s). A chip's :class:`HeatmapConfig` is the dataset's heatmap grid (its
+  ``heatmap_cfg.txt``), not RaLD's processing grid: RaLD's single-chip cube (128 range x 8 azimuth
+  x 2 elevation FFT bins) is set by :func:`radarpc.dsp.tdm.radar_cube`'s own sizes.
+* ``coupling_calib.txt`` holds ``num_tx x num_rx x num_range_bins`` complex values with
+  ``num_range_bins`` the heatmap's (positive) range bins, half the range FFT of
+  ``num_adc_samples_per_chirp`` samples: ``2 num_tx num_rx num_range_bins = num_tx num_rx
+  num_adc_samples_per_chirp`` numbers (:attr:`ColoRadarChipConfig.coupling_shape`).
 """
 from __future__ import annotations
 
@@ -47,6 +53,7 @@ __all__ = [
     "BASE_TO_SINGLE_CHIP",
     "BASE_TO_LIDAR",
     "BASE_TO_CASCADE",
+    "BASE_TO_IMU",
     "DEFAULT_CALIB",
 ]
 
@@ -223,6 +230,18 @@ class ColoRadarChipConfig:
         return int(np.prod(self.heatmap.shape)) * 4
 
     @property
+    def coupling_shape(self) -> tuple[int, int, int]:
+        """Complex shape of ``coupling_calib.txt``: ``(num_tx, num_rx, heatmap num_range_bins)``.
+
+        ColoRadar's tools read the ``data:`` line two ways that agree on the dataset's files:
+        arpg/coloradar-library as ``num_tx num_rx num_range_bins`` interleaved (re, im) pairs with
+        the heatmap's positive range bins, azinke/coloradar as ``num_tx num_rx 1
+        num_adc_samples_per_chirp`` numbers; both hold when the heatmap keeps half of the
+        ``num_adc_samples_per_chirp``-point range FFT, as the dataset's heatmaps do.
+        """
+        return (self.num_tx, self.num_rx, self.heatmap.num_range_bins)
+
+    @property
     def element_spacing(self) -> float:
         """``d = 0.5 f_c / F_design``: wavelengths per half-wavelength unit of position."""
         return 0.5 * self.waveform.center_frequency / (self.antenna.design_frequency_ghz * 1e9)
@@ -357,13 +376,14 @@ class Transform:
 # ------------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ColoRadarCalib:
-    """Everything of ColoRadar's ``calib/`` folder that radarpc uses."""
+    """Everything of ColoRadar's ``calib/`` folder that radarpc uses or writes."""
 
     single_chip: ColoRadarChipConfig
     cascade: ColoRadarChipConfig | None
     base_to_single_chip: Transform
     base_to_lidar: Transform
     base_to_cascade: Transform | None
+    base_to_imu: Transform | None = None    # the IMU (MicroStrain GX5) frame; read by ColoRadar's tools
 
     def lidar_to_single_chip(self) -> Transform:
         """``T_radar<-lidar = T_base_radar^-1 T_base_lidar`` (``p_radar = T p_lidar``)."""
@@ -396,16 +416,20 @@ def beam_angles(n: int, d: float, *, half_bin: bool = False) -> tuple[float, ...
 def _awr1843() -> ColoRadarChipConfig:
     # Waveform and layout as used by RaLD on ColoRadar's single chip (start 77 GHz, 100 MHz/us,
     # 10.666 MS/s, 128 samples x 128 loops x 3 Tx; TX0 (0,0), TX1 (4,0), TX2 (2,1) -> an 8 x 2
-    # virtual array with a 4-element raised row); 128 range bins of 0.124905712903 m.
+    # virtual array with a 4-element raised row). Heatmap: the dataset's single-chip grid, which
+    # keeps half of the 128-point range FFT (64 bins of c f_s / (2 S 128) = 0.124905712903 m, the
+    # size rule of coupling_calib.txt that arpg/coloradar-library and azinke/coloradar both
+    # read) over 64 azimuth x 8 elevation half-bin-centred beams (arpg/coloradar-library's
+    # single-chip beam counts, whose cascade counts, 128 x 32, are the cascade heatmap's).
     wf = WaveformConfig(num_tx=3, num_rx=4, num_adc_samples_per_chirp=128, num_chirps_per_frame=128,
                         adc_sample_frequency=10_666_000.0, start_frequency=77e9, idle_time=110e-6,
                         adc_start_time=7e-6, ramp_end_time=19.1e-6, frequency_slope=1.00000000377e14)
     ant = AntennaConfig(3, 4, 76.8, ((0.0, 0.0), (4.0, 0.0), (2.0, 1.0)),
                         tuple((float(k), 0.0) for k in range(4)))
     d = 0.5 * wf.center_frequency / (ant.design_frequency_ghz * 1e9)
-    hm = HeatmapConfig(num_range_bins=128, num_elevation_bins=2, num_azimuth_bins=8,
-                       range_bin_width=0.124905712903, azimuth_bins=beam_angles(8, d),
-                       elevation_bins=beam_angles(2, d))
+    hm = HeatmapConfig(num_range_bins=64, num_elevation_bins=8, num_azimuth_bins=64,
+                       range_bin_width=0.124905712903, azimuth_bins=beam_angles(64, d, half_bin=True),
+                       elevation_bins=beam_angles(8, d, half_bin=True))
     return ColoRadarChipConfig("single_chip", wf, ant, hm)
 
 
@@ -428,7 +452,8 @@ def _cascade() -> ColoRadarChipConfig:
 
 
 AWR1843 = _awr1843()
-"""TI AWR1843 single chip as used by RaLD (3 Tx, 4 Rx, 128 chirps x 128 samples, 77 GHz)."""
+"""TI AWR1843 single chip as used by RaLD (3 Tx, 4 Rx, 128 chirps x 128 samples, 77 GHz); heatmap
+grid 8 el x 64 az x 64 range as the dataset's (RaLD's cube grid is :mod:`radarpc.dsp.tdm`'s)."""
 
 CASCADE = _cascade()
 """TI MMWCAS 12 Tx x 16 Rx cascade; heatmaps 32 el x 128 az x 128 range."""
@@ -436,10 +461,14 @@ CASCADE = _cascade()
 AWR1843_FOV = RadarFOV()
 """RaLD's crop: range <= 127 range bins (15.863 m), azimuth +-90 deg, elevation +-20 deg."""
 
-# Rig transforms published with ColoRadar (base = rig frame), as quoted by RaLD's preprocessing.
+# Rig transforms of ColoRadar's calib/transforms/ (base = the rig's imu_viz_link frame), with the
+# 12 significant digits the dataset's files hold: the single chip and LiDAR as quoted by RaLD's
+# preprocessing; the cascade and the IMU as the recordings' /tf messages give them and public code
+# using the dataset copies them (the cascade shares the single chip's orientation).
 BASE_TO_SINGLE_CHIP = Transform((-0.145, 0.09, -0.025), (0.0, 0.0, 0.706825181105, 0.707388269167))
 BASE_TO_LIDAR = Transform((-0.075, -0.02, 0.03618), (0.0, 0.0, 0.721382357437, -0.692536998563))
-# Not from the dataset: a cascade mounted 6 cm beside the single chip with the same orientation.
-BASE_TO_CASCADE = Transform((-0.145, 0.15, -0.025), (0.0, 0.0, 0.706825181105, 0.707388269167))
+BASE_TO_CASCADE = Transform((0.03, 0.12, -0.09), (0.0, 0.0, 0.706825181105, 0.707388269167))
+BASE_TO_IMU = Transform((0.0, 0.0, 0.0), (0.707105451466, 0.707108048814, 0.000209535067884, 0.00020953429822))
 
-DEFAULT_CALIB = ColoRadarCalib(AWR1843, CASCADE, BASE_TO_SINGLE_CHIP, BASE_TO_LIDAR, BASE_TO_CASCADE)
+DEFAULT_CALIB = ColoRadarCalib(AWR1843, CASCADE, BASE_TO_SINGLE_CHIP, BASE_TO_LIDAR, BASE_TO_CASCADE,
+                               BASE_TO_IMU)

@@ -101,8 +101,13 @@ class RadarSimConfig:
     ghost_count: int = 40
     ghost_gain: float = 0.3           # amplitude factor of a ghost
     max_scatterers: int = 4000        # keep the strongest if more
-    adc_gain_lsb: float = 1000.0      # amplitude (LSB) of a 1 m^2 target at 1 m
-    adc_noise_lsb: float = 4.0        # thermal noise std per I and Q (LSB)
+    # ADC scale: recorded 16-bit AWR1843/DCA1000 frames use a few percent of the int16 range
+    # (even strong returns within about +-1600 LSB). 400 LSB puts the simulated scenes there
+    # (largest |I|, |Q| about 1600 over 80 frames of every scene kind), inside the +-2048 a
+    # float16 cast (azinke/coloradar's reader) keeps exact. The noise scales with the gain (it was
+    # 4 LSB at 1000), so every scatterer's SNR is unchanged.
+    adc_gain_lsb: float = 400.0       # amplitude (LSB) of a 1 m^2 target at 1 m
+    adc_noise_lsb: float = 1.6        # thermal noise std per I and Q (LSB)
     heatmap_noise: float = 1.0        # mean noise power per heatmap cell
 
     def __post_init__(self) -> None:
@@ -343,7 +348,7 @@ def coupling_group_size(max_speed_mps: float, chip: ColoRadarChipConfig = AWR184
 _REANCHOR = 32   # groups between direct (float64) evaluations of the stepped sample phasors
 
 
-def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_lsb: float = 1000.0,
+def beat_signal(scat: Scatterers, chip: ColoRadarChipConfig = AWR1843, *, gain_lsb: float = 400.0,
                 exact: bool = False, chunk: int = 1024, coupling_tol: float = 1e-3) -> torch.Tensor:
     """Noise-free complex beat signal ``(tx, rx, chirps, samples)`` (complex64, LSB units).
 

@@ -6,7 +6,7 @@
       simulation.json                      resolved simulator settings (resume key)
       calib/single_chip/{waveform_cfg,antenna_cfg,heatmap_cfg,coupling_calib}.txt
       calib/cascade/{waveform_cfg,antenna_cfg,heatmap_cfg,coupling_calib}.txt, phase_frequency_calib.txt
-      calib/transforms/base_to_{single_chip,cascade,lidar}.txt
+      calib/transforms/base_to_{single_chip,cascade,lidar,imu}.txt
       {scene}_run{k}/
         single_chip/adc_samples/data/frame_{i}.bin       int16 [tx, rx, chirps, samples, 2]
         single_chip/adc_samples/timestamps.txt
@@ -272,7 +272,7 @@ def write_coloradar(out: str | os.PathLike, scenes: Sequence[str], runs_per_scen
         raise ValueError(f"lidar_beams and lidar_azimuth_steps must be >= 1, got {lidar_beams}, {lidar_azimuth_steps}")
     out = Path(out)
     lidar = LidarConfig(beams=int(lidar_beams), azimuth_steps=int(lidar_azimuth_steps))
-    settings = {"format": "coloradar", "generator": "radarpc.sim.coloradar_writer", "version": 2,
+    settings = {"format": "coloradar", "generator": "radarpc.sim.coloradar_writer", "version": 3,
                 "scenes": scenes, "runs_per_scene": int(runs_per_scene), "frames": int(frames),
                 "seed": int(seed), "lidar": dataclasses.asdict(lidar), "radar": dataclasses.asdict(radar),
                 "single_chip": calib.single_chip.name,
