@@ -23,6 +23,7 @@ ALLOWED = {
     "sim": {"sensors", "dsp", "data", "runs"} | CONTRACTS,
     "runs": {"io"},
     "distributed": {"machine"},
+    "models": {"sensors", "dsp"} | CONTRACTS,
 }
 # never, whatever else changes: the rules
 FORBIDDEN = {
