@@ -21,9 +21,17 @@ produce the same points (checked and reported as ``agree``).
 It already runs the dominant beamforming as one BLAS matmul per frame. The second baseline,
 ``numpy_loop``, processes each peak on its own in a Python loop (matrix-vector beamforming).
 
+With ``--radial-repo PATH`` (a local copy of valeoai/RADIal), it first prints ``rpl_comparison``:
+RADIal's own ``SignalProcessing/rpl.py`` ``'PC'`` (run from that path, never copied; its
+calibration is a pickled-dict ``.npy`` this script writes from its own simulated table) against
+radarpc's beamforming modes with RADIal's CFAR (``CFAR_PRESETS['radial']``) on the same full-size
+simulated cubes (``RadialSimulator``) and a 751 x 11 table: ms/frame, ratios, what ``auto`` runs,
+and whether the points (range bin, Tx-0 Doppler bin, azimuth, elevation) are identical.
+
 Usage::
 
     python benchmarks/pointcloud.py --threads 2 --frames 16 --batch 8
+    python benchmarks/pointcloud.py --radial-repo /work/peers/RADIal --rpl-frames 8 --densities
 """
 from __future__ import annotations
 
@@ -51,6 +59,12 @@ def _parse() -> argparse.Namespace:
                    help="also time the default configuration at these batch sizes (density 0.057)")
     p.add_argument("--stages", action="store_true",
                    help="also print the per-stage wall time of one batch at density 0.057 (CPU)")
+    p.add_argument("--radial-repo", default=None,
+                   help="path of a local copy of valeoai/RADIal: also run its SignalProcessing/rpl.py 'PC' "
+                        "side by side with radarpc under RADIal's CFAR settings (--rpl-frames simulated frames)")
+    p.add_argument("--rpl-frames", type=int, default=4, help="simulated frames of the rpl.py comparison")
+    p.add_argument("--rpl-modes", nargs="*", default=["exact", "subspace", "screened", "auto"],
+                   help="radarpc beamforming modes timed in the rpl.py comparison")
     return p.parse_args()
 
 
@@ -59,8 +73,13 @@ if ARGS is not None:  # BLAS threads must be fixed before numpy/torch load their
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = str(ARGS.threads)
 
+import contextlib  # noqa: E402
+import importlib  # noqa: E402
+import io  # noqa: E402
 import json  # noqa: E402
 import resource  # noqa: E402
+import tempfile  # noqa: E402
+import types  # noqa: E402
 import statistics  # noqa: E402
 import time  # noqa: E402
 
@@ -78,7 +97,8 @@ from radarpc.dsp.beamform import beamform_peaks  # noqa: E402
 from radarpc.dsp.cfar import ca_cfar  # noqa: E402
 from radarpc.dsp.ddma import ddma_envelope, rx_magnitude_sum, virtual_snapshots  # noqa: E402
 from radarpc.dsp.density import neighbourhood_mask  # noqa: E402
-from radarpc.sensors.radial import RADIAL, Calibration, DDMARadarConfig  # noqa: E402
+from radarpc.dsp.pointcloud import CFAR_PRESETS  # noqa: E402
+from radarpc.sensors.radial import RADIAL, Calibration, DDMARadarConfig, steering_vectors  # noqa: E402
 from radarpc.sim.radial_calibration import make_calibration  # noqa: E402
 from radarpc.machine import cpu_model, numeric_libraries  # noqa: E402
 
@@ -363,8 +383,109 @@ def screen_statistics(spc: SpectralPointCloud, batch: torch.Tensor, sectors: int
             "directions": k_dir}
 
 
+# ---- side by side with RADIal's own rpl.py ------------------------------------------------------
+def real_size_calibration(cfg: DDMARadarConfig, seed: int = 7) -> Calibration:
+    """A measured-like table of RADIal's real size (751 azimuths at 0.2 deg over +-75 deg, 11
+    elevations over +-15 deg): the sensor's own when its grid already is that size, else steering
+    vectors with random per-channel gain/phase errors and 1 % complex noise per entry."""
+    if tuple(int(n) for n in (cfg.az_grid_deg[2], cfg.el_grid_deg[2])) == (751, 11):
+        return make_calibration(cfg)
+    rng = np.random.default_rng(seed)
+    az, el = np.linspace(-75.0, 75.0, 751), np.linspace(-15.0, 15.0, 11)
+    a = steering_vectors(cfg, az[:, None], el[None, :])                        # (751, 11, V)
+    gain = 10 ** (rng.normal(0, 0.5, a.shape[-1]) / 20) * np.exp(1j * np.deg2rad(rng.normal(0, 5, a.shape[-1])))
+    a = a * gain * (1 + 0.01 * (rng.standard_normal(a.shape) + 1j * rng.standard_normal(a.shape)) / np.sqrt(2))
+    return Calibration(signal=np.conj(np.moveaxis(a, 2, 1)).astype(np.complex64),
+                       window=np.hamming(a.shape[-1]).astype(np.float32),
+                       azimuth_deg=az.astype(np.float32), elevation_deg=el.astype(np.float32))
+
+
+def load_rpl(repo: str, calib: Calibration, workdir: str):
+    """RADIal's ``RadarSignalProcessing(method='PC')`` from ``repo``, on ``calib`` written as the
+    pickled-dict ``.npy`` rpl.py loads (a file this benchmark wrote itself). rpl.py imports CuPy
+    and mkl_fft at module level but its CPU 'PC' path from RD cubes uses neither: missing ones are
+    replaced by empty modules for the import."""
+    path = os.path.join(workdir, "CalibrationTable.npy")
+    np.save(path, np.array({"Signal": calib.signal, "H": calib.window[None, :].astype(np.float32),
+                            "Azimuth_table": calib.azimuth_deg, "Elevation_table": calib.elevation_deg},
+                           dtype=object), allow_pickle=True)
+    src = os.path.join(os.path.abspath(repo), "SignalProcessing")
+    if not os.path.isfile(os.path.join(src, "rpl.py")):
+        raise SystemExit(f"--radial-repo {repo!r}: no SignalProcessing/rpl.py there")
+    for name in ("cupy", "mkl_fft"):
+        try:
+            importlib.import_module(name)
+        except ImportError:
+            sys.modules[name] = types.ModuleType(name)
+    sys.path.insert(0, src)
+    try:
+        rpl = importlib.import_module("rpl")
+    finally:
+        sys.path.remove(src)
+    with contextlib.redirect_stdout(io.StringIO()):                            # it prints its device
+        return rpl.RadarSignalProcessing(path, method="PC", device="cpu")
+
+
+def rpl_comparison(args: argparse.Namespace, cfg: DDMARadarConfig) -> dict:
+    """ms/frame of rpl.py's 'PC' and of radarpc's beamforming modes on the same full-size
+    simulated cubes with RADIal's CFAR (``CFAR_PRESETS['radial']``), the ratios, and whether the
+    points (range bin, Tx-0 Doppler bin, azimuth, elevation) are identical."""
+    from radarpc.sim.radial_writer import RadialSimulator
+    calib = real_size_calibration(cfg)
+    sim = RadialSimulator(cfg, 1, args.rpl_frames, seed=args.seed)
+    frames = torch.stack([sim.frame(0, i).rd for i in range(args.rpl_frames)])  # (F, Nr, Nd, Nrx)
+    frames_np = frames.numpy()
+    with tempfile.TemporaryDirectory() as d:
+        rsp = load_rpl(args.radial_repo, calib, d)
+    get_pcl = rsp._RadarSignalProcessing__get_PCL                            # RD cube -> points
+    ref, rpl_s = time_numpy(get_pcl, frames_np, args.numpy_repeats)
+    az_tab = np.deg2rad(calib.azimuth_deg.astype(np.float64))
+    el_tab = np.deg2rad(calib.elevation_deg.astype(np.float64))
+
+    def rpl_points(pc: np.ndarray) -> set:
+        r = np.rint(pc[:, 0] / 103.0 * cfg.n_range).astype(int)
+        a = np.abs(pc[:, 2][:, None] - az_tab[None]).argmin(1)
+        e = np.abs(pc[:, 3][:, None] - el_tab[None]).argmin(1)
+        return set(zip(r.tolist(), pc[:, 1].astype(int).tolist(), a.tolist(), e.tolist()))
+
+    theirs = [rpl_points(pc) for pc in ref]
+    report = {"rpl_comparison": {"frames": args.rpl_frames, "angle_grid": list(calib.grid_shape),
+                                 "cfar": "radial (rpl.py: 19 x 19 window, 7 x 7 guard, 2 dB, all-slot envelope)",
+                                 "points_per_frame_rpl": round(sum(len(t) for t in theirs) / len(theirs), 1),
+                                 "rpl_ms_per_frame": round(1e3 * rpl_s / len(frames_np), 2),
+                                 "threads": args.threads, "cpu": cpu_model(), "results": []}}
+    out = report["rpl_comparison"]
+    batches = [frames[i:i + args.batch] for i in range(0, args.rpl_frames, args.batch)]
+    points = {}
+    for mode in args.rpl_modes:
+        spc = SpectralPointCloud(cfg, calib, **CFAR_PRESETS["radial"], beamforming=mode)
+        chosen = resolve_beamforming(mode, torch.device("cpu"), None, spc.tables("cpu"))  # auto measures here
+        times, clouds = time_torch(spc, batches, args.repeats, torch.device("cpu"))
+        ms = 1e3 * min(times) / args.rpl_frames
+        mine = []
+        for c in clouds:
+            for b in range(len(c)):
+                f = c.frame(b)
+                a = torch.as_tensor(calib.azimuth_deg)[None] - f.azimuth_deg[:, None]
+                e = torch.as_tensor(calib.elevation_deg)[None] - f.elevation_deg[:, None]
+                mine.append(set(zip(f.range_bin.tolist(), f.doppler_full.tolist(), a.abs().argmin(1).tolist(),
+                                    e.abs().argmin(1).tolist())))
+        points[mode] = mine
+        same = sum(len(m & t) for m, t in zip(mine, theirs))
+        total = sum(max(len(m), len(t)) for m, t in zip(mine, theirs))
+        out["results"].append({"mode": mode, "runs": chosen, "ms_per_frame": round(ms, 2),
+                               "speedup_vs_rpl": round(out["rpl_ms_per_frame"] / ms, 2),
+                               "points_identical_to_rpl": round(same / max(total, 1), 5),
+                               "points_identical_to_exact": (None if "exact" not in points else
+                                                             points[mode] == points["exact"])})
+    out["load_avg_1min"] = os.getloadavg()[0]
+    return report
+
+
 def main(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.threads)
+    if args.radial_repo:
+        print(json.dumps(rpl_comparison(args, RADIAL)), flush=True)
     cfg = RADIAL
     calib = make_calibration(cfg)
     frames = simulate(cfg, args.frames, args.scatterers, args.seed)                 # (F, 512, 256, 16)
@@ -389,7 +510,7 @@ def main(args: argparse.Namespace) -> None:
             loop_fps = n_loop / loop_s
             assert np.array_equal(ref_loop[0]["doppler_full"], ref[0]["doppler_full"])
             # every beamformer that can run this config: sector descriptors always run "exact"
-            modes = ("exact",) if "sector32" in enrich else ("exact", "screened")
+            modes = ("exact",) if "sector32" in enrich else ("exact", "subspace", "screened")
             for device, mode in ((d, m) for d in devices for m in modes):
                 spc = SpectralPointCloud(cfg, calib, density=density, enrich=enrich, beamforming=mode).to(device)
                 batches = [frames[i:i + args.batch].to(device) for i in range(0, args.frames, args.batch)]
@@ -420,7 +541,7 @@ def main(args: argparse.Namespace) -> None:
                     fa = torch.cat([c.azimuth_deg for c in clouds])
                     fe = torch.cat([c.elevation_deg for c in clouds])
                     extra["agree_with_exact"] = round(float(((ea == fa) & (ee == fe)).double().mean()), 5)
-                default = resolve_beamforming("auto", device, (32, 1) if "sector32" in enrich else None)
+                default = resolve_beamforming("auto", device, spc.config.sectors, spc.tables(device))
                 report["results"].append({
                     "config": f"{name}/{mode}", "device": str(device), "beamforming": mode,
                     "is_default": mode == default,
@@ -438,7 +559,7 @@ def main(args: argparse.Namespace) -> None:
                  "device": "cpu", "load_avg_1min": os.getloadavg()[0]}
         for name, enrich in configs.items():
             spc = SpectralPointCloud(cfg, calib, density=0.057, enrich=enrich)     # beamforming="auto"
-            mode = resolve_beamforming("auto", torch.device("cpu"), spc.config.sectors)
+            mode = resolve_beamforming("auto", torch.device("cpu"), spc.config.sectors, spc.tables("cpu"))
             for bs in args.batch_sweep:
                 batches = [frames[i:i + bs] for i in range(0, args.frames, bs)]
                 times, _ = time_torch(spc, batches, args.repeats, torch.device("cpu"))

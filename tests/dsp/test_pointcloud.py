@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from radarpc.dsp.beamform import stack_real
+from radarpc.dsp.beamform import dictionary_tables, stack_real
 from radarpc.dsp.pointcloud import SpectralPointCloud, SpectralPointCloudConfig
 from radarpc.points import PointCloudBatch, offset2batch
 from radarpc.sensors.radial import RADIAL_S, TINY
@@ -418,17 +418,26 @@ def test_screened_falls_back_to_the_whole_spectrum_for_flat_spectra(selection):
         beamform_peaks_screened(v.to(torch.complex128), bt.to(torch.complex128), calib.grid_shape)
 
 
-def test_auto_beamforming_resolves_by_device_and_sectors():
-    from radarpc.dsp.accel.screened import prefers_screened, resolve_beamforming
+def test_auto_beamforming_resolves_by_measurement_and_sectors(monkeypatch):
+    from radarpc.dsp.accel import screened
+    from radarpc.dsp.accel.screened import resolve_beamforming
     cpu = torch.device("cpu")
     assert resolve_beamforming("exact", cpu, None) == "exact"
     assert resolve_beamforming("screened", cpu, None) == "screened"
+    assert resolve_beamforming("subspace", cpu, None) == "subspace"
     assert resolve_beamforming("screened", cpu, (32, 1)) == "exact"
-    assert resolve_beamforming("auto", cpu, None) == ("screened" if prefers_screened(cpu) else "exact")
-    assert not prefers_screened("meta")
+    assert resolve_beamforming("auto", cpu, None) == "exact"                  # nothing to measure on
     assert resolve_beamforming("auto", cpu, (8, 1)) == "exact"
     with pytest.raises(ValueError, match="beamforming must be one of"):
         resolve_beamforming("bf16", cpu, None)
+    # "auto" runs what the injected measurement found fastest, measured once per key
+    calls = []
+    tables = dictionary_tables(make_calibration(TINY).dictionary().transpose(0, 1), make_calibration(TINY).grid_shape)
+    monkeypatch.setattr(screened, "_choices", {})
+    monkeypatch.setattr(screened, "measure_beamformers",
+                        lambda t, d: calls.append(d) or {"exact": 3.0, "subspace": 1.0, "screened": 2.0})
+    assert resolve_beamforming("auto", cpu, None, tables) == "subspace"
+    assert resolve_beamforming("auto", cpu, None, tables) == "subspace" and len(calls) == 1
     # "auto" is the default everywhere a user can leave it out
     import inspect
 
@@ -438,11 +447,10 @@ def test_auto_beamforming_resolves_by_device_and_sectors():
     assert SpectralPointCloudConfig().beamforming == "auto"
     assert ConvertSettings(tau=1.585).beamforming == "auto"
     assert "settings" in inspect.signature(convert_dataset).parameters
-    # the one switch turns the screened path off: "auto" is then the core's exact beamformer
+    # the one switch turns the accelerated paths off: "auto" is then the core's exact beamformer
     from radarpc.dsp import accel
     with accel.disabled():
-        assert not prefers_screened(cpu)
-        assert resolve_beamforming("auto", cpu, None) == "exact"
+        assert resolve_beamforming("auto", cpu, None, tables) == "exact"
         assert resolve_beamforming("screened", cpu, None) == "screened"     # asked for explicitly
 
 

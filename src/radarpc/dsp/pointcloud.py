@@ -217,14 +217,17 @@ class SpectralPointCloud(torch.nn.Module):
     envelope : {"replicas", "all-slots"}
         ``"replicas"`` (default, seed eq. 1): sum over the ``n_tx`` replica bins of each cell;
         ``"all-slots"`` = RADIal ``rpl.py``: sum over every DDMA slot, empty ones included.
-    beamforming : {"auto", "exact", "screened"}
-        How ``k_j`` and ``Ae_j`` are found; all three give the same points (up to float32 rounding
-        of near-ties), only the speed differs (:mod:`radarpc.dsp.beamform`). ``"exact"``: the
-        whole float32 spectrum of every point. ``"screened"``: a bfloat16 GEMM with a rigorous
-        error bound leaves a few candidate directions per point, evaluated exactly (fast where
-        bfloat16 GEMMs are: AMX CPUs). ``"auto"`` (default): ``"screened"`` on CPUs with AMX,
-        else ``"exact"`` (CUDA is unmeasured). Sector descriptors need the whole spectrum and always run
-        ``"exact"``.
+    beamforming : {"auto", "exact", "screened", "subspace"}
+        How ``k_j`` and ``Ae_j`` are found; all give the same points (the argmax of the exact
+        spectrum, certified: :func:`radarpc.dsp.beamform.certified_argmax`), only the speed
+        differs (:mod:`radarpc.dsp.beamform`). ``"exact"``: the whole float32 spectrum of every
+        point. ``"screened"``: a bfloat16 GEMM with a rigorous error bound leaves a few candidate
+        directions per point (fast where bfloat16 GEMMs are: AMX CPUs). ``"subspace"``: a block
+        low-rank float32 screen of the dictionary with a rigorous bound (fast on large grids, e.g.
+        RADIal's 751 x 11). ``"auto"`` (default): whichever a one-off measurement on this device
+        and dictionary found fastest (:func:`radarpc.dsp.accel.screened.measured_choice`), or
+        ``"exact"`` with the accelerated paths off. Sector descriptors need the whole spectrum and
+        always run ``"exact"``.
 
     Examples
     --------

@@ -9,6 +9,8 @@ what exists only for speed, each tested for equality with the core path it repla
 * :mod:`~radarpc.dsp.accel.screened`: the screened bfloat16 beamformer (the ``"screened"`` and
   ``"auto"`` beamforming modes; its selection step runs in C when the kernels are built) and
   :func:`~radarpc.dsp.accel.screened.beamform`, the entry point of a beamforming mode;
+* :mod:`~radarpc.dsp.accel.subspace`: the subspace beamformer (``"subspace"``), a certified
+  block low-rank float32 screen of the dictionary; its screen and selection run in C when built;
 * :mod:`~radarpc.dsp.accel.native`: the optional C kernels (``_rxsum.c``, ``_screen.c``; a
   pure-Python install runs without them) and their thread pool;
 * :mod:`~radarpc.dsp.accel.workspace`: reusable scratch buffers of the beamformers.
@@ -16,8 +18,8 @@ what exists only for speed, each tested for equality with the core path it repla
 The switch: :func:`enabled` is ``True`` unless the environment variable ``RADARPC_NO_NATIVE`` is
 set (to anything but empty or ``0``) or a :func:`disabled` block is running. When it is off, the
 core functions run their torch path, the C kernels are not used, and ``"auto"`` beamforming runs
-the core's exact beamformer; an explicit ``"screened"`` (``--beamforming screened``) still runs the
-screen, selecting in torch.
+the core's exact beamformer; an explicit ``"screened"`` or ``"subspace"`` still runs that screen,
+selecting in torch.
 """
 from __future__ import annotations
 

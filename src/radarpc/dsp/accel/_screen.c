@@ -233,7 +233,250 @@ static void select_rows(const uint16_t *y, Py_ssize_t y_stride, const float *v, 
     }
 }
 
+/* ---------------------------------------------------------------- certified decision --- */
+/* For every point j and its candidate directions k (CSR: kidx[ptr[j] .. ptr[j+1])), evaluate
+ * |B[k] . v_j| in double and pick the largest, ties to the smaller elevation-major column
+ * c = el n_az + az (the exact beamformer's first maximum). float32 x float32 products are exact
+ * in double; the 2N-term sums of Re and Im are off by at most gamma_2N S (S = sum (|br| + |bi|)
+ * (|vr| + |vi|), any summation order), so |f - |s|| <= beta = 1.5 gamma_(2N+2) S + 2^-50 f with f
+ * the computed modulus. A point is flagged ambiguous when another candidate's interval
+ * [f - beta, f + beta] reaches the best one's (beta = 0 means S = 0: the value is exactly 0, and
+ * equal exact values are a true tie, settled by the column order). */
+static double dot_abs_f64(const float *b, const float *v, Py_ssize_t n, double *bound)
+{
+    double re0 = 0.0, re1 = 0.0, im0 = 0.0, im1 = 0.0, s1 = 0.0;
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const double br = b[2 * i], bi = b[2 * i + 1], vr = v[2 * i], vi = v[2 * i + 1];
+        re0 += br * vr;
+        re1 += bi * vi;
+        im0 += br * vi;
+        im1 += bi * vr;
+        s1 += (fabs(br) + fabs(bi)) * (fabs(vr) + fabs(vi));
+    }
+    const double re = re0 - re1, im = im0 + im1;
+    const double f = sqrt(re * re + im * im);
+    const double m = (double)(2 * n + 2) * 0x1p-53;
+    *bound = 1.5 * (m / (1.0 - m)) * s1 * (1.0 + 0x1p-40) + 0x1p-50 * f;
+    return f;
+}
+
+static void certify_points(const float *v, const float *rows, Py_ssize_t n_virtual, const int64_t *ptr,
+                           const int64_t *kidx, Py_ssize_t n_points, Py_ssize_t n_az, Py_ssize_t n_el,
+                           int64_t *index, float *amplitude, uint8_t *ambiguous, double *work)
+{
+    for (Py_ssize_t j = 0; j < n_points; ++j) {
+        const int64_t lo = ptr[j], hi = ptr[j + 1];
+        const float *vj = v + 2 * n_virtual * j;
+        int64_t best_k = -1, best_c = -1;
+        double best = -1.0, best_b = 0.0;
+        for (int64_t p = lo; p < hi; ++p) {
+            const int64_t k = kidx[p], c = (k % n_el) * n_az + k / n_el;
+            double b;
+            const double f = dot_abs_f64(rows + 2 * n_virtual * k, vj, n_virtual, &b);
+            work[2 * (p - lo)] = f;
+            work[2 * (p - lo) + 1] = b;
+            if (f > best || (f == best && c < best_c)) {
+                best = f;
+                best_b = b;
+                best_k = k;
+                best_c = c;
+            }
+        }
+        uint8_t amb = best != best;                              /* NaN: left to the caller */
+        for (int64_t p = lo; p < hi && !amb; ++p) {
+            if (kidx[p] == best_k)
+                continue;
+            const double f = work[2 * (p - lo)], b = work[2 * (p - lo) + 1];
+            if ((b > 0.0 || best_b > 0.0) && f + b >= best - best_b)
+                amb = 1;
+        }
+        index[j] = best_k;
+        amplitude[j] = (float)best;
+        ambiguous[j] = amb;
+    }
+}
+
+/* ---------------------------------------------------------------- subspace screen ------ */
+/* The selection of radarpc.dsp.accel.subspace, fused with its second product: for every point j,
+ * y = [Re y_g (r) | Im y_g (r)] per group g (row j of the float32 GEMM x w1), the screen of the
+ * group's M directions k = g M + t is z^_k = sum_t c_kt y_t (float32, 2r terms per component:
+ * the same gamma_2r bound as any order), coef[g][0][t][.] = Re c_.t, coef[g][1][t][.] = Im c_.t.
+ * With |s_k - z^_k| <= e_k = slack_k xn_j and a_k = |z^_k| (q_k = a_k^2 in double: products of
+ * float32 values are exact), L = a_b - e_b for b = argmax q is a lower bound of max_k |s_k|, and
+ * k is a candidate when a_k + e_k >= L, tested as q_k >= (L - slack_k xn)^2 (or L - slack_k xn
+ * <= 0); L is lowered by 2^-40 (a_b + max slack xn), far more than the double rounding of the
+ * test. The candidates are decided as in certify_points. More than max_cand candidates or a
+ * non-finite screen or norm -> heavy (index -1; the caller runs the exact beamformer). */
+SCREEN_CLONES
+static Py_ssize_t subspace_screen(const float *y, const float *coef, Py_ssize_t n_groups, Py_ssize_t rank,
+                                  Py_ssize_t m_rows, Py_ssize_t k_dir, float *re, float *im, double *q,
+                                  Py_ssize_t *best)
+{
+    Py_ssize_t kb = 0;
+    double qb = -1.0, bad = 0.0;
+    for (Py_ssize_t g = 0; g < n_groups; ++g) {
+        const float *yg = y + 2 * rank * g, *cg = coef + 2 * rank * m_rows * g;
+        const Py_ssize_t k0 = g * m_rows, m = k0 + m_rows <= k_dir ? m_rows : k_dir - k0;
+        for (Py_ssize_t t = 0; t < m; ++t) {
+            re[t] = 0.0f;
+            im[t] = 0.0f;
+        }
+        for (Py_ssize_t u = 0; u < rank; ++u) {
+            const float yr = yg[u], yi = yg[rank + u];
+            const float *cr = cg + u * m_rows, *ci = cg + (rank + u) * m_rows;
+            for (Py_ssize_t t = 0; t < m; ++t) {
+                re[t] = re[t] + cr[t] * yr;
+                re[t] = re[t] - ci[t] * yi;
+                im[t] = im[t] + ci[t] * yr;
+                im[t] = im[t] + cr[t] * yi;
+            }
+        }
+        for (Py_ssize_t t = 0; t < m; ++t) {
+            const double qk = (double)re[t] * re[t] + (double)im[t] * im[t];
+            q[k0 + t] = qk;
+            bad += qk * 0.0;
+        }
+    }
+    for (Py_ssize_t k = 0; k < k_dir; ++k)
+        if (q[k] > qb) {
+            qb = q[k];
+            kb = k;
+        }
+    *best = kb;
+    return bad == 0.0;
+}
+
+static void subspace_points(const float *y, Py_ssize_t y_stride, const float *coef, const float *slack,
+                            float slack_max, const float *xn, Py_ssize_t n_groups, Py_ssize_t rank,
+                            Py_ssize_t m_rows, Py_ssize_t k_dir, Py_ssize_t n_points, const float *v,
+                            const float *rows, Py_ssize_t n_virtual, Py_ssize_t n_az, Py_ssize_t n_el,
+                            Py_ssize_t max_cand, int64_t *index, float *amplitude, uint8_t *ambiguous,
+                            uint8_t *heavy, double *q, float *re, float *im, int64_t *cand, double *work)
+{
+    for (Py_ssize_t j = 0; j < n_points; ++j) {
+        const double x = xn[j];
+        Py_ssize_t kb;
+        const int finite = subspace_screen(y + y_stride * j, coef, n_groups, rank, m_rows, k_dir, re, im, q, &kb)
+                           && isfinite(x);
+        Py_ssize_t n_cand = 0;
+        if (finite) {
+            const double ab = sqrt(q[kb]);
+            const double low = ab * (1.0 - 0x1p-50) - (double)slack[kb] * x
+                               - 0x1p-40 * (ab + (double)slack_max * x);
+            for (Py_ssize_t k = 0; k < k_dir && n_cand <= max_cand; ++k) {
+                const double rhs = low - (double)slack[k] * x;
+                if (rhs <= 0.0 || q[k] >= rhs * rhs)
+                    cand[n_cand++] = k;
+            }
+        }
+        if (!finite || n_cand == 0 || n_cand > max_cand) {
+            heavy[j] = 1;
+            index[j] = -1;
+            amplitude[j] = 0.0f;
+            ambiguous[j] = 0;
+            continue;
+        }
+        heavy[j] = 0;
+        const int64_t ptr[2] = {0, (int64_t)n_cand};
+        certify_points(v + 2 * n_virtual * j, rows, n_virtual, ptr, cand, 1, n_az, n_el, index + j,
+                       amplitude + j, ambiguous + j, work);
+    }
+}
+
+PyDoc_STRVAR(subspace_select_doc,
+"subspace_select(y, y_stride, coef, slack, slack_max, xn, n_groups, rank, m_rows, k_dir, n_points, v,\n"
+"                rows, n_virtual, n_az, n_el, max_cand, index, amplitude, ambiguous, heavy)\n"
+"--\n\n"
+"Screen, selection and certified decision of the subspace beamformer for n_points points (see\n"
+"the module source). Addresses: y float32 rows of y_stride elements (G 2 rank used); coef\n"
+"float32 (G, 2, rank, m_rows); slack float32 (k_dir,); xn float32 (n_points,); v complex64\n"
+"(n_points, n_virtual); rows complex64 (k_dir, n_virtual). Outputs index int64, amplitude\n"
+"float32, ambiguous uint8, heavy uint8. The GIL is released.");
+
+static PyObject *py_subspace_select(PyObject *self, PyObject *args)
+{
+    unsigned long long y, coef, slack, xn, v, rows, index, amplitude, ambiguous, heavy;
+    Py_ssize_t y_stride, n_groups, rank, m_rows, k_dir, n_points, n_virtual, n_az, n_el, max_cand;
+    double slack_max;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "KnKKdKnnnnnKKnnnnKKKK", &y, &y_stride, &coef, &slack, &slack_max, &xn, &n_groups,
+                          &rank, &m_rows, &k_dir, &n_points, &v, &rows, &n_virtual, &n_az, &n_el, &max_cand,
+                          &index, &amplitude, &ambiguous, &heavy))
+        return NULL;
+    if (n_points < 0 || n_groups < 1 || rank < 1 || m_rows < 1 || k_dir < 1 || k_dir > n_groups * m_rows
+        || n_virtual < 1 || n_az * n_el != k_dir || max_cand < 1 || y_stride < 2 * rank * n_groups) {
+        PyErr_SetString(PyExc_ValueError, "subspace_select: inconsistent sizes");
+        return NULL;
+    }
+    if (n_points == 0)
+        Py_RETURN_NONE;
+    double *q = malloc(sizeof(double) * (size_t)(k_dir + 2 * (max_cand + 1)));
+    float *re = malloc(sizeof(float) * (size_t)(2 * m_rows));
+    int64_t *cand = malloc(sizeof(int64_t) * (size_t)(max_cand + 1));
+    if (q == NULL || re == NULL || cand == NULL) {
+        free(q);
+        free(re);
+        free(cand);
+        return PyErr_NoMemory();
+    }
+    Py_BEGIN_ALLOW_THREADS
+    subspace_points((const float *)(uintptr_t)y, y_stride, (const float *)(uintptr_t)coef,
+                    (const float *)(uintptr_t)slack, (float)slack_max, (const float *)(uintptr_t)xn, n_groups, rank,
+                    m_rows, k_dir, n_points, (const float *)(uintptr_t)v, (const float *)(uintptr_t)rows, n_virtual,
+                    n_az, n_el, max_cand, (int64_t *)(uintptr_t)index, (float *)(uintptr_t)amplitude,
+                    (uint8_t *)(uintptr_t)ambiguous, (uint8_t *)(uintptr_t)heavy, q, re, re + m_rows, cand,
+                    q + k_dir);
+    Py_END_ALLOW_THREADS
+    free(q);
+    free(re);
+    free(cand);
+    Py_RETURN_NONE;
+}
+
 /* ---------------------------------------------------------------- Python API ----------- */
+
+PyDoc_STRVAR(certify_select_doc,
+"certify_select(v, rows, n_virtual, ptr, kidx, n_points, n_az, n_el, index, amplitude, ambiguous,\n"
+"               max_per_point)\n"
+"--\n\n"
+"Certified argmax over each point's candidate directions (see the module source). Addresses:\n"
+"v complex64 (n_points, n_virtual); rows complex64 (n_az n_el, n_virtual); ptr int64\n"
+"(n_points + 1,); kidx int64 candidate directions. Outputs index int64, amplitude float32,\n"
+"ambiguous uint8, (n_points,) each. The GIL is released.");
+
+static PyObject *py_certify_select(PyObject *self, PyObject *args)
+{
+    unsigned long long v, rows, ptr, kidx, index, amplitude, ambiguous;
+    Py_ssize_t n_virtual, n_points, n_az, n_el, max_per_point;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "KKnKKnnnKKKn", &v, &rows, &n_virtual, &ptr, &kidx, &n_points, &n_az, &n_el,
+                          &index, &amplitude, &ambiguous, &max_per_point))
+        return NULL;
+    if (n_points < 0 || n_virtual < 1 || n_az < 1 || n_el < 1 || max_per_point < 0) {
+        PyErr_Format(PyExc_ValueError, "need n_points >= 0, n_virtual, n_az, n_el >= 1 and max_per_point >= 0, "
+                     "got %zd %zd %zd %zd %zd", n_points, n_virtual, n_az, n_el, max_per_point);
+        return NULL;
+    }
+    if (n_points == 0)
+        Py_RETURN_NONE;
+    if (!v || !rows || !ptr || !kidx || !index || !amplitude || !ambiguous) {
+        PyErr_SetString(PyExc_ValueError, "addresses must be non-null");
+        return NULL;
+    }
+    double *work = malloc(sizeof(double) * (size_t)(2 * (max_per_point + 1)));
+    if (work == NULL)
+        return PyErr_NoMemory();
+    Py_BEGIN_ALLOW_THREADS
+    certify_points((const float *)(uintptr_t)v, (const float *)(uintptr_t)rows, n_virtual,
+                   (const int64_t *)(uintptr_t)ptr, (const int64_t *)(uintptr_t)kidx, n_points, n_az, n_el,
+                   (int64_t *)(uintptr_t)index, (float *)(uintptr_t)amplitude, (uint8_t *)(uintptr_t)ambiguous,
+                   work);
+    Py_END_ALLOW_THREADS
+    free(work);
+    Py_RETURN_NONE;
+}
+
+
 
 PyDoc_STRVAR(screen_select_doc,
 "screen_select(y, y_stride, v, rows, beta, n_rows, n_az, n_el, n_virtual, alpha, max_cand,\n"
@@ -320,6 +563,8 @@ static PyObject *py_kernels(PyObject *self, PyObject *args)
 static PyMethodDef screen_methods[] = {
     {"screen_select", py_screen_select, METH_VARARGS, screen_select_doc},
     {"kernels", py_kernels, METH_NOARGS, kernels_doc},
+    {"certify_select", py_certify_select, METH_VARARGS, certify_select_doc},
+    {"subspace_select", py_subspace_select, METH_VARARGS, subspace_select_doc},
     {NULL, NULL, 0, NULL},
 };
 

@@ -41,6 +41,8 @@ __all__ = [
     "native_supports",
     "rx_magnitude_sum_native",
     "screen_select_native",
+    "certify_select_native",
+    "subspace_select_native",
 ]
 
 _rxsum: ModuleType | None
@@ -366,3 +368,148 @@ def screen_select_native(screen: torch.Tensor, snapshots: torch.Tensor, rows: to
 
     _run_items(item, p, _SCREEN_ROWS, threads)
     return index, amplitude, heavy
+
+
+# Points per work item of subspace_select_native (~30 us each at 751 x 11 directions).
+_SUBSPACE_POINTS = 16
+# Points per work item of certify_select_native (a few candidates each, ~1 us per candidate).
+_CERTIFY_POINTS = 256
+
+
+def certify_select_native(snapshots: torch.Tensor, rows: torch.Tensor, grid: tuple[int, int], ptr: torch.Tensor,
+                          kidx: torch.Tensor, *, threads: int | None = None
+                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The certified decision of :func:`radarpc.dsp.beamform.certified_argmax`, natively.
+
+    For every point ``j``, ``|B[k] v_j|`` in double for its candidates ``k`` in
+    ``kidx[ptr[j]:ptr[j + 1]]`` (products of float32 values are exact in double; the sums carry
+    the bound ``beta = 1.5 gamma_(2N+2) sum_i (|Re b_i| + |Im b_i|)(|Re v_i| + |Im v_i|) + 2^-50 f``),
+    the largest (ties to the smaller elevation-major column ``el n_az + az``), and whether another
+    candidate's interval reaches it (then the caller decides exactly).
+
+    Parameters
+    ----------
+    snapshots : Tensor ``(P, N)`` complex64, C-contiguous, no conjugate view
+    rows : Tensor ``(K, N)`` complex64, C-contiguous: ``B``, row ``k = az n_el + el``
+    grid : (n_az, n_el)
+    ptr : LongTensor ``(P + 1,)``   CSR offsets into ``kidx``, every point with >= 1 candidate
+    kidx : LongTensor              candidate directions
+    threads : int, optional
+
+    Returns
+    -------
+    index : LongTensor ``(P,)``, amplitude : Tensor ``(P,)`` float32, ambiguous : BoolTensor ``(P,)``
+    """
+    n_az, n_el = (int(g) for g in grid)
+    p = snapshots.shape[0]
+    for name, t in (("snapshots", snapshots), ("rows", rows), ("ptr", ptr), ("kidx", kidx)):
+        if not isinstance(t, torch.Tensor) or t.device.type != "cpu" or not t.is_contiguous() or t.is_conj():
+            raise ValueError(f"{name} must be a contiguous CPU torch.Tensor without a conjugate view")
+    n = snapshots.shape[1] if snapshots.ndim == 2 else -1
+    if snapshots.dtype != torch.complex64 or snapshots.ndim != 2:
+        raise ValueError(f"snapshots must be complex64 (P, N), got {snapshots.dtype} {tuple(snapshots.shape)}")
+    if rows.dtype != torch.complex64 or tuple(rows.shape) != (n_az * n_el, n):
+        raise ValueError(f"rows must be complex64 ({n_az * n_el}, {n}), got {rows.dtype} {tuple(rows.shape)}")
+    if ptr.dtype != torch.long or tuple(ptr.shape) != (p + 1,) or kidx.dtype != torch.long or kidx.ndim != 1:
+        raise ValueError(f"ptr must be int64 ({p + 1},) and kidx int64 1-D, got {ptr.dtype} {tuple(ptr.shape)} "
+                         f"and {kidx.dtype} {tuple(kidx.shape)}")
+    threads = _check_threads_and_kernel(threads, "auto")
+    _require_native("the torch decision of radarpc.dsp.beamform.certified_argmax")
+    assert _screen is not None
+    index = torch.empty(p, dtype=torch.long)
+    amplitude = torch.empty(p, dtype=torch.float32)
+    ambiguous = torch.empty(p, dtype=torch.bool)
+    if p == 0:
+        return index, amplitude, ambiguous
+    counts = ptr[1:] - ptr[:-1]
+    if bool((counts < 1).any()) or int(ptr[0]) != 0 or int(ptr[-1]) != kidx.numel():
+        raise ValueError("ptr must start at 0, end at len(kidx) and give every point >= 1 candidate")
+    if bool(((kidx < 0) | (kidx >= n_az * n_el)).any()):
+        raise ValueError(f"kidx must lie in [0, {n_az * n_el})")
+    widest = int(counts.max())
+    ext = _screen
+    v_ptr, r_ptr, p_ptr, k_ptr = snapshots.data_ptr(), rows.data_ptr(), ptr.data_ptr(), kidx.data_ptr()
+    i_ptr, a_ptr, m_ptr = index.data_ptr(), amplitude.data_ptr(), ambiguous.data_ptr()
+
+    def item(s: int, m: int) -> None:
+        ext.certify_select(v_ptr + 8 * n * s, r_ptr, n, p_ptr + 8 * s, k_ptr, m, n_az, n_el,
+                           i_ptr + 8 * s, a_ptr + 4 * s, m_ptr + s, widest)
+
+    _run_items(item, p, _CERTIFY_POINTS, threads)
+    return index, amplitude, ambiguous
+
+
+def subspace_select_native(y: torch.Tensor, coef: torch.Tensor, slack: torch.Tensor, xn: torch.Tensor,
+                           snapshots: torch.Tensor, rows: torch.Tensor, grid: tuple[int, int], max_candidates: int,
+                           *, threads: int | None = None
+                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Screen, selection and certified decision of
+    :func:`radarpc.dsp.accel.subspace.beamform_peaks_subspace` after its first GEMM.
+
+    For every point ``j``: ``z^_k = c_k . y_jg`` for every direction (float32), ``a_k = |z^_k|``,
+    the bound ``e_jk = slack_k xn_j``, the candidates ``a_k + e_jk >= a_b - e_jb`` (``b`` the
+    largest ``a``), then the decision of :func:`certify_select_native` on them.
+
+    Parameters
+    ----------
+    y : Tensor ``(P, >= G 2r)`` float32, unit column stride: ``[Re y_g | Im y_g]`` per group
+    coef : Tensor ``(G, 2, r, M)`` float32, contiguous: ``Re`` and ``Im`` of the coefficients
+    slack : Tensor ``(>= K,)`` float32;  xn : Tensor ``(P,)`` float32 (inflated snapshot norms)
+    snapshots : Tensor ``(P, N)`` complex64;  rows : Tensor ``(K, N)`` complex64
+    grid : (n_az, n_el);  max_candidates : int
+
+    Returns
+    -------
+    index, amplitude, ambiguous, heavy : ``(P,)`` each; ``heavy`` points (no candidate, more than
+    ``max_candidates``, or a non-finite screen or norm) get ``index = -1``.
+    """
+    n_az, n_el = (int(g) for g in grid)
+    k_dir = n_az * n_el
+    for name, t in (("y", y), ("coef", coef), ("slack", slack), ("xn", xn), ("snapshots", snapshots), ("rows", rows)):
+        if not isinstance(t, torch.Tensor) or t.device.type != "cpu":
+            raise ValueError(f"{name} must be a CPU torch.Tensor for the native kernel")
+    if coef.dtype != torch.float32 or coef.ndim != 4 or coef.shape[1] != 2 or not coef.is_contiguous():
+        raise ValueError(f"coef must be contiguous float32 (G, 2, r, M), got {coef.dtype} {tuple(coef.shape)}")
+    n_groups, _, rank, m_rows = coef.shape
+    if n_groups * m_rows < k_dir:
+        raise ValueError(f"coef {tuple(coef.shape)} does not cover the {k_dir} directions of grid {tuple(grid)}")
+    if y.dtype != torch.float32 or y.ndim != 2 or y.stride(1) != 1 or y.shape[1] < 2 * rank * n_groups:
+        raise ValueError(f"y must be float32 (P, >= {2 * rank * n_groups}) with unit column stride, got "
+                         f"{y.dtype} {tuple(y.shape)}")
+    p = y.shape[0]
+    if (snapshots.dtype != torch.complex64 or snapshots.ndim != 2 or snapshots.shape[0] != p
+            or not snapshots.is_contiguous() or snapshots.is_conj()):
+        raise ValueError(f"snapshots must be a C-contiguous complex64 (P={p}, N) tensor")
+    n = snapshots.shape[1]
+    if rows.dtype != torch.complex64 or tuple(rows.shape) != (k_dir, n) or not rows.is_contiguous() or rows.is_conj():
+        raise ValueError(f"rows must be a C-contiguous complex64 ({k_dir}, {n}) tensor")
+    if slack.dtype != torch.float32 or slack.numel() < k_dir or not slack.is_contiguous():
+        raise ValueError(f"slack must be contiguous float32 with >= {k_dir} entries")
+    if xn.dtype != torch.float32 or tuple(xn.shape) != (p,) or not xn.is_contiguous():
+        raise ValueError(f"xn must be contiguous float32 ({p},)")
+    if isinstance(max_candidates, bool) or int(max_candidates) < 1:
+        raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
+    threads = _check_threads_and_kernel(threads, "auto")
+    _require_native("the torch selection of radarpc.dsp.accel.subspace.beamform_peaks_subspace")
+    assert _screen is not None
+    index = torch.empty(p, dtype=torch.long)
+    amplitude = torch.empty(p, dtype=torch.float32)
+    ambiguous = torch.empty(p, dtype=torch.bool)
+    heavy = torch.empty(p, dtype=torch.bool)
+    if p == 0:
+        return index, amplitude, ambiguous, heavy
+    ext = _screen
+    ys = y.stride(0)
+    smax = float(slack[:k_dir].max())
+    y_ptr, c_ptr, s_ptr, x_ptr = y.data_ptr(), coef.data_ptr(), slack.data_ptr(), xn.data_ptr()
+    v_ptr, r_ptr = snapshots.data_ptr(), rows.data_ptr()
+    i_ptr, a_ptr, m_ptr, h_ptr = index.data_ptr(), amplitude.data_ptr(), ambiguous.data_ptr(), heavy.data_ptr()
+    mc = int(max_candidates)
+
+    def item(s0: int, m: int) -> None:
+        ext.subspace_select(y_ptr + 4 * ys * s0, ys, c_ptr, s_ptr, smax, x_ptr + 4 * s0, n_groups, rank, m_rows,
+                            k_dir, m, v_ptr + 8 * n * s0, r_ptr, n, n_az, n_el, mc, i_ptr + 8 * s0,
+                            a_ptr + 4 * s0, m_ptr + s0, h_ptr + s0)
+
+    _run_items(item, p, _SUBSPACE_POINTS, threads)
+    return index, amplitude, ambiguous, heavy

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import contextlib
 import math
+import threading
+import time
 
 import torch
 
@@ -21,8 +23,8 @@ from radarpc.dsp.accel.workspace import Workspace
 from radarpc.dsp.beamform import (_BLOCK, BeamformResult, DictionaryTables, _range_exponents, _row_norms, _scaled,
                                   _tables_for, beamform_peaks, check_beamforming, column_to_direction)
 
-__all__ = ["beamform", "beamform_peaks_screened", "screen_bound", "prefers_screened", "resolve_beamforming",
-           "MAX_SCREEN_CANDIDATES"]
+__all__ = ["beamform", "beamform_peaks_screened", "screen_bound", "resolve_beamforming", "measured_choice",
+           "measure_beamformers", "choose_beamformer", "probe_snapshots", "MAX_SCREEN_CANDIDATES"]
 
 # The screen's bfloat16 GEMM runs on this many blocks at once (larger GEMMs run closer to peak).
 _SCREEN_GEMM_BLOCKS = 8
@@ -239,37 +241,126 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     return BeamformResult(index=index, amplitude=amplitude, sectors=None)
 
 
-def prefers_screened(device: torch.device | str) -> bool:
-    """True where :func:`beamform_peaks_screened` was measured faster than :func:`beamform_peaks`:
-    CPUs with AMX tiles (bfloat16 GEMMs ~10x float32 ones; ``docs/results/pointcloud.md``).
-    CUDA is not measured (no GPU was available), so ``"auto"`` keeps ``"exact"`` there; ask for
-    ``"screened"`` explicitly to try it. False whenever the accelerated paths are switched off
-    (:func:`radarpc.dsp.accel.enabled`): ``"auto"`` then runs the core's exact beamformer."""
+# Modes "auto" chooses between, in the order that wins a tie of the measured times.
+_AUTO_CANDIDATES = ("exact", "subspace", "screened")
+# Snapshots of the one-off probe; a mode slower than this factor times the best on the first
+# few snapshots is not timed further (a bfloat16 GEMM without native support takes seconds).
+_PROBE_POINTS = 256
+_PROBE_CUTOFF = 4.0
+_choices: dict[tuple, str] = {}
+_choices_lock = threading.Lock()
+
+
+def probe_snapshots(tables: DictionaryTables, n: int, seed: int = 0) -> torch.Tensor:
+    """``n`` complex64 snapshots like a frame's CFAR points: one steering vector of the dictionary
+    (the conjugate of a random row) 10 to 40 dB above unit complex noise per channel, a quarter of
+    them with a second, weaker one, one in twenty pure noise (simulated RADIal frames under
+    RADIal's CFAR: the median point's peak is 0.86 of ``||v|| max_k ||B[k]||``, i.e. strong)."""
+    g = torch.Generator().manual_seed(seed)
+    rows = tables.rows.to("cpu")
+    n_ch = rows.shape[1]
+    k1, k2 = (torch.randint(0, rows.shape[0], (n,), generator=g) for _ in range(2))
+    snr = 10.0 ** (0.5 + torch.rand(n, generator=g) * 1.5) * (torch.rand(n, generator=g) > 0.05)
+    amp = snr * math.sqrt(n_ch) / max(tables.row_norm_max, 1e-30)
+    amp2 = amp * torch.rand(n, generator=g) * (torch.rand(n, generator=g) < 0.25)
+    noise = torch.randn(n, n_ch, dtype=torch.complex64, generator=g)
+    return (amp[:, None] * rows[k1].conj() + amp2[:, None] * rows[k2].conj() + noise).to(torch.complex64)
+
+
+def measure_beamformers(tables: DictionaryTables, device: torch.device | str, points: int = _PROBE_POINTS,
+                        modes: tuple[str, ...] = _AUTO_CANDIDATES) -> dict[str, float]:
+    """Seconds per snapshot of each beamformer in ``modes`` on :func:`probe_snapshots` (``points``
+    of them) with ``tables`` on ``device``: best of two timed calls after a warm-up. A mode that
+    takes more than ``_PROBE_CUTOFF`` times the best so far on the first 16 snapshots is reported
+    with that time (extrapolated) and not timed further."""
     device = torch.device(device)
-    if device.type != "cpu" or not accel_enabled():
-        return False
-    probe = getattr(torch.cpu, "_is_amx_tile_supported", None)
-    return bool(probe()) if probe is not None else False
+    t = tables.to(device) if tables.rows.device != device else tables
+    v = probe_snapshots(tables, points).to(device)
+    ws = Workspace()
+    run = {"exact": lambda x: beamform_peaks(x, t, t.grid, workspace=ws),
+           "screened": lambda x: beamform_peaks_screened(x, t, t.grid, workspace=ws),
+           "subspace": lambda x: _subspace().beamform_peaks_subspace(x, t, t.grid, workspace=ws)}
+
+    def clock(f, x) -> float:
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        t0 = time.perf_counter()
+        f(x)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        return (time.perf_counter() - t0) / len(x)
+
+    out: dict[str, float] = {}
+    for mode in modes:
+        f = run[mode]
+        f(v[:1])                                                       # builds any lazy tables
+        first = clock(f, v[:16])
+        if out and first > _PROBE_CUTOFF * min(out.values()):
+            out[mode] = first
+            continue
+        f(v)
+        out[mode] = min(clock(f, v), clock(f, v))
+    return out
 
 
-def resolve_beamforming(mode: str, device: torch.device | str, sectors: tuple[int, int] | None) -> str:
-    """The beamformer that runs: ``"exact"`` or ``"screened"``.
+def choose_beamformer(seconds_per_point: dict[str, float]) -> str:
+    """The fastest mode of measured ``seconds_per_point`` (a tie goes to the earlier of
+    ``"exact"``, ``"subspace"``, ``"screened"``): deterministic given the measurements."""
+    known = [m for m in _AUTO_CANDIDATES if m in seconds_per_point]
+    if not known:
+        raise ValueError(f"no timing of {_AUTO_CANDIDATES} in {sorted(seconds_per_point)}")
+    for m in known:
+        val = seconds_per_point[m]
+        if not (isinstance(val, (int, float)) and math.isfinite(val) and val >= 0):
+            raise ValueError(f"timing of {m!r} must be a finite number >= 0, got {val!r}")
+    return min(known, key=lambda m: (seconds_per_point[m], known.index(m)))
 
-    Sector descriptors need the whole spectrum, so they always run ``"exact"``; ``"auto"`` runs
-    ``"screened"`` where :func:`prefers_screened` holds.
+
+def measured_choice(tables: DictionaryTables, device: torch.device | str) -> str:
+    """:func:`choose_beamformer` of :func:`measure_beamformers`, measured once per process for each
+    (device, grid, channels) and cached; ``"exact"`` when the accelerated paths are off."""
+    device = torch.device(device)
+    if not accel_enabled():
+        return "exact"
+    key = (str(device), tuple(tables.grid), int(tables.rows.shape[1]))
+    with _choices_lock:
+        if key not in _choices:
+            _choices[key] = choose_beamformer(measure_beamformers(tables, device))
+        return _choices[key]
+
+
+def resolve_beamforming(mode: str, device: torch.device | str, sectors: tuple[int, int] | None,
+                        tables: DictionaryTables | None = None) -> str:
+    """The beamformer that runs: ``"exact"``, ``"screened"`` or ``"subspace"``.
+
+    Sector descriptors need the whole spectrum, so they always run ``"exact"``; an explicit mode
+    runs as asked; ``"auto"`` runs :func:`measured_choice` for ``tables`` on ``device`` (``"exact"``
+    without ``tables``, or with the accelerated paths off). Every mode gives the same points.
     """
     check_beamforming(mode)
     if sectors is not None or mode == "exact":
         return "exact"
-    if mode == "screened":
-        return "screened"
-    return "screened" if prefers_screened(device) else "exact"
+    if mode != "auto":
+        return mode
+    if tables is None:
+        return "exact"
+    return measured_choice(tables, device)
+
+
+def _subspace():
+    from radarpc.dsp.accel import subspace                 # builds on this module's exact path only
+    return subspace
 
 
 def beamform(snapshots: torch.Tensor, tables: torch.Tensor | DictionaryTables, grid: tuple[int, int],
              sectors: tuple[int, int] | None = None, mode: str = "auto", *,
              workspace: Workspace | None = None) -> BeamformResult:
-    """:func:`beamform_peaks` or :func:`beamform_peaks_screened`, as :func:`resolve_beamforming` picks."""
-    if resolve_beamforming(mode, snapshots.device, sectors) == "screened" and snapshots.dtype == torch.complex64:
+    """:func:`beamform_peaks`, :func:`beamform_peaks_screened` or
+    :func:`~radarpc.dsp.accel.subspace.beamform_peaks_subspace`, as :func:`resolve_beamforming` picks."""
+    t = tables if isinstance(tables, DictionaryTables) else None
+    chosen = resolve_beamforming(mode, snapshots.device, sectors, t)
+    if chosen == "screened" and snapshots.dtype == torch.complex64:
         return beamform_peaks_screened(snapshots, tables, grid, workspace=workspace)
+    if chosen == "subspace" and snapshots.dtype == torch.complex64:
+        return _subspace().beamform_peaks_subspace(snapshots, tables, grid, workspace=workspace)
     return beamform_peaks(snapshots, tables, grid, sectors, workspace=workspace)

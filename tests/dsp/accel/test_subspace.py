@@ -1,0 +1,131 @@
+"""The subspace beamformer and the certified decision: the exact argmax (float64 reference, exact
+ties), identical to the exact beamformer, native and torch, on a real-size 751 x 11 table."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from radarpc.dsp.accel.screened import choose_beamformer, probe_snapshots
+from radarpc.dsp.accel.subspace import beamform_peaks_subspace, subspace_tables
+from radarpc.dsp.beamform import beamform_peaks, certified_argmax, dictionary_tables
+from radarpc.sensors.radial import RADIAL, Calibration, steering_vectors
+
+
+def _measured_table(n_az: int, n_el: int, seed: int = 5) -> Calibration:
+    """A measured-like table: steering vectors with per-channel errors and 1 % noise per entry."""
+    rng = np.random.default_rng(seed)
+    az, el = np.linspace(-75, 75, n_az), np.linspace(-15, 15, n_el)
+    a = steering_vectors(RADIAL, az[:, None], el[None, :])
+    n = a.shape[-1]
+    a = a * 10 ** (rng.normal(0, 0.5, n) / 20) * np.exp(1j * rng.normal(0, 0.1, n))
+    a = a * (1 + 0.01 * (rng.standard_normal(a.shape) + 1j * rng.standard_normal(a.shape)))
+    return Calibration(signal=np.conj(np.moveaxis(a, 2, 1)).astype(np.complex64), window=np.hamming(n).astype(np.float32),
+                       azimuth_deg=az, elevation_deg=el)
+
+
+def _tables(n_az: int, n_el: int):
+    calib = _measured_table(n_az, n_el)
+    t = dictionary_tables(calib.dictionary().transpose(0, 1), calib.grid_shape)
+    t.subspace = subspace_tables(t.rows, t.grid)
+    return t
+
+
+@pytest.fixture(scope="module")
+def real_size():
+    return _tables(751, 11)
+
+
+@pytest.fixture(scope="module")
+def small():
+    return _tables(61, 11)
+
+
+def _reference(v: torch.Tensor, t) -> torch.Tensor:
+    """float64 argmax over k (exact ties in these inputs do not occur except where constructed)."""
+    return (v.to(torch.complex128) @ t.rows.to(torch.complex128).T).abs().argmax(1)
+
+
+def test_subspace_and_exact_give_the_float64_argmax_on_a_751x11_table(real_size, selection):
+    t = real_size
+    v = probe_snapshots(t, 48, seed=1)
+    ex = beamform_peaks(v, t, t.grid)
+    sub = beamform_peaks_subspace(v, t, t.grid)
+    assert torch.equal(ex.index, _reference(v, t))
+    assert torch.equal(sub.index, ex.index) and torch.equal(sub.amplitude, ex.amplitude)
+
+
+def test_near_ties_and_exact_ties_are_decided_exactly(small, selection):
+    t = small
+    n_az, n_el = t.grid
+    g = torch.Generator().manual_seed(0)
+    v = torch.stack([t.rows[k].conj() for k in (100, 432, 300)])
+    v = v + 1e-7 * torch.randn(v.shape, dtype=torch.complex64, generator=g) * v.abs().mean()
+    k1 = (v.to(torch.complex128) @ t.rows.to(torch.complex128).T).abs().argmax(1).tolist()
+    rows = t.rows.clone()
+    for a, b in zip(k1, (k1[0] + 3 * n_el, k1[1] - 1, k1[2] - 5 * n_el)):   # b: a copy of a, nudged by 1 ulp
+        rows[b] = rows[a]
+        re = torch.view_as_real(rows)
+        re[b, 3, 0] = torch.nextafter(re[b, 3, 0], torch.tensor(float("inf")))
+    near = dictionary_tables(rows.T.contiguous(), t.grid)
+    ref = (v.to(torch.complex128) @ rows.to(torch.complex128).T).abs()
+    top2 = ref.topk(2, dim=1)
+    assert bool(((top2.values[:, 0] - top2.values[:, 1]) / top2.values[:, 0] < 1e-6).all())   # float32 cannot order them
+    ex = beamform_peaks(v, near, t.grid)
+    sub = beamform_peaks_subspace(v, near, t.grid)
+    assert torch.equal(ex.index, ref.argmax(1)) and torch.equal(sub.index, ex.index)
+    assert torch.equal(sub.amplitude, ex.amplitude)
+    # an exactly duplicated row: a true tie, settled like the exact GEMM's first column el n_az + az
+    w = t.rows[200].conj()[None].clone()
+    top = int((w.to(torch.complex128) @ t.rows.to(torch.complex128).T).abs().argmax())
+    other = top + 2 * n_el if top + 2 * n_el < n_az * n_el else top - 2 * n_el
+    dup = t.rows.clone()
+    dup[other] = dup[top]
+    tied = dictionary_tables(dup.T.contiguous(), t.grid)
+    first = min(top, other, key=lambda k: (k % n_el) * n_az + k // n_el)
+    for res in (beamform_peaks(w, tied, t.grid), beamform_peaks_subspace(w, tied, t.grid)):
+        assert int(res.index) == first
+    idx, _ = certified_argmax(w, dup, t.grid, torch.zeros(2, dtype=torch.long), torch.tensor([other, top]))
+    assert int(idx) == first
+    zero = torch.zeros(1, rows.shape[1], dtype=torch.complex64)   # all-zero snapshot: every direction ties
+    assert int(beamform_peaks(zero, t, t.grid).index) == 0 == int(beamform_peaks_subspace(zero, t, t.grid).index)
+
+
+def test_subspace_bound_holds(real_size):
+    # |s_k - z^_k| <= slack_k ||v|| on random snapshots, checked against float64
+    t = real_size
+    st = t.subspace
+    v = torch.randn(32, t.rows.shape[1], dtype=torch.complex64, generator=torch.Generator().manual_seed(2))
+    x = torch.view_as_real(v).reshape(len(v), -1)
+    y = (x @ st.w1).view(len(v), st.n_groups, -1).transpose(0, 1)
+    z = torch.bmm(y, st.w2)                                               # (G, P, 2M)
+    m = z.shape[2] // 2
+    zc = torch.complex(z[..., :m], z[..., m:]).transpose(0, 1).reshape(len(v), -1)[:, :t.n_dir]
+    s = v.to(torch.complex128) @ t.rows.to(torch.complex128).T
+    err = (s - zc.to(torch.complex128)).abs()
+    bound = st.slack[:t.n_dir].double()[None] * torch.linalg.vector_norm(v.to(torch.complex128), dim=1)[:, None]
+    assert bool((err <= bound).all())
+    assert float((err / bound).max()) > 1e-3                              # the bound is not vacuous
+
+
+def test_choice_is_the_fastest_measured_and_rejects_bad_timings():
+    assert choose_beamformer({"exact": 2.0, "subspace": 1.0, "screened": 3.0}) == "subspace"
+    assert choose_beamformer({"exact": 1.0, "subspace": 1.0}) == "exact"  # a tie: the earlier one
+    assert choose_beamformer({"screened": 0.5, "exact": 1.0}) == "screened"
+    with pytest.raises(ValueError, match="no timing"):
+        choose_beamformer({"fast": 1.0})
+    with pytest.raises(ValueError, match="finite number"):
+        choose_beamformer({"exact": float("nan")})
+
+
+def test_bad_input_errors(small):
+    t = small
+    v = probe_snapshots(t, 4)
+    with pytest.raises(ValueError, match="complex64"):
+        beamform_peaks_subspace(v.to(torch.complex128), t.rows.T.to(torch.complex128), t.grid)
+    with pytest.raises(ValueError, match="max_candidates"):
+        beamform_peaks_subspace(v, t, t.grid, max_candidates=0)
+    with pytest.raises(ValueError, match="rank must be an int"):
+        subspace_tables(t.rows, t.grid, rank=0)
+    with pytest.raises(ValueError, match="does not match"):
+        subspace_tables(t.rows, (60, 11))
