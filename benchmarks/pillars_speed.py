@@ -1,0 +1,169 @@
+"""Benchmark: batch-1 inference frames/s of polar PointPillars / SpectralPillars against FFTRadNet.
+
+Simulates ``--frames`` road frames of the chosen sensor (:class:`~radarpc.sim.radial_writer.SimulatedRADIal`),
+extracts their spectral point clouds at ``--density`` (5.7 % by default, RADIal's) with
+:class:`~radarpc.dsp.SpectralPointCloud` (plain for PointPillars, ``rd3 + sector32`` for
+SpectralPillars), and times, batch 1, passes interleaved method by method so that load from other
+processes hits them alike:
+
+* ``fftradnet`` (radarpc's model as built), ``fftradnet_fused``
+  (:func:`radarpc.models.fftradnet.fuse_for_inference`) and ``fftradnet_fused_cl`` (+ channels-last
+  weights): RD cube -> detections and freespace;
+* for each pillar model, as built, fused (:func:`radarpc.models.pillars.fuse_for_inference`) and
+  fused with channels-last weights (``_fused_cl``; the scatter's canvas is channels-last already):
+  ``<model>`` the network on the ready point cloud (point extraction excluded) and
+  ``<model>+points`` RD cube -> point cloud -> network (extraction included).
+
+Weights are random (the speed does not depend on them). Prints one JSON object: per method the
+best and median seconds per frame, frames/s, and the frames/s ratio to each FFTRadNet method; the
+points per frame and achieved density; the per-part time of the fused pillar models (pillars,
+backbone, detection head, freespace head); threads, CPU and load average. Timings are only
+meaningful on a quiet machine.
+
+Sizes (``--size``): ``full`` (RADIal cubes 512 x 256 x 16, ``polar_pointpillars``, ``spectralpillars``,
+``fftradnet``), ``s`` (``radial-s`` cubes and the ``_s`` models), ``tiny`` (``radial-s`` cubes,
+``pillars_tiny`` and ``fftradnet_tiny``; a quick check that the script runs).
+
+Usage::
+
+    python benchmarks/pillars_speed.py --size full --threads 2 --frames 4 --repeats 5
+    python benchmarks/pillars_speed.py --size tiny --frames 2 --repeats 2
+"""
+from __future__ import annotations
+
+import argparse
+import os
+
+
+def _parse() -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--size", choices=("full", "s", "tiny"), default="full", help="model and sensor sizes")
+    p.add_argument("--threads", type=int, default=2, help="torch / BLAS threads")
+    p.add_argument("--frames", type=int, default=4, help="distinct simulated frames")
+    p.add_argument("--repeats", type=int, default=5, help="timed passes over the frames (best and median)")
+    p.add_argument("--density", type=float, default=0.057, help="point-cloud density (fraction of RD cells)")
+    p.add_argument("--seed", type=int, default=0, help="simulator seed")
+    return p.parse_args()
+
+
+ARGS = _parse() if __name__ == "__main__" else None
+if ARGS is not None:  # BLAS threads must be fixed before numpy/torch load their thread pools
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = str(ARGS.threads)
+
+import json  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+
+import torch  # noqa: E402
+
+from radarpc.dsp import SpectralPointCloud  # noqa: E402
+from radarpc.machine import cpu_model  # noqa: E402
+from radarpc.models import fftradnet as fft  # noqa: E402
+from radarpc.models import pillars  # noqa: E402
+from radarpc.sensors.radial import RADIAL, RADIAL_S  # noqa: E402
+from radarpc.sim.radial_writer import SimulatedRADIal  # noqa: E402
+
+SIZES = {   # sensor, FFTRadNet factory, {pillar model: (factory, enrichments of its point clouds)}
+    "full": (RADIAL, fft.fftradnet, {"pointpillars": (pillars.polar_pointpillars, ()),
+                                     "spectralpillars": (pillars.spectralpillars, ("rd3", "sector32"))}),
+    "s": (RADIAL_S, fft.fftradnet_s, {"pointpillars-s": (pillars.polar_pointpillars_s, ()),
+                                      "spectralpillars-s": (pillars.spectralpillars_s, ("rd3", "sector32"))}),
+    "tiny": (RADIAL_S, fft.fftradnet_tiny, {"pillars-tiny": (pillars.pillars_tiny, ())}),
+}
+
+
+def time_interleaved(methods: dict[str, Callable[[int], object]], n_frames: int,
+                     repeats: int) -> dict[str, list[float]]:
+    """Seconds per frame of each method, one list entry per pass; every pass runs each method over
+    all frames in turn (after one warm-up pass)."""
+    times: dict[str, list[float]] = {k: [] for k in methods}
+    for rep in range(repeats + 1):
+        for name, fn in methods.items():
+            t0 = time.perf_counter()
+            for i in range(n_frames):
+                fn(i)
+            if rep:
+                times[name].append((time.perf_counter() - t0) / n_frames)
+    return times
+
+
+def part_times(model: pillars.PointPillars, cloud, repeats: int) -> dict[str, float]:
+    """Best seconds of each part of ``model`` on one cloud."""
+    best: dict[str, float] = {}
+
+    def tick(name: str, fn: Callable[[], torch.Tensor]) -> torch.Tensor:
+        t0 = time.perf_counter()
+        out = fn()
+        best[name] = min(best.get(name, float("inf")), time.perf_counter() - t0)
+        return out
+
+    for _ in range(repeats + 1):
+        canvas = tick("pillars (VFE + scatter)", lambda: model.scatter(*model.vfe(cloud), len(cloud)))
+        x = tick("backbone", lambda: model.backbone(canvas))
+        tick("detection head", lambda: model.detection_head(x))
+        if model.freespace_head is not None:
+            tick("freespace head", lambda: model.freespace_head(x))
+    return {k: round(v, 4) for k, v in best.items()}
+
+
+def main(args: argparse.Namespace) -> None:
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    sensor, fft_factory, pillar_models = SIZES[args.size]
+    sim = SimulatedRADIal(sensor, 1, args.frames, args.seed, split="all")
+    cubes = [sim.cube(i)[None] for i in range(args.frames)]                       # (1, Nr, Nd, Nrx) each
+    extractors = {enrich: SpectralPointCloud(sensor, sim.calibration, density=args.density, enrich=enrich)
+                  for enrich in {e for _, e in pillar_models.values()}}
+    with torch.no_grad():
+        clouds = {enrich: [spc(c) for c in cubes] for enrich, spc in extractors.items()}
+
+    fftnet = fft_factory().eval()
+    methods: dict[str, Callable[[int], object]] = {
+        "fftradnet": lambda i: fftnet(cubes[i]),
+        "fftradnet_fused": (lambda m: lambda i: m(cubes[i]))(fft.fuse_for_inference(fftnet)),
+        "fftradnet_fused_cl": (lambda m: lambda i: m(cubes[i]))(
+            fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last)),
+    }
+    points = {}
+    parts = {}
+    for name, (factory, enrich) in pillar_models.items():
+        model = factory().eval()
+        fused = pillars.fuse_for_inference(model)
+        fused_cl = pillars.fuse_for_inference(model).to(memory_format=torch.channels_last)
+        spc, cl = extractors[enrich], clouds[enrich]
+        for suffix, m in (("", model), ("_fused", fused), ("_fused_cl", fused_cl)):
+            methods[name + suffix] = (lambda m, cl: lambda i: m(cl[i]))(m, cl)
+            methods[name + suffix + "+points"] = (lambda m, spc: lambda i: m(spc(cubes[i])))(m, spc)
+        points[name] = {"enrich": list(enrich),
+                        "points_per_frame": round(sum(c.num_points for c in cl) / len(cl), 1),
+                        "density_achieved": round(float(torch.cat([c.density for c in cl]).mean()), 5)}
+        with torch.no_grad():
+            parts[name + "_fused"] = part_times(fused, cl[0], args.repeats)
+
+    load_before = os.getloadavg()[0]
+    with torch.no_grad():
+        times = time_interleaved(methods, args.frames, args.repeats)
+    speed = {}
+    for name, t in times.items():
+        best, med = min(t), statistics.median(t)
+        speed[name] = {"s_per_frame": round(best, 4), "s_per_frame_median": round(med, 4),
+                       "frames_per_s": round(1 / best, 3)}
+    for name, row in speed.items():
+        if not name.startswith("fftradnet"):
+            for ref in ("fftradnet", "fftradnet_fused", "fftradnet_fused_cl"):
+                row[f"ratio_vs_{ref}"] = round(speed[ref]["s_per_frame"] / row["s_per_frame"], 2)
+    n_params = {name: sum(p.numel() for p in f().parameters()) for name, (f, _) in pillar_models.items()}
+    n_params["fftradnet"] = sum(p.numel() for p in fftnet.parameters())
+    print(json.dumps({
+        "size": args.size, "sensor": sensor.name, "rd_shape": list(sensor.rd_shape), "batch": 1,
+        "frames": args.frames, "repeats": args.repeats, "density_target": args.density,
+        "threads": args.threads, "cpu": cpu_model(), "torch": torch.__version__,
+        "load_avg_1min": [load_before, os.getloadavg()[0]],
+        "parameters": n_params, "point_clouds": points, "speed": speed, "parts_s": parts,
+    }, indent=1), flush=True)
+
+
+if __name__ == "__main__":
+    main(ARGS)
