@@ -40,6 +40,7 @@ if TYPE_CHECKING:
 __all__ = [
     "COLOR_BY",
     "RADIAL_BOX_LENGTH_M",
+    "plot_detection_frame",
     "RADIAL_BOX_WIDTH_M",
     "radial_box_corners",
     "rd_extent",
@@ -616,4 +617,60 @@ def plot_oscfar_tuning(table: TuningTable, out: str | os.PathLike) -> Path:
                  f"{table.split} frames", fontsize=12)
     fig.tight_layout()
     _save(fig, out, dpi=100)
+    return out
+
+
+# ---- radarpc evaluate --show --------------------------------------------------------------------
+def _draw_boxes(ax, range_m: np.ndarray, azimuth_deg: np.ndarray, color: str, label: str) -> None:
+    from matplotlib.patches import Polygon
+
+    for k, c in enumerate(radial_box_corners(range_m, azimuth_deg)):
+        ax.add_patch(Polygon(c[:, ::-1], closed=True, fill=False, ec=color, lw=1.2,
+                             label=label if k == 0 else None))
+
+
+def plot_detection_frame(batch, detections, probability: torch.Tensor, out: str | os.PathLike, *,
+                         title: str = "", range_max_m: float = 103.0) -> Path:
+    """One evaluated frame: bird's-eye view with RADIal's label boxes (green) and the predicted
+    boxes (red), over the frame's points when the model reads points; and the predicted vehicle
+    probability on the 128 x 224 range-azimuth map with the labels marked.
+
+    Parameters
+    ----------
+    batch : radarpc.training.radial.DetectionBatch
+        A batch of one frame (on the CPU).
+    detections : radarpc.models.targets.Detections
+        Its decoded detections (one frame).
+    probability : Tensor ``(128, 224)``
+        Channel 0 of the detection head's output.
+    out : path-like
+        PNG to write (folders are created).
+    """
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    lab = batch.labels.numpy()
+    r_lab, a_lab = lab[:, 0], lab[:, 1]
+    fig = _figure((12, 5.5))
+    ax_bev, ax_ra = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1, 1.3]})
+    if isinstance(batch.inputs, PointCloudBatch):
+        p = batch.inputs
+        ax_bev.scatter(p.y.numpy(), p.x.numpy(), s=2, c="0.5", label=f"points ({p.num_points})")
+    _draw_boxes(ax_bev, r_lab, a_lab, "tab:green", "labels")
+    _draw_boxes(ax_bev, detections.range_m.numpy(), detections.azimuth_deg.numpy(), "tab:red",
+                "predicted (confidence >= 0.2)")
+    ax_bev.set(xlim=(40, -40), ylim=(0, range_max_m), xlabel="y [m] (left +)", ylabel="x [m] (forward)",
+               title="bird's-eye view")
+    ax_bev.set_aspect("equal", adjustable="box")
+    ax_bev.legend(loc="upper right", fontsize=8)
+    h, w = probability.shape
+    im = ax_ra.imshow(probability.numpy(), origin="lower", aspect="auto", vmin=0, vmax=1, cmap="magma",
+                      extent=(-w / 2 * 0.8, w / 2 * 0.8, 0, h * range_max_m / h))
+    ax_ra.scatter(a_lab, r_lab, marker="o", s=40, facecolors="none", edgecolors="tab:green", label="labels")
+    ax_ra.set(xlabel="azimuth [deg] (left +)", ylabel="range [m]", title="predicted vehicle probability")
+    ax_ra.legend(loc="upper right", fontsize=8)
+    fig.colorbar(im, ax=ax_ra)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    _save(fig, out, dpi=90)
     return out

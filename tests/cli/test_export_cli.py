@@ -91,3 +91,24 @@ def test_help_states_the_column_order(capsys):
     assert " ".join(DEFAULT_COLUMNS) in text
     assert 'np.fromfile(path, dtype="<f4").reshape(-1, C)' in text
     assert "``" not in text
+
+
+def test_radial_pcl_into_a_root(store, tmp_path, capsys):
+    from radarpc.data.radial_format import radar_pcl_path
+
+    root = tmp_path / "root"
+    root.mkdir()
+    argv = ["export", str(store.path), "--radial-pcl", "--root", str(root), "--no-progress"]
+    assert main(argv) == 2
+    assert "is not a RADIal root (no labels.csv)" in capsys.readouterr().err
+    (root / "labels.csv").write_text("numSample\n")
+    assert main(argv) == 0
+    assert f"wrote radar_PCL for 4 frames" in capsys.readouterr().out
+    pcl = np.load(radar_pcl_path(root, 12))
+    want = H.expected(store, 2, ("range_m",))[:, 0]
+    assert pcl.shape == (9, len(want)) and pcl.dtype == np.float32
+    np.testing.assert_array_equal(pcl[0], want)                      # row 0: range, as RADIal's loader reads it
+    assert main(argv + ["--out", str(tmp_path / "x")]) == 2
+    assert "takes no --out" in capsys.readouterr().err
+    assert main(["export", str(store.path)]) == 2
+    assert "--out is required" in capsys.readouterr().err

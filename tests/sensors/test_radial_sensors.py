@@ -10,6 +10,9 @@ from radarpc.sensors.radial import (
     RADIAL_S,
     TINY,
     DDMARadarConfig,
+    coupling_matrix,
+    element_gain,
+    ideal_receiver,
     radial_sensor,
     steering_vectors,
 )
@@ -79,3 +82,65 @@ def test_config_dict_round_trip_and_validation():
         dataclasses.replace(RADIAL, tx_slots=tuple(range(12)))
     with pytest.raises(ValueError, match="unknown sensor config keys"):
         DDMARadarConfig.from_dict({**d, "colour": 1})
+
+
+def test_element_pattern_attenuates_70_deg_by_the_stated_amount():
+    # stated: one way -4.5 / -7.0 / -8.8 dB at 60 / 70 / 75 deg azimuth, -1.3 dB at 10 deg elevation
+    # (closed form 10 log10 cos^q, q_az = 1.5, q_el = 20)
+    g = 10 * np.log10(element_gain(RADIAL, np.array([60.0, 70.0, 75.0]), 0.0))
+    np.testing.assert_allclose(g, [-4.5, -7.0, -8.8], atol=0.05)
+    np.testing.assert_allclose(g, 15 * np.log10(np.cos(np.deg2rad([60.0, 70.0, 75.0]))), rtol=1e-12)
+    assert 10 * np.log10(element_gain(RADIAL, 0.0, 10.0)) == pytest.approx(200 * np.log10(np.cos(np.deg2rad(10))))
+    assert element_gain(RADIAL, 0.0, 0.0) == 1.0 and element_gain(RADIAL, 95.0, 0.0) == 0.0
+    # in the synthesis: a target at 70 deg against the same target at 0 deg, per channel, is the
+    # two-way power (G/G0)^2 = cos(70)^3 = -14.0 dB (coupling off: otherwise each channel mixes
+    # its neighbours with direction-dependent phases)
+    import torch
+    from radarpc.sim.rd import Scatterers, synthesize_rd
+    cfg = ideal_receiver(dataclasses.replace(TINY, coupling_reach=0.0))
+    t = lambda x: torch.tensor([float(x)], dtype=torch.float64)  # noqa: E731
+    peak = []
+    for az in (0.0, 70.0):
+        rd = synthesize_rd(cfg, Scatterers(t(8.0), t(az), t(0.0), t(0.0), t(10.0)), noise=False)
+        peak.append(rd[20, torch.as_tensor(cfg.doppler_offsets), :].abs().double().numpy() ** 2)   # (n_tx, n_rx)
+    np.testing.assert_allclose(peak[1] / peak[0], np.cos(np.deg2rad(70.0)) ** 3, rtol=1e-5)
+    assert 10 * np.log10(np.cos(np.deg2rad(70.0)) ** 3) == pytest.approx(-14.0, abs=0.05)
+
+
+def test_coupling_is_banded_and_symmetric():
+    c = coupling_matrix(RADIAL, RADIAL.rx_pos)
+    assert np.allclose(c, c.T) and np.all(np.diag(c) == 1)
+    # stated: -22 dB to the neighbour (1 half wavelength), -34 dB to the next (1/d^2), none beyond 9
+    assert 20 * np.log10(abs(c[5, 6])) == pytest.approx(-22.0)
+    assert 20 * np.log10(abs(c[5, 7])) == pytest.approx(-22.0 - 40 * np.log10(2))
+    assert c[0, 10] == 0 and c[0, 9] != 0
+    # phase of the path between the elements: exp(-j pi d)
+    assert np.angle(c[5, 7] / abs(c[5, 7])) == pytest.approx(np.angle(np.exp(-2j * np.pi)), abs=1e-12)
+    tx = coupling_matrix(RADIAL, RADIAL.tx_pos)
+    assert np.abs(tx - np.eye(12)).max() < 10 ** (-45 / 20)          # Tx >= 4 half wavelengths apart
+
+
+def test_calibration_grids():
+    # radial and radial-s: RADIAL's real table size, 0.2 deg over +-75 deg, 11 elevations (0 in the middle)
+    for cfg in (RADIAL, RADIAL_S):
+        az, el = cfg.azimuth_table_deg, cfg.elevation_table_deg
+        assert az.shape == (751,) and el.shape == (11,)
+        np.testing.assert_allclose(np.diff(az), 0.2, atol=1e-9)
+        assert az[0] == -75.0 and az[-1] == 75.0 and el[5] == 0.0
+    assert TINY.azimuth_table_deg.shape == (61,)
+
+
+def test_receiver_settings_are_validated():
+    with pytest.raises(ValueError, match="aa_order must be an integer >= 0"):
+        dataclasses.replace(RADIAL, aa_order=-1)
+    with pytest.raises(ValueError, match="if_highpass_hz must be >= 0"):
+        dataclasses.replace(RADIAL, if_highpass_hz=-5.0)
+    with pytest.raises(ValueError, match="leakage_range_m must be > 0 with leakage on"):
+        dataclasses.replace(RADIAL, leakage_range_m=0.0)
+    with pytest.raises(ValueError, match="cal_positioner_deg"):
+        dataclasses.replace(RADIAL, cal_drift=(0.1,))
+    off = ideal_receiver(RADIAL)
+    assert off.leakage_db is None and off.pn_dbc_hz is None and off.aa_order == 0
+    d = json.loads(json.dumps(RADIAL.to_dict()))
+    assert DDMARadarConfig.from_dict(d) == RADIAL
+    assert DDMARadarConfig.from_dict(json.loads(json.dumps(off.to_dict()))) == off

@@ -59,7 +59,10 @@ def test_label_row_values_from_a_hand_made_vehicle():
     x, y = 17.75, 2.0
     r = math.hypot(x, y)
     assert row["numSample"] == 23 and row["dataset"] == "SIM@s7_q002" and row["dataset_index"] == 3
-    assert (row["x1_pix"], row["y1_pix"], row["x2_pix"], row["y2_pix"]) == (-1, -1, -1, -1)
+    # the camera box of the vehicle (checked against an independent projection in test_radial_camera)
+    from radarpc.sim.radial_camera import vehicle_image_boxes
+    box = (row["x1_pix"], row["y1_pix"], row["x2_pix"], row["y2_pix"])
+    assert box == tuple(vehicle_image_boxes(veh, H_RADAR)[0]) and 0 <= box[0] < box[2] <= 1919 and 0 <= box[1] < box[3] <= 1079
     assert row["radar_X_m"] == x and row["radar_Y_m"] == y
     assert row["radar_R_m"] == pytest.approx(r, abs=1e-4)
     assert row["radar_A_deg"] == pytest.approx(math.degrees(math.atan2(y, x)), abs=1e-4)

@@ -1,5 +1,7 @@
 """Simulated RADIal roots: layout, labels round trip, resume, refusal, on-the-fly == on-disk, CLI."""
 import argparse
+import csv
+import dataclasses
 import json
 import shutil
 import subprocess
@@ -18,7 +20,7 @@ from radarpc.sensors.radial import TINY
 from radarpc.sim.radial_calibration import make_calibration
 from radarpc.sim import radial_writer
 from radarpc.sim.radial_writer import RadialSimulator, SimulatedRADIal, write_radial_dataset
-from radarpc.sim.road import RoadSceneConfig
+from radarpc.sim.scenes import CITY, DEFAULT_MIX, SceneMix, scene_mix
 from radarpc.runs import OutputBusyError, RunMismatchError
 from testkit import stalling_writer_script
 
@@ -46,7 +48,7 @@ def test_layout_and_files(root):
     meta = json.loads((root / "sensor.json").read_text())
     assert meta["seed"] == SEED and meta["n_sequences"] == N_SEQ and meta["frames_per_sequence"] == N_FR
     assert meta["radarpc_version"] == __version__ and meta["name"] == "tiny"
-    assert json.loads((root / "scene.json").read_text())["frame_period_s"] == RoadSceneConfig().frame_period_s
+    assert json.loads((root / "scene.json").read_text()) == json.loads(json.dumps(DEFAULT_MIX.to_dict()))
     calib = load_calibration(root / "calibration.npz")
     np.testing.assert_array_equal(calib.signal, make_calibration(TINY).signal)
     assert not list(root.rglob("*.tmp")) and not (root.parent / ".root.lock").exists()
@@ -95,9 +97,10 @@ def test_refuses_a_non_empty_folder_unless_overwrite(root, tmp_path):
     with pytest.raises(RunMismatchError, match=r"sensor\.json:seed.*--overwrite"):
         write_radial_dataset(root, TINY, N_SEQ, N_FR, SEED + 1, progress=False)
     # ... nor one with another scene config
-    with pytest.raises(FileExistsError, match=r"scene\.json:clutter_per_100m.*--overwrite"):
+    with pytest.raises(FileExistsError, match=r"scene\.json:presets\.city\.clutter_per_100m.*--overwrite"):
         write_radial_dataset(root, TINY, N_SEQ, N_FR, SEED, progress=False,
-                             scene_config=RoadSceneConfig(clutter_per_100m=1.0))
+                             scenes=SceneMix(tuple(dataclasses.replace(p, clutter_per_100m=1.0) if p is CITY else p
+                                                   for p in DEFAULT_MIX.presets), DEFAULT_MIX.weights))
     assert all_files(root) == before                       # refused before anything was written
     write_radial_dataset(other, TINY, 1, 1, 0, overwrite=True, progress=False)
     assert (other / "notes.txt").read_text() == "mine" and fft_path(other, 0).is_file()
@@ -284,7 +287,7 @@ def test_labels_point_at_their_vehicles_in_the_rd_cube():
     from radarpc.sim.rd import noise_power_rd
 
     cfg = RADIAL_S
-    ds = SimulatedRADIal(cfg, 2, 2, 5, split="all")
+    ds = SimulatedRADIal(cfg, 3, 2, 5, split="all", scenes=scene_mix("city"))      # city: the densest traffic
     col = {c: k for k, c in enumerate(LABEL_TENSOR_COLUMNS)}
     ratios = []
     for i in range(len(ds)):
@@ -305,3 +308,54 @@ def test_labels_point_at_their_vehicles_in_the_rd_cube():
             ratios.append(float(prof[replicas].mean()) / float(prof[empty].mean()))
     assert len(ratios) >= 3 and min(ratios) > 1.0
     assert float(np.median(ratios)) > 5.0          # a sign error in radar_D gives ~1
+
+
+def test_ground_truth_sidecars_follow_the_labels(root):
+    # sim_frames.csv: one row per frame; sim_vehicles.csv: one row per vehicle label row, same order
+    from radarpc.data.radial_truth import SIM_FRAME_COLUMNS as SIM_FRAMES_COLUMNS, SIM_VEHICLE_COLUMNS as SIM_VEHICLES_COLUMNS
+    from radarpc.sim.road import KIND_NAMES, STATE_NAMES
+
+    def read(name):
+        with open(root / name, newline="") as f:
+            rows = list(csv.reader(f))
+        return rows[0], rows[1:]
+
+    head, frames = read("sim_frames.csv")
+    assert tuple(head) == SIM_FRAMES_COLUMNS == ("numSample", "dataset", "dataset_index", "scene", "ego_speed_mps")
+    sim = RadialSimulator(TINY, N_SEQ, N_FR, SEED)
+    assert [int(r[0]) for r in frames] == list(range(N_SEQ * N_FR))
+    for r in frames:
+        q, i = sim.locate(int(r[0]))
+        fr = sim.scene_frame(q, i)
+        assert r[3] == sim.preset(q).name == fr.scene and float(r[4]) == round(fr.ego_speed_mps, 4)
+    head, vehicles = read("sim_vehicles.csv")
+    assert tuple(head) == SIM_VEHICLES_COLUMNS == ("numSample", "vehicle_id", "kind", "state", "ground_speed_mps",
+                                                   "radar_R_m", "radar_A_deg")
+    labels = read_labels(root / "labels.csv")
+    real = [k for k in range(len(labels)) if labels.row(k)["radar_R_m"] != -1]
+    assert len(vehicles) == len(real)
+    for r, k in zip(vehicles, real):
+        lab = labels.row(k)
+        assert int(r[0]) == lab["numSample"]
+        assert float(r[5]) == lab["radar_R_m"] and float(r[6]) == lab["radar_A_deg"]
+        assert r[2] in KIND_NAMES and r[3] in STATE_NAMES and float(r[4]) >= 0.0
+    assert "sim_frames.csv" in radial_writer._OUTPUTS and "sim_vehicles.csv" in radial_writer._OUTPUTS
+    # radarpc info's reader takes them: the scene shares are those of the frames
+    from radarpc.data.radial_truth import label_statistics
+    st = label_statistics(labels, root)
+    assert sum(st.scene_share.values()) == pytest.approx(1.0) and sum(st.state_share.values()) == pytest.approx(1.0)
+    assert st.scene_share[frames[0][3]] == pytest.approx(sum(r[3] == frames[0][3] for r in frames) / len(frames))
+
+
+def test_scenes_pick_the_presets_of_the_sequences(tmp_path):
+    from radarpc.sim.scenes import scene_mix
+
+    out = write_radial_dataset(tmp_path / "city", TINY, 2, 1, 4, progress=False, scenes=scene_mix("city"),
+                               camera=False, laser=False)
+    assert json.loads((out / "scene.json").read_text())["mix"] == {"city": 0.31}
+    with open(out / "sim_frames.csv", newline="") as f:
+        assert {r["scene"] for r in csv.DictReader(f)} == {"city"}
+    fly = SimulatedRADIal(TINY, 2, 1, 4, "all", scenes=scene_mix("city"))
+    disk = RADIal(out, "all")
+    for i in range(2):
+        assert all(torch.equal(x, y) for x, y in zip(disk[i], fly[i]))

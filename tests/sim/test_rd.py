@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from radarpc.sensors.radial import RADIAL_S, TINY, steering_vectors
+from radarpc.sensors.radial import RADIAL_S, TINY, ideal_receiver, steering_vectors
 from radarpc.sim.radial_calibration import make_calibration
 from radarpc.sim.adc import migration_bins, narrowband_bins, rd_from_adc, synthesize_ddma_adc, synthesize_rd_exact
 from radarpc.sim.rd import (
@@ -37,13 +37,14 @@ def empty():
     (RADIAL_S, 90, 60, -37.0, -10.0),
 ])
 def test_point_target_bins_replicas_and_angle(cfg, r_bin, d_bin, az, el):
+    cfg = ideal_receiver(cfg)                       # no Tx leakage at range 0, no IF filter
     v = float(cfg.velocity_of_bin(d_bin))
     rd = synthesize_rd(cfg, one(cfg.range_of_bin(r_bin), az, el, v, rcs=10.0), noise=False)
     assert rd.shape == cfg.rd_shape and rd.dtype == torch.complex64
     power = (rd.abs() ** 2).sum(-1)                                  # (R, D)
     r_pk, d_pk = np.unravel_index(int(power.argmax()), power.shape)
     assert r_pk == r_bin
-    # the n_tx replicas: Tx m at (d0 + o_m) mod N_d, all of the same power (|a_v| ~ 1)
+    # the n_tx replicas: Tx m at (d0 + o_m) mod N_d, all of about the same power
     replicas = (d_bin + cfg.doppler_offsets) % cfg.n_doppler
     assert d_pk in replicas
     top = torch.topk(power[r_bin], cfg.n_tx).indices.sort().values.numpy()
@@ -53,26 +54,34 @@ def test_point_target_bins_replicas_and_angle(cfg, r_bin, d_bin, az, el):
     for s in (-1, 0, 1):
         occupied[(replicas + s) % cfg.n_doppler] = True
     assert float(power[r_bin, ~occupied].max()) < 1e-4 * float(power[r_bin, replicas].min())
-    # virtual snapshot in Tx order -> beamformed peak at the target's (az, el) grid cell
+    # virtual snapshot in Tx order -> beamformed peak at the target's (az, el) grid cell; with the
+    # measured calibration and an elevation between grid values (radial-s: 5 -> 6, -10 -> -9 deg;
+    # u_y = cos(el) sin(az) couples them) within one grid step in each
     snap = rd[r_bin, torch.as_tensor(replicas), :].reshape(-1)       # (n_tx * n_rx,)
     calib = make_calibration(cfg)
     spec = (calib.dictionary() @ snap).abs()
     k = int(spec.argmax())
     n_el = calib.grid_shape[1]
-    assert calib.azimuth_deg[k // n_el] == pytest.approx(az)
-    assert calib.elevation_deg[k % n_el] == pytest.approx(el)
+    az_step = (cfg.az_grid_deg[1] - cfg.az_grid_deg[0]) / (cfg.az_grid_deg[2] - 1)
+    el_step = (cfg.el_grid_deg[1] - cfg.el_grid_deg[0]) / (cfg.el_grid_deg[2] - 1)
+    # + float32 rounding of the stored tables (|angle| <= 90: < 1e-5 deg)
+    assert abs(float(calib.azimuth_deg[k // n_el]) - az) <= az_step + 1e-5
+    assert abs(float(calib.elevation_deg[k % n_el]) - el) <= el_step + 1e-5
 
 
 def test_peak_amplitude_is_the_radar_equation_times_fft_gain():
-    cfg = RADIAL_S
+    cfg = ideal_receiver(RADIAL_S)
     r_bin, rcs = 40, 2.0
     rd = synthesize_rd(cfg, one(cfg.range_of_bin(r_bin), 0.0, 0.0, 0.0, rcs), noise=False)
-    # Tx 0 / Rx 0 is the hardware reference channel (gain exactly 1)
+    # Tx 0 / Rx 0: the true response there (errors 1 on the reference chains; coupling to the
+    # neighbours, pattern 1 at boresight)
+    gain2 = abs(complex(steering_vectors(cfg, 0.0, 0.0)[0])) ** 2
     snr_cell = float(rd[r_bin, 0, 0].abs() ** 2) / noise_power_rd(cfg)
     # periodic Hamming: sum w = 0.54 N, sum w^2 = N (0.54^2 + 0.46^2 / 2) -> loss 0.2916 / 0.3974
     loss = 0.54 ** 2 / (0.54 ** 2 + 0.46 ** 2 / 2)
     want = float(cfg.snr_per_sample(cfg.range_of_bin(r_bin), rcs)) * cfg.n_range * cfg.n_doppler * loss ** 2
-    assert snr_cell == pytest.approx(want, rel=1e-4)
+    assert snr_cell == pytest.approx(want * gain2, rel=1e-4)
+    assert abs(gain2 - 1) > 1e-3                     # coupling: channel 0 is not the bare element
     assert float(peak_snr_rd(cfg, cfg.range_of_bin(r_bin), rcs)) == pytest.approx(want, rel=1e-9)
 
 
@@ -90,12 +99,14 @@ def _targets(velocity):
 
 def _bound(cfg, sc, slack_bins):
     # |exp(j x) - 1| <= |x| per ADC sample: an extra beat frequency of delta bins changes each
-    # windowed sample by at most 2 pi delta of its magnitude, so per RD cell
-    # |exact - fast| <= 2 pi delta * sum_s A_s sum_m |g_m,r| * sum(w_r) * sum(w_d).
-    from radarpc.sensors.radial import channel_errors
+    # windowed sample of each element-pair tone by at most 2 pi delta of its magnitude, so per RD cell
+    # |exact - fast| <= 2 pi delta * sum_s A_s max_r sum_m (sum_m' |T[m, m']|)(sum_r' |R[r, r']|)
+    # * sum(w_r) * sum(w_d)   (element pattern <= 1; T, R the coupling-and-error matrices)
+    from radarpc.sensors.radial import array_factors
     from radarpc.sim.rd import adc_noise_power, window_sums
     amp = np.sqrt(cfg.snr_per_sample(sc.range_m.numpy(), sc.rcs_m2.numpy()) * adc_noise_power(cfg))
-    g = np.abs(channel_errors(cfg)).reshape(cfg.n_tx, cfg.n_rx).sum(0).max()
+    t, r = array_factors(cfg)
+    g = np.abs(t).sum(1).sum() * np.abs(r).sum(1).max()
     s_r, _ = window_sums(cfg.n_range)
     s_d, _ = window_sums(cfg.n_doppler)
     return float(np.sum(2 * math.pi * np.asarray(slack_bins) * amp) * g * s_r * s_d)
@@ -162,8 +173,9 @@ def test_adc_phase_is_the_physical_path_length_per_element():
     # independent of the plane-wave formula: spherical distances from a point target to each Tx
     # and Rx element (positions lambda/2 * p in the y-z plane); IF = tx * conj(rx) -> phase
     # +2 pi f_c tau. A target on the left (+y) is nearer the +y elements: smaller phase there.
+    import dataclasses
     from radarpc.sensors.radial import SPEED_OF_LIGHT, channel_errors
-    cfg = TINY
+    cfg = dataclasses.replace(TINY, coupling_reach=0.0)             # each channel its own element pair
     lam = cfg.wavelength_m
     target = np.array([20.0, 8.0, 1.5])                           # left (+y), slightly up
     sc = Scatterers.from_xyz(target[None].astype(np.float64), np.zeros((1, 3)), np.array([5.0]))
@@ -208,7 +220,7 @@ def test_adc_noise_becomes_noise_power_rd():
 
 
 def test_noise_floor_power_and_statistics():
-    cfg = RADIAL_S
+    cfg = ideal_receiver(RADIAL_S)                                   # white: no IF filter, no leakage
     g = torch.Generator().manual_seed(0)
     rd = synthesize_rd(cfg, empty(), generator=g)
     n = rd.numel()                                                   # 131072 independent cells
@@ -224,7 +236,7 @@ def test_noise_floor_power_and_statistics():
 
 
 def test_far_weak_target_below_noise_and_strong_one_above():
-    cfg = RADIAL_S
+    cfg = ideal_receiver(RADIAL_S)
     weak = one(100.0, 0.0, 0.0, 0.0, rcs=1e-3)
     assert float(peak_snr_rd(cfg, 100.0, 1e-3)) < 0.1
     rd = synthesize_rd(cfg, weak, noise=False)

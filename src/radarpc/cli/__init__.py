@@ -13,13 +13,14 @@ from radarpc import __version__
 
 
 # Commands that keep finished work and resume it when run again.
-RESUMABLE_COMMANDS = ("simulate", "pointcloud", "demo", "baseline", "export")
+RESUMABLE_COMMANDS = ("simulate", "pointcloud", "demo", "baseline", "export", "train")
 
 
 def _command_modules():
     # Imported lazily so that `radarpc --help` stays fast and one broken stage cannot hide the others.
-    from radarpc.cli import simulate, info, pointcloud, show, demo, baseline, evaluate_points, export
-    return [simulate, info, pointcloud, show, demo, baseline, evaluate_points, export]
+    from radarpc.cli import (baseline, demo, evaluate, evaluate_points, export, info, pointcloud, show, simulate,
+                             train)
+    return [simulate, info, pointcloud, show, demo, baseline, evaluate_points, export, train, evaluate]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -2,6 +2,7 @@
 
   radarpc export STORE.parquet --out OUT [--format npy|bin|ply] [--columns x,y,z,...]
   radarpc export PRED_DIR --out OUT            (a ColoRadar prediction folder, as PLY)
+  radarpc export STORE.parquet --radial-pcl [--root ROOT]   (RADIal's radar_PCL/ inside the root)
 
 A point store is written in OpenPCDet's custom-dataset layout:
 
@@ -24,6 +25,11 @@ property per column. A frame without points gives a valid empty file.
 A prediction folder ({run}/{frame:06d}.npy, from radarpc baseline) becomes OUT/{run}/{frame:06d}.ply
 with float properties x, y, z.
 
+--radial-pcl writes the store's points in RADIal's own radar point-cloud layout into the RADIal
+root the store was made from (or --root): ROOT/radar_PCL/pcl_{frame:06d}.npy, float32 (9, N), rows
+range, azimuth, elevation, power, doppler, x, y, z, v as RADIal's loader reads them
+(radarpc.pipelines.radial_pcl), so that RADIal's own loader finds the modality in a simulated root.
+
 Every file is written atomically; a rerun with the same settings keeps the finished frames and
 writes the rest; a folder holding anything else is refused unless --overwrite (which removes only
 the export's own entries); a second job writing the same folder is refused.
@@ -36,6 +42,19 @@ __all__ = ["add_parser", "run_export"]
 
 
 def run_export(args: argparse.Namespace) -> int:
+    if args.radial_pcl:
+        from radarpc.pipelines.radial_pcl import write_radial_pcl
+
+        if args.out is not None or args.format is not None or args.columns is not None:
+            raise ValueError("--radial-pcl writes radar_PCL/ into the RADIal root (--root); it takes no "
+                             "--out, --format or --columns")
+        res = write_radial_pcl(args.source, args.root, progress=not args.no_progress)
+        print(f"wrote radar_PCL for {res.n_frames} frames ({res.n_points} points) into {res.root}")
+        return 0
+    if args.out is None:
+        raise ValueError("--out is required (or --radial-pcl to write RADIal's radar_PCL/ into the root)")
+    if args.root is not None:
+        raise ValueError("--root goes with --radial-pcl only")
     from radarpc.pipelines.export import export
 
     columns = None if args.columns is None else [c for c in args.columns.split(",") if c.strip()]
@@ -53,7 +72,7 @@ def add_parser(sub) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("source", help="a point store (.parquet, from radarpc pointcloud) or a ColoRadar "
                                   "prediction folder (from radarpc baseline)")
-    p.add_argument("--out", required=True, help="export folder")
+    p.add_argument("--out", default=None, help="export folder (required unless --radial-pcl)")
     p.add_argument("--format", default=None, choices=("npy", "bin", "ply"),
                    help="file format per frame (default: npy for a store, ply for a prediction folder, "
                         "its only format)")
@@ -63,5 +82,8 @@ def add_parser(sub) -> None:
                         "is_neighbour)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an export with other settings in --out (removes only the export's own files)")
+    p.add_argument("--radial-pcl", action="store_true",
+                   help="write RADIal's radar_PCL/ (pcl_{frame:06d}.npy, 9 x N) into the store's RADIal root")
+    p.add_argument("--root", default=None, help="with --radial-pcl: the RADIal root (default: the store's source)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run_export)

@@ -8,6 +8,16 @@ from radarpc.cli.options import RADIAL_SENSOR_NAMES
 __all__ = ["add_parser", "run"]
 
 
+def _scenes(text: str):
+    """``--scenes`` value -> SceneMix (argparse reports a bad name with the known ones)."""
+    from radarpc.sim.scenes import scene_mix
+
+    try:
+        return scene_mix(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def add_parser(kinds) -> argparse.ArgumentParser:
     """Register ``radial`` on the ``simulate`` sub-command's parsers; sets ``func``."""
     p = kinds.add_parser(
@@ -27,6 +37,16 @@ def add_parser(kinds) -> argparse.ArgumentParser:
                         "partial run) and simulate every frame again")
     p.add_argument("--device", default="cpu", help="synthesis device, e.g. cpu or cuda (default cpu)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--cube-format", choices=("npy", "npz"), default="npy",
+                   help="radar_FFT/fft_*.npy (default; FFTRadNet's loader) or .npz holding arr_0 (RADIal's "
+                        "ready-to-use release, its loader/dataset.py)")
+    p.add_argument("--no-camera", action="store_true",
+                   help="do not write camera/image_*.jpg (the label columns x1_pix..y2_pix are filled anyway)")
+    p.add_argument("--no-laser", action="store_true", help="do not write laser_PCL/pcl_*.npy")
+    p.add_argument("--scenes", type=_scenes, default=None, metavar="NAMES",
+                   help="scene presets, comma-separated from city, countryside, highway (default all three "
+                        "in RADIal's proportions of frames: 31 / 32 / 38 %%; a subset keeps their relative "
+                        "shares); one preset per sequence")
     p.set_defaults(func=run)
     return p
 
@@ -42,7 +62,9 @@ def run(args: argparse.Namespace) -> int:
     counts = {}
     root = write_radial_dataset(args.out, cfg, args.sequences, args.frames_per_sequence, args.seed,
                                 overwrite=args.overwrite, progress=not args.no_progress,
-                                device=args.device, on_finish=lambda w, k: counts.update(written=w, kept=k))
+                                device=args.device, on_finish=lambda w, k: counts.update(written=w, kept=k),
+                                cube_format=args.cube_format, camera=not args.no_camera, laser=not args.no_laser,
+                                scenes=args.scenes)
     n = args.sequences * args.frames_per_sequence
     print(f"{root}: {n} frames ({args.sequences} sequences x {args.frames_per_sequence}) of sensor "
           f"{cfg.name!r} {cfg.rd_shape}; {counts['written']} simulated now, {counts['kept']} kept from an "

@@ -88,7 +88,7 @@ _INT_COLUMNS: tuple[str, ...] = ("numSample", "dataset_index", "Difficult")
 _STR_COLUMNS: tuple[str, ...] = ("dataset",)
 _FLOAT_COLUMNS: tuple[str, ...] = tuple(c for c in LABEL_COLUMNS if c not in _INT_COLUMNS + _STR_COLUMNS)
 # Columns that are all -1 on the row RADIal writes for a frame without any vehicle. (Camera pixel
-# columns are left out: they are -1 for every row of simulated data.)
+# columns are left out: a vehicle outside the camera's view has -1 there too.)
 _EMPTY_MARKER_COLUMNS: tuple[str, ...] = (
     "laser_X_m", "laser_Y_m", "laser_Z_m",
     "radar_X_m", "radar_Y_m", "radar_R_m", "radar_A_deg", "radar_D", "radar_P_db",

@@ -13,8 +13,14 @@ One place for the format, shared by the simulator's writer and the reader::
                                          array (``arr_0``), compressed in radarpc's sparse-RD roots
                                          (:func:`save_fft_npz`); the .npy wins if both exist
       radar_Freespace/freespace_{numSample:06d}.png   uint8 512 x 900, 255 = free, 0 = not free
+      camera/image_{numSample:06d}.jpg   RGB camera view, 960 x 540 (half of the 1920 x 1080 frames whose
+                                         pixels ``x1_pix .. y2_pix`` use, as in RADIal's ready-to-use release)
+      laser_PCL/pcl_{numSample:06d}.npy  LiDAR points (N, 8) float32: :data:`LASER_PCL_COLUMNS`
+      radar_PCL/pcl_{numSample:06d}.npy  radar points (9, N) float32, one row per :data:`RADAR_PCL_ROWS`
+                                         (written from a point store by :mod:`radarpc.pipelines.radial_pcl`)
 
-Camera pixel columns (``x1_pix .. y2_pix``) are -1 in simulated data: no camera is rendered.
+The last three follow RADIal's ready-to-use release as its ``loader/dataset.py`` reads it; the
+simulator writes ``camera/`` and ``laser_PCL/`` unless told not to.
 """
 from __future__ import annotations
 
@@ -39,6 +45,11 @@ __all__ = [
     "stored_fft_path",
     "save_fft_npz",
     "freespace_path",
+    "camera_path",
+    "laser_pcl_path",
+    "radar_pcl_path",
+    "LASER_PCL_COLUMNS",
+    "RADAR_PCL_ROWS",
     "freespace_azimuth_deg",
     "simulated_sequence_name",
     "simulated_split",
@@ -98,24 +109,56 @@ def stored_fft_path(root: str | os.PathLike, num_sample: int) -> Path | None:
     return None
 
 
-def save_fft_npz(root: str | os.PathLike, num_sample: int, cube: np.ndarray) -> Path:
-    """Write frame ``num_sample``'s RD cube as a compressed ``.npz`` (one array, ``arr_0``); atomic.
+def save_fft_npz(root: str | os.PathLike, num_sample: int, cube: np.ndarray, *, compress: bool = True) -> Path:
+    """Write frame ``num_sample``'s RD cube as an ``.npz`` (one array, ``arr_0``); atomic.
 
-    zlib stores a run of zero cells in a few bytes, so a masked (mostly zero) cube takes about as
-    many bytes as its kept cells. A ``.npy`` of the same frame is removed first (a reader would
-    prefer it); a kill in between leaves neither file, never a stale one. Returns the path.
+    Compressed by default: zlib stores a run of zero cells in a few bytes, so a masked (mostly
+    zero) cube takes about as many bytes as its kept cells; a dense simulated cube does not
+    shrink, and ``compress=False`` saves the time. A ``.npy`` of the same frame is removed first
+    (a reader would prefer it); a kill in between leaves neither file, never a stale one.
+    Returns the path.
     """
     path = fft_path(root, num_sample, ".npz")
     fft_path(root, num_sample, ".npy").unlink(missing_ok=True)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write(path, "wb") as f:
-        np.savez_compressed(f, np.ascontiguousarray(cube))
+        (np.savez_compressed if compress else np.savez)(f, np.ascontiguousarray(cube))
     return path
 
 
 def freespace_path(root: str | os.PathLike, num_sample: int) -> Path:
     """``ROOT/radar_Freespace/freespace_{num_sample:06d}.png``."""
     return Path(root) / "radar_Freespace" / f"freespace_{int(num_sample):06d}.png"
+
+
+def camera_path(root: str | os.PathLike, num_sample: int) -> Path:
+    """``ROOT/camera/image_{num_sample:06d}.jpg``."""
+    return Path(root) / "camera" / f"image_{int(num_sample):06d}.jpg"
+
+
+def laser_pcl_path(root: str | os.PathLike, num_sample: int) -> Path:
+    """``ROOT/laser_PCL/pcl_{num_sample:06d}.npy``."""
+    return Path(root) / "laser_PCL" / f"pcl_{int(num_sample):06d}.npy"
+
+
+def radar_pcl_path(root: str | os.PathLike, num_sample: int) -> Path:
+    """``ROOT/radar_PCL/pcl_{num_sample:06d}.npy``."""
+    return Path(root) / "radar_PCL" / f"pcl_{int(num_sample):06d}.npy"
+
+
+LASER_PCL_COLUMNS: tuple[str, ...] = (
+    "x", "y", "z", "intensity", "radialDistance", "polAngle", "aziAngle", "layer_index")
+"""Columns of a ``laser_PCL`` file, as RADIal's ``loader/dataset.py`` lists them: metres in the
+LiDAR frame (x forward, y left, z up), intensity in [0, 1], range (m), elevation and azimuth
+(radians, up and left positive), layer index 0 .. 15 (bottom to top)."""
+
+RADAR_PCL_ROWS: tuple[str, ...] = (
+    "range", "azimuth", "elevation", "power", "doppler", "x", "y", "z", "v")
+"""Rows of a ``radar_PCL`` file (``(9, N)``), as RADIal's ``loader/dataset.py`` lists them: range (m),
+azimuth and elevation (degrees), power (dB), Doppler bin (full, unfolded), x, y, z (m), radial
+velocity v (m/s, receding positive). The file's y and azimuth are positive to the RIGHT: RADIal's
+loader negates y on reading (``radar_pc[:, 1] *= -1``) to put the radar points in the left-positive
+frame of its laser points, so radarpc writes ``y = -y_radarpc`` and ``azimuth = -azimuth_radarpc``."""
 
 
 def freespace_azimuth_deg(col) -> np.ndarray:

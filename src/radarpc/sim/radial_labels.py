@@ -17,14 +17,18 @@ Labels (one row per vehicle in the field of view, columns exactly :data:`LABEL_C
 * ``laser_X/Y/Z_m``: the same point (with its height) in a LiDAR frame whose axes are the radar's
   and whose origin is :data:`LIDAR_OFFSET_M` in the radar frame (a roof LiDAR 1.5 m behind and
   1.0 m above the radar): ``laser = point - LIDAR_OFFSET_M``.
-* ``x1_pix .. y2_pix``: -1 (no camera is rendered).
+* ``x1_pix .. y2_pix``: the vehicle's box in the camera image, in the 1920 x 1080 pixels of
+  RADIal's frames (:func:`radarpc.sim.radial_camera.vehicle_image_boxes`: bounding rectangle of
+  its projected 3-D box, clipped to the image); -1 where it is not in the image.
 * ``dataset``: :func:`simulated_sequence_name` ``(seed, sequence)``; ``dataset_index``: frame
   index in the sequence; ``numSample``: ``sequence * frames_per_sequence + index``.
 * ``Difficult``: 1 if less than half of the vehicle's radar-facing scatterers are unoccluded or
   its range exceeds :data:`DIFFICULT_RANGE_FRACTION` of the instrumented range, else 0.
 
 Field of view: reference point ahead (``X > 0``), ``R < max_range_m - 1`` and ``|A|`` within
-the sensor's calibrated azimuth span, with at least one of the vehicle's scatterers in the frame.
+the sensor's calibrated azimuth span, with at least one of the vehicle's own scatterers in the
+frame (direct, ground-bounce or under-body returns; mirror ghosts belong to no vehicle)
+(:func:`labelled_vehicles`).
 
 A frame without any vehicle gets one row of -1 in every column except ``numSample``,
 ``dataset`` and ``dataset_index`` (which the reader needs for the frame id and the split);
@@ -48,6 +52,7 @@ from radarpc.data.radial_format import (
     simulated_sequence_name,
 )
 from radarpc.sensors.radial import DDMARadarConfig
+from radarpc.sim.radial_camera import vehicle_image_boxes
 from radarpc.sim.rd import peak_snr_rd
 from radarpc.sim.road import RoadFrame, VehicleTruth, footprint_crossings
 
@@ -56,6 +61,7 @@ __all__ = [
     "DIFFICULT_RANGE_FRACTION",
     "reference_points",
     "frame_label_rows",
+    "labelled_vehicles",
     "empty_label_row",
     "freespace_mask",
 ]
@@ -87,6 +93,28 @@ def empty_label_row(num_sample: int, dataset: str, dataset_index: int) -> tuple:
     row = {c: -1 for c in LABEL_COLUMNS}
     row.update(numSample=int(num_sample), dataset=str(dataset), dataset_index=int(dataset_index))
     return tuple(row[c] for c in LABEL_COLUMNS)
+
+
+def labelled_vehicles(cfg: DDMARadarConfig, frame: RoadFrame) -> np.ndarray:
+    """Indices into ``frame.vehicles`` of the labelled vehicles, in the order of their label rows.
+
+    A vehicle is labelled when it is in the field of view (see the module notes): reference
+    point ahead, nearer than ``cfg.max_range_m - 1``, within the calibrated azimuth span, and at
+    least one scatterer of its own (direct, ground-bounce or under-body; mirror ghosts belong to
+    no vehicle) in the frame. Sorted by ground range (stable).
+    """
+    veh = frame.vehicles
+    if len(veh) == 0:
+        return np.zeros(0, np.int64)
+    ref = reference_points(veh)
+    x, y = ref[:, 0], ref[:, 1]
+    r = np.hypot(x, y)
+    a = np.degrees(np.arctan2(y, x))
+    owner = frame.owner.numpy()
+    count = np.bincount(owner[owner >= 0], minlength=len(veh))
+    az_lim = max(abs(cfg.az_grid_deg[0]), abs(cfg.az_grid_deg[1]))
+    in_view = (x > 0) & (r < cfg.max_range_m - _FOV_MARGIN_M) & (np.abs(a) <= az_lim) & (count > 0)
+    return np.flatnonzero(in_view)[np.argsort(r[in_view], kind="stable")]
 
 
 def frame_label_rows(cfg: DDMARadarConfig, frame: RoadFrame, *, seed: int, sequence: int,
@@ -127,16 +155,15 @@ def frame_label_rows(cfg: DDMARadarConfig, frame: RoadFrame, *, seed: int, seque
     snr = peak_snr_rd(cfg, sc.range_m.double().numpy(), sc.rcs_m2.double().numpy())
     mine = owner >= 0
     power = np.bincount(owner[mine], weights=snr[mine], minlength=len(veh))
-    count = np.bincount(owner[mine], minlength=len(veh))
 
-    az_lim = max(abs(cfg.az_grid_deg[0]), abs(cfg.az_grid_deg[1]))
-    in_view = (x > 0) & (r < cfg.max_range_m - _FOV_MARGIN_M) & (np.abs(a) <= az_lim) & (count > 0)
     difficult = (veh.visible_fraction < 0.5) | (r > DIFFICULT_RANGE_FRACTION * cfg.max_range_m)
     lx, ly, lz = (ref[:, k] - LIDAR_OFFSET_M[k] for k in range(3))
+    pix = vehicle_image_boxes(veh, frame.radar_height_m)                     # (V, 4), -1 = not seen
     rows = []
-    for v in np.flatnonzero(in_view)[np.argsort(r[in_view], kind="stable")]:
+    for v in labelled_vehicles(cfg, frame):
         p_db = 10.0 * math.log10(max(float(power[v]), 1e-30))
-        vals = dict(numSample=num_sample, x1_pix=-1, y1_pix=-1, x2_pix=-1, y2_pix=-1,
+        vals = dict(numSample=num_sample, x1_pix=int(pix[v, 0]), y1_pix=int(pix[v, 1]),
+                    x2_pix=int(pix[v, 2]), y2_pix=int(pix[v, 3]),
                     laser_X_m=round(float(lx[v]), 4), laser_Y_m=round(float(ly[v]), 4),
                     laser_Z_m=round(float(lz[v]), 4),
                     radar_X_m=round(float(x[v]), 4), radar_Y_m=round(float(y[v]), 4),

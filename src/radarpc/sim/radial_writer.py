@@ -10,14 +10,15 @@ from the written root.
 
 Root layout: see :mod:`radarpc.data.radial_format`. ``sensor.json`` holds ``cfg.to_dict()`` plus
 ``seed``, ``n_sequences``, ``frames_per_sequence`` and ``radarpc_version``; ``scene.json`` holds
-the :class:`RoadSceneConfig`. Both are written first; all their keys but ``radarpc_version`` (a
+the :class:`radarpc.sim.scenes.SceneMix` (:meth:`SceneMix.to_dict`: the mix's weights and every
+preset's :class:`radarpc.sim.road.RoadSceneConfig`). Both are written first; all their keys but ``radarpc_version`` (a
 package upgrade does not change the frames) identify a partial run that may be resumed.
 """
 from __future__ import annotations
 
 import csv
-import dataclasses
 import io
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,16 +39,31 @@ from radarpc.data.radial import (
     load_rd,
     select_frames,
 )
-from radarpc.data.radial_format import LABEL_COLUMNS, fft_path, freespace_path, save_calibration
+from radarpc.data.radial_format import (
+    LABEL_COLUMNS,
+    LASER_PCL_COLUMNS,
+    camera_path,
+    fft_path,
+    freespace_path,
+    laser_pcl_path,
+    save_calibration,
+    save_fft_npz,
+    simulated_sequence_name,
+)
+from radarpc.data.radial_truth import SIM_FRAME_COLUMNS, SIM_FRAMES_FILE, SIM_VEHICLE_COLUMNS, SIM_VEHICLES_FILE
 from radarpc.io import DataFileError, atomic_write, save_npy_atomic
 from radarpc.runs import RunFolder
 from radarpc.sensors.radial import Calibration, DDMARadarConfig
 from radarpc.sim.radial_calibration import make_calibration
-from radarpc.sim.radial_labels import frame_label_rows, freespace_mask
+from radarpc.sim.radial_camera import IMAGE_SIZE, jpeg_bytes, render_camera
+from radarpc.sim.radial_lidar import laser_scan
+from radarpc.sim.radial_labels import frame_label_rows, freespace_mask, labelled_vehicles, reference_points
 from radarpc.sim.rd import synthesize_rd
-from radarpc.sim.road import RoadFrame, RoadScene, RoadSceneConfig
+from radarpc.sim.road import KIND_NAMES, STATE_NAMES, RoadFrame, RoadScene, RoadSceneConfig
+from radarpc.sim.scenes import DEFAULT_MIX, SceneMix
 
 __all__ = [
+    "CUBE_FORMATS",
     "SimulatedFrame",
     "RadialSimulator",
     "frame_noise_seed",
@@ -90,13 +106,15 @@ class RadialSimulator:
     cfg : DDMARadarConfig
     n_sequences, frames_per_sequence : int
     seed : int
-    scene_config : RoadSceneConfig, optional
+    scenes : SceneMix, optional
+        The scene presets and their shares (default :data:`radarpc.sim.scenes.DEFAULT_MIX`); each
+        sequence gets one (:meth:`SceneMix.preset`).
     device : torch.device or str, optional
         Where the RD cube is synthesised (default CPU).
     """
 
     def __init__(self, cfg: DDMARadarConfig, n_sequences: int, frames_per_sequence: int, seed: int, *,
-                 scene_config: RoadSceneConfig | None = None,
+                 scenes: SceneMix | None = None,
                  device: torch.device | str | None = None) -> None:
         if int(n_sequences) < 1:
             raise ValueError(f"n_sequences must be >= 1, got {n_sequences}")
@@ -106,7 +124,7 @@ class RadialSimulator:
             raise ValueError(f"seed must be >= 0, got {seed}")
         self.cfg = cfg
         self.n_sequences, self.frames_per_sequence, self.seed = int(n_sequences), int(frames_per_sequence), int(seed)
-        self.scene_config = scene_config if scene_config is not None else RoadSceneConfig()
+        self.scenes = scenes if scenes is not None else DEFAULT_MIX
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self._scenes: dict[int, RoadScene] = {}
 
@@ -128,7 +146,7 @@ class RadialSimulator:
         if q not in self._scenes:
             if len(self._scenes) >= 4:
                 self._scenes.pop(next(iter(self._scenes)))
-            self._scenes[q] = RoadScene(self.scene_config, self.seed, q, self.frames_per_sequence,
+            self._scenes[q] = RoadScene(self.preset(q), self.seed, q, self.frames_per_sequence,
                                         self.cfg.max_range_m)
         return self._scenes[q]
 
@@ -144,6 +162,32 @@ class RadialSimulator:
         fr = fr if fr is not None else self.scene_frame(sequence, index)
         return frame_label_rows(self.cfg, fr, seed=self.seed, sequence=sequence, index=index,
                                 frames_per_sequence=self.frames_per_sequence)
+
+    def preset(self, sequence: int) -> RoadSceneConfig:
+        """The scene preset of ``sequence`` (:meth:`radarpc.sim.scenes.SceneMix.preset`)."""
+        return self.scenes.preset(self.seed, sequence)
+
+    def frame_truth_row(self, sequence: int, index: int, fr: RoadFrame | None = None) -> tuple:
+        """The ``sim_frames.csv`` row of a frame (:data:`radarpc.data.radial_truth.SIM_FRAME_COLUMNS`)."""
+        fr = fr if fr is not None else self.scene_frame(sequence, index)
+        return (int(sequence) * self.frames_per_sequence + int(index), simulated_sequence_name(self.seed, sequence),
+                int(index), fr.scene, round(float(fr.ego_speed_mps), 4))
+
+    def vehicle_truth_rows(self, sequence: int, index: int, fr: RoadFrame | None = None) -> list[tuple]:
+        """The ``sim_vehicles.csv`` rows of a frame (:data:`radarpc.data.radial_truth.SIM_VEHICLE_COLUMNS`): one per label
+        row of a vehicle, in the same order; none for a frame without vehicles."""
+        fr = fr if fr is not None else self.scene_frame(sequence, index)
+        num = int(sequence) * self.frames_per_sequence + int(index)
+        veh = fr.vehicles
+        ref = reference_points(veh)
+        speed = veh.ground_speed_mps()
+        out = []
+        for v in labelled_vehicles(self.cfg, fr):
+            x, y = float(ref[v, 0]), float(ref[v, 1])
+            out.append((num, int(veh.ids[v]), KIND_NAMES[int(veh.kind[v])], STATE_NAMES[int(veh.state[v])],
+                        round(float(speed[v]), 4), round(math.hypot(x, y), 4),
+                        round(math.degrees(math.atan2(y, x)), 4)))
+        return out
 
     def geometry(self, sequence: int, index: int) -> tuple[RoadFrame, list[tuple], np.ndarray]:
         """Scene frame, label rows and freespace mask of a frame (no RD synthesis: cheap)."""
@@ -181,6 +225,15 @@ def _format_cell(v) -> str:
     return repr(float(v)) if isinstance(v, float) else str(v)
 
 
+def _csv(columns: tuple[str, ...], rows: list[tuple]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(columns)
+    for r in rows:
+        w.writerow([_format_cell(v) for v in r])
+    return buf.getvalue()
+
+
 def _labels_csv(rows: list[tuple]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
@@ -214,15 +267,41 @@ def _png_complete(path: Path) -> bool:
     return True
 
 
-# what the writer owns in the root: ``overwrite`` deletes these (and only these)
-_OUTPUTS = ("radar_FFT", "radar_Freespace", "labels.csv", "calibration.npz", "sensor.json", "scene.json")
+def _jpeg_complete(path: Path) -> bool:
+    # decodes the whole image (a truncated file fails) and checks the release's size
+    try:
+        with Image.open(path) as im:
+            im.load()
+            return im.format == "JPEG" and im.mode == "RGB" and im.size == IMAGE_SIZE
+    except (OSError, ValueError):
+        return False
+
+
+def _laser_complete(path: Path) -> bool:
+    try:
+        a = np.load(path, allow_pickle=False)
+    except (OSError, ValueError):
+        return False
+    return a.ndim == 2 and a.shape[1] == len(LASER_PCL_COLUMNS) and a.dtype == np.float32 and bool(np.isfinite(a).all())
+
+
+CUBE_FORMATS: tuple[str, ...] = ("npy", "npz")
+"""``cube_format`` choices: ``radar_FFT/fft_*.npy`` (FFTRadNet's loader) or ``.npz`` holding ``arr_0``
+(RADIal's ready-to-use release, read by its ``loader/dataset.py``)."""
+
+# what the writer owns in the root: ``overwrite`` deletes these (and only these); radar_PCL is
+# derived from the cubes (radarpc.pipelines.radial_pcl), so new cubes make it stale
+_OUTPUTS = ("radar_FFT", "radar_Freespace", "labels.csv", "calibration.npz", "sensor.json", "scene.json",
+            SIM_FRAMES_FILE, SIM_VEHICLES_FILE,
+            "camera", "laser_PCL", "radar_PCL", "outputs.json")
 
 
 def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequences: int,
                          frames_per_sequence: int, seed: int, *, overwrite: bool = False,
                          progress: bool = True, device: torch.device | str | None = None,
-                         scene_config: RoadSceneConfig | None = None,
-                         on_finish: Callable[[int, int], None] | None = None) -> Path:
+                         scenes: SceneMix | None = None,
+                         on_finish: Callable[[int, int], None] | None = None,
+                         cube_format: str = "npy", camera: bool = True, laser: bool = True) -> Path:
     """Write a simulated RADIal root (resumable, atomic per file).
 
     ``on_finish(written, kept)``, when given, is told how many frames were simulated now and how
@@ -240,8 +319,9 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
         package version aside), which is then completed: a frame is kept only if its cube loads
         and validates fully (shape, complex, finite) and its PNG decodes as a valid mask; any
         other frame is regenerated. ``overwrite=True`` always starts over: it deletes the dataset
-        files (``radar_FFT/``, ``radar_Freespace/``, ``labels.csv``, ``calibration.npz``,
-        ``sensor.json``, ``scene.json``), even of a matching run.
+        files (``radar_FFT/``, ``radar_Freespace/``, ``camera/``, ``laser_PCL/``, ``radar_PCL/``,
+        ``labels.csv``, ``calibration.npz``, ``sensor.json``, ``scene.json``, ``outputs.json``),
+        even of a matching run.
     cfg : DDMARadarConfig
     n_sequences, frames_per_sequence, seed : int
     overwrite : bool
@@ -250,7 +330,20 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
         Show a tqdm progress bar.
     device : torch.device or str, optional
         Synthesis device (frames are reproducible per device).
-    scene_config : RoadSceneConfig, optional
+    scenes : SceneMix, optional
+        Scene presets and shares (default :data:`radarpc.sim.scenes.DEFAULT_MIX`).
+    cube_format : {"npy", "npz"}
+        :data:`CUBE_FORMATS`: ``radar_FFT/fft_*.npy``, or ``.npz`` (uncompressed, one array
+        ``arr_0``, as RADIal's ready-to-use release).
+    camera : bool
+        Write ``camera/image_*.jpg`` (:func:`radarpc.sim.radial_camera.render_camera`); the
+        ``x1_pix .. y2_pix`` label columns are filled either way.
+    laser : bool
+        Write ``laser_PCL/pcl_*.npy`` (:func:`radarpc.sim.radial_lidar.laser_scan`).
+
+    These three are recorded in ``outputs.json``; a partial run is resumed only with the same.
+    A kept frame also needs a camera image that decodes at 960 x 540 and a laser file of
+    ``(N, 8)`` finite float32 (when written); a missing or damaged one is rendered again alone.
 
     Returns
     -------
@@ -267,11 +360,14 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
     NotADirectoryError
         ``out`` is a file.
     """
-    sim = RadialSimulator(cfg, n_sequences, frames_per_sequence, seed, scene_config=scene_config,
+    if cube_format not in CUBE_FORMATS:
+        raise ValueError(f"cube_format must be one of {CUBE_FORMATS}, got {cube_format!r}")
+    sim = RadialSimulator(cfg, n_sequences, frames_per_sequence, seed, scenes=scenes,
                           device=device)
     meta = _sensor_json(cfg, seed, n_sequences, frames_per_sequence)
     # the package version is recorded but does not change the frames: it does not block a resume
-    manifests = {"sensor.json": meta, "scene.json": dataclasses.asdict(sim.scene_config)}
+    manifests = {"sensor.json": meta, "scene.json": sim.scenes.to_dict(),
+                 "outputs.json": {"cube_format": cube_format, "camera": bool(camera), "laser_PCL": bool(laser)}}
     run = RunFolder(out, manifests, what="dataset root", ignore_keys=("radarpc_version",), indent=2,
                     owned=_OUTPUTS)
     with run.start(overwrite=overwrite, resume=not overwrite, write_manifests=False):
@@ -280,6 +376,8 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
             run.write_manifest(name, content)
         save_calibration(root / "calibration.npz", make_calibration(cfg))
         rows: list[tuple] = []
+        truth_frames: list[tuple] = []
+        truth_vehicles: list[tuple] = []
         written = 0
         with tqdm(total=sim.n_frames, desc=f"simulate {cfg.name}", unit="frame", disable=not progress) as bar:
             for q in range(sim.n_sequences):
@@ -287,16 +385,37 @@ def write_radial_dataset(out: str | os.PathLike, cfg: DDMARadarConfig, n_sequenc
                     num = q * sim.frames_per_sequence + i
                     fr, frame_rows, fs = sim.geometry(q, i)
                     rows.extend(frame_rows)
-                    fpath, ppath = fft_path(root, num), freespace_path(root, num)
+                    truth_frames.append(sim.frame_truth_row(q, i, fr))
+                    truth_vehicles.extend(sim.vehicle_truth_rows(q, i, fr))
+                    fpath, ppath = fft_path(root, num, "." + cube_format), freespace_path(root, num)
+                    wrote = False
                     if not (run.done(fpath, check=lambda p: _fft_complete(p, cfg))
                             and run.done(ppath, check=_png_complete)):
-                        save_npy_atomic(fpath, sim.rd(q, i, fr).cpu().numpy())
+                        cube = sim.rd(q, i, fr).cpu().numpy()
+                        if cube_format == "npz":
+                            save_fft_npz(root, num, cube, compress=False)
+                        else:
+                            save_npy_atomic(fpath, cube)
                         with atomic_write(ppath, "wb") as f:
                             f.write(_png_bytes(fs))
-                        written += 1
+                        wrote = True
+                    cpath = camera_path(root, num)
+                    if camera and not run.done(cpath, check=_jpeg_complete):
+                        with atomic_write(cpath, "wb") as f:
+                            f.write(jpeg_bytes(render_camera(fr, lane_width_m=sim.preset(q).lane_width_m)))
+                        wrote = True
+                    lpath = laser_pcl_path(root, num)
+                    if laser and not run.done(lpath, check=_laser_complete):
+                        save_npy_atomic(lpath, laser_scan(fr))
+                        wrote = True
+                    written += wrote
                     bar.update(1)
         with atomic_write(root / "labels.csv", "w") as f:
             f.write(_labels_csv(rows))
+        with atomic_write(root / SIM_FRAMES_FILE, "w") as f:
+            f.write(_csv(SIM_FRAME_COLUMNS, truth_frames))
+        with atomic_write(root / SIM_VEHICLES_FILE, "w") as f:
+            f.write(_csv(SIM_VEHICLE_COLUMNS, truth_vehicles))
     if on_finish is not None:
         on_finish(written, sim.n_frames - written)
     return root
@@ -322,7 +441,8 @@ class SimulatedRADIal(RadialFrames):
         As for ``RADIal``; an empty split raises ``ValueError``.
     device : torch.device or str, optional
         Synthesis device and device of the returned tensors (default CPU).
-    scene_config : RoadSceneConfig, optional
+    scenes : SceneMix, optional
+        Scene presets and shares (default :data:`radarpc.sim.scenes.DEFAULT_MIX`).
     difficult, skip, random_split :
         As for ``RADIal``.
     split_seed : int
@@ -331,20 +451,20 @@ class SimulatedRADIal(RadialFrames):
     Notes
     -----
     The label rows of every frame of the run are computed at construction (scene geometry
-    only, about 1 ms a frame), since the split, ``difficult`` and ``random_split`` rules need
+    only, a few ms a frame), since the split, ``difficult`` and ``random_split`` rules need
     them; cubes and freespace masks are generated per item.
     """
 
     def __init__(self, cfg: DDMARadarConfig, n_sequences: int, frames_per_sequence: int, seed: int,
                  split: str = "train", device: torch.device | str | None = None, *,
-                 scene_config: RoadSceneConfig | None = None, difficult: bool = True,
+                 scenes: SceneMix | None = None, difficult: bool = True,
                  skip: Iterable[int] | str | os.PathLike | None = None,
                  random_split: tuple[float, float, float] | None = None,
                  split_seed: int = 0) -> None:
         if split not in SPLIT_CHOICES:
             raise ValueError(f"split must be one of {SPLIT_CHOICES}, got {split!r}")
         self.sim = RadialSimulator(cfg, n_sequences, frames_per_sequence, seed,
-                                   scene_config=scene_config, device=device)
+                                   scenes=scenes, device=device)
         self.split = split
         self.sensor = cfg
         self.difficult = bool(difficult)

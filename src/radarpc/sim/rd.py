@@ -6,8 +6,8 @@ FFT is known in closed form, so the cube is built directly in the frequency doma
 
 .. math::
 
-    \\mathrm{RD}[r, d, rx] = \\sum_s \\sum_{m=0}^{M-1} \\alpha_s\\, a_{m n_{rx} + rx}(\\theta_s)\\,
-        W_r(r - b_s)\\, W_d(d - d_s - o_m) + n[r, d, rx]
+    \\mathrm{RD}[r, d, rx] = \\sum_s \\sum_{m=0}^{M-1} \\alpha_s\\, |H(f_{b_s})|\\, a_{m n_{rx} + rx}(\\theta_s)\\,
+        W_r(r - b_s)\\, W_d(d - d_s - o_m) + \\mathrm{leak}[r, d, rx] + n[r, d, rx] + \\mathrm{pn}[r, d, rx]
 
 * ``b_s = R_s / range_res_m`` is the fractional range bin (range of bin ``i`` is ``i * range_res_m``);
 * ``d_s = v_s / velocity_res_mps`` the fractional Doppler bin (receding positive); with the DDMA
@@ -16,18 +16,32 @@ FFT is known in closed form, so the cube is built directly in the frequency doma
 * ``W_N(delta) = sum_n w[n] exp(-j 2 pi delta n / N)`` is the DTFT of the window (periodic Hamming
   over ``N`` samples, as RADIal's processing uses over 512 samples and 256 chirps), evaluated at
   fractional offsets: main lobe, straddle loss and every sidelobe are the exact ones of the FFT;
-* ``a_v(theta)`` is the virtual-array response with the hardware errors of the unit
-  (:func:`radarpc.sensors.radial.steering_vectors`, channel ``v = tx * n_rx + rx``);
+* ``a_v(theta)`` is the TRUE virtual-array response of the unit: element pattern, geometry,
+  mutual coupling, per-channel gain/phase errors (:func:`radarpc.sensors.radial.steering_vectors`,
+  channel ``v = tx * n_rx + rx``); the calibration table only estimates it;
 * ``alpha_s = A_s exp(j 4 pi R_s / lambda)``: amplitude ``A_s = sqrt(SNR_s * sigma_adc^2)`` from
-  the radar equation (:meth:`DDMARadarConfig.snr_per_sample`, ``R^-4`` and RCS) and the carrier
-  phase of the two-way path;
-* ``n`` is circular complex Gaussian thermal noise of power :func:`noise_power_rd` per cell.
+  the radar equation (:meth:`DDMARadarConfig.snr_per_sample`, ``R^-4`` and RCS, boresight gain)
+  and the carrier phase of the two-way path;
+* ``|H(f)|``: the IF filter (high-pass and anti-alias low-pass, :func:`receiver_gain`) at the
+  scatterer's beat frequency ``f_b = b_s f_s / n_range``: a tone passes a linear filter scaled by
+  its gain at the tone's frequency;
+* ``leak``: the Tx->Rx leakage, one more static source at ``leakage_range_m`` with the channel
+  pattern :func:`leakage_coefficients` instead of an array response, so it lands at range ~0 on
+  every Tx's DDMA offset;
+* ``n`` is circular complex Gaussian thermal noise of power :func:`noise_profile_rd` per cell of
+  range bin ``r``: ``noise_power_rd |H(f_r)|^2`` plus the ADC floor;
+* ``pn``: phase-noise skirts of the strong sources (:func:`skirt_power_rd`).
+
+``noise=False`` keeps the deterministic part (scatterers and leakage through the filter); the
+random parts ``n`` and ``pn`` are drawn from the frame's generator, in that order, so a frame is
+bit-reproducible from its seed on one device.
 
 FFT normalisation: unnormalised forward FFTs (``numpy.fft.fft``), so a scatterer's peak is
 ``A_s * sum(w_r) * sum(w_d)`` and the thermal noise of ADC power ``sigma_adc^2`` becomes
 ``sigma_adc^2 * sum(w_r^2) * sum(w_d^2)`` per cell. RD units are fixed by
 ``noise_power_rd(cfg) = cfg.adc_full_scale ** 2`` (noise standard deviation ``adc_full_scale`` per
-cell), which sets ``sigma_adc``. The peak SNR of a scatterer per RD cell per virtual channel is then
+cell before the IF filter), which sets ``sigma_adc`` (the choice of ``adc_full_scale`` is
+discussed in :class:`radarpc.sensors.radial.DDMARadarConfig`). The peak SNR of a scatterer per RD cell per virtual channel is then
 ``SNR_sample * n_range * n_doppler * L_r * L_d`` with window losses ``L = (sum w)^2 / (N sum w^2)``.
 
 Approximations, against the exact model of :mod:`radarpc.sim.adc` (which keeps the per-chirp,
@@ -43,6 +57,7 @@ The sum over scatterers is two dense products: ``M[s, d, rx] = sum_m W_d(...) al
 ``RD = P @ M`` with ``P[r, s] = W_r(r - b_s)`` -- full-length kernels, so far sidelobes of strong
 scatterers are kept. The kernels on the full axis are computed as FFTs of windowed tones
 (:func:`psf_columns`, 3-4x faster than the closed form :func:`window_psf`, equal to 1e-10).
+The skirts reuse the same two products for the few sources strong enough to have one.
 """
 from __future__ import annotations
 
@@ -53,7 +68,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from radarpc.sensors.radial import DDMARadarConfig, channel_errors
+from radarpc.sensors.radial import SPEED_OF_LIGHT, DDMARadarConfig, array_factors
 
 __all__ = [
     "HAMMING",
@@ -65,6 +80,12 @@ __all__ = [
     "noise_power_rd",
     "adc_noise_power",
     "peak_snr_rd",
+    "beat_hz",
+    "receiver_gain",
+    "noise_profile_rd",
+    "leakage_coefficients",
+    "phase_noise_psd",
+    "skirt_power_rd",
     "steering_torch",
     "synthesize_rd",
 ]
@@ -199,6 +220,7 @@ def window(n: int, *, device: torch.device | str | None = None,
     return (a0 - a1 * torch.cos(2 * math.pi * k / int(n))).to(dtype)
 
 
+@functools.lru_cache(maxsize=32)
 def window_sums(n: int) -> tuple[float, float]:
     """``(sum w, sum w^2)`` of the length-``n`` window: coherent gain and noise gain of the FFT."""
     w = window(n)
@@ -297,37 +319,139 @@ def peak_snr_rd(cfg: DDMARadarConfig, range_m, rcs_m2) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=16)
-def _array_constants(cfg: DDMARadarConfig) -> tuple[np.ndarray, np.ndarray]:
-    return cfg.virtual_positions.copy(), channel_errors(cfg)
+def _array_constants(cfg: DDMARadarConfig) -> tuple[np.ndarray, ...]:
+    t, r = array_factors(cfg)
+    return (np.asarray(cfg.tx_pos, dtype=np.float64), np.asarray(cfg.rx_pos, dtype=np.float64), t, r)
 
 
 def steering_torch(cfg: DDMARadarConfig, az_deg: torch.Tensor, el_deg: torch.Tensor, *,
                    hardware: bool = True) -> torch.Tensor:
     """Torch twin of :func:`radarpc.sensors.radial.steering_vectors` for ``(N,)`` angles.
 
-    Returns complex128 ``(N, n_virtual)`` on the angles' device.
+    ``hardware=True``: the true response (element pattern, coupling, channel errors). Returns
+    complex128 ``(N, n_virtual)`` on the angles' device.
     """
-    pos_np, err_np = _array_constants(cfg)
+    pt_np, pr_np, t_np, r_np = _array_constants(cfg)
     dev = az_deg.device
     a = torch.deg2rad(az_deg.to(torch.float64))
     e = torch.deg2rad(el_deg.to(torch.float64))
-    pos = torch.as_tensor(pos_np, device=dev)                       # (V, 2)
-    uy = torch.cos(e) * torch.sin(a)
-    uz = torch.sin(e)
-    phase = -math.pi * (uy[:, None] * pos[None, :, 0] + uz[:, None] * pos[None, :, 1])  # (N, V)
-    resp = torch.polar(torch.ones_like(phase), phase)
+    u = torch.stack([torch.cos(e) * torch.sin(a), torch.sin(e)], dim=1)         # (N, 2)
+    ph_t = -math.pi * (u @ torch.as_tensor(pt_np, device=dev).T)                # (N, n_tx)
+    ph_r = -math.pi * (u @ torch.as_tensor(pr_np, device=dev).T)                # (N, n_rx)
+    et = torch.polar(torch.ones_like(ph_t), ph_t)
+    er = torch.polar(torch.ones_like(ph_r), ph_r)
     if hardware:
-        resp = resp * torch.as_tensor(err_np, device=dev)[None, :]
-    return resp
+        et = et @ torch.as_tensor(t_np, device=dev).T
+        gain = (torch.cos(a).clamp_min(0) ** cfg.element_q_az) * (torch.cos(e).clamp_min(0) ** cfg.element_q_el)
+        er = (er @ torch.as_tensor(r_np, device=dev).T) * gain[:, None]
+    return (et[:, :, None] * er[:, None, :]).reshape(len(a), cfg.n_virtual)
+
+
+# ---- receiver ------------------------------------------------------------------------------------
+def beat_hz(cfg: DDMARadarConfig, bins):
+    """Beat frequency (Hz) of (fractional) range bin ``bins``: ``b f_s / n_range`` (= ``S 2 R / c``)."""
+    return np.asarray(bins, dtype=np.float64) * (cfg.sample_rate_hz / cfg.n_range) if not \
+        isinstance(bins, torch.Tensor) else bins.to(torch.float64) * (cfg.sample_rate_hz / cfg.n_range)
+
+
+def receiver_gain(cfg: DDMARadarConfig, bins):
+    """Amplitude gain of the IF chain at the beat frequency of range bin ``bins``.
+
+    .. math::
+
+        |H(f)|^2 = \\frac{(f / f_{hp})^{2 n_{hp}}}{1 + (f / f_{hp})^{2 n_{hp}}}
+                   \\cdot \\frac{1}{1 + (f / (c_{aa} f_s))^{2 n_{aa}}}
+
+    a Butterworth high-pass of order ``if_highpass_order`` at ``if_highpass_hz`` (it attenuates
+    the strong near-range returns: ``40 n_hp`` dB/decade below the corner) times a Butterworth
+    anti-alias low-pass of order ``aa_order`` at ``aa_cutoff * f_s`` (the far range bins roll off).
+    ``if_highpass_hz = 0`` / ``aa_order = 0`` switch a filter off. Zero-phase: the phase response
+    of the filter is a constant phase per scatterer, which no stage of radarpc observes. Works on
+    numpy arrays and torch tensors (float64).
+    """
+    f = beat_hz(cfg, bins)
+    lib = torch if isinstance(f, torch.Tensor) else np
+    g2 = lib.ones_like(f)
+    if cfg.if_highpass_hz > 0 and cfg.if_highpass_order > 0:
+        x = (lib.abs(f) / cfg.if_highpass_hz) ** (2 * cfg.if_highpass_order)
+        g2 = g2 * x / (1 + x)
+    if cfg.aa_order > 0:
+        g2 = g2 / (1 + (lib.abs(f) / (cfg.aa_cutoff * cfg.sample_rate_hz)) ** (2 * cfg.aa_order))
+    return lib.sqrt(g2)
+
+
+def noise_profile_rd(cfg: DDMARadarConfig) -> np.ndarray:
+    """Expected noise power per RD cell per Rx for each range bin, ``(n_range,)`` float64.
+
+    ``noise_power_rd * (|H(f_i)|^2 + 10^(adc_floor_db / 10))``: the thermal noise passes the IF
+    filter (:func:`receiver_gain`), the ADC adds its own white floor after it (quantisation, clock
+    jitter), so the far rows darken by the anti-alias roll-off down to that floor.
+    """
+    g = receiver_gain(cfg, np.arange(cfg.n_range))
+    floor = 0.0 if cfg.adc_floor_db is None else 10 ** (cfg.adc_floor_db / 10)
+    return noise_power_rd(cfg) * (g * g + floor)
+
+
+def leakage_coefficients(cfg: DDMARadarConfig) -> np.ndarray | None:
+    """Complex Tx->Rx leakage of each virtual channel, ``(n_tx, n_rx)``, or None when off.
+
+    Direct coupling from every Tx to every Rx (on-chip and antenna), a fixed property of the unit:
+    magnitude log-normal (3 dB std) around 1, uniform phase, from ``default_rng([hardware_seed, 11])``.
+    Scaled by :func:`synthesize_rd` so that an on-bin leakage peak of unit magnitude lies
+    ``leakage_db`` above the thermal noise per cell.
+    """
+    if cfg.leakage_db is None:
+        return None
+    rng = np.random.default_rng([cfg.hardware_seed, 11])
+    mag = 10 ** (rng.normal(0.0, 3.0, (cfg.n_tx, cfg.n_rx)) / 20)
+    return mag * np.exp(2j * np.pi * rng.uniform(0.0, 1.0, (cfg.n_tx, cfg.n_rx)))
+
+
+def phase_noise_psd(cfg: DDMARadarConfig, f_hz):
+    """LO phase-noise PSD ``L(f)`` (rad^2/Hz, two-sided) at offset ``f_hz``; 0 when off.
+
+    ``L(f) = L_0 / (1 + (f / f_c)^2) + L_floor``: flat inside the PLL loop bandwidth ``f_c =
+    pn_corner_hz`` at ``L_0 = pn_dbc_hz``, -20 dB/decade beyond, down to ``pn_floor_dbc_hz``.
+    """
+    lib = torch if isinstance(f_hz, torch.Tensor) else np
+    if cfg.pn_dbc_hz is None:
+        return lib.zeros_like(f_hz)
+    l0, lf = 10 ** (cfg.pn_dbc_hz / 10), 10 ** (cfg.pn_floor_dbc_hz / 10)
+    return l0 / (1 + (f_hz / cfg.pn_corner_hz) ** 2) + lf
+
+
+def skirt_power_rd(cfg: DDMARadarConfig, range_m, bins):
+    """Phase-noise skirt of a scatterer at ``range_m`` in range bins ``bins``, re its per-sample power.
+
+    The IF of a target of delay ``tau = 2 R / c`` carries the phase ``phi(t) - phi(t - tau)``: the
+    transmitted and the LO phase noise are the same process, delayed. Its PSD is
+    ``L(f) |1 - exp(-j 2 pi f tau)|^2 = 4 L(f) sin^2(pi f tau)`` (range correlation: near targets,
+    small ``tau``, have almost no skirt; it grows with range). The small-angle term ``j Delta phi``
+    at offset ``f`` from the target's beat frequency is noise of per-sample variance
+    ``A^2 4 L(f) sin^2(pi f tau) f_s``; it changes from chirp to chirp (the 50 us chirp outlasts
+    the 25 kHz bin spacing), so it is white over Doppler, and the windowed FFTs give per cell
+
+    .. math::
+
+        P_{pn}(i) = A^2\\, 4 L(f_i - f_b)\\, \\sin^2(\\pi (f_i - f_b) \\tau)\\, f_s\\, |H(f_i)|^2
+                    \\textstyle\\sum w_r^2 \\sum w_d^2
+
+    (``f_i`` the beat frequency of bin ``i``, ``f_b`` of the scatterer, ``f_s`` the sample rate;
+    the skirt passes the IF filter at its own frequency). Returns
+    ``P_pn / (A^2 sum w_r^2 sum w_d^2)``, broadcast over ``range_m`` and ``bins`` (numpy).
+    """
+    tau = 2.0 * np.asarray(range_m, dtype=np.float64) / SPEED_OF_LIGHT
+    f_off = beat_hz(cfg, bins) - beat_hz(cfg, np.asarray(range_m) / cfg.range_res_m)
+    g = receiver_gain(cfg, bins)
+    return 4 * phase_noise_psd(cfg, f_off) * np.sin(np.pi * f_off * tau) ** 2 * cfg.sample_rate_hz * g * g
 
 
 # ---- synthesis ---------------------------------------------------------------------------------
-def _signal_rd(cfg: DDMARadarConfig, sc: Scatterers, device: torch.device) -> torch.Tensor:
-    """Noise-free cube ``(n_range, n_doppler, n_rx)`` complex64 of the scatterers."""
-    nr, nd, ntx, nrx = cfg.n_range, cfg.n_doppler, cfg.n_tx, cfg.n_rx
-    n = len(sc)
-    if n == 0:
-        return torch.zeros((nr, nd, nrx), dtype=torch.complex64, device=device)
+def _sources(cfg: DDMARadarConfig, sc: Scatterers, device: torch.device):
+    """Per-sample complex amplitudes BEFORE the IF filter of every source: the scatterers, then the
+    Tx leakage (one pseudo-scatterer at ``leakage_range_m``, zero Doppler, channel pattern
+    :func:`leakage_coefficients`). Returns ``(range_m (S,), velocity (S,), chan (S, n_tx, n_rx))``
+    float64 / complex128."""
     f64 = torch.float64
     rng = sc.range_m.to(device=device, dtype=f64)                   # (S,)
     vel = sc.velocity_mps.to(device=device, dtype=f64)
@@ -338,22 +462,92 @@ def _signal_rd(cfg: DDMARadarConfig, sc: Scatterers, device: torch.device) -> to
     carrier = torch.remainder(2.0 * rng / cfg.wavelength_m, 1.0) * (2 * math.pi)   # 4 pi R / lambda mod 2 pi
     alpha = torch.polar(amp, carrier)                                # (S,)
     steer = steering_torch(cfg, sc.azimuth_deg.to(device), sc.elevation_deg.to(device))  # (S, V)
-    chan = (alpha[:, None] * steer).reshape(n, ntx, nrx).to(torch.complex64)      # (S, M, Rx)
+    chan = (alpha[:, None] * steer).reshape(len(sc), cfg.n_tx, cfg.n_rx)
+    leak = leakage_coefficients(cfg)
+    if leak is not None:
+        s_r, _ = window_sums(cfg.n_range)
+        s_d, _ = window_sums(cfg.n_doppler)
+        b_l = cfg.leakage_range_m / cfg.range_res_m
+        a_l = math.sqrt(10 ** (cfg.leakage_db / 10) * noise_power_rd(cfg)) / (s_r * s_d) \
+            / float(receiver_gain(cfg, b_l))                         # pre-filter, per sample
+        ph = 2 * math.pi * math.remainder(2.0 * cfg.leakage_range_m / cfg.wavelength_m, 1.0)
+        c_l = torch.as_tensor(leak * (a_l * np.exp(1j * ph)), device=device)[None]
+        rng = torch.cat([rng, torch.full((1,), cfg.leakage_range_m, dtype=f64, device=device)])
+        vel = torch.cat([vel, torch.zeros(1, dtype=f64, device=device)])
+        chan = torch.cat([chan, c_l])
+    return rng, vel, chan
 
-    # range PSF P[r, s] = W_r(r - b_s)
-    b = rng / cfg.range_res_m
-    p_range = psf_columns(b, nr).to(torch.complex64)                             # (R, S)
 
-    # Doppler PSF of Tx m: W_d(d - d_s - o_m) = Q0[s, (d - o_m) mod N_d] with Q0[s, d] = W_d(d - d_s)
-    d_s = vel / cfg.velocity_res_mps
-    q0 = psf_columns(d_s, nd).T.to(torch.complex64)                              # (S, D)
-    offs = torch.as_tensor(cfg.doppler_offsets, device=device)                   # (M,)
-    gather = torch.remainder(torch.arange(nd, device=device)[None, :] - offs[:, None], nd)  # (M, D)
+def _ddma_mix(cfg: DDMARadarConfig, q0: torch.Tensor, chan: torch.Tensor) -> torch.Tensor:
+    """``M[s, d, rx] = sum_m q0[s, (d - o_m) mod N_d] chan[s, m, rx]``: Tx ``m`` shifted by its DDMA
+    offset. ``q0`` (S, D), ``chan`` (S, M, Rx) complex64 -> (S, D * Rx)."""
+    nd = cfg.n_doppler
+    offs = torch.as_tensor(cfg.doppler_offsets, device=q0.device)                # (M,)
+    gather = torch.remainder(torch.arange(nd, device=q0.device)[None, :] - offs[:, None], nd)  # (M, D)
     q = q0[:, gather]                                                            # (S, M, D)
+    return torch.bmm(q.transpose(1, 2), chan).reshape(q0.shape[0], nd * cfg.n_rx)  # (S, D*Rx)
 
-    m = torch.bmm(q.transpose(1, 2), chan)                                       # (S, D, Rx)
-    rd = p_range @ m.reshape(n, nd * nrx)                                        # (R, D*Rx)
-    return rd.reshape(nr, nd, nrx)
+
+def _signal_rd(cfg: DDMARadarConfig, rng: torch.Tensor, vel: torch.Tensor, chan: torch.Tensor) -> torch.Tensor:
+    """Noise-free cube ``(n_range, n_doppler, n_rx)`` complex64 of the sources (after the IF filter)."""
+    nr, nd, nrx = cfg.n_range, cfg.n_doppler, cfg.n_rx
+    if len(rng) == 0:
+        return torch.zeros((nr, nd, nrx), dtype=torch.complex64, device=rng.device)
+    b = rng / cfg.range_res_m
+    chan = (chan * receiver_gain(cfg, b)[:, None, None]).to(torch.complex64)     # (S, M, Rx)
+    p_range = psf_columns(b, nr).to(torch.complex64)                             # (R, S): W_r(r - b_s)
+    q0 = psf_columns(vel / cfg.velocity_res_mps, nd).T.to(torch.complex64)       # (S, D): W_d(d - d_s)
+    return (p_range @ _ddma_mix(cfg, q0, chan)).reshape(nr, nd, nrx)
+
+
+_SKIRT_FLOOR = 1e-2
+"""Skirts below this fraction of the local noise floor in every cell are left out (< 1 % of the
+cell power, and most scatterers: only strong ones pay for a skirt)."""
+
+
+def _skirts_rd(cfg: DDMARadarConfig, rng: torch.Tensor, chan: torch.Tensor,
+               generator: torch.Generator | None) -> torch.Tensor | None:
+    """Phase-noise skirts of the strong sources (:func:`skirt_power_rd`), or None if there are none.
+
+    Per source a rank-one random field: ``Skirt[r, d, rx] = sum_s e_s(r) eta_s(r) sum_m
+    Xi_s[(d - o_m) mod N_d] chan[s, m, rx]`` with ``e_s^2`` the skirt power profile and ``eta``,
+    ``Xi`` unit circular Gaussians: every cell has the right expected power and the channel
+    signature of its source (the phase noise is common to all Tx and Rx, shifted by each Tx's DDMA
+    offset); it ignores the correlation the windows put between neighbouring cells and the
+    independence of cells of one source (a rank-one product instead).
+    """
+    if cfg.pn_dbc_hz is None or len(rng) == 0:
+        return None
+    _, q_r = window_sums(cfg.n_range)
+    _, q_d = window_sums(cfg.n_doppler)
+    profile = noise_profile_rd(cfg)
+    peak2 = (chan.abs() ** 2).amax(dim=(1, 2)).cpu().numpy()                   # (S,)
+    # candidates by an upper bound, then the exact profile: |H| <= 1 and
+    # 4 L(f) sin^2(pi f tau) <= 4 min(L_0 + L_f, (pi tau)^2 (L_0 f_c^2 + L_f f_s^2))
+    # (sin x <= x, L_0 f^2 / (1 + (f / f_c)^2) <= L_0 f_c^2, |f| <= f_s)
+    l0, lf = 10 ** (cfg.pn_dbc_hz / 10), 10 ** (cfg.pn_floor_dbc_hz / 10)
+    tau = 2.0 * rng.detach().cpu().numpy() / SPEED_OF_LIGHT
+    fs = cfg.sample_rate_hz
+    top = 4 * np.minimum(l0 + lf, (np.pi * tau) ** 2 * (l0 * cfg.pn_corner_hz ** 2 + lf * fs * fs)) * fs * q_r * q_d
+    cand = np.flatnonzero(peak2 * top / profile.min() > _SKIRT_FLOOR)
+    if cand.size == 0:
+        return None
+    r_np = rng.detach().cpu().numpy()[cand]
+    env2 = skirt_power_rd(cfg, r_np[None, :], np.arange(cfg.n_range)[:, None]) * (q_r * q_d)   # (R, S')
+    keep = (env2 * peak2[cand][None, :] / profile[:, None]).max(0) > _SKIRT_FLOOR
+    strong, env2 = cand[keep], env2[:, keep]
+    if strong.size == 0:
+        return None
+    dev = rng.device
+    idx = torch.as_tensor(strong, device=dev)
+    n = len(strong)
+    nr, nd = cfg.n_range, cfg.n_doppler
+    z = torch.empty((nr + nd, n, 2), dtype=torch.float32, device=dev)
+    z.normal_(generator=generator)
+    z = torch.view_as_complex(z) * math.sqrt(0.5)                                # CN(0, 1)
+    p = torch.as_tensor(np.sqrt(env2), device=dev).to(torch.float32) * z[:nr]   # (R, S')
+    m = _ddma_mix(cfg, z[nr:].T.contiguous(), chan[idx].to(torch.complex64))   # (S', D*Rx)
+    return (p @ m).reshape(nr, nd, cfg.n_rx)
 
 
 def _check_generator(generator: torch.Generator | None, device: torch.device) -> None:
@@ -374,7 +568,10 @@ def synthesize_rd(cfg: DDMARadarConfig, scatterers: Scatterers | list[Scatterers
     scatterers : Scatterers or list of Scatterers
         One frame, or a batch of frames.
     noise : bool
-        Add complex Gaussian thermal noise of power :func:`noise_power_rd` per cell.
+        Add the random parts: complex Gaussian thermal noise shaped by the IF filter plus the ADC
+        floor (:func:`noise_profile_rd` per cell), and the phase-noise skirts of strong sources
+        (:func:`skirt_power_rd`). ``False``: the deterministic cube (scatterers and Tx leakage,
+        after the IF filter).
     generator : torch.Generator, optional
         Source of the noise (on ``device``); the global torch RNG if omitted.
     device : torch.device or str, optional
@@ -393,11 +590,16 @@ def synthesize_rd(cfg: DDMARadarConfig, scatterers: Scatterers | list[Scatterers
     if not isinstance(scatterers, Scatterers):
         raise ValueError(f"synthesize_rd expects Scatterers or a list of them, got {type(scatterers).__name__}")
     dev = torch.device(device) if device is not None else scatterers.device
-    rd = _signal_rd(cfg, scatterers, dev)
+    rng, vel, chan = _sources(cfg, scatterers, dev)
+    rd = _signal_rd(cfg, rng, vel, chan)
     if noise:
         _check_generator(generator, dev)
         z = torch.empty((*cfg.rd_shape, 2), dtype=torch.float32, device=dev)
         z.normal_(generator=generator)                               # real and imaginary parts
-        z.mul_(math.sqrt(noise_power_rd(cfg) / 2.0))
+        scale = torch.as_tensor(np.sqrt(noise_profile_rd(cfg) / 2.0), dtype=torch.float32, device=dev)
+        z.mul_(scale[:, None, None, None])
         rd.add_(torch.view_as_complex(z))
+        skirts = _skirts_rd(cfg, rng, chan, generator)
+        if skirts is not None:
+            rd.add_(skirts)
     return rd

@@ -1,0 +1,41 @@
+"""``radarpc evaluate RUN``: RADIal's metrics of a trained run's best weights on a split.
+
+::
+
+    radarpc evaluate runs/sp057 --split test
+    radarpc evaluate runs/fft --split test --show 5
+
+Prints and writes ``RUN/eval_{split}.md`` and ``.json``: AP, AR and F1 at IoU 0.5 over the
+confidence thresholds 0.1 .. 0.9, precision/recall/F1 at confidence 0.2, mean range (m) and
+azimuth (deg) errors of matched pairs, freespace mIoU (rows 0..123, 0-50 m), the parameter count
+and the batch-1 frames/s on the evaluation device. ``--show K`` draws the first K frames
+(``RUN/figures/eval_{split}_{k}.png``): points or nothing in bird's-eye view with the label and
+predicted boxes, and the predicted probability map. A folder of several runs (``--runs N``) is
+evaluated run by run, then summarised (mean and standard deviation).
+"""
+from __future__ import annotations
+
+import argparse
+
+__all__ = ["add_parser", "run"]
+
+
+def run(args: argparse.Namespace) -> int:
+    from radarpc.experiments.detection import evaluate_run
+
+    evaluate_run(args.run, args.split, data=args.data, points=args.points, device=args.device,
+                 show=args.show, fps_frames=args.fps_frames)
+    return 0
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("evaluate", help="RADIal metrics, figures and frames/s of a trained run",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run", help="run folder of `radarpc train`")
+    p.add_argument("--split", default="test", choices=("train", "val", "test", "all"), help="split (default test)")
+    p.add_argument("--data", default=None, help="RADIal root (default: the one the run was trained on)")
+    p.add_argument("--points", default=None, help="point store (default: the one the run was trained on)")
+    p.add_argument("--device", default=None, help="torch device (default: a GPU if any, else the CPU)")
+    p.add_argument("--show", type=int, default=0, metavar="K", help="draw the first K frames")
+    p.add_argument("--fps-frames", type=int, default=20, help="frames timed for frames/s (default 20)")
+    p.set_defaults(func=run)

@@ -1,0 +1,236 @@
+"""Detection experiments: train runs of one config (``--runs N`` seeds), evaluate a run folder.
+
+A run folder (:func:`train_runs` with one run) holds ``run.json`` (the key: the resolved
+:class:`~radarpc.training.radial.ExperimentConfig` and the data it was trained on),
+``config.yaml`` (the same config, readable and reusable), the checkpoints, ``best.safetensors``
+and ``log.csv``. With ``runs = N > 1`` the folder holds ``run0 .. run{N-1}`` (seeds
+``train.seed + k``) and ``summary.json`` / ``summary.md`` with the mean and standard deviation of
+the best validation metrics.
+
+:func:`evaluate_run` scores a run's best weights on a split with RADIal's metrics and writes
+``eval_{split}.json`` and ``eval_{split}.md`` into the run folder (for a multi-run folder: every
+run, then the mean and standard deviation), with the parameter count and the batch-1 inference
+frames/s on the evaluation device, and optionally BEV figures.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+import os
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from radarpc.config import from_dict, load_yaml, save_yaml, to_dict
+from radarpc.io import DataFileError, atomic_write
+from radarpc.runs import read_json
+from radarpc.training.checkpoint import load_weights
+from radarpc.training.loop import BEST_WEIGHTS, FitResult, fit
+from radarpc.eval.detection import FIXED_THRESHOLD
+from radarpc.models.targets import decode_detections
+from radarpc.training.radial import (DetectionBatch, ExperimentConfig, RadialDetectionTask, build_model,
+                                     collate_detection, detection_dataset, evaluate_model)
+
+__all__ = ["load_experiment", "run_key", "train_runs", "EvalResult", "evaluate_run", "run_folders",
+           "SUMMARY_METRICS"]
+
+SUMMARY_METRICS = ("f1", "ap", "ar", "f1_fixed", "range_error_m", "azimuth_error_deg", "freespace_miou")
+"""Metrics summarised over runs (mean and standard deviation)."""
+
+
+def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
+    """Read an experiment YAML (safe loading; unknown keys and bad values name the file)."""
+    return load_yaml(ExperimentConfig, path)
+
+
+def run_key(cfg: ExperimentConfig, data: str | os.PathLike, points: str | os.PathLike | None) -> dict:
+    """What identifies a run: the whole config and the absolute paths of its data."""
+    return {"experiment": to_dict(cfg), "data": str(Path(data).resolve()),
+            "points": str(Path(points).resolve()) if points is not None else None}
+
+
+def _seeded(cfg: ExperimentConfig, k: int) -> ExperimentConfig:
+    return dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, seed=cfg.train.seed + k))
+
+
+def run_folders(out: str | os.PathLike) -> list[Path]:
+    """The run folders of ``out``: itself when it holds a run, else its ``run*`` sub-folders."""
+    out = Path(out)
+    if (out / "run.json").is_file():
+        return [out]
+    runs = sorted((p for p in out.glob("run*") if (p / "run.json").is_file()),
+                  key=lambda p: int(p.name[3:]) if p.name[3:].isdigit() else -1)
+    if not runs:
+        raise FileNotFoundError(f"{out}: no training run here (no run.json, no run*/run.json)")
+    return runs
+
+
+def train_runs(cfg: ExperimentConfig, data: str | os.PathLike, out: str | os.PathLike, *,
+               points: str | os.PathLike | None = None, runs: int = 1, device: str | None = None,
+               overwrite: bool = False, progress: bool = True,
+               log: Callable[[str], None] = print) -> list[FitResult]:
+    """Train ``runs`` seeds of ``cfg`` into ``out`` (see the module docstring); resumable."""
+    if runs < 1:
+        raise ValueError(f"runs must be >= 1, got {runs}")
+    out = Path(out)
+    task = RadialDetectionTask(cfg, data, points)
+    results = []
+    for k in range(runs):
+        run_cfg = _seeded(cfg, k)
+        folder = out if runs == 1 else out / f"run{k}"
+        task.cfg = run_cfg
+        res = fit(task, run_cfg.train, folder, run_key(run_cfg, data, points), device=device,
+                  overwrite=overwrite, progress=progress, log=log, extra_outputs=("config.yaml",))
+        if not (folder / "config.yaml").is_file():
+            save_yaml(run_cfg, folder / "config.yaml")
+        results.append(res)
+    if runs > 1:
+        rows = [{"run": k, "best_epoch": r.best_epoch,
+                 **{m: r.history[r.best_epoch].get(f"val_{m}", math.nan) for m in SUMMARY_METRICS}}
+                for k, r in enumerate(results)]
+        _write_summary(out / "summary", rows, f"{cfg.name}: best validation epoch of {runs} runs")
+    return results
+
+
+def _mean_std(rows: list[dict], key: str) -> tuple[float, float]:
+    v = [float(r[key]) for r in rows if key in r and not math.isnan(float(r[key]))]
+    if not v:
+        return math.nan, math.nan
+    return statistics.fmean(v), (statistics.stdev(v) if len(v) > 1 else 0.0)
+
+
+def _write_summary(stem: Path, rows: list[dict], title: str) -> None:
+    summary = {m: dict(zip(("mean", "std"), _mean_std(rows, m))) for m in SUMMARY_METRICS}
+    with atomic_write(stem.with_suffix(".json"), "w") as f:
+        json.dump({"runs": rows, "summary": summary}, f, indent=2)
+    lines = [f"# {title}", "", "| metric | mean | std |", "|---|---|---|"]
+    lines += [f"| {m} | {s['mean']:.4f} | {s['std']:.4f} |" for m, s in summary.items()]
+    with atomic_write(stem.with_suffix(".md"), "w") as f:
+        f.write("\n".join(lines) + "\n")
+
+
+@dataclass
+class EvalResult:
+    """What :func:`evaluate_run` measured for one run."""
+
+    run: Path
+    split: str
+    metrics: dict
+    parameters: int
+    fps: float
+    device: str
+    threads: int
+
+
+def _load_run(folder: Path) -> tuple[ExperimentConfig, dict]:
+    key = read_json(folder / "run.json")
+    if not isinstance(key, dict) or "experiment" not in key:
+        raise DataFileError(folder / "run.json", "not a radarpc training run key (no 'experiment')")
+    return from_dict(ExperimentConfig, key["experiment"], where=str(folder / "run.json")), key
+
+
+def _fps(model: torch.nn.Module, batches: list[DetectionBatch], device: torch.device, repeats: int = 3) -> float:
+    """Batch-1 forward passes per second (after one warm-up pass), median of ``repeats`` sweeps."""
+    if not batches:
+        return math.nan
+    rates = []
+    with torch.inference_mode():
+        model(batches[0].inputs)
+        for _ in range(repeats):
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            t0 = time.perf_counter()
+            for b in batches:
+                model(b.inputs)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            rates.append(len(batches) / (time.perf_counter() - t0))
+    return float(statistics.median(rates))
+
+
+def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: str | os.PathLike | None = None,
+                 points: str | os.PathLike | None = None, device: str | None = None, show: int = 0,
+                 fps_frames: int = 20, batch_size: int = 4, progress: bool = True,
+                 log: Callable[[str], None] = print) -> list[EvalResult]:
+    """Score the best weights of every run in ``run`` on ``split`` (see the module docstring).
+
+    ``data`` / ``points`` override the paths stored with the run (e.g. a moved dataset).
+    """
+    from radarpc.viz import plot_detection_frame
+
+    dev = torch.device(device) if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    results = []
+    for folder in run_folders(run):
+        cfg, key = _load_run(folder)
+        best = folder / BEST_WEIGHTS
+        if not best.is_file():
+            raise FileNotFoundError(f"{folder}: no {BEST_WEIGHTS} yet (the run has not finished an epoch)")
+        state, _ = load_weights(best)
+        model = build_model(cfg)
+        model.load_state_dict(state)
+        model.to(dev).eval()
+        ds = detection_dataset(cfg, data or key["data"], points or key.get("points"), split)
+        collate = functools.partial(collate_detection, cfg=cfg)
+        loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate)
+        with torch.inference_mode():
+            report, miou = evaluate_model(model, loader, dev, cfg.targets, max_candidates=None)
+        metrics = report.to_dict()
+        metrics["freespace_miou"] = miou
+        single = DataLoader(ds, batch_size=1, shuffle=False, collate_fn=collate)
+        frames = []
+        for b in single:
+            frames.append(b.to(dev))
+            if len(frames) >= fps_frames:
+                break
+        fps = _fps(model, frames, dev)
+        n_params = sum(p.numel() for p in model.parameters())
+        res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads())
+        _write_eval(folder, res, cfg)
+        if show:
+            with torch.inference_mode():
+                for k, b in enumerate(frames[:show]):
+                    out = model(b.inputs)
+                    dets = decode_detections(out.detection.float(), cfg.targets, threshold=FIXED_THRESHOLD)
+                    plot_detection_frame(b.to(torch.device("cpu")), dets.to("cpu"), out.detection[0, 0].float().cpu(),
+                                         folder / "figures" / f"eval_{split}_{k}.png",
+                                         title=f"{cfg.name} {split} item {k}")
+        log(f"{folder}: {split} F1 {metrics['f1']:.4f} (AP {metrics['ap']:.4f}, AR {metrics['ar']:.4f}), "
+            f"F1@0.2 {metrics['f1_fixed']:.4f}, freespace mIoU {miou if miou is not None else float('nan'):.4f}, "
+            f"{n_params:,} parameters, {fps:.1f} frames/s at batch 1 on {dev}")
+        results.append(res)
+    if len(results) > 1:
+        rows = [{"run": k, **{m: (r.metrics.get(m) if r.metrics.get(m) is not None else math.nan)
+                              for m in SUMMARY_METRICS}} for k, r in enumerate(results)]
+        _write_summary(Path(run) / f"eval_{split}_summary", rows, f"{split}: {len(results)} runs")
+    return results
+
+
+def _write_eval(folder: Path, res: EvalResult, cfg: ExperimentConfig) -> None:
+    m = res.metrics
+    doc = {"split": res.split, "metrics": m, "parameters": res.parameters, "fps_batch1": res.fps,
+           "device": res.device, "threads": res.threads}
+    with atomic_write(folder / f"eval_{res.split}.json", "w") as f:
+        json.dump(doc, f, indent=2)
+    thr = ", ".join(f"{t:.1f}" for t in m["thresholds"])
+    lines = [
+        f"# {cfg.name}: {res.split} split ({m['n_frames']} frames)", "",
+        "| AP | AR | F1 | F1 @ 0.2 | range error (m) | azimuth error (deg) | freespace mIoU | parameters | frames/s (batch 1) |",
+        "|---|---|---|---|---|---|---|---|---|",
+        f"| {m['ap']:.4f} | {m['ar']:.4f} | {m['f1']:.4f} | {m['f1_fixed']:.4f} | {m['range_error_m']:.3f} | "
+        f"{m['azimuth_error_deg']:.3f} | "
+        f"{(m['freespace_miou'] if m['freespace_miou'] is not None else math.nan):.4f} | {res.parameters:,} | "
+        f"{res.fps:.1f} ({res.device}, {res.threads} threads) |", "",
+        f"AP and AR: means over the confidence thresholds {thr} at IoU 0.5; F1 = 2 AP AR / (AP + AR). "
+        f"F1 @ 0.2: precision and recall at confidence 0.2. Errors: mean absolute range and azimuth "
+        f"differences of matched pairs at the sweep's thresholds.",
+    ]
+    with atomic_write(folder / f"eval_{res.split}.md", "w") as f:
+        f.write("\n".join(lines) + "\n")

@@ -1,0 +1,238 @@
+"""RADIal detection and freespace: the experiment config, its datasets and the task the loop trains.
+
+One :class:`ExperimentConfig` describes a run: exactly one model section (``fftradnet`` on RD
+cubes, dense or a sparse-RD root, or ``pillars`` on a point store), the RADIal targets, the
+loss weights and the :class:`~radarpc.training.loop.TrainConfig`. It is stored whole with the run
+(``run.json``, ``config.yaml`` and inside every weights file) and is all :func:`build_model`
+needs to rebuild the model.
+
+:class:`RadialDetectionTask` gives the loop its datasets (:class:`~radarpc.data.radial.RADIal`
+for cubes, :class:`~radarpc.data.point_dataset.PointCloudDataset` for points), a collate that
+encodes the target maps in the loader's workers, the weighted RADIal loss, and validation by
+RADIal's metrics (:mod:`radarpc.eval.detection`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+import torch
+from torch import nn
+
+from radarpc.data.point_dataset import PointCloudDataset, PointFrameBatch, collate_point_frames
+from radarpc.data.radial import RADIal
+from radarpc.eval.detection import DetectionMetrics, FreespaceMetrics
+from radarpc.models.fftradnet import FFTRadNet, FFTRadNetConfig, input_statistics
+from radarpc.models.heads import HeadOutput
+from radarpc.models.losses import LossConfig, detection_loss
+from radarpc.models.pillars import PillarsConfig, PointPillars
+from radarpc.models.targets import TargetConfig, decode_detections, encode_batch
+from radarpc.points import PointCloudBatch
+from radarpc.training.loop import TrainConfig
+
+__all__ = ["ExperimentConfig", "DetectionBatch", "build_model", "RadialDetectionTask", "collate_cubes",
+           "collate_detection", "detection_dataset", "evaluate_model",
+           "DECODE_THRESHOLD", "MAX_CANDIDATES"]
+
+DECODE_THRESHOLD = 0.05
+"""RADIal's decoding threshold: cells with probability >= 0.05 become candidates before NMS."""
+MAX_CANDIDATES = 512
+"""At most this many of the most probable cells per frame enter NMS during validation: an
+untrained model puts most of the 28,672 cells above 0.05, and greedy NMS is sequential."""
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """A detection experiment: one model section, targets, loss and training settings.
+
+    Attributes
+    ----------
+    name : str
+        Shown in logs and reports.
+    fftradnet, pillars : FFTRadNetConfig or PillarsConfig
+        Exactly one is set: FFTRadNet reads RD cubes (``--data`` a RADIal root, or a sparse-RD
+        root for the sparse-RD baseline); the pillar models read a point store (``--points``).
+    difficult : bool
+        Train and validate with RADIal's ``Difficult`` labels (RADIal's own evaluation keeps them).
+    statistics_frames : int
+        Training frames (evenly spaced) whose cubes give FFTRadNet's input normalisation.
+    targets, loss, train :
+        RADIal's encoding, the loss weights and the optimisation.
+    """
+
+    name: str
+    fftradnet: FFTRadNetConfig | None = None
+    pillars: PillarsConfig | None = None
+    difficult: bool = True
+    statistics_frames: int = 256
+    targets: TargetConfig = field(default_factory=TargetConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def __post_init__(self) -> None:
+        if (self.fftradnet is None) == (self.pillars is None):
+            raise ValueError(f"experiment {self.name!r}: set exactly one of 'fftradnet' and 'pillars'")
+        if self.statistics_frames < 1:
+            raise ValueError(f"statistics_frames must be >= 1, got {self.statistics_frames}")
+
+    @property
+    def input_kind(self) -> str:
+        """``"rd"`` (cubes) or ``"points"``."""
+        return "rd" if self.fftradnet is not None else "points"
+
+
+@dataclass
+class DetectionBatch:
+    """A collated batch: model input, offset-batched labels, freespace and encoded targets.
+
+    Attributes
+    ----------
+    inputs : complex Tensor ``(B, Nr, Nd, Nrx)`` or PointCloudBatch
+    labels : float32 ``(M, 14)``, frame ``b`` rows ``label_offset[b-1]:label_offset[b]``
+    label_offset : LongTensor ``(B,)``
+    freespace : bool ``(B, 256, 224)``
+    target : float32 ``(B, 3, 128, 224)``
+    """
+
+    inputs: torch.Tensor | PointCloudBatch
+    labels: torch.Tensor
+    label_offset: torch.Tensor
+    freespace: torch.Tensor
+    target: torch.Tensor
+
+    def to(self, device: torch.device) -> "DetectionBatch":
+        return DetectionBatch(self.inputs.to(device), self.labels.to(device), self.label_offset.to(device),
+                              self.freespace.to(device), self.target.to(device))
+
+
+def collate_cubes(items: list, targets: TargetConfig) -> DetectionBatch:
+    """Collate ``RADIal`` items ``(rd, labels, freespace)`` and encode their targets."""
+    labels = [it[1] for it in items]
+    offset = torch.cumsum(torch.tensor([len(x) for x in labels], dtype=torch.int64), 0)
+    lab = torch.cat(labels) if labels else torch.zeros(0, 14)
+    return DetectionBatch(torch.stack([it[0] for it in items]), lab, offset,
+                          torch.stack([it[2] for it in items]), encode_batch(lab, offset, targets))
+
+
+def _collate_points(items: list, targets: TargetConfig) -> DetectionBatch:
+    b: PointFrameBatch = collate_point_frames(items)
+    return DetectionBatch(b.points, b.labels, b.label_offset, b.freespace,
+                          encode_batch(b.labels, b.label_offset, targets))
+
+
+def collate_detection(items: list, cfg: ExperimentConfig) -> DetectionBatch:
+    """Collate items of :func:`detection_dataset` and encode their target maps."""
+    if cfg.input_kind == "rd":
+        return collate_cubes(items, cfg.targets)
+    return _collate_points(items, cfg.targets)
+
+
+def detection_dataset(cfg: ExperimentConfig, data: str | os.PathLike, points: str | os.PathLike | None,
+                      split: str):
+    """The dataset of ``split`` for ``cfg``'s input: RD cubes of ``data``, or the point store
+    ``points`` joined with ``data``'s labels."""
+    data = Path(data)
+    if cfg.input_kind == "rd":
+        ds = RADIal(data, split=split, difficult=cfg.difficult)
+        fc = cfg.fftradnet
+        if ds.sensor.rd_shape != (fc.n_range, fc.n_doppler, fc.n_rx):
+            raise ValueError(f"{data}: cubes of sensor {ds.sensor.name!r} are {ds.sensor.rd_shape}, the "
+                             f"model takes ({fc.n_range}, {fc.n_doppler}, {fc.n_rx}); pick the config of "
+                             f"this sensor (e.g. fftradnet-s for radial-s)")
+        return ds
+    if points is None:
+        raise ValueError(f"experiment {cfg.name!r} trains on point clouds: give the point store "
+                         f"(--points FILE.parquet, made by `radarpc pointcloud {data}`)")
+    return PointCloudDataset(points, data, split=split, difficult=cfg.difficult)
+
+
+def build_model(cfg: ExperimentConfig) -> nn.Module:
+    """The model of ``cfg`` (fresh weights)."""
+    return FFTRadNet(cfg.fftradnet) if cfg.fftradnet is not None else PointPillars(cfg.pillars)
+
+
+class RadialDetectionTask:
+    """The loop's :class:`~radarpc.training.loop.Task` for RADIal detection + freespace.
+
+    Parameters
+    ----------
+    cfg : ExperimentConfig
+    data : path-like
+        RADIal-layout root (labels, freespace; cubes for FFTRadNet).
+    points : path-like, optional
+        Point store made from ``data`` (required by the pillar models).
+    splits : (str, str)
+        Training and validation splits of ``data``.
+    """
+
+    def __init__(self, cfg: ExperimentConfig, data: str | os.PathLike, points: str | os.PathLike | None = None,
+                 splits: tuple[str, str] = ("train", "val")) -> None:
+        self.cfg = cfg
+        self.train_set = detection_dataset(cfg, data, points, splits[0])
+        self.val_set = detection_dataset(cfg, data, points, splits[1])
+
+    # ---- the Task protocol --------------------------------------------------------------------
+    def build_model(self) -> nn.Module:
+        model = build_model(self.cfg)
+        if isinstance(model, FFTRadNet):
+            n = len(self.train_set)
+            k = min(self.cfg.statistics_frames, n)
+            picks = sorted({round(i * (n - 1) / max(k - 1, 1)) for i in range(k)})
+            mean, std = input_statistics(self.train_set[i][0] for i in picks)
+            model.set_input_statistics(mean, std)
+        return model
+
+    def collate(self, items: list) -> DetectionBatch:
+        return collate_detection(items, self.cfg)
+
+    def to_device(self, batch: DetectionBatch, device: torch.device) -> DetectionBatch:
+        return batch.to(device)
+
+    def loss(self, model: nn.Module, batch: DetectionBatch) -> tuple[torch.Tensor, dict[str, float]]:
+        out: HeadOutput = model(batch.inputs)
+        terms = detection_loss(out.detection, batch.target, self.cfg.loss, out.freespace,
+                               batch.freespace if out.freespace is not None else None)
+        return terms.total, {"classification": float(terms.classification.detach()),
+                             "regression": float(terms.regression.detach()),
+                             "freespace": float(terms.freespace.detach())}
+
+    def evaluate(self, model: nn.Module, batches: Iterable, device: torch.device) -> dict[str, float]:
+        report, miou = evaluate_model(model, batches, device, self.cfg.targets)
+        out = {k: v for k, v in report.to_dict().items() if isinstance(v, float)}
+        if miou is not None:
+            out["freespace_miou"] = miou
+        return out
+
+
+def evaluate_model(model: nn.Module, batches: Iterable[DetectionBatch], device: torch.device,
+                   targets: TargetConfig, *, max_candidates: int | None = MAX_CANDIDATES):
+    """RADIal's detection report and the freespace mIoU (None without a freespace head)."""
+    det = DetectionMetrics()
+    fs = FreespaceMetrics()
+    has_fs = False
+    for batch in batches:
+        batch = batch.to(device)
+        out: HeadOutput = model(batch.inputs)
+        maps = out.detection.float()
+        if max_candidates is not None:
+            maps = _keep_top_cells(maps, max_candidates)
+        det.update(decode_detections(maps, targets, threshold=DECODE_THRESHOLD), batch.labels, batch.label_offset)
+        if out.freespace is not None:
+            has_fs = True
+            fs.update(torch.sigmoid(out.freespace.float())[:, 0], batch.freespace)
+    return det.compute(), (fs.compute() if has_fs else None)
+
+
+def _keep_top_cells(maps: torch.Tensor, k: int) -> torch.Tensor:
+    """``maps`` with the probability of all but each frame's ``k`` most probable cells set to 0."""
+    prob = maps[:, 0].flatten(1)                                          # (B, H W)
+    if prob.shape[1] <= k:
+        return maps
+    kth = torch.topk(prob, k, dim=1).values[:, -1:]                      # (B, 1)
+    keep = (prob >= kth).view_as(maps[:, 0])
+    out = maps.clone()
+    out[:, 0] = torch.where(keep, maps[:, 0], torch.zeros_like(maps[:, 0]))
+    return out
