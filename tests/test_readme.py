@@ -20,7 +20,8 @@ Size mapping (the README's sizes take minutes to hours; the commands are otherwi
 
 Skipped, each for a stated reason: ``pip install`` (the suite runs in an installed environment and
 must not touch the network), ``python -m pytest`` (this suite itself), ``radarpc demo``
-(``tests/cli/test_demo.py`` runs it at tiny sizes; the README's sizes take minutes) and the Python
+(``tests/cli/test_demo.py`` runs it at tiny sizes; the README's sizes take minutes), ``radarpc train``,
+``radarpc evaluate`` and ``torchrun`` (``tests/training`` runs them on tiny models) and the Python
 block that converts the real ``CalibrationTable.npy`` (it needs RADIal's download, which this
 repository cannot ship). Any other command is an error here, so a new kind of README line gets a
 mapping instead of going untested.
@@ -40,6 +41,10 @@ SKIPPED = {
     "pip": "installs packages; the suite runs in an installed environment, without network",
     "python -m pytest": "the test suite itself",
     "radarpc demo": "tests/cli/test_demo.py runs the demo at tiny sizes; the README's sizes take minutes",
+    "radarpc train": "tests/training/test_radial_experiment.py trains and resumes tiny models through this command; "
+                     "the shipped configs train for minutes to days",
+    "radarpc evaluate": "tests/training/test_radial_experiment.py evaluates a tiny run through this command",
+    "torchrun": "starts several processes (GPUs); tests/training/test_loop.py runs a 2-process gloo job",
 }
 # A Python block holding one of these needs real data.
 NEEDS_REAL_DATA = {
