@@ -45,7 +45,7 @@ def test_written_files_read_like_radials_loader(root_and_store):
     assert run.root == root and run.n_frames == len(st) == 4
     total = 0
     for i, num in enumerate(st.frames):
-        arr = np.load(radar_pcl_path(root, num), allow_pickle=True)
+        arr = np.load(radar_pcl_path(root, num), allow_pickle=False)     # plain float32, no pickle
         t = st.frame_rows(i)
         assert arr.shape == (9, t.num_rows) and arr.dtype == np.float32
         total += t.num_rows

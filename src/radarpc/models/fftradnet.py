@@ -21,7 +21,6 @@ radarpc's own weights are safetensors (:func:`save_fftradnet`, :func:`load_fftra
 from __future__ import annotations
 
 import copy
-import dataclasses
 import json
 import os
 import pickle
@@ -36,6 +35,7 @@ import torch.nn.functional as F
 from radarpc.io import atomic_write
 from radarpc.models.heads import (DETECTION_SHAPE, FREESPACE_SHAPE, ConvBlock, DetectionHead, FreespaceHead,
                                   HeadOutput, conv3x3)
+from radarpc.config import from_dict, to_dict
 from radarpc.sensors.radial import RADIAL, RADIAL_S, DDMARadarConfig
 
 __all__ = [
@@ -107,18 +107,6 @@ class FFTRadNetConfig:
         """A config whose input sizes are those of ``sensor``'s cubes."""
         return cls(n_range=sensor.n_range, n_doppler=sensor.n_doppler, n_rx=sensor.n_rx, n_tx=sensor.n_tx,
                    slot_width=sensor.slot_width, **fields)
-
-    def to_dict(self) -> dict:
-        """JSON-able dict (tuples as lists); :meth:`from_dict` inverts it."""
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: Mapping) -> "FFTRadNetConfig":
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown FFTRadNet config keys: {sorted(unknown)}; expected some of {sorted(names)}")
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 
 # ---- input --------------------------------------------------------------------------------------
@@ -460,7 +448,7 @@ def save_fftradnet(model: FFTRadNet, path: str | os.PathLike) -> Path:
     from safetensors.torch import save
 
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    data = save(state, metadata={"model": "FFTRadNet", "config": json.dumps(model.cfg.to_dict())})
+    data = save(state, metadata={"model": "FFTRadNet", "config": json.dumps(to_dict(model.cfg))})
     path = Path(path)
     with atomic_write(path, "wb") as f:
         f.write(data)
@@ -480,7 +468,7 @@ def load_fftradnet(path: str | os.PathLike, device: torch.device | str = "cpu") 
         raise ValueError(f"{path}: not a safetensors file ({e})") from None
     if meta.get("model") != "FFTRadNet" or "config" not in meta:
         raise ValueError(f"{path}: safetensors metadata has no FFTRadNet config (model={meta.get('model')!r})")
-    model = FFTRadNet(FFTRadNetConfig.from_dict(json.loads(meta["config"])))
+    model = FFTRadNet(from_dict(FFTRadNetConfig, json.loads(meta["config"]), where=f"{path}: config"))
     model.load_state_dict(load_file(str(path), device="cpu"))
     return model.to(device)
 

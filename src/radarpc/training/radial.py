@@ -13,11 +13,10 @@ RADIal's metrics (:mod:`radarpc.eval.detection`).
 """
 from __future__ import annotations
 
-import dataclasses
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Iterable
 
 import torch
 from torch import nn
