@@ -629,7 +629,7 @@ def _draw_boxes(ax, range_m: np.ndarray, azimuth_deg: np.ndarray, color: str, la
                              label=label if k == 0 else None))
 
 
-def plot_detection_frame(batch, detections, probability: torch.Tensor, out: str | os.PathLike, *,
+def plot_detection_frame(batch, detections, probability: torch.Tensor | None, out: str | os.PathLike, *,
                          title: str = "", range_max_m: float = 103.0) -> Path:
     """One evaluated frame: bird's-eye view with RADIal's label boxes (green) and the predicted
     boxes (red), over the frame's points when the model reads points; and the predicted vehicle
@@ -641,8 +641,9 @@ def plot_detection_frame(batch, detections, probability: torch.Tensor, out: str 
         A batch of one frame (on the CPU).
     detections : radarpc.models.targets.Detections
         Its decoded detections (one frame).
-    probability : Tensor ``(128, 224)``
-        Channel 0 of the detection head's output.
+    probability : Tensor ``(128, 224)`` or None
+        Channel 0 of the detection head's output; None (a detector without a map, the classical
+        row) draws the bird's-eye view alone.
     out : path-like
         PNG to write (folders are created).
     """
@@ -650,8 +651,12 @@ def plot_detection_frame(batch, detections, probability: torch.Tensor, out: str 
     out.parent.mkdir(parents=True, exist_ok=True)
     lab = batch.labels.numpy()
     r_lab, a_lab = lab[:, 0], lab[:, 1]
-    fig = _figure((12, 5.5))
-    ax_bev, ax_ra = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1, 1.3]})
+    if probability is None:
+        fig = _figure((5.5, 5.5))
+        ax_bev = fig.subplots(1, 1)
+    else:
+        fig = _figure((12, 5.5))
+        ax_bev, ax_ra = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1, 1.3]})
     if isinstance(batch.inputs, PointCloudBatch):
         p = batch.inputs
         ax_bev.scatter(p.y.numpy(), p.x.numpy(), s=2, c="0.5", label=f"points ({p.num_points})")
@@ -662,13 +667,14 @@ def plot_detection_frame(batch, detections, probability: torch.Tensor, out: str 
                title="bird's-eye view")
     ax_bev.set_aspect("equal", adjustable="box")
     ax_bev.legend(loc="upper right", fontsize=8)
-    h, w = probability.shape
-    im = ax_ra.imshow(probability.numpy(), origin="lower", aspect="auto", vmin=0, vmax=1, cmap="magma",
-                      extent=(-w / 2 * 0.8, w / 2 * 0.8, 0, h * range_max_m / h))
-    ax_ra.scatter(a_lab, r_lab, marker="o", s=40, facecolors="none", edgecolors="tab:green", label="labels")
-    ax_ra.set(xlabel="azimuth [deg] (left +)", ylabel="range [m]", title="predicted vehicle probability")
-    ax_ra.legend(loc="upper right", fontsize=8)
-    fig.colorbar(im, ax=ax_ra)
+    if probability is not None:
+        h, w = probability.shape
+        im = ax_ra.imshow(probability.numpy(), origin="lower", aspect="auto", vmin=0, vmax=1, cmap="magma",
+                          extent=(-w / 2 * 0.8, w / 2 * 0.8, 0, range_max_m))
+        ax_ra.scatter(a_lab, r_lab, marker="o", s=40, facecolors="none", edgecolors="tab:green", label="labels")
+        ax_ra.set(xlabel="azimuth [deg] (left +)", ylabel="range [m]", title="predicted vehicle probability")
+        ax_ra.legend(loc="upper right", fontsize=8)
+        fig.colorbar(im, ax=ax_ra)
     if title:
         fig.suptitle(title)
     fig.tight_layout()

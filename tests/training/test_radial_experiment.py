@@ -119,3 +119,31 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys):
     save_yaml(other, tmp_path / "other.yaml")
     assert main(["train", str(tmp_path / "other.yaml"), "--data", str(root), "--points", str(store),
                  "--out", str(out), "--no-progress"]) == 2
+
+
+def test_classical_row_cli(root, store, tmp_path):
+    from radarpc.data.point_dataset import PointCloudDataset, collate_point_frames
+    from radarpc.eval.detection import DetectionMetrics
+    from radarpc.models.classical import ClassicalConfig, classical_detect
+
+    out = tmp_path / "classical"
+    assert main(["baseline", "detect", str(store), "--data", str(root), "--split", "test", "--out", str(out),
+                 "--show", "1"]) == 0
+    doc = json.loads((out / "eval_test.json").read_text())
+    # the same numbers as scoring the detector's output on the test frames directly
+    ds = PointCloudDataset(store, root, split="test")
+    b = collate_point_frames([ds[i] for i in range(len(ds))])
+    want = DetectionMetrics()
+    want.update(classical_detect(b.points), b.labels, b.label_offset)
+    want = want.compute().to_dict()
+    assert doc["metrics"]["n_frames"] == len(ds) == 4 and doc["parameters"] == 0 and doc["fps_batch1"] > 0
+    for k in ("ap", "ar", "f1", "f1_fixed"):
+        assert doc["metrics"][k] == pytest.approx(want[k], abs=1e-12, nan_ok=True)
+    assert load_yaml(ClassicalConfig, out / "classical.yaml") == ClassicalConfig()
+    assert (out / "figures" / "eval_test_0.png").stat().st_size > 1000
+    # settings from a file: clusters of a million points never form, so nothing is detected
+    save_yaml(ClassicalConfig(min_points=10**6), tmp_path / "c.yaml")
+    assert main(["baseline", "detect", str(store), "--data", str(root), "--split", "test", "--out", str(out),
+                 "--config", str(tmp_path / "c.yaml")]) == 0
+    doc = json.loads((out / "eval_test.json").read_text())
+    assert doc["metrics"]["ar"] == 0.0 and load_yaml(ClassicalConfig, out / "classical.yaml").min_points == 10**6

@@ -1,8 +1,17 @@
-"""``radarpc baseline os-cfar``: point clouds from the radar cube by 3-D OS-CFAR, tuned on a split.
+"""``radarpc baseline``: classical baselines.
 
 ::
 
     radarpc baseline os-cfar ROOT --split test --out preds/oscfar [--tune-split val] [--config FILE]
+    radarpc baseline detect POINTS --data ROOT --split test --out runs/classical [--show K]
+
+``detect`` is the detection models' classical reference row (:mod:`radarpc.models.classical`: ego
+speed from the points, Doppler gating, BEV clustering, one detection per cluster) on a RADIal point
+store, scored like ``radarpc evaluate`` scores a trained run: ``OUT/eval_{split}.md`` and ``.json``
+(RADIal's AP/AR/F1, F1 at confidence 0.2, range/azimuth errors, batch-1 frames/s with the point
+extraction excluded), ``OUT/classical.yaml`` (its settings) and, with ``--show K``, figures.
+
+``os-cfar`` writes into ``--out``:
 
 Writes into ``--out``:
 
@@ -23,7 +32,18 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-__all__ = ["add_parser", "run_oscfar"]
+__all__ = ["add_parser", "run_oscfar", "run_detect"]
+
+
+def run_detect(args: argparse.Namespace) -> int:
+    from radarpc.config import load_yaml
+    from radarpc.experiments.detection import evaluate_classical
+    from radarpc.models.classical import ClassicalConfig
+
+    cfg = load_yaml(ClassicalConfig, args.config) if args.config else ClassicalConfig()
+    evaluate_classical(args.points, args.data, args.out, args.split, cfg=cfg, difficult=not args.no_difficult,
+                       show=args.show)
+    return 0
 
 
 def run_oscfar(args: argparse.Namespace) -> int:
@@ -57,3 +77,14 @@ def add_parser(sub) -> None:
                    help="replace the predictions of another root or split (or write into a non-empty folder "
                         "that is not a prediction folder); without it such a folder is refused")
     q.set_defaults(func=run_oscfar)
+    d = kinds.add_parser("detect", help="vehicle detections from a RADIal point store: Doppler gating and "
+                                        "BEV clustering, scored with RADIal's metrics",
+                         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    d.add_argument("points", help="point store (radarpc pointcloud ROOT --out FILE.parquet)")
+    d.add_argument("--data", required=True, help="the RADIal root the store was made from (labels)")
+    d.add_argument("--split", default="test", choices=("train", "val", "test", "all"), help="split (default test)")
+    d.add_argument("--out", required=True, help="folder for eval_{split}.md/.json, classical.yaml and figures")
+    d.add_argument("--config", default=None, help="a classical.yaml with other settings")
+    d.add_argument("--no-difficult", action="store_true", help="leave out RADIal's 'Difficult' labels")
+    d.add_argument("--show", type=int, default=0, metavar="K", help="draw the first K frames")
+    d.set_defaults(func=run_detect)

@@ -33,13 +33,15 @@ from radarpc.io import DataFileError, atomic_write
 from radarpc.runs import read_json
 from radarpc.training.checkpoint import load_weights
 from radarpc.training.loop import BEST_WEIGHTS, FitResult, fit
-from radarpc.eval.detection import FIXED_THRESHOLD
-from radarpc.models.targets import decode_detections
-from radarpc.training.radial import (DetectionBatch, ExperimentConfig, RadialDetectionTask, build_model,
-                                     collate_detection, detection_dataset, evaluate_model)
+from radarpc.data.point_dataset import PointCloudDataset
+from radarpc.eval.detection import FIXED_THRESHOLD, DetectionMetrics
+from radarpc.models.classical import ClassicalConfig, classical_detect
+from radarpc.models.targets import Detections, TargetConfig, decode_detections
+from radarpc.training.radial import (DetectionBatch, ExperimentConfig, RadialDetectionTask, collate_points,
+                                     build_model, collate_detection, detection_dataset, evaluate_model)
 
-__all__ = ["load_experiment", "run_key", "train_runs", "EvalResult", "evaluate_run", "run_folders",
-           "SUMMARY_METRICS"]
+__all__ = ["load_experiment", "run_key", "train_runs", "EvalResult", "evaluate_run", "evaluate_classical",
+           "run_folders", "SUMMARY_METRICS"]
 
 SUMMARY_METRICS = ("f1", "ap", "ar", "f1_fixed", "range_error_m", "azimuth_error_deg", "freespace_miou")
 """Metrics summarised over runs (mean and standard deviation)."""
@@ -192,7 +194,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: str | os.
         fps = _fps(model, frames, dev)
         n_params = sum(p.numel() for p in model.parameters())
         res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads())
-        _write_eval(folder, res, cfg)
+        _write_eval(folder, res, cfg.name)
         if show:
             with torch.inference_mode():
                 for k, b in enumerate(frames[:show]):
@@ -212,7 +214,47 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: str | os.
     return results
 
 
-def _write_eval(folder: Path, res: EvalResult, cfg: ExperimentConfig) -> None:
+def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: str | os.PathLike,
+                       split: str = "test", *, cfg: ClassicalConfig = ClassicalConfig(), difficult: bool = True,
+                       show: int = 0, fps_frames: int = 20, log: Callable[[str], None] = print) -> EvalResult:
+    """Score the classical detector (:mod:`radarpc.models.classical`) on ``split`` of a point store
+    with the learned models' metrics; writes ``out/eval_{split}.json`` / ``.md`` (as
+    :func:`evaluate_run`, with 0 parameters and the detector's batch-1 frames/s, point extraction
+    excluded), ``out/classical.yaml`` and, with ``show``, figures of the first frames."""
+    from radarpc.viz import plot_detection_frame
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    save_yaml(cfg, out / "classical.yaml")
+    ds = PointCloudDataset(points, data, split=split, difficult=difficult)
+    targets = TargetConfig()
+    collate = functools.partial(collate_points, targets=targets)
+    det = DetectionMetrics()
+    for batch in DataLoader(ds, batch_size=16, shuffle=False, collate_fn=collate):
+        det.update(classical_detect(batch.inputs, cfg), batch.labels, batch.label_offset)
+    metrics = det.compute().to_dict()
+    metrics["freespace_miou"] = None
+    frames = [b for _, b in zip(range(fps_frames), DataLoader(ds, batch_size=1, shuffle=False, collate_fn=collate))]
+    rates = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        for b in frames:
+            classical_detect(b.inputs, cfg)
+        rates.append(len(frames) / max(time.perf_counter() - t0, 1e-12))
+    res = EvalResult(out, split, metrics, 0, float(statistics.median(rates)) if frames else math.nan, "cpu",
+                     torch.get_num_threads())
+    _write_eval(out, res, "classical (CFAR points, Doppler gating, BEV clusters)")
+    for k, b in enumerate(frames[:show]):
+        rows = classical_detect(b.inputs, cfg).rows()
+        shown = Detections.from_frames([rows[rows[:, 0] >= FIXED_THRESHOLD]])
+        plot_detection_frame(b, shown, None,
+                             out / "figures" / f"eval_{split}_{k}.png", title=f"classical {split} item {k}")
+    log(f"{out}: classical {split} F1 {metrics['f1']:.4f} (AP {metrics['ap']:.4f}, AR {metrics['ar']:.4f}), "
+        f"F1@0.2 {metrics['f1_fixed']:.4f}, {res.fps:.1f} frames/s at batch 1")
+    return res
+
+
+def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
     m = res.metrics
     doc = {"split": res.split, "metrics": m, "parameters": res.parameters, "fps_batch1": res.fps,
            "device": res.device, "threads": res.threads}
@@ -220,7 +262,7 @@ def _write_eval(folder: Path, res: EvalResult, cfg: ExperimentConfig) -> None:
         json.dump(doc, f, indent=2)
     thr = ", ".join(f"{t:.1f}" for t in m["thresholds"])
     lines = [
-        f"# {cfg.name}: {res.split} split ({m['n_frames']} frames)", "",
+        f"# {name}: {res.split} split ({m['n_frames']} frames)", "",
         "| AP | AR | F1 | F1 @ 0.2 | range error (m) | azimuth error (deg) | freespace mIoU | parameters | frames/s (batch 1) |",
         "|---|---|---|---|---|---|---|---|---|",
         f"| {m['ap']:.4f} | {m['ar']:.4f} | {m['f1']:.4f} | {m['f1_fixed']:.4f} | {m['range_error_m']:.3f} | "

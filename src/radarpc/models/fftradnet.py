@@ -328,8 +328,9 @@ def fftradnet(**fields) -> FFTRadNet:
 def fftradnet_s(**fields) -> FFTRadNet:
     """``radial-s`` cubes (128 x 64 x 16, 0.8047 m range bins = one detection row): no range stride in
     stages 1 and 2, a 64-channel pre-encoder and thin decoder and heads, so it trains on 2 CPU cores."""
-    d = dict(mimo_channels=64, blocks=(2, 3, 3, 2), range_strides=(1, 1), decoder_channels=(32, 64),
-             detection_widths=(48, 32), freespace_widths=(32, 16))
+    # the decoder's last block and the heads run at the full 128 x 224 map and dominate a CPU step
+    d = dict(mimo_channels=64, blocks=(2, 3, 3, 2), range_strides=(1, 1), decoder_channels=(16, 32),
+             detection_widths=(16, 16), freespace_widths=(8, 8))
     return FFTRadNet(FFTRadNetConfig.for_sensor(RADIAL_S, **(d | fields)))
 
 

@@ -32,7 +32,7 @@ from radarpc.models.targets import TargetConfig, decode_detections, encode_batch
 from radarpc.points import PointCloudBatch
 from radarpc.training.loop import TrainConfig
 
-__all__ = ["ExperimentConfig", "DetectionBatch", "build_model", "RadialDetectionTask", "collate_cubes",
+__all__ = ["ExperimentConfig", "DetectionBatch", "build_model", "RadialDetectionTask", "collate_cubes", "collate_points",
            "collate_detection", "detection_dataset", "evaluate_model",
            "DECODE_THRESHOLD", "MAX_CANDIDATES"]
 
@@ -116,7 +116,8 @@ def collate_cubes(items: list, targets: TargetConfig) -> DetectionBatch:
                           torch.stack([it[2] for it in items]), encode_batch(lab, offset, targets))
 
 
-def _collate_points(items: list, targets: TargetConfig) -> DetectionBatch:
+def collate_points(items: list, targets: TargetConfig) -> DetectionBatch:
+    """Collate ``PointCloudDataset`` items and encode their targets."""
     b: PointFrameBatch = collate_point_frames(items)
     return DetectionBatch(b.points, b.labels, b.label_offset, b.freespace,
                           encode_batch(b.labels, b.label_offset, targets))
@@ -126,7 +127,7 @@ def collate_detection(items: list, cfg: ExperimentConfig) -> DetectionBatch:
     """Collate items of :func:`detection_dataset` and encode their target maps."""
     if cfg.input_kind == "rd":
         return collate_cubes(items, cfg.targets)
-    return _collate_points(items, cfg.targets)
+    return collate_points(items, cfg.targets)
 
 
 def detection_dataset(cfg: ExperimentConfig, data: str | os.PathLike, points: str | os.PathLike | None,
