@@ -1,0 +1,104 @@
+"""How many labels a point store lets a detector reach at all: the data-side ceiling of recall.
+
+For every label of a split (RADIal's 5..100 m gate) this measures, on the store's points:
+
+* the distance (m, bird's-eye view) from the label's reference point to the nearest point of its
+  frame;
+* whether some point, taken as a detection, matches the label by RADIal's rule (its 1.8 m x 4 m box
+  has IoU >= 0.5 with the label's box), i.e. whether a detector that only picks points could find it;
+* how many points lie within 3 m (the support a learned model has to place a box).
+
+A label without a point within a few metres can only be found by guessing, so the share of labels
+with a point nearby bounds the recall of any point-cloud detector on that store, and the share
+with a matching point is what a detector that does not learn offsets can reach. Several stores
+(e.g. densities) are compared side by side::
+
+    python benchmarks/detection_ceiling.py --data data/sim_rs --points pc057.parquet pc200.parquet \\
+        --split test --figure docs/results/figures/detection_ceiling.png
+
+Prints one JSON object per store.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from radarpc.data.point_dataset import PointCloudDataset
+from radarpc.eval.detection import IOU_THRESHOLD, RANGE_GATE_M
+from radarpc.models.targets import box_iou, ra_to_box_xy
+
+RADII_M = (1.0, 2.0, 3.0, 5.0)
+
+
+def label_reach(points: str, data: str, split: str) -> dict:
+    """Per-label reach statistics of one store (see the module docstring)."""
+    ds = PointCloudDataset(points, data, split=split, difficult=True)
+    nearest, matched, support, n_points = [], [], [], []
+    for i in range(len(ds)):
+        item = ds[i]
+        p, lab = item.points, item.labels
+        n_points.append(p.num_points)
+        lab = lab[(lab[:, 0] >= RANGE_GATE_M[0]) & (lab[:, 0] <= RANGE_GATE_M[1])]
+        if len(lab) == 0:
+            continue
+        xy_lab = ra_to_box_xy(lab[:, 0].double(), lab[:, 1].double())              # (L, 2)
+        if p.num_points == 0:
+            nearest += [np.inf] * len(lab)
+            matched += [False] * len(lab)
+            support += [0] * len(lab)
+            continue
+        xy_pt = ra_to_box_xy(p.range_m.double(), p.azimuth_deg.double())          # (N, 2)
+        d = torch.cdist(xy_lab, xy_pt)                                             # (L, N)
+        nearest += d.min(1).values.tolist()
+        support += (d < 3.0).sum(1).tolist()
+        iou = box_iou(xy_lab, xy_pt)                                               # (L, N)
+        matched += (iou >= IOU_THRESHOLD).any(1).tolist()
+    nearest = np.asarray(nearest)
+    return {
+        "points": str(points), "split": split, "frames": len(ds), "labels": int(nearest.size),
+        "points_per_frame": float(np.mean(n_points)) if n_points else 0.0,
+        "share_with_matching_point": float(np.mean(matched)) if matched else float("nan"),
+        **{f"share_with_point_within_{r:g}m": float(np.mean(nearest <= r)) for r in RADII_M},
+        "median_nearest_m": float(np.median(nearest)) if nearest.size else float("nan"),
+        "median_points_within_3m": float(np.median(support)) if support else float("nan"),
+        "_nearest": nearest,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True, help="RADIal root (labels)")
+    ap.add_argument("--points", nargs="+", required=True, help="point stores of that root")
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--figure", default=None, help="PNG: cumulative share of labels vs distance to the nearest point")
+    args = ap.parse_args()
+    results = [label_reach(p, args.data, args.split) for p in args.points]
+    for r in results:
+        print(json.dumps({k: v for k, v in r.items() if not k.startswith("_")}))
+    if args.figure:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6, 4))
+        grid = np.linspace(0, 10, 201)
+        for r in results:
+            share = [(r["_nearest"] <= g).mean() for g in grid]
+            ax.plot(grid, share, label=f"{Path(r['points']).name} ({r['points_per_frame']:.0f} points/frame)")
+        ax.axvline(0.6, color="0.6", ls=":", lw=1)
+        ax.set(xlabel="distance from a label to the nearest point of its frame [m]",
+               ylabel="share of labels", ylim=(0, 1), xlim=(0, 10),
+               title=f"{args.split} split: labels within reach of the points")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="lower right")
+        Path(args.figure).parent.mkdir(parents=True, exist_ok=True)
+        fig.tight_layout()
+        fig.savefig(args.figure, dpi=100)
+
+
+if __name__ == "__main__":
+    main()
