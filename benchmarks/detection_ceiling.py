@@ -6,7 +6,9 @@ For every label of a split (RADIal's 5..100 m gate) this measures, on the store'
   frame;
 * whether some point, taken as a detection, matches the label by RADIal's rule (its 1.8 m x 4 m box
   has IoU >= 0.5 with the label's box), i.e. whether a detector that only picks points could find it;
-* how many points lie within 3 m (the support a learned model has to place a box).
+* how many points lie within 3 m (the support a learned model has to place a box);
+
+and, over all points, the share within 3 m of some label: the vehicle returns among the clutter.
 
 A label without a point within a few metres can only be found by guessing, so the share of labels
 with a point nearby bounds the recall of any point-cloud detector on that store, and the share
@@ -37,7 +39,7 @@ RADII_M = (1.0, 2.0, 3.0, 5.0)
 def label_reach(points: str, data: str, split: str) -> dict:
     """Per-label reach statistics of one store (see the module docstring)."""
     ds = PointCloudDataset(points, data, split=split, difficult=True)
-    nearest, matched, support, n_points = [], [], [], []
+    nearest, matched, support, n_points, on_vehicle = [], [], [], [], 0
     for i in range(len(ds)):
         item = ds[i]
         p, lab = item.points, item.labels
@@ -54,6 +56,7 @@ def label_reach(points: str, data: str, split: str) -> dict:
         xy_pt = ra_to_box_xy(p.range_m.double(), p.azimuth_deg.double())          # (N, 2)
         d = torch.cdist(xy_lab, xy_pt)                                             # (L, N)
         nearest += d.min(1).values.tolist()
+        on_vehicle += int((d < 3.0).any(0).sum())
         support += (d < 3.0).sum(1).tolist()
         iou = box_iou(xy_lab, xy_pt)                                               # (L, N)
         matched += (iou >= IOU_THRESHOLD).any(1).tolist()
@@ -65,6 +68,7 @@ def label_reach(points: str, data: str, split: str) -> dict:
         **{f"share_with_point_within_{r:g}m": float(np.mean(nearest <= r)) for r in RADII_M},
         "median_nearest_m": float(np.median(nearest)) if nearest.size else float("nan"),
         "median_points_within_3m": float(np.median(support)) if support else float("nan"),
+        "share_of_points_within_3m_of_a_label": on_vehicle / max(sum(n_points), 1),
         "_nearest": nearest,
     }
 

@@ -680,3 +680,41 @@ def plot_detection_frame(batch, detections, probability: torch.Tensor | None, ou
     fig.tight_layout()
     _save(fig, out, dpi=90)
     return out
+
+
+# ---- training runs ------------------------------------------------------------------------------
+def plot_learning_curves(logs: dict[str, str | os.PathLike], out: str | os.PathLike) -> Path:
+    """Validation F1 (RADIal's, and at confidence 0.2) and training loss of runs against their
+    cumulative training time, from each run's ``log.csv``.
+
+    Parameters
+    ----------
+    logs : dict
+        Curve label -> ``log.csv`` of a run (:func:`radarpc.training.loop.fit`).
+    out : path-like
+        PNG to write.
+    """
+    import csv
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig = _figure((12, 4))
+    ax_f1, ax_fix, ax_loss = fig.subplots(1, 3)
+    for name, path in logs.items():
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = list(csv.DictReader(f))
+        if not rows:
+            continue
+        minutes = np.cumsum([float(r["train_time_s"]) for r in rows]) / 60
+        for ax, key in ((ax_f1, "val_f1"), (ax_fix, "val_f1_fixed"), (ax_loss, "train_loss")):
+            if key in rows[0]:
+                ax.plot(minutes, [float(r[key]) if r[key] else np.nan for r in rows], marker="o", label=name)
+    ax_f1.set(xlabel="training time [min]", ylabel="F1", title="validation F1 (AP, AR over 0.1..0.9)", ylim=(0, 1))
+    ax_fix.set(xlabel="training time [min]", ylabel="F1", title="validation F1 at confidence 0.2", ylim=(0, 1))
+    ax_loss.set(xlabel="training time [min]", ylabel="loss", title="training loss (epoch mean)", yscale="log")
+    for ax in (ax_f1, ax_fix, ax_loss):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    _save(fig, out, dpi=90)
+    return out

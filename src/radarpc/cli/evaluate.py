@@ -8,9 +8,10 @@
 Prints and writes ``RUN/eval_{split}.md`` and ``.json``: AP, AR and F1 at IoU 0.5 over the
 confidence thresholds 0.1 .. 0.9, precision/recall/F1 at confidence 0.2, mean range (m) and
 azimuth (deg) errors of matched pairs, freespace mIoU (rows 0..123, 0-50 m), the parameter count
-and the batch-1 frames/s on the evaluation device. ``--show K`` draws the first K frames
-(``RUN/figures/eval_{split}_{k}.png``): points or nothing in bird's-eye view with the label and
-predicted boxes, and the predicted probability map. A folder of several runs (``--runs N``) is
+and the batch-1 frames/s on the evaluation device. ``--show K`` draws K frames spread evenly over
+the split, first and last included (``RUN/figures/eval_{split}_{item}.png``): points or nothing in bird's-eye view with the label and
+predicted boxes, and the predicted probability map; ``RUN/figures/learning_curve.png`` always
+(validation F1 and training loss per epoch, from ``log.csv``). A folder of several runs (``--runs N``) is
 evaluated run by run, then summarised (mean and standard deviation).
 """
 from __future__ import annotations
@@ -36,6 +37,6 @@ def add_parser(sub) -> None:
     p.add_argument("--data", default=None, help="RADIal root (default: the one the run was trained on)")
     p.add_argument("--points", default=None, help="point store (default: the one the run was trained on)")
     p.add_argument("--device", default=None, help="torch device (default: a GPU if any, else the CPU)")
-    p.add_argument("--show", type=int, default=0, metavar="K", help="draw the first K frames")
+    p.add_argument("--show", type=int, default=0, metavar="K", help="draw K frames spread evenly over the split")
     p.add_argument("--fps-frames", type=int, default=20, help="frames timed for frames/s (default 20)")
     p.set_defaults(func=run)

@@ -32,7 +32,7 @@ from radarpc.config import from_dict, load_yaml, save_yaml, to_dict
 from radarpc.io import DataFileError, atomic_write
 from radarpc.runs import read_json
 from radarpc.training.checkpoint import load_weights
-from radarpc.training.loop import BEST_WEIGHTS, FitResult, fit
+from radarpc.training.loop import BEST_WEIGHTS, LOG_CSV, FitResult, fit
 from radarpc.data.point_dataset import PointCloudDataset
 from radarpc.eval.detection import FIXED_THRESHOLD, DetectionMetrics
 from radarpc.models.classical import ClassicalConfig, classical_detect
@@ -165,7 +165,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: str | os.
 
     ``data`` / ``points`` override the paths stored with the run (e.g. a moved dataset).
     """
-    from radarpc.viz import plot_detection_frame
+    from radarpc.viz import plot_detection_frame, plot_learning_curves
 
     dev = torch.device(device) if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
     results = []
@@ -195,14 +195,17 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: str | os.
         n_params = sum(p.numel() for p in model.parameters())
         res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads())
         _write_eval(folder, res, cfg.name)
+        if (folder / LOG_CSV).is_file():
+            plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
         if show:
             with torch.inference_mode():
-                for k, b in enumerate(frames[:show]):
+                for k, b in _shown(ds, show, collate):
+                    b = b.to(dev)
                     out = model(b.inputs)
                     dets = decode_detections(out.detection.float(), cfg.targets, threshold=FIXED_THRESHOLD)
                     plot_detection_frame(b.to(torch.device("cpu")), dets.to("cpu"), out.detection[0, 0].float().cpu(),
                                          folder / "figures" / f"eval_{split}_{k}.png",
-                                         title=f"{cfg.name} {split} item {k}")
+                                         title=f"{cfg.name} {split} item {k} ({len(b.labels)} labels)")
         log(f"{folder}: {split} F1 {metrics['f1']:.4f} (AP {metrics['ap']:.4f}, AR {metrics['ar']:.4f}), "
             f"F1@0.2 {metrics['f1_fixed']:.4f}, freespace mIoU {miou if miou is not None else float('nan'):.4f}, "
             f"{n_params:,} parameters, {fps:.1f} frames/s at batch 1 on {dev}")
@@ -212,6 +215,14 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: str | os.
                               for m in SUMMARY_METRICS}} for k, r in enumerate(results)]
         _write_summary(Path(run) / f"eval_{split}_summary", rows, f"{split}: {len(results)} runs")
     return results
+
+
+def _shown(ds, k: int, collate) -> list[tuple[int, DetectionBatch]]:
+    """``k`` items spread evenly over ``ds`` (first and last included), each a batch of one: the
+    figures of ``--show`` (the first items of a split are often one sequence's empty frames)."""
+    n = len(ds)
+    picks = sorted({round(i * (n - 1) / max(k - 1, 1)) for i in range(min(k, n))}) if n else []
+    return [(i, collate([ds[i]])) for i in picks]
 
 
 def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: str | os.PathLike,
@@ -244,11 +255,11 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
     res = EvalResult(out, split, metrics, 0, float(statistics.median(rates)) if frames else math.nan, "cpu",
                      torch.get_num_threads())
     _write_eval(out, res, "classical (CFAR points, Doppler gating, BEV clusters)")
-    for k, b in enumerate(frames[:show]):
+    for k, b in _shown(ds, show, collate):
         rows = classical_detect(b.inputs, cfg).rows()
         shown = Detections.from_frames([rows[rows[:, 0] >= FIXED_THRESHOLD]])
         plot_detection_frame(b, shown, None,
-                             out / "figures" / f"eval_{split}_{k}.png", title=f"classical {split} item {k}")
+                             out / "figures" / f"eval_{split}_{k}.png", title=f"classical {split} item {k} ({len(b.labels)} labels)")
     log(f"{out}: classical {split} F1 {metrics['f1']:.4f} (AP {metrics['ap']:.4f}, AR {metrics['ar']:.4f}), "
         f"F1@0.2 {metrics['f1_fixed']:.4f}, {res.fps:.1f} frames/s at batch 1")
     return res
