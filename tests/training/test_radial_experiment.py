@@ -114,6 +114,7 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys):
                                    "freespace_miou"}
     assert "| AP | AR | F1 |" in (out / "eval_test.md").read_text()
     assert (out / "figures" / "eval_test_0.png").stat().st_size > 1000
+    assert (out / "figures" / "learning_curve.png").stat().st_size > 1000
     # another config in the same folder is refused
     other = dataclasses.replace(cfg, name="other")
     save_yaml(other, tmp_path / "other.yaml")
