@@ -13,8 +13,6 @@ extraction excluded), ``OUT/classical.yaml`` (its settings) and, with ``--show K
 
 ``os-cfar`` writes into ``--out``:
 
-Writes into ``--out``:
-
 * ``config.yaml`` -- the OS-CFAR parameters used (tuned, given, or reused when resuming);
 * ``tuning.json`` -- mean Chamfer distance of every candidate of the grid search (when tuned);
 * ``{run}/{frame:06d}.npy`` -- float32 ``(N, 3)`` points in the single-chip radar frame, one per

@@ -231,7 +231,8 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
     """Score the classical detector (:mod:`radarpc.models.classical`) on ``split`` of a point store
     with the learned models' metrics; writes ``out/eval_{split}.json`` / ``.md`` (as
     :func:`evaluate_run`, with 0 parameters and the detector's batch-1 frames/s, point extraction
-    excluded), ``out/classical.yaml`` and, with ``show``, figures of the first frames."""
+    excluded), ``out/classical.yaml`` and, with ``show``, figures of ``show`` frames spread over the
+    split (:func:`_shown`)."""
     from radarpc.viz import plot_detection_frame
 
     out = Path(out)
@@ -258,8 +259,8 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
     for k, b in _shown(ds, show, collate):
         rows = classical_detect(b.inputs, cfg).rows()
         shown = Detections.from_frames([rows[rows[:, 0] >= FIXED_THRESHOLD]])
-        plot_detection_frame(b, shown, None,
-                             out / "figures" / f"eval_{split}_{k}.png", title=f"classical {split} item {k} ({len(b.labels)} labels)")
+        plot_detection_frame(b, shown, None, out / "figures" / f"eval_{split}_{k}.png",
+                             title=f"classical {split} item {k} ({len(b.labels)} labels)")
     log(f"{out}: classical {split} F1 {metrics['f1']:.4f} (AP {metrics['ap']:.4f}, AR {metrics['ar']:.4f}), "
         f"F1@0.2 {metrics['f1_fixed']:.4f}, {res.fps:.1f} frames/s at batch 1")
     return res
