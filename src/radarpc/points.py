@@ -18,6 +18,7 @@ from typing import Sequence
 import torch
 
 __all__ = [
+    "frame_span",
     "FLOAT_FIELDS",
     "INT_FIELDS",
     "BOOL_FIELDS",
@@ -46,6 +47,22 @@ def offset2batch(offset: torch.Tensor) -> torch.Tensor:
     """Frame index of every point from the cumulative ``offset`` ``(B,)``: ``(N,)`` long."""
     counts = torch.diff(offset, prepend=offset.new_zeros(1))
     return torch.repeat_interleave(torch.arange(offset.numel(), device=offset.device), counts)
+
+
+def frame_span(offset: torch.Tensor, b: int) -> tuple[int, int, int]:
+    """``(b, start, end)``: frame ``b`` (negative counts from the end) of an offset-batched tensor
+    holds rows ``start:end``.
+
+    Raises
+    ------
+    IndexError
+        ``b`` outside the ``len(offset)`` frames.
+    """
+    n = offset.numel()
+    if not -n <= b < n:
+        raise IndexError(f"frame {b} out of range for a batch of {n} frames")
+    b = b % n
+    return b, (int(offset[b - 1]) if b > 0 else 0), int(offset[b])
 
 
 def batch2offset(batch: torch.Tensor, n_frames: int | None = None) -> torch.Tensor:
@@ -132,12 +149,7 @@ class PointCloudBatch:
 
     def frame(self, b: int) -> "PointCloudBatch":
         """The cloud of frame ``b`` alone (a batch of one)."""
-        n = len(self)
-        if not -n <= b < n:
-            raise IndexError(f"frame {b} out of range for a batch of {n} frames")
-        b = b % n
-        start = int(self.offset[b - 1]) if b > 0 else 0
-        end = int(self.offset[b])
+        b, start, end = frame_span(self.offset, b)
         kw = {k: (None if getattr(self, k) is None else getattr(self, k)[start:end]) for k in self._PER_POINT}
         peak = None if self.peak_density is None else self.peak_density[b:b + 1]
         return PointCloudBatch(offset=self.offset.new_tensor([end - start]), tau=self.tau[b:b + 1],

@@ -499,3 +499,14 @@ def test_cuda_gives_the_cpu_points(beamforming, enrich):
     torch.testing.assert_close(gpu.amplitude[ib], cpu.amplitude[ia], rtol=1e-4, atol=0)
     if cpu.sector is not None:
         torch.testing.assert_close(gpu.sector[ib], cpu.sector[ia], rtol=1e-4, atol=1e-6)
+
+
+def test_frame_span_of_offsets():
+    from radarpc.points import frame_span
+
+    offset = torch.tensor([2, 2, 5])                      # frames of 2, 0 and 3 rows
+    assert frame_span(offset, 0) == (0, 0, 2)
+    assert frame_span(offset, 1) == (1, 2, 2)            # an empty frame
+    assert frame_span(offset, -1) == (2, 2, 5)
+    with pytest.raises(IndexError, match="frame 3 out of range for a batch of 3 frames"):
+        frame_span(offset, 3)

@@ -44,6 +44,8 @@ import torch
 from scipy.sparse import coo_matrix
 from scipy.spatial import cKDTree
 
+from radarpc.points import frame_span
+
 __all__ = [
     "RANGE_CELL_M",
     "AZIMUTH_CELL_DEG",
@@ -150,12 +152,7 @@ class Detections:
 
     def frame(self, b: int) -> "Detections":
         """The detections of frame ``b`` alone (a batch of one)."""
-        n = len(self)
-        if not -n <= b < n:
-            raise IndexError(f"frame {b} out of range for a batch of {n} frames")
-        b = b % n
-        start = int(self.offset[b - 1]) if b > 0 else 0
-        end = int(self.offset[b])
+        _, start, end = frame_span(self.offset, b)
         return Detections(self.score[start:end], self.range_m[start:end], self.azimuth_deg[start:end],
                           self.offset.new_tensor([end - start]))
 
