@@ -308,67 +308,143 @@ static void certify_points(const float *v, const float *rows, Py_ssize_t n_virtu
  * test. The candidates are decided as in certify_points. More than max_cand candidates or a
  * non-finite screen or norm -> heavy (index -1; the caller runs the exact beamformer). */
 SCREEN_CLONES
-static Py_ssize_t subspace_screen(const float *y, const float *coef, Py_ssize_t n_groups, Py_ssize_t rank,
-                                  Py_ssize_t m_rows, Py_ssize_t k_dir, float *re, float *im, double *q,
-                                  Py_ssize_t *best)
+static void subspace_group(const float *yg, const float *cg, Py_ssize_t rank, Py_ssize_t m_rows, Py_ssize_t m,
+                           float *re, float *im, double *q)
 {
-    Py_ssize_t kb = 0;
-    double qb = -1.0, bad = 0.0;
-    for (Py_ssize_t g = 0; g < n_groups; ++g) {
-        const float *yg = y + 2 * rank * g, *cg = coef + 2 * rank * m_rows * g;
-        const Py_ssize_t k0 = g * m_rows, m = k0 + m_rows <= k_dir ? m_rows : k_dir - k0;
+    for (Py_ssize_t t = 0; t < m; ++t) {
+        re[t] = 0.0f;
+        im[t] = 0.0f;
+    }
+    for (Py_ssize_t u = 0; u < rank; ++u) {
+        const float yr = yg[u], yi = yg[rank + u];
+        const float *cr = cg + u * m_rows, *ci = cg + (rank + u) * m_rows;
         for (Py_ssize_t t = 0; t < m; ++t) {
-            re[t] = 0.0f;
-            im[t] = 0.0f;
-        }
-        for (Py_ssize_t u = 0; u < rank; ++u) {
-            const float yr = yg[u], yi = yg[rank + u];
-            const float *cr = cg + u * m_rows, *ci = cg + (rank + u) * m_rows;
-            for (Py_ssize_t t = 0; t < m; ++t) {
-                re[t] = re[t] + cr[t] * yr;
-                re[t] = re[t] - ci[t] * yi;
-                im[t] = im[t] + ci[t] * yr;
-                im[t] = im[t] + cr[t] * yi;
-            }
-        }
-        for (Py_ssize_t t = 0; t < m; ++t) {
-            const double qk = (double)re[t] * re[t] + (double)im[t] * im[t];
-            q[k0 + t] = qk;
-            bad += qk * 0.0;
+            re[t] = re[t] + cr[t] * yr;
+            re[t] = re[t] - ci[t] * yi;
+            im[t] = im[t] + ci[t] * yr;
+            im[t] = im[t] + cr[t] * yi;
         }
     }
-    for (Py_ssize_t k = 0; k < k_dir; ++k)
-        if (q[k] > qb) {
-            qb = q[k];
-            kb = k;
+    for (Py_ssize_t t = 0; t < m; ++t)
+        q[t] = (double)re[t] * re[t] + (double)im[t] * im[t];
+}
+
+/* Group pruning: |z^_k| <= ||c_k|| ||y_g|| + |z^_k - c_k . y_g| <= cmax_g ||y_g|| + slack_k xn (the
+ * second product's rounding is part of the slack), so no direction of group g can be a candidate
+ * (a_k + e_k >= L) when ub_g = cmax_g ||y_g|| + 2 smax_g xn < L. The group with the largest ub
+ * is screened first; every other group only if its ub reaches the lower bound L of the groups
+ * screened so far (L only grows, so a skipped group stays below the final L). ||y_g|| is summed
+ * in double from float32 values (relative error < 2r 2^-53, covered by the 2^-20 inflation). */
+static Py_ssize_t subspace_points_one(const float *y, const float *coef, const float *slack, const float *cmax,
+                                      const float *smax, double slack_max, double x, Py_ssize_t n_groups, Py_ssize_t rank,
+                                      Py_ssize_t m_rows, Py_ssize_t k_dir, Py_ssize_t max_cand, double *q,
+                                      float *re, float *im, double *ub, uint8_t *done, int64_t *cand, int *finite)
+{
+    double qb = -1.0, bad = 0.0, low = -INFINITY;
+    Py_ssize_t kb = 0, g0 = 0;
+    for (Py_ssize_t g = 0; g < n_groups; ++g) {
+        const float *yg = y + 2 * rank * g;
+        double n2 = 0.0;
+        for (Py_ssize_t u = 0; u < 2 * rank; ++u)
+            n2 += (double)yg[u] * yg[u];
+        ub[g] = ((double)cmax[g] * sqrt(n2) + 2.0 * (double)smax[g] * x) * (1.0 + 0x1p-20);
+        bad += ub[g] * 0.0;
+        done[g] = 0;
+        if (ub[g] > ub[g0])
+            g0 = g;
+    }
+    if (bad != 0.0 || !isfinite(x)) {
+        *finite = 0;
+        return 0;
+    }
+    for (Py_ssize_t step = -1; step < n_groups; ++step) {
+        const Py_ssize_t g = step < 0 ? g0 : step;
+        if (done[g] || ub[g] < low)
+            continue;
+        const Py_ssize_t k0 = g * m_rows, m = k0 + m_rows <= k_dir ? m_rows : k_dir - k0;
+        subspace_group(y + 2 * rank * g, coef + 2 * rank * m_rows * g, rank, m_rows, m, re, im, q + k0);
+        done[g] = 1;
+        for (Py_ssize_t t = 0; t < m; ++t) {
+            bad += q[k0 + t] * 0.0;
+            if (q[k0 + t] > qb) {
+                qb = q[k0 + t];
+                kb = k0 + t;
+            }
         }
-    *best = kb;
-    return bad == 0.0;
+        if (bad != 0.0) {
+            *finite = 0;
+            return 0;
+        }
+        /* L = a_b - e_b, lowered by 2^-40 (a_b + max slack xn) for the double rounding of the tests */
+        const double ab = sqrt(qb);
+        low = ab * (1.0 - 0x1p-50) - (double)slack[kb] * x - 0x1p-40 * (ab + slack_max * x);
+    }
+    *finite = 1;
+    Py_ssize_t n_cand = 0;
+    for (Py_ssize_t g = 0; g < n_groups && n_cand <= max_cand; ++g) {
+        if (!done[g])
+            continue;
+        const Py_ssize_t k0 = g * m_rows, k1 = k0 + m_rows <= k_dir ? k0 + m_rows : k_dir;
+        for (Py_ssize_t k = k0; k < k1 && n_cand <= max_cand; ++k) {
+            const double rhs = low - (double)slack[k] * x;
+            if (rhs <= 0.0 || q[k] >= rhs * rhs)
+                cand[n_cand++] = k;
+        }
+    }
+    return n_cand;
+}
+
+/* Many candidates (flat, noise-like spectra): a float32 pass first. f_k = |B[k] . v| from the
+ * float32 dot kernel; each of Re and Im is a sum of 2N float32 products in any order, so it is
+ * within gamma_(2N+1) sum (|br| + |bi|)(|vr| + |vi|) <= gamma_(2N+1) 2 ||B[k]|| ||v|| of the exact
+ * value, and |f_k - |s_k|| <= e = 2 sqrt(2) gamma_(2N+2) R ||v|| + 2^-22 f_k (R = max_k ||B[k]||;
+ * the last term covers the modulus in double and its float32 rounding). Only candidates with
+ * f_k + e_k >= f_b - e_b (b the largest f) can hold the maximum; they go to certify_points. */
+#define REFINE_MIN 8
+
+static Py_ssize_t refine_f32(const float *vj, const float *rows, Py_ssize_t n_virtual, int64_t *cand,
+                             Py_ssize_t n_cand, double row_norm_max, double vnorm, dot_abs_fn dot, float *vs,
+                             double *work)
+{
+    const double m = (double)(2 * n_virtual + 2) * 0x1p-24;
+    const double base = 2.0 * sqrt(2.0) * (m / (1.0 - m)) * row_norm_max * vnorm * (1.0 + 0x1p-20);
+    for (Py_ssize_t i = 0; i < n_virtual; ++i) {
+        vs[2 * i] = vj[2 * i + 1];
+        vs[2 * i + 1] = vj[2 * i];
+    }
+    double best = -1.0, best_e = 0.0;
+    for (Py_ssize_t p = 0; p < n_cand; ++p) {
+        const double f = dot(rows + 2 * n_virtual * cand[p], vj, vs, n_virtual);
+        work[p] = f;
+        if (f > best) {
+            best = f;
+            best_e = base + 0x1p-22 * f;
+        }
+    }
+    if (!(best >= 0.0) || !isfinite(base))                    /* NaN or overflow: keep them all */
+        return n_cand;
+    const double low = best - best_e;
+    Py_ssize_t kept = 0;
+    for (Py_ssize_t p = 0; p < n_cand; ++p)
+        if (work[p] + base + 0x1p-22 * work[p] >= low)
+            cand[kept++] = cand[p];                           /* ascending order is kept */
+    return kept;
 }
 
 static void subspace_points(const float *y, Py_ssize_t y_stride, const float *coef, const float *slack,
-                            float slack_max, const float *xn, Py_ssize_t n_groups, Py_ssize_t rank,
-                            Py_ssize_t m_rows, Py_ssize_t k_dir, Py_ssize_t n_points, const float *v,
-                            const float *rows, Py_ssize_t n_virtual, Py_ssize_t n_az, Py_ssize_t n_el,
-                            Py_ssize_t max_cand, int64_t *index, float *amplitude, uint8_t *ambiguous,
-                            uint8_t *heavy, double *q, float *re, float *im, int64_t *cand, double *work)
+                            const float *cmax, const float *smax, double slack_max, const float *xn,
+                            Py_ssize_t n_groups, Py_ssize_t rank, Py_ssize_t m_rows, Py_ssize_t k_dir,
+                            Py_ssize_t n_points, const float *v, const float *rows, Py_ssize_t n_virtual,
+                            Py_ssize_t n_az, Py_ssize_t n_el, Py_ssize_t max_cand, double row_norm_max,
+                            dot_abs_fn dot, int64_t *index, float *amplitude, uint8_t *ambiguous, uint8_t *heavy,
+                            double *q, float *re, float *im, double *ub, uint8_t *done, int64_t *cand,
+                            float *vs, double *work)
 {
     for (Py_ssize_t j = 0; j < n_points; ++j) {
-        const double x = xn[j];
-        Py_ssize_t kb;
-        const int finite = subspace_screen(y + y_stride * j, coef, n_groups, rank, m_rows, k_dir, re, im, q, &kb)
-                           && isfinite(x);
-        Py_ssize_t n_cand = 0;
-        if (finite) {
-            const double ab = sqrt(q[kb]);
-            const double low = ab * (1.0 - 0x1p-50) - (double)slack[kb] * x
-                               - 0x1p-40 * (ab + (double)slack_max * x);
-            for (Py_ssize_t k = 0; k < k_dir && n_cand <= max_cand; ++k) {
-                const double rhs = low - (double)slack[k] * x;
-                if (rhs <= 0.0 || q[k] >= rhs * rhs)
-                    cand[n_cand++] = k;
-            }
-        }
+        int finite;
+        Py_ssize_t n_cand = subspace_points_one(y + y_stride * j, coef, slack, cmax, smax, slack_max, (double)xn[j],
+                                                n_groups, rank, m_rows, k_dir, max_cand, q, re, im, ub, done, cand,
+                                                &finite);
         if (!finite || n_cand == 0 || n_cand > max_cand) {
             heavy[j] = 1;
             index[j] = -1;
@@ -377,32 +453,50 @@ static void subspace_points(const float *y, Py_ssize_t y_stride, const float *co
             continue;
         }
         heavy[j] = 0;
+        const float *vj = v + 2 * n_virtual * j;
+        if (n_cand > REFINE_MIN)
+            n_cand = refine_f32(vj, rows, n_virtual, cand, n_cand, row_norm_max, (double)xn[j], dot, vs, work);
         const int64_t ptr[2] = {0, (int64_t)n_cand};
-        certify_points(v + 2 * n_virtual * j, rows, n_virtual, ptr, cand, 1, n_az, n_el, index + j,
-                       amplitude + j, ambiguous + j, work);
+        certify_points(vj, rows, n_virtual, ptr, cand, 1, n_az, n_el, index + j, amplitude + j, ambiguous + j,
+                       work);
     }
 }
 
 PyDoc_STRVAR(subspace_select_doc,
-"subspace_select(y, y_stride, coef, slack, slack_max, xn, n_groups, rank, m_rows, k_dir, n_points, v,\n"
-"                rows, n_virtual, n_az, n_el, max_cand, index, amplitude, ambiguous, heavy)\n"
+"subspace_select(y, y_stride, coef, slack, cmax, smax, slack_max, xn, n_groups, rank, m_rows, k_dir,\n"
+"                n_points, v, rows, n_virtual, n_az, n_el, max_cand, row_norm_max, index, amplitude,\n"
+"                ambiguous, heavy, kernel='auto')\n"
 "--\n\n"
 "Screen, selection and certified decision of the subspace beamformer for n_points points (see\n"
 "the module source). Addresses: y float32 rows of y_stride elements (G 2 rank used); coef\n"
-"float32 (G, 2, rank, m_rows); slack float32 (k_dir,); xn float32 (n_points,); v complex64\n"
-"(n_points, n_virtual); rows complex64 (k_dir, n_virtual). Outputs index int64, amplitude\n"
-"float32, ambiguous uint8, heavy uint8. The GIL is released.");
+"float32 (G, 2, rank, m_rows); slack float32 (k_dir,); cmax, smax float32 (G,) (largest\n"
+"coefficient norm and slack of each group); xn float32 (n_points,) (snapshot norms, rounded up);\n"
+"v complex64 (n_points, n_virtual); rows complex64 (k_dir, n_virtual); row_norm_max >= max_k\n"
+"||rows[k]||; kernel 'auto', 'scalar' or 'avx' (the float32 dot of points with many candidates).\n"
+"Outputs index int64, amplitude float32, ambiguous uint8, heavy uint8. The GIL is released.");
 
 static PyObject *py_subspace_select(PyObject *self, PyObject *args)
 {
-    unsigned long long y, coef, slack, xn, v, rows, index, amplitude, ambiguous, heavy;
+    unsigned long long y, coef, slack, cmax, smax, xn, v, rows, index, amplitude, ambiguous, heavy;
     Py_ssize_t y_stride, n_groups, rank, m_rows, k_dir, n_points, n_virtual, n_az, n_el, max_cand;
-    double slack_max;
+    double slack_max, row_norm_max;
+    const char *name = "auto";
     (void)self;
-    if (!PyArg_ParseTuple(args, "KnKKdKnnnnnKKnnnnKKKK", &y, &y_stride, &coef, &slack, &slack_max, &xn, &n_groups,
-                          &rank, &m_rows, &k_dir, &n_points, &v, &rows, &n_virtual, &n_az, &n_el, &max_cand,
-                          &index, &amplitude, &ambiguous, &heavy))
+    if (!PyArg_ParseTuple(args, "KnKKKKdKnnnnnKKnnnndKKKK|s", &y, &y_stride, &coef, &slack, &cmax, &smax,
+                          &slack_max, &xn, &n_groups, &rank, &m_rows, &k_dir, &n_points, &v, &rows, &n_virtual, &n_az,
+                          &n_el, &max_cand, &row_norm_max, &index, &amplitude, &ambiguous, &heavy, &name))
         return NULL;
+    int kernel = -1;
+    for (int k = 0; k < (int)(sizeof(kernel_names) / sizeof(kernel_names[0])); ++k)
+        if (strcmp(name, kernel_names[k]) == 0)
+            kernel = k;
+    if (kernel == KERNEL_AUTO)
+        kernel = kernel_on_cpu(KERNEL_AVX) ? KERNEL_AVX : KERNEL_SCALAR;
+    if (kernel < 0 || !kernel_on_cpu(kernel)) {
+        PyErr_Format(PyExc_ValueError, "kernel '%s' is not one of 'auto', 'scalar', 'avx' or cannot run on "
+                     "this build/CPU", name);
+        return NULL;
+    }
     if (n_points < 0 || n_groups < 1 || rank < 1 || m_rows < 1 || k_dir < 1 || k_dir > n_groups * m_rows
         || n_virtual < 1 || n_az * n_el != k_dir || max_cand < 1 || y_stride < 2 * rank * n_groups) {
         PyErr_SetString(PyExc_ValueError, "subspace_select: inconsistent sizes");
@@ -410,26 +504,32 @@ static PyObject *py_subspace_select(PyObject *self, PyObject *args)
     }
     if (n_points == 0)
         Py_RETURN_NONE;
-    double *q = malloc(sizeof(double) * (size_t)(k_dir + 2 * (max_cand + 1)));
-    float *re = malloc(sizeof(float) * (size_t)(2 * m_rows));
+    if (max_cand > k_dir)
+        max_cand = k_dir;
+    double *q = malloc(sizeof(double) * (size_t)(k_dir + 2 * (max_cand + 1) + n_groups));
+    float *re = malloc(sizeof(float) * (size_t)(2 * m_rows + 2 * n_virtual));
     int64_t *cand = malloc(sizeof(int64_t) * (size_t)(max_cand + 1));
-    if (q == NULL || re == NULL || cand == NULL) {
+    uint8_t *done = malloc((size_t)n_groups);
+    if (q == NULL || re == NULL || cand == NULL || done == NULL) {
         free(q);
         free(re);
         free(cand);
+        free(done);
         return PyErr_NoMemory();
     }
     Py_BEGIN_ALLOW_THREADS
     subspace_points((const float *)(uintptr_t)y, y_stride, (const float *)(uintptr_t)coef,
-                    (const float *)(uintptr_t)slack, (float)slack_max, (const float *)(uintptr_t)xn, n_groups, rank,
-                    m_rows, k_dir, n_points, (const float *)(uintptr_t)v, (const float *)(uintptr_t)rows, n_virtual,
-                    n_az, n_el, max_cand, (int64_t *)(uintptr_t)index, (float *)(uintptr_t)amplitude,
-                    (uint8_t *)(uintptr_t)ambiguous, (uint8_t *)(uintptr_t)heavy, q, re, re + m_rows, cand,
-                    q + k_dir);
+                    (const float *)(uintptr_t)slack, (const float *)(uintptr_t)cmax, (const float *)(uintptr_t)smax,
+                    slack_max, (const float *)(uintptr_t)xn, n_groups, rank, m_rows, k_dir, n_points,
+                    (const float *)(uintptr_t)v, (const float *)(uintptr_t)rows, n_virtual, n_az, n_el, max_cand,
+                    row_norm_max, kernel_dot(kernel), (int64_t *)(uintptr_t)index, (float *)(uintptr_t)amplitude,
+                    (uint8_t *)(uintptr_t)ambiguous, (uint8_t *)(uintptr_t)heavy, q, re, re + m_rows,
+                    q + k_dir + 2 * (max_cand + 1), done, cand, re + 2 * m_rows, q + k_dir);
     Py_END_ALLOW_THREADS
     free(q);
     free(re);
     free(cand);
+    free(done);
     Py_RETURN_NONE;
 }
 

@@ -441,20 +441,31 @@ def certify_select_native(snapshots: torch.Tensor, rows: torch.Tensor, grid: tup
 
 def subspace_select_native(y: torch.Tensor, coef: torch.Tensor, slack: torch.Tensor, xn: torch.Tensor,
                            snapshots: torch.Tensor, rows: torch.Tensor, grid: tuple[int, int], max_candidates: int,
-                           *, threads: int | None = None
+                           *, group_norm: torch.Tensor, group_slack: torch.Tensor, row_norm_max: float,
+                           threads: int | None = None, kernel: str = "auto"
                            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Screen, selection and certified decision of
     :func:`radarpc.dsp.accel.subspace.beamform_peaks_subspace` after its first GEMM.
 
     For every point ``j``: ``z^_k = c_k . y_jg`` for every direction (float32), ``a_k = |z^_k|``,
     the bound ``e_jk = slack_k xn_j``, the candidates ``a_k + e_jk >= a_b - e_jb`` (``b`` the
-    largest ``a``), then the decision of :func:`certify_select_native` on them.
+    largest ``a``), then the decision of :func:`certify_select_native` on them. A group ``g`` whose
+    bound ``group_norm_g ||y_jg|| + 2 group_slack_g xn_j`` stays below the lower bound
+    ``a_b - e_jb`` of the groups screened before it holds no candidate and is not screened (the
+    group with the largest bound goes first). When more than a few candidates remain, a float32 pass
+    over them (the dot kernel of :func:`screen_select_native`, error at most
+    ``2 sqrt(2) gamma_(2N+2) row_norm_max xn_j + 2^-22 f``) leaves only those that can still hold
+    the maximum for the decision.
 
     Parameters
     ----------
     y : Tensor ``(P, >= G 2r)`` float32, unit column stride: ``[Re y_g | Im y_g]`` per group
     coef : Tensor ``(G, 2, r, M)`` float32, contiguous: ``Re`` and ``Im`` of the coefficients
     slack : Tensor ``(>= K,)`` float32;  xn : Tensor ``(P,)`` float32 (inflated snapshot norms)
+    group_norm, group_slack : Tensor ``(G,)`` float32: per group, an upper bound of ``||c_k||`` and
+        the largest ``slack_k`` (:class:`~radarpc.dsp.accel.subspace.SubspaceTables` ``cmax``, ``smax``)
+    row_norm_max : float, at least ``max_k ||rows[k]||``
+    kernel : {"auto", "avx", "scalar"}, the float32 dot kernel (:data:`KERNELS`)
     snapshots : Tensor ``(P, N)`` complex64;  rows : Tensor ``(K, N)`` complex64
     grid : (n_az, n_el);  max_candidates : int
 
@@ -465,7 +476,8 @@ def subspace_select_native(y: torch.Tensor, coef: torch.Tensor, slack: torch.Ten
     """
     n_az, n_el = (int(g) for g in grid)
     k_dir = n_az * n_el
-    for name, t in (("y", y), ("coef", coef), ("slack", slack), ("xn", xn), ("snapshots", snapshots), ("rows", rows)):
+    for name, t in (("y", y), ("coef", coef), ("slack", slack), ("xn", xn), ("snapshots", snapshots), ("rows", rows),
+                    ("group_norm", group_norm), ("group_slack", group_slack)):
         if not isinstance(t, torch.Tensor) or t.device.type != "cpu":
             raise ValueError(f"{name} must be a CPU torch.Tensor for the native kernel")
     if coef.dtype != torch.float32 or coef.ndim != 4 or coef.shape[1] != 2 or not coef.is_contiguous():
@@ -485,13 +497,20 @@ def subspace_select_native(y: torch.Tensor, coef: torch.Tensor, slack: torch.Ten
         raise ValueError(f"rows must be a C-contiguous complex64 ({k_dir}, {n}) tensor")
     if slack.dtype != torch.float32 or slack.numel() < k_dir or not slack.is_contiguous():
         raise ValueError(f"slack must be contiguous float32 with >= {k_dir} entries")
+    for name, t in (("group_norm", group_norm), ("group_slack", group_slack)):
+        if t.dtype != torch.float32 or tuple(t.shape) != (n_groups,) or not t.is_contiguous():
+            raise ValueError(f"{name} must be contiguous float32 ({n_groups},), got {t.dtype} {tuple(t.shape)}")
     if xn.dtype != torch.float32 or tuple(xn.shape) != (p,) or not xn.is_contiguous():
         raise ValueError(f"xn must be contiguous float32 ({p},)")
     if isinstance(max_candidates, bool) or int(max_candidates) < 1:
         raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
-    threads = _check_threads_and_kernel(threads, "auto")
+    if not math.isfinite(row_norm_max) or row_norm_max < 0:
+        raise ValueError(f"row_norm_max must be a finite number >= 0, got {row_norm_max!r}")
+    threads = _check_threads_and_kernel(threads, kernel)
     _require_native("the torch selection of radarpc.dsp.accel.subspace.beamform_peaks_subspace")
     assert _screen is not None
+    if kernel != "auto" and kernel not in _screen.kernels():
+        raise ValueError(f"kernel {kernel!r} cannot run here; available: {_screen.kernels()}")
     index = torch.empty(p, dtype=torch.long)
     amplitude = torch.empty(p, dtype=torch.float32)
     ambiguous = torch.empty(p, dtype=torch.bool)
@@ -502,14 +521,15 @@ def subspace_select_native(y: torch.Tensor, coef: torch.Tensor, slack: torch.Ten
     ys = y.stride(0)
     smax = float(slack[:k_dir].max())
     y_ptr, c_ptr, s_ptr, x_ptr = y.data_ptr(), coef.data_ptr(), slack.data_ptr(), xn.data_ptr()
+    gn_ptr, gs_ptr = group_norm.data_ptr(), group_slack.data_ptr()
     v_ptr, r_ptr = snapshots.data_ptr(), rows.data_ptr()
     i_ptr, a_ptr, m_ptr, h_ptr = index.data_ptr(), amplitude.data_ptr(), ambiguous.data_ptr(), heavy.data_ptr()
-    mc = int(max_candidates)
+    mc, rn = int(max_candidates), float(row_norm_max)
 
     def item(s0: int, m: int) -> None:
-        ext.subspace_select(y_ptr + 4 * ys * s0, ys, c_ptr, s_ptr, smax, x_ptr + 4 * s0, n_groups, rank, m_rows,
-                            k_dir, m, v_ptr + 8 * n * s0, r_ptr, n, n_az, n_el, mc, i_ptr + 8 * s0,
-                            a_ptr + 4 * s0, m_ptr + s0, h_ptr + s0)
+        ext.subspace_select(y_ptr + 4 * ys * s0, ys, c_ptr, s_ptr, gn_ptr, gs_ptr, smax, x_ptr + 4 * s0, n_groups,
+                            rank, m_rows, k_dir, m, v_ptr + 8 * n * s0, r_ptr, n, n_az, n_el, mc, rn, i_ptr + 8 * s0,
+                            a_ptr + 4 * s0, m_ptr + s0, h_ptr + s0, kernel)
 
     _run_items(item, p, _SUBSPACE_POINTS, threads)
     return index, amplitude, ambiguous, heavy

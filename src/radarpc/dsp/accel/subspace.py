@@ -14,11 +14,17 @@ from the stored (float32) factors. Per snapshot ``v``::
 maximum lies among ``{k : |z^_k| + e_k >= max_k' (|z^_k'| - e_k')}``; those candidates are
 decided by :func:`radarpc.dsp.beamform.certified_argmax` (float64 with a bound, exact rational
 arithmetic when that does not separate them), so ``k_j`` is the argmax of the exact spectrum,
-the same as :func:`radarpc.dsp.beamform.beamform_peaks`, ties included. Nothing assumes the
-table's structure: a rough table only leaves more candidates (and past ``max_candidates`` a point
-runs the exact beamformer). On a smooth measured table (RADIal-like, 751 x 11 directions, 40 dB
-measurement noise) groups of 8 azimuths need rank 12 for ~13 candidates per point, and the work
-per point drops ~5x against the three float32 GEMMs of the exact beamformer.
+the same as :func:`radarpc.dsp.beamform.beamform_peaks`, ties included.
+
+The native selection (:func:`radarpc.dsp.accel.native.subspace_select_native`) adds two
+certified shortcuts: a group whose bound ``max_k ||c_k|| ||y_G|| + 2 max_k e_k`` stays below the
+lower bound of the groups already screened is skipped (``|z^_k| <= ||c_k|| ||y_G|| + e_k``), and
+a point left with many candidates (a flat, noise-like spectrum) first has them evaluated in
+float32 with a rigorous rounding bound, so only the few that can still win reach the float64
+decision. Nothing assumes the table's structure: a rough table only leaves more candidates.
+On RADIal's real grid (751 x 11 directions, a measured-like table with ~1 % error per entry)
+groups of 32 azimuths with rank 16 leave ~40 candidates and ~3 of 24 groups per point; the
+sizes and the measurements behind them are in ``docs/results/pointcloud.md``.
 """
 from __future__ import annotations
 
@@ -35,16 +41,21 @@ from radarpc.dsp.beamform import (_BLOCK, BeamformResult, DictionaryTables, _ran
 __all__ = ["SubspaceTables", "subspace_tables", "beamform_peaks_subspace", "SUBSPACE_GROUP", "SUBSPACE_RANK",
            "MAX_SUBSPACE_CANDIDATES"]
 
-SUBSPACE_GROUP = 8
+SUBSPACE_GROUP = 32
 """Azimuths per group (all elevations)."""
-SUBSPACE_RANK = 12
+SUBSPACE_RANK = 16
 """Basis rank per group (capped at the group's row count and ``N``)."""
 MAX_SUBSPACE_CANDIDATES = 256
-"""A point with more candidates runs the exact beamformer (flat spectra: the GEMM is cheaper)."""
+"""On the torch selection, a point with more candidates runs the exact beamformer (flat spectra:
+the GEMM is cheaper there); the native selection has no limit, its float32 pass handles them."""
 
 _U32 = 2.0 ** -24
 # Points per screen block of the torch selection: its (G, m, 2M) screen stays a few MB.
 _SCREEN_POINTS = 128
+# Bytes of the first product per block: one block for a batch of ordinary frames, because every
+# switch between torch's GEMM threads and the native selection's threads costs (torch's OpenMP
+# workers keep spinning after a GEMM).
+_Y_BYTES = 64 << 20
 
 
 @dataclass
@@ -60,6 +71,9 @@ class SubspaceTables:
     w2 : float32 ``(G, 2r, 2M)``  real form of ``C_G^T``: ``[Re y_G | Im y_G] @ w2[g] = [Re z^ | Im z^]``
     coef : float32 ``(G, 2, r, M)``  ``Re`` and ``Im`` of ``C_G^T`` (the native kernel's layout of ``w2``)
     slack : float32 ``(G M,)``    ``(||rho_k|| + eta_k)`` per direction (0 for the last group's padding)
+    cmax : float32 ``(G,)``       ``max ||c_k||`` over the group, rounded up (the group bound of the
+                                  native selection: ``|z^_k| <= cmax_g ||y_g|| + slack_k ||v||``)
+    smax : float32 ``(G,)``       ``max slack_k`` over the group
     """
 
     grid: tuple[int, int]
@@ -69,6 +83,8 @@ class SubspaceTables:
     w2: torch.Tensor
     coef: torch.Tensor
     slack: torch.Tensor
+    cmax: torch.Tensor
+    smax: torch.Tensor
 
     @property
     def n_groups(self) -> int:
@@ -76,7 +92,7 @@ class SubspaceTables:
 
     def to(self, device: torch.device | str) -> "SubspaceTables":
         return SubspaceTables(self.grid, self.group, self.rank, self.w1.to(device), self.w2.to(device),
-                              self.coef.to(device), self.slack.to(device))
+                              self.coef.to(device), self.slack.to(device), self.cmax.to(device), self.smax.to(device))
 
 
 def subspace_tables(rows: torch.Tensor, grid: tuple[int, int], group: int = SUBSPACE_GROUP,
@@ -120,8 +136,11 @@ def subspace_tables(rows: torch.Tensor, grid: tuple[int, int], group: int = SUBS
     eta = math.sqrt(2.0) * (gamma(2 * n) + gamma(2 * r) * (1.0 + gamma(2 * n))) * w * l1
     slack = ((rho * (1.0 + 2.0 ** -30) + eta) * (1.0 + 2.0 ** -20)).to(torch.float32)
     coef = torch.stack([w2[:, :r, :m_rows], w2[:, :r, m_rows:]], dim=1).contiguous()   # (G, 2, r, M)
+    cnorm = torch.linalg.vector_norm(coef.double(), dim=(1, 2))             # (G, M) ||c_k|| of the stored factors
+    cmax = (cnorm.amax(dim=1) * (1.0 + 2.0 ** -20)).to(torch.float32)       # rounding to float32 stays above
+    smax = slack.view(n_groups, m_rows).amax(dim=1)
     return SubspaceTables(grid=(n_az, n_el), group=min(group, n_az), rank=r, w1=w1.to(dev), w2=w2.to(dev),
-                          coef=coef.to(dev), slack=slack.to(dev))
+                          coef=coef.to(dev), slack=slack.to(dev), cmax=cmax.to(dev), smax=smax.to(dev))
 
 
 def _select_torch(z: torch.Tensor, slack: torch.Tensor, xn: torch.Tensor, k_dir: int, max_candidates: int
@@ -142,13 +161,14 @@ def _select_torch(z: torch.Tensor, slack: torch.Tensor, xn: torch.Tensor, k_dir:
 
 
 def beamform_peaks_subspace(snapshots: torch.Tensor, dictionary_t: torch.Tensor | DictionaryTables,
-                            grid: tuple[int, int], *, max_candidates: int = MAX_SUBSPACE_CANDIDATES,
+                            grid: tuple[int, int], *, max_candidates: int | None = None,
                             workspace: Workspace | None = None) -> BeamformResult:
     """``k_j`` and ``Ae_j`` of :func:`~radarpc.dsp.beamform.beamform_peaks`, screened in a subspace
     and certified (module docstring); the same index and amplitude as the exact beamformer.
 
     Snapshots whose norm lies outside ``[2^-40, 2^40]`` are first scaled by a power of two (exact).
-    Points whose screen leaves more than ``max_candidates`` candidates, none, or is not finite run
+    Points whose screen leaves more than ``max_candidates`` candidates (default: no limit on the
+    native selection, :data:`MAX_SUBSPACE_CANDIDATES` on the torch one), none, or is not finite run
     :func:`~radarpc.dsp.beamform.beamform_peaks`. The factorisation is built once per
     :class:`~radarpc.dsp.beamform.DictionaryTables` (kept on it).
     """
@@ -156,8 +176,8 @@ def beamform_peaks_subspace(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
         raise ValueError(f"the subspace beamformer works on complex64 snapshots, got {snapshots.dtype}; "
                          f"use beamform_peaks for other precisions")
     t = _tables_for(snapshots, dictionary_t, grid)
-    if isinstance(max_candidates, bool) or int(max_candidates) < 1:
-        raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
+    if max_candidates is not None and (isinstance(max_candidates, bool) or int(max_candidates) < 1):
+        raise ValueError(f"max_candidates must be an integer >= 1 or None, got {max_candidates!r}")
     ws = Workspace() if workspace is None else workspace
     st = t.subspace
     if st is None or st.w1.device != snapshots.device:
@@ -177,8 +197,10 @@ def beamform_peaks_subspace(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     amplitude = torch.empty(p, dtype=torch.float32, device=dev)
     heavy = torch.zeros(p, dtype=torch.bool, device=dev)
     native_ok = dev.type == "cpu" and native.native_available()
-    blk = min(_BLOCK, max(p, 1))
+    if max_candidates is None:
+        max_candidates = max(k_dir, 1) if native_ok else MAX_SUBSPACE_CANDIDATES
     n_groups, two_r = st.n_groups, 2 * st.rank
+    blk = min(max(_BLOCK, _Y_BYTES // (4 * n_groups * two_r)), max(p, 1))
     y = ws.empty("subspace.y", (blk, n_groups * two_r), torch.float32, dev)
     pairs_j, pairs_k = [], []
     for i in range(0, p, blk):
@@ -186,7 +208,9 @@ def beamform_peaks_subspace(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
         yi = torch.mm(x[i:i + m], st.w1, out=y[:m])                    # (m, G 2r): [Re y_g | Im y_g] per group
         if native_ok:                                                  # second product, selection, decision
             idx, amp, amb, hv = native.subspace_select_native(yi, st.coef, st.slack, xn[i:i + m], v[i:i + m],
-                                                              t.rows, t.grid, max_candidates)
+                                                              t.rows, t.grid, max_candidates,
+                                                              group_norm=st.cmax, group_slack=st.smax,
+                                                              row_norm_max=t.row_norm_max * (1.0 + 2.0 ** -20))
             index[i:i + m], amplitude[i:i + m], heavy[i:i + m] = idx, amp, hv
             for q in torch.nonzero(amb).flatten().tolist():           # rare: decided exactly
                 zq = torch.bmm(yi[q:q + 1].view(1, n_groups, two_r).transpose(0, 1), st.w2)
