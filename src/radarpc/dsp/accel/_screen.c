@@ -333,7 +333,7 @@ static void subspace_group(const float *yg, const float *cg, Py_ssize_t rank, Py
  * second product's rounding is part of the slack), so no direction of group g can be a candidate
  * (a_k + e_k >= L) when ub_g = cmax_g ||y_g|| + 2 smax_g xn < L. The group with the largest ub
  * is screened first; every other group only if its ub reaches the lower bound L of the groups
- * screened so far (L only grows, so a skipped group stays below the final L). ||y_g|| is summed
+ * screened so far (L is their largest, so a skipped group stays below the final L). ||y_g|| is summed
  * in double from float32 values (relative error < 2r 2^-53, covered by the 2^-20 inflation). */
 static Py_ssize_t subspace_points_one(const float *y, const float *coef, const float *slack, const float *cmax,
                                       const float *smax, double slack_max, double x, Py_ssize_t n_groups, Py_ssize_t rank,
@@ -375,9 +375,13 @@ static Py_ssize_t subspace_points_one(const float *y, const float *coef, const f
             *finite = 0;
             return 0;
         }
-        /* L = a_b - e_b, lowered by 2^-40 (a_b + max slack xn) for the double rounding of the tests */
+        /* L = a_b - e_b, lowered by 2^-40 (a_b + max slack xn) for the double rounding of the tests;
+         * each such L bounds max |s| from below, so the largest so far is kept (a new best b with a
+         * larger slack may give a smaller one) */
         const double ab = sqrt(qb);
-        low = ab * (1.0 - 0x1p-50) - (double)slack[kb] * x - 0x1p-40 * (ab + slack_max * x);
+        const double lb = ab * (1.0 - 0x1p-50) - (double)slack[kb] * x - 0x1p-40 * (ab + slack_max * x);
+        if (lb > low)
+            low = lb;
     }
     *finite = 1;
     Py_ssize_t n_cand = 0;
@@ -421,12 +425,12 @@ static Py_ssize_t refine_f32(const float *vj, const float *rows, Py_ssize_t n_vi
             best_e = base + 0x1p-22 * f;
         }
     }
-    if (!(best >= 0.0) || !isfinite(base))                    /* NaN or overflow: keep them all */
+    if (!(best >= 0.0) || !isfinite(best) || !isfinite(base))   /* NaN or overflow: keep them all */
         return n_cand;
     const double low = best - best_e;
     Py_ssize_t kept = 0;
     for (Py_ssize_t p = 0; p < n_cand; ++p)
-        if (work[p] + base + 0x1p-22 * work[p] >= low)
+        if (!(work[p] + base + 0x1p-22 * work[p] < low))      /* a NaN value is kept */
             cand[kept++] = cand[p];                           /* ascending order is kept */
     return kept;
 }
