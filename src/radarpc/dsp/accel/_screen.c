@@ -145,6 +145,23 @@ static int kernel_on_cpu(int kernel)
     }
 }
 
+/* The kernel named 'auto', 'scalar' or 'avx' that runs here, or -1 with a ValueError set. */
+static int kernel_by_name(const char *name)
+{
+    int kernel = -1;
+    for (int k = 0; k < (int)(sizeof(kernel_names) / sizeof(kernel_names[0])); ++k)
+        if (strcmp(name, kernel_names[k]) == 0)
+            kernel = k;
+    if (kernel == KERNEL_AUTO)
+        kernel = kernel_on_cpu(KERNEL_AVX) ? KERNEL_AVX : KERNEL_SCALAR;
+    if (kernel < 0 || !kernel_on_cpu(kernel)) {
+        PyErr_Format(PyExc_ValueError, "kernel '%s' is not one of 'auto', 'scalar', 'avx' or cannot run on "
+                     "this build/CPU", name);
+        return -1;
+    }
+    return kernel;
+}
+
 static dot_abs_fn kernel_dot(int kernel)
 {
 #if SCREEN_X86_SIMD
@@ -490,17 +507,9 @@ static PyObject *py_subspace_select(PyObject *self, PyObject *args)
                           &slack_max, &xn, &n_groups, &rank, &m_rows, &k_dir, &n_points, &v, &rows, &n_virtual, &n_az,
                           &n_el, &max_cand, &row_norm_max, &index, &amplitude, &ambiguous, &heavy, &name))
         return NULL;
-    int kernel = -1;
-    for (int k = 0; k < (int)(sizeof(kernel_names) / sizeof(kernel_names[0])); ++k)
-        if (strcmp(name, kernel_names[k]) == 0)
-            kernel = k;
-    if (kernel == KERNEL_AUTO)
-        kernel = kernel_on_cpu(KERNEL_AVX) ? KERNEL_AVX : KERNEL_SCALAR;
-    if (kernel < 0 || !kernel_on_cpu(kernel)) {
-        PyErr_Format(PyExc_ValueError, "kernel '%s' is not one of 'auto', 'scalar', 'avx' or cannot run on "
-                     "this build/CPU", name);
+    const int kernel = kernel_by_name(name);
+    if (kernel < 0)
         return NULL;
-    }
     if (n_points < 0 || n_groups < 1 || rank < 1 || m_rows < 1 || k_dir < 1 || k_dir > n_groups * m_rows
         || n_virtual < 1 || n_az * n_el != k_dir || max_cand < 1 || y_stride < 2 * rank * n_groups) {
         PyErr_SetString(PyExc_ValueError, "subspace_select: inconsistent sizes");
@@ -603,17 +612,9 @@ static PyObject *py_screen_select(PyObject *self, PyObject *args)
     if (!PyArg_ParseTuple(args, "KnKKKnnnndnKKK|s", &y, &y_stride, &v, &rows, &beta, &n_rows, &n_az,
                           &n_el, &n_virtual, &alpha, &max_cand, &index, &amplitude, &heavy, &name))
         return NULL;
-    int kernel = -1;
-    for (int k = 0; k < (int)(sizeof(kernel_names) / sizeof(kernel_names[0])); ++k)
-        if (strcmp(name, kernel_names[k]) == 0)
-            kernel = k;
-    if (kernel == KERNEL_AUTO)
-        kernel = kernel_on_cpu(KERNEL_AVX) ? KERNEL_AVX : KERNEL_SCALAR;
-    if (kernel < 0 || !kernel_on_cpu(kernel)) {
-        PyErr_Format(PyExc_ValueError, "kernel '%s' is not one of 'auto', 'scalar', 'avx' or cannot run on "
-                     "this build/CPU", name);
+    const int kernel = kernel_by_name(name);
+    if (kernel < 0)
         return NULL;
-    }
     if (n_rows < 0 || n_az < 1 || n_el < 1 || n_virtual < 1 || max_cand < 1 || y_stride < 2 * n_az * n_el) {
         PyErr_Format(PyExc_ValueError, "need n_rows >= 0, n_az, n_el, n_virtual, max_cand >= 1 and "
                      "y_stride >= 2 n_az n_el, got n_rows=%zd n_az=%zd n_el=%zd n_virtual=%zd "
