@@ -163,7 +163,7 @@ def test_group_bound_holds_and_prunes(real_size):
 @pytest.mark.parametrize("kernel", ["scalar", "avx"])
 def test_flat_spectra_and_their_near_ties_are_decided_exactly(real_size, built, kernel):
     # noise-like snapshots leave tens to hundreds of candidates: the float32 pass must keep the winner,
-    # also when the top two directions differ by one ulp in the table
+    # also when the top two directions differ only by the rounding of the table
     if kernel not in built._screen.kernels():
         pytest.skip(f"the {kernel} kernel cannot run on this CPU")
     t = real_size
@@ -190,7 +190,7 @@ def test_flat_spectra_and_their_near_ties_are_decided_exactly(real_size, built, 
     idx, amp, amb, heavy = built.subspace_select_native(
         x @ ns.w1, ns.coef, ns.slack, xn, v, near.rows, near.grid, near.n_dir, group_norm=ns.cmax,
         group_slack=ns.smax, row_norm_max=near.row_norm_max * (1 + 2.0 ** -20), kernel=kernel)
-    assert not bool(heavy.any())
+    assert not bool(heavy.any()) and int(amb.sum()) < len(v) // 2          # (ambiguous: exact rationals, below)
     assert torch.equal(idx[~amb], ref.argmax(1)[~amb])
     assert torch.equal(beamform_peaks_subspace(v, near, t.grid).index, ref.argmax(1))
     assert torch.equal(beamform_peaks(v, near, t.grid).index, ref.argmax(1))
