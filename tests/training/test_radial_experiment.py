@@ -148,3 +148,15 @@ def test_classical_row_cli(root, store, tmp_path):
                  "--config", str(tmp_path / "c.yaml")]) == 0
     doc = json.loads((out / "eval_test.json").read_text())
     assert doc["metrics"]["ar"] == 0.0 and load_yaml(ClassicalConfig, out / "classical.yaml").min_points == 10**6
+
+
+def test_shown_frames_spread_over_the_split():
+    from radarpc.experiments.detection import _shown
+
+    items = list(range(10))
+    picks = lambda k: [i for i, _ in _shown(items, k, lambda batch: batch)]   # noqa: E731
+    assert picks(3) == [0, 4, 9]              # round(0), round(4.5) = 4 (even), round(9)
+    assert picks(1) == [0]
+    assert picks(0) == []
+    assert picks(20) == list(range(10))       # more asked than there are: each once
+    assert _shown(items, 2, lambda batch: batch) == [(0, [0]), (9, [9])]

@@ -221,7 +221,8 @@ def _shown(ds, k: int, collate) -> list[tuple[int, DetectionBatch]]:
     """``k`` items spread evenly over ``ds`` (first and last included), each a batch of one: the
     figures of ``--show`` (the first items of a split are often one sequence's empty frames)."""
     n = len(ds)
-    picks = sorted({round(i * (n - 1) / max(k - 1, 1)) for i in range(min(k, n))}) if n else []
+    k = min(k, n)                                   # more asked than there are: each item once
+    picks = sorted({round(i * (n - 1) / max(k - 1, 1)) for i in range(k)})
     return [(i, collate([ds[i]])) for i in picks]
 
 

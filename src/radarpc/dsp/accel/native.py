@@ -519,7 +519,7 @@ def subspace_select_native(y: torch.Tensor, coef: torch.Tensor, slack: torch.Ten
         return index, amplitude, ambiguous, heavy
     ext = _screen
     ys = y.stride(0)
-    smax = float(slack[:k_dir].max())
+    smax = float(group_slack.max())                                 # = max_k slack_k (padding is 0)
     y_ptr, c_ptr, s_ptr, x_ptr = y.data_ptr(), coef.data_ptr(), slack.data_ptr(), xn.data_ptr()
     gn_ptr, gs_ptr = group_norm.data_ptr(), group_slack.data_ptr()
     v_ptr, r_ptr = snapshots.data_ptr(), rows.data_ptr()
