@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from radarpc.dsp.accel.screened import choose_beamformer, probe_snapshots
-from radarpc.dsp.accel.subspace import beamform_peaks_subspace, subspace_tables
+from radarpc.dsp.accel.subspace import beamform_peaks_subspace, group_residuals, subspace_tables
 from radarpc.dsp.beamform import beamform_peaks, certified_argmax, dictionary_tables
 from radarpc.sensors.radial import RADIAL, Calibration, steering_vectors
 
@@ -92,21 +92,55 @@ def test_near_ties_and_exact_ties_are_decided_exactly(small, selection):
     assert int(beamform_peaks(zero, t, t.grid).index) == 0 == int(beamform_peaks_subspace(zero, t, t.grid).index)
 
 
-def test_subspace_bound_holds(real_size):
-    # |s_k - z^_k| <= slack_k ||v|| on random snapshots, checked against float64
-    t = real_size
+def _bound_parts(t, v):
+    """Float32 screen ``z^`` ``(P, K)`` complex128, the float64 spectrum ``s``, ``R`` ``(P, G)`` and ``||v||``."""
     st = t.subspace
-    v = torch.randn(32, t.rows.shape[1], dtype=torch.complex64, generator=torch.Generator().manual_seed(2))
     x = torch.view_as_real(v).reshape(len(v), -1)
-    y = (x @ st.w1).view(len(v), st.n_groups, -1).transpose(0, 1)
-    z = torch.bmm(y, st.w2)                                               # (G, P, 2M)
+    y = x @ st.w1
+    z = torch.bmm(y.view(len(v), st.n_groups, -1).transpose(0, 1), st.w2)      # (G, P, 2M)
     m = z.shape[2] // 2
     zc = torch.complex(z[..., :m], z[..., m:]).transpose(0, 1).reshape(len(v), -1)[:, :t.n_dir]
     s = v.to(torch.complex128) @ t.rows.to(torch.complex128).T
-    err = (s - zc.to(torch.complex128)).abs()
-    bound = st.slack[:t.n_dir].double()[None] * torch.linalg.vector_norm(v.to(torch.complex128), dim=1)[:, None]
+    vn2 = torch.view_as_real(v).double().square().sum(dim=(1, 2))
+    return zc.to(torch.complex128), s, group_residuals(y, vn2, st), vn2.sqrt()
+
+
+def _projection_residual(t, v):
+    """``||(I - P_g) v||`` ``(P, G)`` in float64, from an orthonormal basis of each group's stored ``Q_g``
+    (an independent computation: QR of the basis rows, not the Gram bound of group_residuals)."""
+    st = t.subspace
+    n, two_r = t.rows.shape[1], 2 * st.rank
+    w = st.w1.double().view(n, 2, st.n_groups, two_r)                 # stack_real: rows 2n and 2n + 1
+    q = torch.complex(w[:, 0, :, :st.rank], -w[:, 1, :, :st.rank])    # (N, G, r): Q_g^T
+    vd = v.to(torch.complex128)
+    out = []
+    for g in range(st.n_groups):
+        basis, _ = torch.linalg.qr(q[:, g, :].conj())                  # orthonormal basis of span(Q_g^H)
+        out.append(torch.linalg.vector_norm(vd - (vd @ basis.conj()) @ basis.T, dim=1))
+    return torch.stack(out, dim=1)
+
+
+def test_residual_and_subspace_bounds_hold(real_size):
+    # R_g >= ||(I - P_g) v|| (against a QR projection), and |s_k - z^_k| <= resid_k R_g + slack_k ||v||
+    # against float64, on random and frame-like snapshots
+    t = real_size
+    st = t.subspace
+    g = torch.Generator().manual_seed(2)
+    v = torch.cat([torch.randn(32, t.rows.shape[1], dtype=torch.complex64, generator=g), probe_snapshots(t, 32, seed=7)])
+    zc, s, r, vn = _bound_parts(t, v)
+    true_r = _projection_residual(t, v)
+    assert bool((r >= true_r).all()) and bool((r <= vn[:, None] * (1 + 2.0 ** -30)).all())
+    # and tight: it adds only the first GEMM's rounding (y_error) and the basis' departure from orthonormal
+    extra = 4 * st.y_error + 4 * float((st.gram_max - 1).max())
+    assert bool((r <= torch.sqrt(true_r ** 2 + extra * vn[:, None] ** 2) * (1 + 1e-9)).all())
+    group = torch.arange(t.n_dir) // (st.group * t.grid[1])
+    err = (s - zc).abs()
+    bound = st.resid[:t.n_dir].double()[None] * r[:, group] + st.slack[:t.n_dir].double()[None] * vn[:, None]
     assert bool((err <= bound).all())
     assert float((err / bound).max()) > 1e-3                              # the bound is not vacuous
+    # frame-like points lie mostly in one group's subspace: their bound there is a small part of ||v||
+    best = s[32:].abs().argmax(1) // (st.group * t.grid[1])
+    assert float((r[32:].gather(1, best[:, None]).squeeze(1) / vn[32:]).median()) < 0.5
 
 
 def test_choice_is_the_fastest_measured_and_rejects_bad_timings():
@@ -133,30 +167,28 @@ def test_bad_input_errors(small):
 
 
 def _screen(t, v):
-    """Float32 screen ``|z^_k|`` ``(P, K)``, group projections ``||y_g||`` ``(P, G)`` and ``||v||``."""
+    """Float32 screen ``|z^_k|`` ``(P, K)``, group projections ``||y_g||`` ``(P, G)``, ``R`` ``(P, G)`` and ``||v||``."""
     st = t.subspace
+    zc, _, r, vn = _bound_parts(t, v)
     x = torch.view_as_real(v).reshape(len(v), -1)
-    y = (x @ st.w1).view(len(v), st.n_groups, -1)
-    z = torch.bmm(y.transpose(0, 1), st.w2)                               # (G, P, 2M)
-    m = z.shape[2] // 2
-    a = torch.hypot(z[..., :m], z[..., m:]).transpose(0, 1).reshape(len(v), -1)[:, :t.n_dir].double()
-    return a, torch.linalg.vector_norm(y.double(), dim=2), torch.linalg.vector_norm(v.to(torch.complex128), dim=1)
+    yn = torch.linalg.vector_norm((x @ st.w1).view(len(v), st.n_groups, -1).double(), dim=2)
+    return zc.abs(), yn, r, vn
 
 
 def test_group_bound_holds_and_prunes(real_size):
-    # the native selection skips group g when cmax_g ||y_g|| + 2 smax_g ||v|| < L; that needs
-    # |z^_k| <= cmax_g ||y_g|| + slack_k ||v|| for every k of g (Cauchy-Schwarz plus the product's rounding)
+    # the native selection skips group g when cmax_g ||y_g|| + 2 (rmax_g R_g + smax_g ||v||) < L; that
+    # needs |z^_k| <= cmax_g ||y_g|| + e_k for every k of g (Cauchy-Schwarz plus the product's rounding)
     t = real_size
     st = t.subspace
     g = torch.Generator().manual_seed(4)
     v = torch.cat([probe_snapshots(t, 64, seed=3), torch.randn(16, t.rows.shape[1], dtype=torch.complex64, generator=g)])
-    a, yn, vn = _screen(t, v)
+    a, yn, r, vn = _screen(t, v)
     group = torch.arange(t.n_dir) // (st.group * t.grid[1])
-    slack = st.slack[:t.n_dir].double()
-    assert bool((a <= st.cmax.double()[group][None] * yn[:, group] + slack[None] * vn[:, None]).all())
+    e = st.resid[:t.n_dir].double()[None] * r[:, group] + st.slack[:t.n_dir].double()[None] * vn[:, None]
+    assert bool((a <= st.cmax.double()[group][None] * yn[:, group] + e).all())
     # on frame-like points most groups cannot hold the maximum: the shortcut is not vacuous
-    low = (a - slack[None] * vn[:, None]).amax(1, keepdim=True)
-    ub = st.cmax.double()[None] * yn + 2 * st.smax.double()[None] * vn[:, None]
+    low = (a - e).amax(1, keepdim=True)
+    ub = st.cmax.double()[None] * yn + 2 * (st.rmax.double()[None] * r + st.smax.double()[None] * vn[:, None])
     assert float((ub[:64] < low[:64]).double().mean()) > 0.5
 
 
@@ -182,14 +214,14 @@ def test_flat_spectra_and_their_near_ties_are_decided_exactly(real_size, built, 
     ref = (v.to(torch.complex128) @ rows.to(torch.complex128).T).abs()
     top2 = ref.topk(2, dim=1).values
     assert int(((top2[:, 0] - top2[:, 1]) / top2[:, 0] < 1e-6).sum()) >= 16   # (a twin may land on another top)
-    a, _, vn = _screen(near, v)
-    e = ns.slack[:t.n_dir].double()[None] * vn[:, None]
+    a, _, r, vn = _screen(near, v)
+    group = torch.arange(t.n_dir) // (ns.group * t.grid[1])
+    e = ns.resid[:t.n_dir].double()[None] * r[:, group] + ns.slack[:t.n_dir].double()[None] * vn[:, None]
     assert int(((a + e) >= (a - e).amax(1, keepdim=True)).sum(1).min()) > 8     # the float32 pass runs past 8
     x = torch.view_as_real(v).reshape(len(v), -1)
     xn = (torch.linalg.vector_norm(v, dim=1) * (1 + 2.0 ** -14)).contiguous()
     idx, amp, amb, heavy = built.subspace_select_native(
-        x @ ns.w1, ns.coef, ns.slack, xn, v, near.rows, near.grid, near.n_dir, group_norm=ns.cmax,
-        group_slack=ns.smax, row_norm_max=near.row_norm_max * (1 + 2.0 ** -20), kernel=kernel)
+        x @ ns.w1, ns, xn, v, near.rows, near.n_dir, row_norm_max=near.row_norm_max * (1 + 2.0 ** -20), kernel=kernel)
     assert not bool(heavy.any()) and int(amb.sum()) < len(v) // 2          # (ambiguous: exact rationals, below)
     assert torch.equal(idx[~amb], ref.argmax(1)[~amb])
     assert torch.equal(beamform_peaks_subspace(v, near, t.grid).index, ref.argmax(1))

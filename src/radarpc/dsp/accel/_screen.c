@@ -23,8 +23,10 @@
  * the compiler (-O3, no reassociation flag needed); with GCC/Clang on x86 Linux an AVX2 clone of
  * them is chosen at load time (target_clones). The dot products have two kernels, 16 float32
  * partial sums each: "scalar" (plain C, any CPU) and "avx" (intrinsics, x86 with AVX; the
- * compiler's own vectorisation of the scalar one was 5x slower), chosen at run time. The entry point takes raw addresses and a row
- * range and releases the GIL, so Python threads can run disjoint row ranges in parallel.
+ * compiler's own vectorisation of the scalar one was 5x slower), chosen at run time; with "avx",
+ * the subspace screen also runs an AVX2/FMA kernel where the CPU has both. The entry points take
+ * raw addresses and a row range and release the GIL, so Python threads can run disjoint row
+ * ranges in parallel.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -259,21 +261,41 @@ static void select_rows(const uint16_t *y, Py_ssize_t y_stride, const float *v, 
  * the computed modulus. A point is flagged ambiguous when another candidate's interval
  * [f - beta, f + beta] reaches the best one's (beta = 0 means S = 0: the value is exactly 0, and
  * equal exact values are a true tie, settled by the column order). */
+#define F64_LANES 4
+SCREEN_CLONES
 static double dot_abs_f64(const float *b, const float *v, Py_ssize_t n, double *bound)
 {
-    double re0 = 0.0, re1 = 0.0, im0 = 0.0, im1 = 0.0, s1 = 0.0;
-    for (Py_ssize_t i = 0; i < n; ++i) {
+    /* F64_LANES independent partial sums per quantity, so the compiler vectorises without
+     * reassociating (the bound holds for any summation order) */
+    double re0[F64_LANES] = {0}, re1[F64_LANES] = {0}, im0[F64_LANES] = {0}, im1[F64_LANES] = {0},
+           s1[F64_LANES] = {0};
+    const Py_ssize_t whole = n - n % F64_LANES;
+    for (Py_ssize_t i = 0; i < whole; i += F64_LANES)
+        for (int l = 0; l < F64_LANES; ++l) {
+            const double br = b[2 * (i + l)], bi = b[2 * (i + l) + 1], vr = v[2 * (i + l)], vi = v[2 * (i + l) + 1];
+            re0[l] += br * vr;
+            re1[l] += bi * vi;
+            im0[l] += br * vi;
+            im1[l] += bi * vr;
+            s1[l] += (fabs(br) + fabs(bi)) * (fabs(vr) + fabs(vi));
+        }
+    for (Py_ssize_t i = whole; i < n; ++i) {
         const double br = b[2 * i], bi = b[2 * i + 1], vr = v[2 * i], vi = v[2 * i + 1];
-        re0 += br * vr;
-        re1 += bi * vi;
-        im0 += br * vi;
-        im1 += bi * vr;
-        s1 += (fabs(br) + fabs(bi)) * (fabs(vr) + fabs(vi));
+        re0[0] += br * vr;
+        re1[0] += bi * vi;
+        im0[0] += br * vi;
+        im1[0] += bi * vr;
+        s1[0] += (fabs(br) + fabs(bi)) * (fabs(vr) + fabs(vi));
     }
-    const double re = re0 - re1, im = im0 + im1;
+    double re = 0.0, im = 0.0, s = 0.0;
+    for (int l = 0; l < F64_LANES; ++l) {
+        re += re0[l] - re1[l];
+        im += im0[l] + im1[l];
+        s += s1[l];
+    }
     const double f = sqrt(re * re + im * im);
     const double m = (double)(2 * n + 2) * 0x1p-53;
-    *bound = 1.5 * (m / (1.0 - m)) * s1 * (1.0 + 0x1p-40) + 0x1p-50 * f;
+    *bound = 1.5 * (m / (1.0 - m)) * s * (1.0 + 0x1p-40) + 0x1p-50 * f;
     return f;
 }
 
@@ -318,12 +340,27 @@ static void certify_points(const float *v, const float *rows, Py_ssize_t n_virtu
  * y = [Re y_g (r) | Im y_g (r)] per group g (row j of the float32 GEMM x w1), the screen of the
  * group's M directions k = g M + t is z^_k = sum_t c_kt y_t (float32, 2r terms per component:
  * the same gamma_2r bound as any order), coef[g][0][t][.] = Re c_.t, coef[g][1][t][.] = Im c_.t.
- * With |s_k - z^_k| <= e_k = slack_k xn_j and a_k = |z^_k| (q_k = a_k^2 in double: products of
- * float32 values are exact), L = a_b - e_b for b = argmax q is a lower bound of max_k |s_k|, and
- * k is a candidate when a_k + e_k >= L, tested as q_k >= (L - slack_k xn)^2 (or L - slack_k xn
- * <= 0); L is lowered by 2^-40 (a_b + max slack xn), far more than the double rounding of the
- * test. The candidates are decided as in certify_points. More than max_cand candidates or a
- * non-finite screen or norm -> heavy (index -1; the caller runs the exact beamformer). */
+ * With |s_k - z^_k| <= e_k = resid_k R_g + slack_k xn_j (R_g >= ||(I - P_g) v||, below) and
+ * a_k = |z^_k| (q_k = a_k^2 in double: products of float32 values are exact), L = a_b - e_b for
+ * b = argmax q in a screened group is a lower bound of max_k |s_k| (the largest over the groups
+ * is kept), and k is a candidate when a_k + e_k >= L, tested as q_k >= (L - e_k)^2 (or
+ * L - e_k <= 0); each a_b - e_b is lowered by 2^-40 (a_b + e_max xn), far more than the double
+ * rounding of the test. The candidates are decided as in certify_points. More than max_cand
+ * candidates or a non-finite screen or norm -> heavy (index -1; the caller runs the exact
+ * beamformer). */
+/* Candidates up to which a point goes straight to the float64 decision. */
+#define REFINE_MIN 8
+
+typedef void (*group_fn)(const float *, const float *, Py_ssize_t, Py_ssize_t, Py_ssize_t, float *, float *, double *);
+
+typedef struct {
+    const float *coef, *resid, *slack, *cmax, *rmax, *smax;
+    const double *gram_max;
+    double y_error, e_max;                  /* e_max: max_k (resid_k + slack_k), so e_k <= e_max xn */
+    Py_ssize_t n_groups, rank, m_rows, k_dir;
+    group_fn group;                         /* the screen kernel of one group */
+} subspace_t;
+
 SCREEN_CLONES
 static void subspace_group(const float *yg, const float *cg, Py_ssize_t rank, Py_ssize_t m_rows, Py_ssize_t m,
                            float *re, float *im, double *q)
@@ -346,25 +383,147 @@ static void subspace_group(const float *yg, const float *cg, Py_ssize_t rank, Py
         q[t] = (double)re[t] * re[t] + (double)im[t] * im[t];
 }
 
-/* Group pruning: |z^_k| <= ||c_k|| ||y_g|| + |z^_k - c_k . y_g| <= cmax_g ||y_g|| + slack_k xn (the
- * second product's rounding is part of the slack), so no direction of group g can be a candidate
- * (a_k + e_k >= L) when ub_g = cmax_g ||y_g|| + 2 smax_g xn < L. The group with the largest ub
- * is screened first; every other group only if its ub reaches the lower bound L of the groups
- * screened so far (L is their largest, so a skipped group stays below the final L). ||y_g|| is summed
- * in double from float32 values (relative error < 2r 2^-53, covered by the 2^-20 inflation). */
-static Py_ssize_t subspace_points_one(const float *y, const float *coef, const float *slack, const float *cmax,
-                                      const float *smax, double slack_max, double x, Py_ssize_t n_groups, Py_ssize_t rank,
-                                      Py_ssize_t m_rows, Py_ssize_t k_dir, Py_ssize_t max_cand, double *q,
-                                      float *re, float *im, double *ub, uint8_t *done, int64_t *cand, int *finite)
+#if SCREEN_X86_SIMD
+/* The same with AVX2 and FMA: 32 directions at a time, their sums in eight registers over the rank
+ * (each coefficient is read once per point); fused products only lower the rounding, and the
+ * gamma_2r bound holds for any order. The tail of fewer than 8 directions runs the portable loop. */
+SCREEN_TARGET("avx2,fma")
+static void subspace_group_fma(const float *yg, const float *cg, Py_ssize_t rank, Py_ssize_t m_rows, Py_ssize_t m,
+                               float *re, float *im, double *q)
 {
-    double qb = -1.0, bad = 0.0, low = -INFINITY;
-    Py_ssize_t kb = 0, g0 = 0;
+    Py_ssize_t t0 = 0;
+    for (; t0 + 32 <= m; t0 += 32) {
+        __m256 r0 = _mm256_setzero_ps(), r1 = r0, r2 = r0, r3 = r0, i0 = r0, i1 = r0, i2 = r0, i3 = r0;
+        for (Py_ssize_t u = 0; u < rank; ++u) {
+            const __m256 yr = _mm256_broadcast_ss(yg + u), yi = _mm256_broadcast_ss(yg + rank + u);
+            const float *cr = cg + u * m_rows + t0, *ci = cg + (rank + u) * m_rows + t0;
+            const __m256 a0 = _mm256_loadu_ps(cr), a1 = _mm256_loadu_ps(cr + 8), a2 = _mm256_loadu_ps(cr + 16),
+                         a3 = _mm256_loadu_ps(cr + 24);
+            const __m256 b0 = _mm256_loadu_ps(ci), b1 = _mm256_loadu_ps(ci + 8), b2 = _mm256_loadu_ps(ci + 16),
+                         b3 = _mm256_loadu_ps(ci + 24);
+            r0 = _mm256_fnmadd_ps(b0, yi, _mm256_fmadd_ps(a0, yr, r0));
+            r1 = _mm256_fnmadd_ps(b1, yi, _mm256_fmadd_ps(a1, yr, r1));
+            r2 = _mm256_fnmadd_ps(b2, yi, _mm256_fmadd_ps(a2, yr, r2));
+            r3 = _mm256_fnmadd_ps(b3, yi, _mm256_fmadd_ps(a3, yr, r3));
+            i0 = _mm256_fmadd_ps(a0, yi, _mm256_fmadd_ps(b0, yr, i0));
+            i1 = _mm256_fmadd_ps(a1, yi, _mm256_fmadd_ps(b1, yr, i1));
+            i2 = _mm256_fmadd_ps(a2, yi, _mm256_fmadd_ps(b2, yr, i2));
+            i3 = _mm256_fmadd_ps(a3, yi, _mm256_fmadd_ps(b3, yr, i3));
+        }
+        _mm256_storeu_ps(re + t0, r0);
+        _mm256_storeu_ps(re + t0 + 8, r1);
+        _mm256_storeu_ps(re + t0 + 16, r2);
+        _mm256_storeu_ps(re + t0 + 24, r3);
+        _mm256_storeu_ps(im + t0, i0);
+        _mm256_storeu_ps(im + t0 + 8, i1);
+        _mm256_storeu_ps(im + t0 + 16, i2);
+        _mm256_storeu_ps(im + t0 + 24, i3);
+    }
+    for (; t0 + 8 <= m; t0 += 8) {
+        __m256 r0 = _mm256_setzero_ps(), i0 = r0;
+        for (Py_ssize_t u = 0; u < rank; ++u) {
+            const __m256 yr = _mm256_broadcast_ss(yg + u), yi = _mm256_broadcast_ss(yg + rank + u);
+            const __m256 a0 = _mm256_loadu_ps(cg + u * m_rows + t0), b0 = _mm256_loadu_ps(cg + (rank + u) * m_rows + t0);
+            r0 = _mm256_fnmadd_ps(b0, yi, _mm256_fmadd_ps(a0, yr, r0));
+            i0 = _mm256_fmadd_ps(a0, yi, _mm256_fmadd_ps(b0, yr, i0));
+        }
+        _mm256_storeu_ps(re + t0, r0);
+        _mm256_storeu_ps(im + t0, i0);
+    }
+    if (t0 < m)
+        subspace_group(yg, cg + t0, rank, m_rows, m - t0, re + t0, im + t0, q + t0);
+    for (Py_ssize_t t = 0; t < t0; t += 4) {       /* q in double: exact products, one rounding */
+        const Py_ssize_t w = t + 4 <= t0 ? 4 : t0 - t;
+        for (Py_ssize_t l = 0; l < w; ++l)
+            q[t + l] = (double)re[t + l] * re[t + l] + (double)im[t + l] * im[t + l];
+    }
+}
+#endif
+
+/* The screen kernel that goes with a dot kernel: the AVX2/FMA one with 'avx' where the CPU has them. */
+static group_fn kernel_group(int kernel)
+{
+#if SCREEN_X86_SIMD
+    if (kernel == KERNEL_AVX && __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))
+        return subspace_group_fma;
+#endif
+    (void)kernel;
+    return subspace_group;
+}
+
+/* sum of squares of n float32 values in double, 8 independent partial sums (vectorised; the
+ * products are exact, the sum within n 2^-53 relative in any order) */
+SCREEN_CLONES
+static double sum_squares(const float *a, Py_ssize_t n)
+{
+    double acc[8] = {0};
+    const Py_ssize_t whole = n - n % 8;
+    for (Py_ssize_t i = 0; i < whole; i += 8)
+        for (int l = 0; l < 8; ++l)
+            acc[l] += (double)a[i + l] * a[i + l];
+    for (Py_ssize_t i = whole; i < n; ++i)
+        acc[i - whole] += (double)a[i] * a[i];
+    double s = 0.0;
+    for (int l = 0; l < 8; ++l)
+        s += acc[l];
+    return s;
+}
+
+/* The largest of q[0 .. m) (the first one on ties) and whether every value is finite; 8 lanes. */
+SCREEN_CLONES
+static Py_ssize_t argmax_finite(const double *q, Py_ssize_t m, int *finite)
+{
+    double mx[8], chk[8] = {0};
+    for (int l = 0; l < 8; ++l)
+        mx[l] = -INFINITY;
+    const Py_ssize_t whole = m - m % 8;
+    for (Py_ssize_t i = 0; i < whole; i += 8)
+        for (int l = 0; l < 8; ++l) {
+            mx[l] = q[i + l] > mx[l] ? q[i + l] : mx[l];
+            chk[l] += q[i + l] * 0.0;
+        }
+    for (Py_ssize_t i = whole; i < m; ++i) {
+        mx[0] = q[i] > mx[0] ? q[i] : mx[0];
+        chk[0] += q[i] * 0.0;
+    }
+    double best = -INFINITY, bad = 0.0;
+    for (int l = 0; l < 8; ++l) {
+        best = mx[l] > best ? mx[l] : best;
+        bad += chk[l];
+    }
+    *finite = bad == 0.0;                  /* bad is 0 or NaN */
+    Py_ssize_t t = 0;
+    while (t < m - 1 && !(q[t] == best))
+        ++t;
+    return t;
+}
+
+/* Per group: the residual bound R_g = sqrt(||v||^2 - max(0, ||y^_g|| - y_error ||v||)^2 / gram_max_g)
+ * (||P_g v|| >= ||Q_g v|| / sqrt(lambda_max), ||Q_g v|| >= ||y^_g|| - y_error ||v||); ||v||^2 and
+ * ||y^_g||^2 are summed in double from float32 values (relative errors < 2N 2^-53 and 2r 2^-53,
+ * covered by the 2^-40 factors), so R_g >= ||(I - P_g) v|| and R_g <= ||v|| (1 + 2^-38) <= xn.
+ * Group pruning: |z^_k| <= ||c_k|| ||y_g|| + |z^_k - c_k . y_g| <= cmax_g ||y_g|| + e_k (the second
+ * product's rounding is part of the slack), so no direction of group g can be a candidate
+ * (a_k + e_k >= L) when ub_g = cmax_g ||y_g|| + 2 (rmax_g R_g + smax_g xn) < L. The group with the
+ * largest ub is screened first; every other group only if its ub reaches the lower bound L of the
+ * groups screened so far (L is their largest, so a skipped group stays below the final L). */
+static Py_ssize_t subspace_points_one(const float *y, const float *vj, Py_ssize_t n_virtual, const subspace_t *tb,
+                                      double x, Py_ssize_t max_cand, double *q, float *re, float *im, double *ub,
+                                      double *rg, uint8_t *done, int64_t *cand, int *finite)
+{
+    const Py_ssize_t n_groups = tb->n_groups, rank = tb->rank, m_rows = tb->m_rows, k_dir = tb->k_dir;
+    const double vn2 = sum_squares(vj, 2 * n_virtual) * (1.0 + 0x1p-40);
+    const double vn = sqrt(vn2) * (1.0 + 0x1p-40), y_err = tb->y_error * vn;
+    double bad = vn2 * 0.0, low = -INFINITY;
+    Py_ssize_t g0 = 0;
     for (Py_ssize_t g = 0; g < n_groups; ++g) {
-        const float *yg = y + 2 * rank * g;
-        double n2 = 0.0;
-        for (Py_ssize_t u = 0; u < 2 * rank; ++u)
-            n2 += (double)yg[u] * yg[u];
-        ub[g] = ((double)cmax[g] * sqrt(n2) + 2.0 * (double)smax[g] * x) * (1.0 + 0x1p-20);
+        const double ny = sqrt(sum_squares(y + 2 * rank * g, 2 * rank));
+        double lo = ny * (1.0 - 0x1p-40) - y_err;
+        lo = lo > 0.0 ? lo : 0.0;
+        const double r2 = vn2 - lo * lo / tb->gram_max[g];
+        rg[g] = sqrt(r2 > 0.0 ? r2 : 0.0) * (1.0 + 0x1p-40);
+        ub[g] = ((double)tb->cmax[g] * ny + 2.0 * ((double)tb->rmax[g] * rg[g] + (double)tb->smax[g] * x))
+                * (1.0 + 0x1p-20);
         bad += ub[g] * 0.0;
         done[g] = 0;
         if (ub[g] > ub[g0])
@@ -374,29 +533,25 @@ static Py_ssize_t subspace_points_one(const float *y, const float *coef, const f
         *finite = 0;
         return 0;
     }
+    const double e_round = 0x1p-40 * tb->e_max * x;
     for (Py_ssize_t step = -1; step < n_groups; ++step) {
         const Py_ssize_t g = step < 0 ? g0 : step;
         if (done[g] || ub[g] < low)
             continue;
         const Py_ssize_t k0 = g * m_rows, m = k0 + m_rows <= k_dir ? m_rows : k_dir - k0;
-        subspace_group(y + 2 * rank * g, coef + 2 * rank * m_rows * g, rank, m_rows, m, re, im, q + k0);
+        tb->group(y + 2 * rank * g, tb->coef + 2 * rank * m_rows * g, rank, m_rows, m, re, im, q + k0);
         done[g] = 1;
-        for (Py_ssize_t t = 0; t < m; ++t) {
-            bad += q[k0 + t] * 0.0;
-            if (q[k0 + t] > qb) {
-                qb = q[k0 + t];
-                kb = k0 + t;
-            }
-        }
-        if (bad != 0.0) {
+        int ok;
+        const Py_ssize_t t = argmax_finite(q + k0, m, &ok);
+        if (!ok) {
             *finite = 0;
             return 0;
         }
-        /* L = a_b - e_b, lowered by 2^-40 (a_b + max slack xn) for the double rounding of the tests;
-         * each such L bounds max |s| from below, so the largest so far is kept (a new best b with a
-         * larger slack may give a smaller one) */
-        const double ab = sqrt(qb);
-        const double lb = ab * (1.0 - 0x1p-50) - (double)slack[kb] * x - 0x1p-40 * (ab + slack_max * x);
+        /* L = a_b - e_b of the group's largest a_b, lowered by 2^-40 (a_b + e_max xn) for the double
+         * rounding of the tests; the largest so far is kept */
+        const double ab = sqrt(q[k0 + t]);
+        const double lb = ab * (1.0 - 0x1p-50 - 0x1p-40) - ((double)tb->resid[k0 + t] * rg[g]
+                                                            + (double)tb->slack[k0 + t] * x) - e_round;
         if (lb > low)
             low = lb;
     }
@@ -406,13 +561,39 @@ static Py_ssize_t subspace_points_one(const float *y, const float *coef, const f
         if (!done[g])
             continue;
         const Py_ssize_t k0 = g * m_rows, k1 = k0 + m_rows <= k_dir ? k0 + m_rows : k_dir;
+        const double r = rg[g];
+        /* e_k <= e_g = rmax_g R_g + smax_g xn (rounding is monotone), so q_k < (L - e_g)^2 with
+         * L - e_g > 0 rules k out before its own bound is formed */
+        const double thr = low - ((double)tb->rmax[g] * r + (double)tb->smax[g] * x);
+        const double thr2 = thr > 0.0 ? thr * thr : -1.0;
         for (Py_ssize_t k = k0; k < k1 && n_cand <= max_cand; ++k) {
-            const double rhs = low - (double)slack[k] * x;
+            if (!(q[k] >= thr2))
+                continue;
+            const double rhs = low - ((double)tb->resid[k] * r + (double)tb->slack[k] * x);
             if (rhs <= 0.0 || q[k] >= rhs * rhs)
                 cand[n_cand++] = k;
         }
     }
-    return n_cand;
+    if (n_cand <= REFINE_MIN || n_cand > max_cand)
+        return n_cand;
+    /* Many candidates: L becomes max_k (a_k - e_k) over them. The k that maximises a_k - e_k over
+     * the screened directions is among them (a_k + e_k >= a_k - e_k >= L), so this is the maximum
+     * over every screened direction: a largest a_b with a large e_b no longer sets a low L. */
+    double best = low;
+    for (Py_ssize_t p = 0; p < n_cand; ++p) {
+        const int64_t k = cand[p];
+        const double e = (double)tb->resid[k] * rg[k / m_rows] + (double)tb->slack[k] * x;
+        const double lb = sqrt(q[k]) * (1.0 - 0x1p-50 - 0x1p-40) - e - e_round;
+        best = lb > best ? lb : best;
+    }
+    Py_ssize_t kept = 0;
+    for (Py_ssize_t p = 0; p < n_cand; ++p) {
+        const int64_t k = cand[p];
+        const double rhs = best - ((double)tb->resid[k] * rg[k / m_rows] + (double)tb->slack[k] * x);
+        if (rhs <= 0.0 || q[k] >= rhs * rhs)
+            cand[kept++] = k;
+    }
+    return kept;
 }
 
 /* Many candidates (flat, noise-like spectra): a float32 pass first. f_k = |B[k] . v| from the
@@ -421,60 +602,63 @@ static Py_ssize_t subspace_points_one(const float *y, const float *coef, const f
  * value, and |f_k - |s_k|| <= e = 2 sqrt(2) gamma_(2N+2) R ||v|| + 2^-22 f_k (R = max_k ||B[k]||;
  * the last term covers the modulus in double and its float32 rounding). Only candidates with
  * f_k + e_k >= f_b - e_b (b the largest f) can hold the maximum; they go to certify_points. */
-#define REFINE_MIN 8
+
+/* Keeps the candidates of a refine pass with f_k + e >= f_b - e_b (module comment above refine_f32);
+ * f holds the float32 values of the n_cand candidates, base the part of e that does not scale with f. */
+static Py_ssize_t refine_keep(int64_t *cand, const double *f, Py_ssize_t n_cand, double base)
+{
+    double best = -1.0;
+    for (Py_ssize_t p = 0; p < n_cand; ++p)
+        best = f[p] > best ? f[p] : best;
+    if (!(best >= 0.0) || !isfinite(best) || !isfinite(base))   /* NaN or overflow: keep them all */
+        return n_cand;
+    const double low = best - (base + 0x1p-22 * best);
+    Py_ssize_t kept = 0;
+    for (Py_ssize_t p = 0; p < n_cand; ++p)
+        if (!(f[p] + base + 0x1p-22 * f[p] < low))           /* a NaN value is kept */
+            cand[kept++] = cand[p];                           /* ascending order is kept */
+    return kept;
+}
+
+static double refine_base(Py_ssize_t n_virtual, double row_norm_max, double vnorm)
+{
+    const double m = (double)(2 * n_virtual + 2) * 0x1p-24;
+    return 2.0 * sqrt(2.0) * (m / (1.0 - m)) * row_norm_max * vnorm * (1.0 + 0x1p-20);
+}
 
 static Py_ssize_t refine_f32(const float *vj, const float *rows, Py_ssize_t n_virtual, int64_t *cand,
                              Py_ssize_t n_cand, double row_norm_max, double vnorm, dot_abs_fn dot, float *vs,
                              double *work)
 {
-    const double m = (double)(2 * n_virtual + 2) * 0x1p-24;
-    const double base = 2.0 * sqrt(2.0) * (m / (1.0 - m)) * row_norm_max * vnorm * (1.0 + 0x1p-20);
     for (Py_ssize_t i = 0; i < n_virtual; ++i) {
         vs[2 * i] = vj[2 * i + 1];
         vs[2 * i + 1] = vj[2 * i];
     }
-    double best = -1.0, best_e = 0.0;
-    for (Py_ssize_t p = 0; p < n_cand; ++p) {
-        const double f = dot(rows + 2 * n_virtual * cand[p], vj, vs, n_virtual);
-        work[p] = f;
-        if (f > best) {
-            best = f;
-            best_e = base + 0x1p-22 * f;
-        }
-    }
-    if (!(best >= 0.0) || !isfinite(best) || !isfinite(base))   /* NaN or overflow: keep them all */
-        return n_cand;
-    const double low = best - best_e;
-    Py_ssize_t kept = 0;
     for (Py_ssize_t p = 0; p < n_cand; ++p)
-        if (!(work[p] + base + 0x1p-22 * work[p] < low))      /* a NaN value is kept */
-            cand[kept++] = cand[p];                           /* ascending order is kept */
-    return kept;
+        work[p] = dot(rows + 2 * n_virtual * cand[p], vj, vs, n_virtual);
+    return refine_keep(cand, work, n_cand, refine_base(n_virtual, row_norm_max, vnorm));
 }
 
-static void subspace_points(const float *y, Py_ssize_t y_stride, const float *coef, const float *slack,
-                            const float *cmax, const float *smax, double slack_max, const float *xn,
-                            Py_ssize_t n_groups, Py_ssize_t rank, Py_ssize_t m_rows, Py_ssize_t k_dir,
+static void subspace_points(const float *y, Py_ssize_t y_stride, const subspace_t *tb, const float *xn,
                             Py_ssize_t n_points, const float *v, const float *rows, Py_ssize_t n_virtual,
                             Py_ssize_t n_az, Py_ssize_t n_el, Py_ssize_t max_cand, double row_norm_max,
                             dot_abs_fn dot, int64_t *index, float *amplitude, uint8_t *ambiguous, uint8_t *heavy,
-                            double *q, float *re, float *im, double *ub, uint8_t *done, int64_t *cand,
-                            float *vs, double *work)
+                            double *q, float *re, float *im, double *ub,
+                            double *rg, uint8_t *done, int64_t *cand, float *vs, double *work)
 {
     for (Py_ssize_t j = 0; j < n_points; ++j) {
         int finite;
-        Py_ssize_t n_cand = subspace_points_one(y + y_stride * j, coef, slack, cmax, smax, slack_max, (double)xn[j],
-                                                n_groups, rank, m_rows, k_dir, max_cand, q, re, im, ub, done, cand,
-                                                &finite);
+        const float *vj = v + 2 * n_virtual * j;
+        Py_ssize_t n_cand = subspace_points_one(y + y_stride * j, vj, n_virtual, tb, (double)xn[j], max_cand, q, re,
+                                                im, ub, rg, done, cand, &finite);
+        index[j] = -1;
+        amplitude[j] = 0.0f;
+        ambiguous[j] = 0;
         if (!finite || n_cand == 0 || n_cand > max_cand) {
             heavy[j] = 1;
-            index[j] = -1;
-            amplitude[j] = 0.0f;
-            ambiguous[j] = 0;
             continue;
         }
         heavy[j] = 0;
-        const float *vj = v + 2 * n_virtual * j;
         if (n_cand > REFINE_MIN)
             n_cand = refine_f32(vj, rows, n_virtual, cand, n_cand, row_norm_max, (double)xn[j], dot, vs, work);
         const int64_t ptr[2] = {0, (int64_t)n_cand};
@@ -483,66 +667,122 @@ static void subspace_points(const float *y, Py_ssize_t y_stride, const float *co
     }
 }
 
+/* The arguments of subspace_select. */
+typedef struct {
+    unsigned long long y, xn, v, rows, index, amplitude, ambiguous, heavy;
+    Py_ssize_t y_stride, n_points, n_virtual, n_az, n_el, max_cand;
+    double row_norm_max;
+    int kernel;
+    subspace_t tb;
+} subspace_args;
+
+static int parse_subspace(PyObject *args, subspace_args *a)
+{
+    unsigned long long coef, resid, slack, cmax, rmax, smax, gram_max;
+    Py_ssize_t n_groups, rank, m_rows, k_dir;
+    double y_error, e_max;
+    const char *name = "auto";
+    const int ok = PyArg_ParseTuple(args, "KnKKKKKKKddKnnnnnKKnnnndKKKK|s", &a->y, &a->y_stride, &coef, &resid, &slack,
+                                    &cmax, &rmax, &smax, &gram_max, &y_error, &e_max, &a->xn, &n_groups, &rank,
+                                    &m_rows, &k_dir, &a->n_points, &a->v, &a->rows, &a->n_virtual, &a->n_az, &a->n_el,
+                                    &a->max_cand, &a->row_norm_max, &a->index, &a->amplitude, &a->ambiguous,
+                                    &a->heavy, &name);
+    if (!ok)
+        return -1;
+    a->kernel = kernel_by_name(name);
+    if (a->kernel < 0)
+        return -1;
+    if (a->n_points < 0 || n_groups < 1 || rank < 1 || m_rows < 1 || k_dir < 1 || k_dir > n_groups * m_rows
+        || a->n_virtual < 1 || a->n_az * a->n_el != k_dir || a->max_cand < 1 || a->y_stride < 2 * rank * n_groups
+        || !(y_error >= 0.0) || !(e_max >= 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "subspace_select: inconsistent sizes or bounds");
+        return -1;
+    }
+    if (a->max_cand > k_dir)
+        a->max_cand = k_dir;
+    const subspace_t tb = {(const float *)(uintptr_t)coef, (const float *)(uintptr_t)resid,
+                           (const float *)(uintptr_t)slack, (const float *)(uintptr_t)cmax,
+                           (const float *)(uintptr_t)rmax, (const float *)(uintptr_t)smax,
+                           (const double *)(uintptr_t)gram_max, y_error, e_max, n_groups, rank, m_rows, k_dir,
+                           kernel_group(a->kernel)};
+    a->tb = tb;
+    return 0;
+}
+
+/* Work arrays of one call: q (k_dir), work (2 (max_cand + 1)), ub and rg (G each), re and im (m_rows
+ * each), vs (2 n_virtual), cand (max_cand + 1), done (G). */
+typedef struct {
+    double *q, *work, *ub, *rg;
+    float *re, *im, *vs;
+    int64_t *cand;
+    uint8_t *done;
+} subspace_work;
+
+static int alloc_subspace(const subspace_args *a, subspace_work *w)
+{
+    const subspace_t *tb = &a->tb;
+    w->q = malloc(sizeof(double) * (size_t)(tb->k_dir + 2 * (a->max_cand + 1) + 2 * tb->n_groups));
+    w->re = malloc(sizeof(float) * (size_t)(2 * tb->m_rows + 2 * a->n_virtual));
+    w->cand = malloc(sizeof(int64_t) * (size_t)(a->max_cand + 1));
+    w->done = malloc((size_t)tb->n_groups);
+    if (w->q == NULL || w->re == NULL || w->cand == NULL || w->done == NULL) {
+        free(w->q);
+        free(w->re);
+        free(w->cand);
+        free(w->done);
+        return -1;
+    }
+    w->work = w->q + tb->k_dir;
+    w->ub = w->work + 2 * (a->max_cand + 1);
+    w->rg = w->ub + tb->n_groups;
+    w->im = w->re + tb->m_rows;
+    w->vs = w->re + 2 * tb->m_rows;
+    return 0;
+}
+
+static void free_subspace(subspace_work *w)
+{
+    free(w->q);
+    free(w->re);
+    free(w->cand);
+    free(w->done);
+}
+
 PyDoc_STRVAR(subspace_select_doc,
-"subspace_select(y, y_stride, coef, slack, cmax, smax, slack_max, xn, n_groups, rank, m_rows, k_dir,\n"
-"                n_points, v, rows, n_virtual, n_az, n_el, max_cand, row_norm_max, index, amplitude,\n"
-"                ambiguous, heavy, kernel='auto')\n"
+"subspace_select(y, y_stride, coef, resid, slack, cmax, rmax, smax, gram_max, y_error, e_max, xn,\n"
+"                n_groups, rank, m_rows, k_dir, n_points, v, rows, n_virtual, n_az, n_el, max_cand,\n"
+"                row_norm_max, index, amplitude, ambiguous, heavy, kernel='auto')\n"
 "--\n\n"
 "Screen, selection and certified decision of the subspace beamformer for n_points points (see\n"
 "the module source). Addresses: y float32 rows of y_stride elements (G 2 rank used); coef\n"
-"float32 (G, 2, rank, m_rows); slack float32 (k_dir,); cmax, smax float32 (G,) (largest\n"
-"coefficient norm and slack of each group); xn float32 (n_points,) (snapshot norms, rounded up);\n"
-"v complex64 (n_points, n_virtual); rows complex64 (k_dir, n_virtual); row_norm_max >= max_k\n"
-"||rows[k]||; kernel 'auto', 'scalar' or 'avx' (the float32 dot of points with many candidates).\n"
-"Outputs index int64, amplitude float32, ambiguous uint8, heavy uint8. The GIL is released.");
+"float32 (G, 2, rank, m_rows); resid, slack float32 (k_dir,) (e_k = resid_k R_g + slack_k xn);\n"
+"cmax, rmax, smax float32 (G,) (per group the largest coefficient norm, resid and slack);\n"
+"gram_max float64 (G,); xn float32 (n_points,) (snapshot norms, rounded up); v complex64\n"
+"(n_points, n_virtual); rows complex64 (k_dir, n_virtual); y_error: ||y^_g - Q_g v|| <=\n"
+"y_error ||v||; e_max >= max_k (resid_k + slack_k); row_norm_max >= max_k ||rows[k]||; kernel\n"
+"'auto', 'scalar' or 'avx' (the float32 dot of points with many candidates and, with AVX2 and\n"
+"FMA, the screen). Outputs index int64, amplitude float32, ambiguous uint8, heavy uint8 (heavy\n"
+"points get index -1). The GIL is released.");
 
 static PyObject *py_subspace_select(PyObject *self, PyObject *args)
 {
-    unsigned long long y, coef, slack, cmax, smax, xn, v, rows, index, amplitude, ambiguous, heavy;
-    Py_ssize_t y_stride, n_groups, rank, m_rows, k_dir, n_points, n_virtual, n_az, n_el, max_cand;
-    double slack_max, row_norm_max;
-    const char *name = "auto";
+    subspace_args a;
+    subspace_work w;
     (void)self;
-    if (!PyArg_ParseTuple(args, "KnKKKKdKnnnnnKKnnnndKKKK|s", &y, &y_stride, &coef, &slack, &cmax, &smax,
-                          &slack_max, &xn, &n_groups, &rank, &m_rows, &k_dir, &n_points, &v, &rows, &n_virtual, &n_az,
-                          &n_el, &max_cand, &row_norm_max, &index, &amplitude, &ambiguous, &heavy, &name))
+    if (parse_subspace(args, &a) < 0)
         return NULL;
-    const int kernel = kernel_by_name(name);
-    if (kernel < 0)
-        return NULL;
-    if (n_points < 0 || n_groups < 1 || rank < 1 || m_rows < 1 || k_dir < 1 || k_dir > n_groups * m_rows
-        || n_virtual < 1 || n_az * n_el != k_dir || max_cand < 1 || y_stride < 2 * rank * n_groups) {
-        PyErr_SetString(PyExc_ValueError, "subspace_select: inconsistent sizes");
-        return NULL;
-    }
-    if (n_points == 0)
+    if (a.n_points == 0)
         Py_RETURN_NONE;
-    if (max_cand > k_dir)
-        max_cand = k_dir;
-    double *q = malloc(sizeof(double) * (size_t)(k_dir + 2 * (max_cand + 1) + n_groups));
-    float *re = malloc(sizeof(float) * (size_t)(2 * m_rows + 2 * n_virtual));
-    int64_t *cand = malloc(sizeof(int64_t) * (size_t)(max_cand + 1));
-    uint8_t *done = malloc((size_t)n_groups);
-    if (q == NULL || re == NULL || cand == NULL || done == NULL) {
-        free(q);
-        free(re);
-        free(cand);
-        free(done);
+    if (alloc_subspace(&a, &w) < 0)
         return PyErr_NoMemory();
-    }
     Py_BEGIN_ALLOW_THREADS
-    subspace_points((const float *)(uintptr_t)y, y_stride, (const float *)(uintptr_t)coef,
-                    (const float *)(uintptr_t)slack, (const float *)(uintptr_t)cmax, (const float *)(uintptr_t)smax,
-                    slack_max, (const float *)(uintptr_t)xn, n_groups, rank, m_rows, k_dir, n_points,
-                    (const float *)(uintptr_t)v, (const float *)(uintptr_t)rows, n_virtual, n_az, n_el, max_cand,
-                    row_norm_max, kernel_dot(kernel), (int64_t *)(uintptr_t)index, (float *)(uintptr_t)amplitude,
-                    (uint8_t *)(uintptr_t)ambiguous, (uint8_t *)(uintptr_t)heavy, q, re, re + m_rows,
-                    q + k_dir + 2 * (max_cand + 1), done, cand, re + 2 * m_rows, q + k_dir);
+    subspace_points((const float *)(uintptr_t)a.y, a.y_stride, &a.tb, (const float *)(uintptr_t)a.xn, a.n_points,
+                    (const float *)(uintptr_t)a.v, (const float *)(uintptr_t)a.rows, a.n_virtual, a.n_az, a.n_el,
+                    a.max_cand, a.row_norm_max, kernel_dot(a.kernel), (int64_t *)(uintptr_t)a.index,
+                    (float *)(uintptr_t)a.amplitude, (uint8_t *)(uintptr_t)a.ambiguous, (uint8_t *)(uintptr_t)a.heavy,
+                    w.q, w.re, w.im, w.ub, w.rg, w.done, w.cand, w.vs, w.work);
     Py_END_ALLOW_THREADS
-    free(q);
-    free(re);
-    free(cand);
-    free(done);
+    free_subspace(&w);
     Py_RETURN_NONE;
 }
 

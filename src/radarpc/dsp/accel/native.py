@@ -29,10 +29,14 @@ import threading
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from collections.abc import Callable
 from types import ModuleType
+from typing import TYPE_CHECKING
 
 import torch
 
 from radarpc.dsp.accel import DISABLE_ENV, enabled
+
+if TYPE_CHECKING:
+    from radarpc.dsp.accel.subspace import SubspaceTables
 
 __all__ = [
     "KERNELS",
@@ -439,18 +443,18 @@ def certify_select_native(snapshots: torch.Tensor, rows: torch.Tensor, grid: tup
     return index, amplitude, ambiguous
 
 
-def subspace_select_native(y: torch.Tensor, coef: torch.Tensor, slack: torch.Tensor, xn: torch.Tensor,
-                           snapshots: torch.Tensor, rows: torch.Tensor, grid: tuple[int, int], max_candidates: int,
-                           *, group_norm: torch.Tensor, group_slack: torch.Tensor, row_norm_max: float,
+def subspace_select_native(y: torch.Tensor, tables: SubspaceTables, xn: torch.Tensor, snapshots: torch.Tensor,
+                           rows: torch.Tensor, max_candidates: int, *, row_norm_max: float,
                            threads: int | None = None, kernel: str = "auto"
                            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Screen, selection and certified decision of
     :func:`radarpc.dsp.accel.subspace.beamform_peaks_subspace` after its first GEMM.
 
     For every point ``j``: ``z^_k = c_k . y_jg`` for every direction (float32), ``a_k = |z^_k|``,
-    the bound ``e_jk = slack_k xn_j``, the candidates ``a_k + e_jk >= a_b - e_jb`` (``b`` the
+    the residual bound ``R_jg`` of :func:`radarpc.dsp.accel.subspace.group_residuals`, the bound
+    ``e_jk = resid_k R_jg + slack_k xn_j``, the candidates ``a_k + e_jk >= a_b - e_jb`` (``b`` the
     largest ``a``), then the decision of :func:`certify_select_native` on them. A group ``g`` whose
-    bound ``group_norm_g ||y_jg|| + 2 group_slack_g xn_j`` stays below the lower bound
+    bound ``cmax_g ||y_jg|| + 2 (rmax_g R_jg + smax_g xn_j)`` stays below the lower bound
     ``a_b - e_jb`` of the groups screened before it holds no candidate and is not screened (the
     group with the largest bound goes first). When more than a few candidates remain, a float32 pass
     over them (the dot kernel of :func:`screen_select_native`, error at most
@@ -460,31 +464,32 @@ def subspace_select_native(y: torch.Tensor, coef: torch.Tensor, slack: torch.Ten
     Parameters
     ----------
     y : Tensor ``(P, >= G 2r)`` float32, unit column stride: ``[Re y_g | Im y_g]`` per group
-    coef : Tensor ``(G, 2, r, M)`` float32, contiguous: ``Re`` and ``Im`` of the coefficients
-    slack : Tensor ``(>= K,)`` float32;  xn : Tensor ``(P,)`` float32 (inflated snapshot norms)
-    group_norm, group_slack : Tensor ``(G,)`` float32: per group, an upper bound of ``||c_k||`` and
-        the largest ``slack_k`` (:class:`~radarpc.dsp.accel.subspace.SubspaceTables` ``cmax``, ``smax``)
+    tables : :class:`~radarpc.dsp.accel.subspace.SubspaceTables` on the CPU
+    xn : Tensor ``(P,)`` float32, the snapshot norms rounded up
+    snapshots : Tensor ``(P, N)`` complex64;  rows : Tensor ``(K, N)`` complex64
+    max_candidates : int
     row_norm_max : float, at least ``max_k ||rows[k]||``
     kernel : {"auto", "avx", "scalar"}, the float32 dot kernel (:data:`KERNELS`)
-    snapshots : Tensor ``(P, N)`` complex64;  rows : Tensor ``(K, N)`` complex64
-    grid : (n_az, n_el);  max_candidates : int
 
     Returns
     -------
     index, amplitude, ambiguous, heavy : ``(P,)`` each; ``heavy`` points (no candidate, more than
     ``max_candidates``, or a non-finite screen or norm) get ``index = -1``.
     """
-    n_az, n_el = (int(g) for g in grid)
+    n_az, n_el = (int(g) for g in tables.grid)
     k_dir = n_az * n_el
-    for name, t in (("y", y), ("coef", coef), ("slack", slack), ("xn", xn), ("snapshots", snapshots), ("rows", rows),
-                    ("group_norm", group_norm), ("group_slack", group_slack)):
+    coef = tables.coef
+    named = (("y", y), ("xn", xn), ("snapshots", snapshots), ("rows", rows), ("coef", coef), ("resid", tables.resid),
+             ("slack", tables.slack), ("cmax", tables.cmax), ("rmax", tables.rmax), ("smax", tables.smax),
+             ("gram_max", tables.gram_max))
+    for name, t in named:
         if not isinstance(t, torch.Tensor) or t.device.type != "cpu":
             raise ValueError(f"{name} must be a CPU torch.Tensor for the native kernel")
     if coef.dtype != torch.float32 or coef.ndim != 4 or coef.shape[1] != 2 or not coef.is_contiguous():
         raise ValueError(f"coef must be contiguous float32 (G, 2, r, M), got {coef.dtype} {tuple(coef.shape)}")
     n_groups, _, rank, m_rows = coef.shape
     if n_groups * m_rows < k_dir:
-        raise ValueError(f"coef {tuple(coef.shape)} does not cover the {k_dir} directions of grid {tuple(grid)}")
+        raise ValueError(f"coef {tuple(coef.shape)} does not cover the {k_dir} directions of grid {tuple(tables.grid)}")
     if y.dtype != torch.float32 or y.ndim != 2 or y.stride(1) != 1 or y.shape[1] < 2 * rank * n_groups:
         raise ValueError(f"y must be float32 (P, >= {2 * rank * n_groups}) with unit column stride, got "
                          f"{y.dtype} {tuple(y.shape)}")
@@ -495,11 +500,13 @@ def subspace_select_native(y: torch.Tensor, coef: torch.Tensor, slack: torch.Ten
     n = snapshots.shape[1]
     if rows.dtype != torch.complex64 or tuple(rows.shape) != (k_dir, n) or not rows.is_contiguous() or rows.is_conj():
         raise ValueError(f"rows must be a C-contiguous complex64 ({k_dir}, {n}) tensor")
-    if slack.dtype != torch.float32 or slack.numel() < k_dir or not slack.is_contiguous():
-        raise ValueError(f"slack must be contiguous float32 with >= {k_dir} entries")
-    for name, t in (("group_norm", group_norm), ("group_slack", group_slack)):
-        if t.dtype != torch.float32 or tuple(t.shape) != (n_groups,) or not t.is_contiguous():
-            raise ValueError(f"{name} must be contiguous float32 ({n_groups},), got {t.dtype} {tuple(t.shape)}")
+    for name, t in (("resid", tables.resid), ("slack", tables.slack)):
+        if t.dtype != torch.float32 or t.numel() < k_dir or not t.is_contiguous():
+            raise ValueError(f"{name} must be contiguous float32 with >= {k_dir} entries")
+    for name, t, dt in (("cmax", tables.cmax, torch.float32), ("rmax", tables.rmax, torch.float32),
+                        ("smax", tables.smax, torch.float32), ("gram_max", tables.gram_max, torch.float64)):
+        if t.dtype != dt or tuple(t.shape) != (n_groups,) or not t.is_contiguous():
+            raise ValueError(f"{name} must be contiguous {dt} ({n_groups},), got {t.dtype} {tuple(t.shape)}")
     if xn.dtype != torch.float32 or tuple(xn.shape) != (p,) or not xn.is_contiguous():
         raise ValueError(f"xn must be contiguous float32 ({p},)")
     if isinstance(max_candidates, bool) or int(max_candidates) < 1:
@@ -519,17 +526,17 @@ def subspace_select_native(y: torch.Tensor, coef: torch.Tensor, slack: torch.Ten
         return index, amplitude, ambiguous, heavy
     ext = _screen
     ys = y.stride(0)
-    smax = float(group_slack.max())                                 # = max_k slack_k (padding is 0)
-    y_ptr, c_ptr, s_ptr, x_ptr = y.data_ptr(), coef.data_ptr(), slack.data_ptr(), xn.data_ptr()
-    gn_ptr, gs_ptr = group_norm.data_ptr(), group_slack.data_ptr()
-    v_ptr, r_ptr = snapshots.data_ptr(), rows.data_ptr()
-    i_ptr, a_ptr, m_ptr, h_ptr = index.data_ptr(), amplitude.data_ptr(), ambiguous.data_ptr(), heavy.data_ptr()
+    e_max = float((tables.rmax.double() + tables.smax.double()).max())    # >= max_k (resid_k + slack_k)
+    table_args = [t.data_ptr() for t in (coef, tables.resid, tables.slack, tables.cmax, tables.rmax, tables.smax,
+                                         tables.gram_max)] + [float(tables.y_error), e_max]
+    sizes = (n_groups, rank, m_rows, k_dir)
     mc, rn = int(max_candidates), float(row_norm_max)
 
     def item(s0: int, m: int) -> None:
-        ext.subspace_select(y_ptr + 4 * ys * s0, ys, c_ptr, s_ptr, gn_ptr, gs_ptr, smax, x_ptr + 4 * s0, n_groups,
-                            rank, m_rows, k_dir, m, v_ptr + 8 * n * s0, r_ptr, n, n_az, n_el, mc, rn, i_ptr + 8 * s0,
-                            a_ptr + 4 * s0, m_ptr + s0, h_ptr + s0, kernel)
+        ext.subspace_select(y.data_ptr() + 4 * ys * s0, ys, *table_args, xn.data_ptr() + 4 * s0, *sizes, m,
+                            snapshots.data_ptr() + 8 * n * s0, rows.data_ptr(), n, n_az, n_el, mc, rn,
+                            index.data_ptr() + 8 * s0, amplitude.data_ptr() + 4 * s0, ambiguous.data_ptr() + s0,
+                            heavy.data_ptr() + s0, kernel)
 
     _run_items(item, p, _SUBSPACE_POINTS, threads)
     return index, amplitude, ambiguous, heavy

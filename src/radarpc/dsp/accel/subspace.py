@@ -1,20 +1,28 @@
 """The subspace beamformer: a certified float32 screen from a block low-rank factorisation of ``B``.
 
 The directions are cut into groups of ``g`` consecutive azimuths (all elevations, ``M = g n_el``
-rows of ``B``, consecutive in ``k = az n_el + el``). For each group ``G`` a rank-``r``
-orthonormal basis ``Q_G`` (``r x N``, top right singular vectors of ``B_G``) and coefficients
-``C_G = B_G Q_G^H`` give ``B[k] = c_k Q_G + rho_k`` with a residual row ``rho_k`` computed once
-from the stored (float32) factors. Per snapshot ``v``::
+rows of ``B``, consecutive in ``k = az n_el + el``). For each group ``G`` a rank-``r`` basis
+``Q_G`` (``r x N``, top right singular vectors of ``B_G``) and coefficients ``C_G = B_G Q_G^H``
+give ``B[k] = c_k Q_G + rho_k`` with a residual row ``rho_k`` computed once from the stored
+(float32) factors. Per snapshot ``v``::
 
     y_G = Q_G v              (one float32 GEMM over all groups: G r rows instead of n_az n_el)
     z^_k = c_k . y_G         (one batched float32 GEMM per group)
-    |s_k - z^_k| <= e_k = (||rho_k|| + eta_k) ||v||,
+    |s_k - z^_k| <= e_k = ||rho_k|| R_G + sigma_k ||v||,
 
-``eta_k`` bounding the float32 rounding of both GEMMs (:func:`subspace_tables`). The exact
-maximum lies among ``{k : |z^_k| + e_k >= max_k' (|z^_k'| - e_k')}``; those candidates are
-decided by :func:`radarpc.dsp.beamform.certified_argmax` (float64 with a bound, exact rational
-arithmetic when that does not separate them), so ``k_j`` is the argmax of the exact spectrum,
-the same as :func:`radarpc.dsp.beamform.beamform_peaks`, ties included.
+with ``R_G >= ||(I - P_G) v||`` the part of ``v`` outside the group's subspace (``P_G`` the
+orthogonal projector on it) and ``sigma_k`` the rest: ``|rho_k P_G v| <= ||rho_k P_G|| ||v||``
+(``rho_k`` is orthogonal to the subspace up to the rounding of the stored factors) plus the
+float32 rounding of both GEMMs. ``R_G`` costs nothing extra: ``||(I - P_G) v||^2 = ||v||^2 -
+||P_G v||^2`` and ``||P_G v|| >= ||Q_G v|| / sqrt(lambda_max(Q_G Q_G^H))``, with ``||Q_G v||`` from
+the computed ``y_G`` less its rounding bound (:func:`group_residuals`). For a point whose energy
+lies in one group's subspace (a target) ``R_G`` is a small part of ``||v||`` (median ~0.2 on
+RADIal-like frames), and so is the bound.
+
+The exact maximum lies among ``{k : |z^_k| + e_k >= max_k' (|z^_k'| - e_k')}``; those candidates
+are decided by :func:`radarpc.dsp.beamform.certified_argmax` (float64 with a bound, exact rational
+arithmetic when that does not separate them), so ``k_j`` is the argmax of the exact spectrum, the
+same as :func:`radarpc.dsp.beamform.beamform_peaks`, ties included.
 
 The native selection (:func:`radarpc.dsp.accel.native.subspace_select_native`) adds two
 certified shortcuts: a group whose bound ``max_k ||c_k|| ||y_G|| + 2 max_k e_k`` stays below the
@@ -23,8 +31,8 @@ a point left with many candidates (a flat, noise-like spectrum) first has them e
 float32 with a rigorous rounding bound, so only the few that can still win reach the float64
 decision. Nothing assumes the table's structure: a rough table only leaves more candidates.
 On RADIal's real grid (751 x 11 directions, a measured-like table with ~1 % error per entry)
-groups of 32 azimuths with rank 16 leave ~40 candidates and ~3 of 24 groups per point; the
-sizes and the measurements behind them are in ``docs/results/pointcloud.md``.
+groups of 32 azimuths with rank 16 leave a median of 3 candidates and ~2 of 24 groups per point;
+the sizes and the measurements behind them are in ``docs/results/pointcloud.md``.
 """
 from __future__ import annotations
 
@@ -38,12 +46,12 @@ from radarpc.dsp.accel.workspace import Workspace
 from radarpc.dsp.beamform import (_BLOCK, BeamformResult, DictionaryTables, _range_exponents, _row_norms, _scaled,
                                   _tables_for, beamform_peaks, certified_argmax, stack_real)
 
-__all__ = ["SubspaceTables", "subspace_tables", "beamform_peaks_subspace", "SUBSPACE_GROUP", "SUBSPACE_RANK",
-           "MAX_SUBSPACE_CANDIDATES"]
+__all__ = ["SubspaceTables", "subspace_tables", "group_residuals", "beamform_peaks_subspace", "SUBSPACE_GROUP",
+           "SUBSPACE_RANK", "MAX_SUBSPACE_CANDIDATES"]
 
 SUBSPACE_GROUP = 32
 """Azimuths per group (all elevations)."""
-SUBSPACE_RANK = 16
+SUBSPACE_RANK = 12
 """Basis rank per group (capped at the group's row count and ``N``)."""
 MAX_SUBSPACE_CANDIDATES = 256
 """On the torch selection, a point with more candidates runs the exact beamformer (flat spectra:
@@ -70,10 +78,14 @@ class SubspaceTables:
                                   group ``g`` in columns ``g 2r .. (g + 1) 2r`` as ``[Re y_G | Im y_G]``
     w2 : float32 ``(G, 2r, 2M)``  real form of ``C_G^T``: ``[Re y_G | Im y_G] @ w2[g] = [Re z^ | Im z^]``
     coef : float32 ``(G, 2, r, M)``  ``Re`` and ``Im`` of ``C_G^T`` (the native kernel's layout of ``w2``)
-    slack : float32 ``(G M,)``    ``(||rho_k|| + eta_k)`` per direction (0 for the last group's padding)
-    cmax : float32 ``(G,)``       ``max ||c_k||`` over the group, rounded up (the group bound of the
-                                  native selection: ``|z^_k| <= cmax_g ||y_g|| + slack_k ||v||``)
-    smax : float32 ``(G,)``       ``max slack_k`` over the group
+    resid : float32 ``(G M,)``    ``||rho_k||`` per direction, rounded up (0 for the last group's padding)
+    slack : float32 ``(G M,)``    ``sigma_k``: ``||rho_k P_G||`` plus the screen's float32 rounding, per
+                                  unit ``||v||`` (so ``e_k = resid_k R_G + slack_k ||v||``)
+    cmax, rmax, smax : float32 ``(G,)``  per group, the largest ``||c_k||``, ``resid_k`` and ``slack_k``
+                                  (the group bound of the native selection)
+    gram_max : float64 ``(G,)``   an upper bound of ``lambda_max(Q_G Q_G^H)`` (the stored basis is
+                                  orthonormal only to float32 accuracy)
+    y_error : float               ``||y^_G - Q_G v|| <= y_error ||v||`` for the float32 first GEMM
     """
 
     grid: tuple[int, int]
@@ -82,9 +94,13 @@ class SubspaceTables:
     w1: torch.Tensor
     w2: torch.Tensor
     coef: torch.Tensor
+    resid: torch.Tensor
     slack: torch.Tensor
     cmax: torch.Tensor
+    rmax: torch.Tensor
     smax: torch.Tensor
+    gram_max: torch.Tensor
+    y_error: float
 
     @property
     def n_groups(self) -> int:
@@ -92,18 +108,26 @@ class SubspaceTables:
 
     def to(self, device: torch.device | str) -> "SubspaceTables":
         return SubspaceTables(self.grid, self.group, self.rank, self.w1.to(device), self.w2.to(device),
-                              self.coef.to(device), self.slack.to(device), self.cmax.to(device), self.smax.to(device))
+                              self.coef.to(device), self.resid.to(device), self.slack.to(device),
+                              self.cmax.to(device), self.rmax.to(device), self.smax.to(device),
+                              self.gram_max.to(device), self.y_error)
 
 
 def subspace_tables(rows: torch.Tensor, grid: tuple[int, int], group: int = SUBSPACE_GROUP,
                     rank: int = SUBSPACE_RANK) -> SubspaceTables:
     """Factorise ``B`` (complex64 ``(n_az n_el, N)``, row ``k = az n_el + el``) group by group.
 
-    The bound per direction: with ``Q^``, ``c^`` the float32 factors, ``rho_k = B[k] - c^_k Q^``
-    (float64, inflated by ``2^-30``); the screen's float32 rounding per real output is at most
-    ``(gamma_2N + gamma_2r (1 + gamma_2N)) w ||v|| ||w2 col||_1`` (``w`` the largest column norm of
-    ``w1``: ``|y_t| <= w ||v||``, Cauchy-Schwarz), so ``eta_k = sqrt(2)`` times that over ``||v||``.
-    ``slack_k = (||rho_k|| + eta_k) (1 + 2^-20)``.
+    With ``Q^``, ``c^`` the stored float32 factors and ``rho_k = B[k] - c^_k Q^`` (float64):
+
+    - ``resid_k = ||rho_k||`` and ``||rho_k P|| <= ||rho_k Q^^H|| / sqrt(lambda_min(Q^ Q^^H))``,
+      ``lambda`` within ``1 -+ ||Q^ Q^^H - I||_F``;
+    - the screen's float32 rounding per real output is at most ``(gamma_2N + gamma_2r (1 + gamma_2N))
+      w ||v|| ||w2 col||_1`` (``w`` the largest column norm of ``w1``: ``|y_t| <= w ||v||``,
+      Cauchy-Schwarz), ``eta_k = sqrt(2)`` times that over ``||v||``; ``slack_k = ||rho_k P|| + eta_k``;
+    - the first GEMM alone: ``y_error = sqrt(2r) gamma_2N w``.
+
+    Every float64 value is inflated by ``2^-30`` and every stored float32 bound by ``2^-20``, far
+    more than their rounding.
     """
     if rows.dtype != torch.complex64 or rows.ndim != 2:
         raise ValueError(f"rows must be complex64 (n_dir, N), got {rows.dtype} {tuple(rows.shape)}")
@@ -126,31 +150,68 @@ def subspace_tables(rows: torch.Tensor, grid: tuple[int, int], group: int = SUBS
     q = vh[:, :r].contiguous()                                              # (G, r, N) stored basis
     q128 = q.to(torch.complex128)
     c = (bg @ q128.conj().transpose(1, 2)).to(torch.complex64)              # (G, M, r) stored coefficients
-    rho = torch.linalg.vector_norm(bg - c.to(torch.complex128) @ q128, dim=2).reshape(-1)
+    rho = bg - c.to(torch.complex128) @ q128                                # (G, M, N)
+    inflate = 1.0 + 2.0 ** -30
+    resid = torch.linalg.vector_norm(rho, dim=2).reshape(-1) * inflate
+    eye = torch.eye(r, dtype=torch.complex128)
+    gram_dev = torch.linalg.matrix_norm(q128 @ q128.conj().transpose(1, 2) - eye) * inflate + 2.0 ** -40   # (G,)
+    if bool((gram_dev >= 0.5).any()):
+        raise ValueError("the stored subspace basis is far from orthonormal; the table is not finite?")
+    par = (torch.linalg.vector_norm(rho @ q128.conj().transpose(1, 2), dim=2)
+           / torch.sqrt(1.0 - gram_dev)[:, None]).reshape(-1) * inflate
     w1 = torch.cat([stack_real(q[g].T.contiguous()) for g in range(n_groups)], dim=1)   # (2N, G 2r)
     cr, ci = c.real.transpose(1, 2), c.imag.transpose(1, 2)                 # (G, r, M)
     w2 = torch.cat([torch.cat([cr, ci], dim=2), torch.cat([-ci, cr], dim=2)], dim=1).contiguous()  # (G, 2r, 2M)
     l1 = (cr.abs() + ci.abs()).double().sum(1).reshape(-1)                  # (G M,)
     gamma = lambda q: q * _U32 / (1.0 - q * _U32)                           # noqa: E731
-    w = float(torch.linalg.vector_norm(w1.double(), dim=0).max())
+    w = float(torch.linalg.vector_norm(w1.double(), dim=0).max()) * inflate
     eta = math.sqrt(2.0) * (gamma(2 * n) + gamma(2 * r) * (1.0 + gamma(2 * n))) * w * l1
-    slack = ((rho * (1.0 + 2.0 ** -30) + eta) * (1.0 + 2.0 ** -20)).to(torch.float32)
+    up = 1.0 + 2.0 ** -20
+    slack = ((par + eta) * up).to(torch.float32)
+    resid32 = (resid * up).to(torch.float32)
     coef = torch.stack([w2[:, :r, :m_rows], w2[:, :r, m_rows:]], dim=1).contiguous()   # (G, 2, r, M)
     cnorm = torch.linalg.vector_norm(coef.double(), dim=(1, 2))             # (G, M) ||c_k|| of the stored factors
-    cmax = (cnorm.amax(dim=1) * (1.0 + 2.0 ** -20)).to(torch.float32)       # rounding to float32 stays above
-    smax = slack.view(n_groups, m_rows).amax(dim=1)
+    cmax = (cnorm.amax(dim=1) * up).to(torch.float32)                       # rounding to float32 stays above
     return SubspaceTables(grid=(n_az, n_el), group=min(group, n_az), rank=r, w1=w1.to(dev), w2=w2.to(dev),
-                          coef=coef.to(dev), slack=slack.to(dev), cmax=cmax.to(dev), smax=smax.to(dev))
+                          coef=coef.to(dev), resid=resid32.to(dev), slack=slack.to(dev), cmax=cmax.to(dev),
+                          rmax=resid32.view(n_groups, m_rows).amax(dim=1).to(dev),
+                          smax=slack.view(n_groups, m_rows).amax(dim=1).to(dev),
+                          gram_max=(1.0 + gram_dev).to(dev), y_error=math.sqrt(2 * r) * gamma(2 * n) * w * up)
 
 
-def _select_torch(z: torch.Tensor, slack: torch.Tensor, xn: torch.Tensor, k_dir: int, max_candidates: int
-                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def group_residuals(y: torch.Tensor, vnorm2: torch.Tensor, tables: SubspaceTables) -> torch.Tensor:
+    """``R_jg``, an upper bound of ``||(I - P_g) v_j||`` for every point and group (float64 ``(P, G)``).
+
+    ``y`` float32 ``(P, >= G 2r)`` the first GEMM's output (:attr:`SubspaceTables.w1`), ``vnorm2``
+    float64 ``(P,)`` ``||v_j||^2`` rounded up. ``||Q_g v|| >= ||y^_g|| - y_error ||v||`` and
+    ``||P_g v||^2 >= ||Q_g v||^2 / lambda_max``, so ``R^2 = ||v||^2 - (that)^2 / gram_max`` (never below
+    0, never above ``||v||``).
+    """
+    p = y.shape[0]
+    n_groups, two_r = tables.n_groups, 2 * tables.rank
+    ny = torch.linalg.vector_norm(y[:, :n_groups * two_r].view(p, n_groups, two_r).double(), dim=2)
+    vn = vnorm2.sqrt() * (1.0 + 2.0 ** -40)
+    low = (ny * (1.0 - 2.0 ** -40) - tables.y_error * vn[:, None]).clamp_min(0.0)
+    r2 = vnorm2[:, None] * (1.0 + 2.0 ** -40) - low * low / tables.gram_max.double()[None]
+    return r2.clamp_min(0.0).sqrt() * (1.0 + 2.0 ** -40)
+
+
+def _norm2(v: torch.Tensor) -> torch.Tensor:
+    """``||v_j||^2`` in float64 (products of float32 values are exact; the sum is within 2^-40)."""
+    return torch.view_as_real(v).double().square().sum(dim=(1, 2))
+
+
+def _select_torch(z: torch.Tensor, tables: SubspaceTables, residual: torch.Tensor, xn: torch.Tensor, k_dir: int,
+                  max_candidates: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Candidate pairs ``(j, k)`` of a screen block ``z`` ``(G, m, 2M)`` and its heavy points
-    (the reference of :func:`radarpc.dsp.accel.native.subspace_select_native`'s selection)."""
+    (the reference of :func:`radarpc.dsp.accel.native.subspace_select_native`'s selection);
+    ``residual`` ``(m, G)`` from :func:`group_residuals`."""
     n_groups, m, two_m = z.shape
     mr = two_m // 2
     a = torch.hypot(z[..., :mr].double(), z[..., mr:].double()).transpose(0, 1).reshape(m, -1)[:, :k_dir]
-    e = slack[:k_dir].double()[None, :] * xn.double()[:, None] + 2.0 ** -50 * a
+    r = residual.repeat_interleave(mr, dim=1)[:, :k_dir]
+    e = (tables.resid[:k_dir].double()[None, :] * r + tables.slack[:k_dir].double()[None, :] * xn.double()[:, None]
+         + 2.0 ** -50 * a)
     low = (a - e).amax(dim=1)
     cand = (a + e) >= low[:, None]
     count = cand.sum(dim=1)
@@ -207,21 +268,21 @@ def beamform_peaks_subspace(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
         m = min(blk, p - i)
         yi = torch.mm(x[i:i + m], st.w1, out=y[:m])                    # (m, G 2r): [Re y_g | Im y_g] per group
         if native_ok:                                                  # second product, selection, decision
-            idx, amp, amb, hv = native.subspace_select_native(yi, st.coef, st.slack, xn[i:i + m], v[i:i + m],
-                                                              t.rows, t.grid, max_candidates,
-                                                              group_norm=st.cmax, group_slack=st.smax,
+            idx, amp, amb, hv = native.subspace_select_native(yi, st, xn[i:i + m], v[i:i + m], t.rows, max_candidates,
                                                               row_norm_max=t.row_norm_max * (1.0 + 2.0 ** -20))
             index[i:i + m], amplitude[i:i + m], heavy[i:i + m] = idx, amp, hv
             for q in torch.nonzero(amb).flatten().tolist():           # rare: decided exactly
                 zq = torch.bmm(yi[q:q + 1].view(1, n_groups, two_r).transpose(0, 1), st.w2)
-                jj, kk, _ = _select_torch(zq, st.slack, xn[i + q:i + q + 1], k_dir, max_candidates)
+                rq = group_residuals(yi[q:q + 1], _norm2(v[i + q:i + q + 1]), st)
+                jj, kk, _ = _select_torch(zq, st, rq, xn[i + q:i + q + 1], k_dir, max_candidates)
                 index[i + q:i + q + 1], amplitude[i + q:i + q + 1] = certified_argmax(
                     v[i + q:i + q + 1], t.rows, t.grid, jj, kk)
             continue
         for b in range(0, m, _SCREEN_POINTS):                         # torch: cache-sized screen blocks
             mb = min(_SCREEN_POINTS, m - b)
             z = torch.bmm(yi[b:b + mb].view(mb, n_groups, two_r).transpose(0, 1), st.w2)   # (G, mb, 2M)
-            jj, kk, hv = _select_torch(z, st.slack, xn[i + b:i + b + mb], k_dir, max_candidates)
+            rb = group_residuals(yi[b:b + mb], _norm2(v[i + b:i + b + mb]), st)
+            jj, kk, hv = _select_torch(z, st, rb, xn[i + b:i + b + mb], k_dir, max_candidates)
             heavy[i + b:i + b + mb] = hv
             pairs_j.append(jj + i + b)
             pairs_k.append(kk)
