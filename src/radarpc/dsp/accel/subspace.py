@@ -31,7 +31,7 @@ a point left with many candidates (a flat, noise-like spectrum) first has them e
 float32 with a rigorous rounding bound, so only the few that can still win reach the float64
 decision. Nothing assumes the table's structure: a rough table only leaves more candidates.
 On RADIal's real grid (751 x 11 directions, a measured-like table with ~1 % error per entry)
-groups of 32 azimuths with rank 16 leave a median of 3 candidates and ~2 of 24 groups per point;
+groups of 32 azimuths with rank 12 leave a median of 4 candidates and screen 2 of 24 groups per point;
 the sizes and the measurements behind them are in ``docs/results/pointcloud.md``.
 """
 from __future__ import annotations
