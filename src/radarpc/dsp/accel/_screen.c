@@ -432,11 +432,8 @@ static void subspace_group_fma(const float *yg, const float *cg, Py_ssize_t rank
     }
     if (t0 < m)
         subspace_group(yg, cg + t0, rank, m_rows, m - t0, re + t0, im + t0, q + t0);
-    for (Py_ssize_t t = 0; t < t0; t += 4) {       /* q in double: exact products, one rounding */
-        const Py_ssize_t w = t + 4 <= t0 ? 4 : t0 - t;
-        for (Py_ssize_t l = 0; l < w; ++l)
-            q[t + l] = (double)re[t + l] * re[t + l] + (double)im[t + l] * im[t + l];
-    }
+    for (Py_ssize_t t = 0; t < t0; ++t)            /* q in double: exact products, one rounding */
+        q[t] = (double)re[t] * re[t] + (double)im[t] * im[t];
 }
 #endif
 
