@@ -8,11 +8,15 @@ processes hits them alike:
 
 * ``fftradnet`` (radarpc's model as built), ``fftradnet_fused``
   (:func:`radarpc.models.fftradnet.fuse_for_inference`) and ``fftradnet_fused_cl`` (+ channels-last
-  weights): RD cube -> detections and freespace;
+  weights): RD cube -> detections and freespace; ``fftradnet_fused_cl_det``: the same with the
+  freespace head skipped (detections only, what the detection metrics use);
 * for each pillar model, as built, fused (:func:`radarpc.models.pillars.fuse_for_inference`) and
-  fused with channels-last weights (``_fused_cl``; the scatter's canvas is channels-last already):
-  ``<model>`` the network on the ready point cloud (point extraction excluded) and
-  ``<model>+points`` RD cube -> point cloud -> network (extraction included).
+  fused with channels-last weights (``_fused_cl``; the scatter's canvas is channels-last already),
+  and ``_fused_cl_det`` (detections only): ``<model>`` the network on the ready point cloud (point
+  extraction excluded) and ``<model>+points`` RD cube -> point cloud -> network (extraction
+  included). The ``_det`` rows are compared with ``fftradnet_fused_cl_det``, the others with each
+  full FFTRadNet (both models share the same heads, and the freespace head's ~32 GMAC at 256 x 224
+  is most of a pillar model's work).
 
 Weights are random (the speed does not depend on them). Prints one JSON object: per method the
 best and median seconds per frame, frames/s, and the frames/s ratio to each FFTRadNet method; the
@@ -74,6 +78,12 @@ SIZES = {   # sensor, FFTRadNet factory, {pillar model: (factory, enrichments of
 }
 
 
+def _detections_only(model: torch.nn.Module) -> torch.nn.Module:
+    """``model`` without its freespace head: ``forward`` then returns the detection map alone."""
+    model.freespace_head = None
+    return model
+
+
 def time_interleaved(methods: dict[str, Callable[[int], object]], n_frames: int,
                      repeats: int) -> dict[str, list[float]]:
     """Seconds per frame of each method, one list entry per pass; every pass runs each method over
@@ -125,6 +135,8 @@ def main(args: argparse.Namespace) -> None:
         "fftradnet_fused": (lambda m: lambda i: m(cubes[i]))(fft.fuse_for_inference(fftnet)),
         "fftradnet_fused_cl": (lambda m: lambda i: m(cubes[i]))(
             fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last)),
+        "fftradnet_fused_cl_det": (lambda m: lambda i: m(cubes[i]))(
+            _detections_only(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last))),
     }
     points = {}
     parts = {}
@@ -132,8 +144,9 @@ def main(args: argparse.Namespace) -> None:
         model = factory().eval()
         fused = pillars.fuse_for_inference(model)
         fused_cl = pillars.fuse_for_inference(model).to(memory_format=torch.channels_last)
+        fused_cl_det = _detections_only(pillars.fuse_for_inference(model).to(memory_format=torch.channels_last))
         spc, cl = extractors[enrich], clouds[enrich]
-        for suffix, m in (("", model), ("_fused", fused), ("_fused_cl", fused_cl)):
+        for suffix, m in (("", model), ("_fused", fused), ("_fused_cl", fused_cl), ("_fused_cl_det", fused_cl_det)):
             methods[name + suffix] = (lambda m, cl: lambda i: m(cl[i]))(m, cl)
             methods[name + suffix + "+points"] = (lambda m, spc: lambda i: m(spc(cubes[i])))(m, spc)
         points[name] = {"enrich": list(enrich),
@@ -151,9 +164,11 @@ def main(args: argparse.Namespace) -> None:
         speed[name] = {"s_per_frame": round(best, 4), "s_per_frame_median": round(med, 4),
                        "frames_per_s": round(1 / best, 3)}
     for name, row in speed.items():
-        if not name.startswith("fftradnet"):
-            for ref in ("fftradnet", "fftradnet_fused", "fftradnet_fused_cl"):
-                row[f"ratio_vs_{ref}"] = round(speed[ref]["s_per_frame"] / row["s_per_frame"], 2)
+        if name.startswith("fftradnet"):
+            continue
+        refs = ("fftradnet_fused_cl_det",) if "_det" in name else ("fftradnet", "fftradnet_fused", "fftradnet_fused_cl")
+        for ref in refs:
+            row[f"ratio_vs_{ref}"] = round(speed[ref]["s_per_frame"] / row["s_per_frame"], 2)
     n_params = {name: sum(p.numel() for p in f().parameters()) for name, (f, _) in pillar_models.items()}
     n_params["fftradnet"] = sum(p.numel() for p in fftnet.parameters())
     print(json.dumps({
