@@ -452,11 +452,13 @@ def subspace_select_native(y: torch.Tensor, tables: SubspaceTables, xn: torch.Te
 
     For every point ``j``: ``z^_k = c_k . y_jg`` for every direction (float32), ``a_k = |z^_k|``,
     the residual bound ``R_jg`` of :func:`radarpc.dsp.accel.subspace.group_residuals`, the bound
-    ``e_jk = resid_k R_jg + slack_k xn_j``, the candidates ``a_k + e_jk >= a_b - e_jb`` (``b`` the
-    largest ``a``), then the decision of :func:`certify_select_native` on them. A group ``g`` whose
-    bound ``cmax_g ||y_jg|| + 2 (rmax_g R_jg + smax_g xn_j)`` stays below the lower bound
-    ``a_b - e_jb`` of the groups screened before it holds no candidate and is not screened (the
-    group with the largest bound goes first). When more than a few candidates remain, a float32 pass
+    ``e_jk = resid_k R_jg + slack_k xn_j``, the candidates ``a_k + e_jk >= L`` with ``L`` the largest
+    ``a_b - e_jb`` of the screened groups' largest ``a_b`` (and, when more than 8 remain, the largest
+    ``a_k - e_jk`` among them, which is then the largest over every screened direction), then the
+    decision of :func:`certify_select_native` on them. A group ``g`` whose bound
+    ``cmax_g ||y_jg|| + 2 (rmax_g R_jg + smax_g xn_j)`` stays below the ``L`` of the groups screened
+    before it holds no candidate and is not screened (the group with the largest bound goes
+    first). When more than a few candidates remain, a float32 pass
     over them (the dot kernel of :func:`screen_select_native`, error at most
     ``2 sqrt(2) gamma_(2N+2) row_norm_max xn_j + 2^-22 f``) leaves only those that can still hold
     the maximum for the decision.
