@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from radarpc.dsp.accel.screened import choose_beamformer, probe_snapshots
+from radarpc.dsp.accel.screened import choose_beamformer, probe_snapshots, time_modes
 from radarpc.dsp.accel.subspace import beamform_peaks_subspace, group_residuals, subspace_tables
 from radarpc.dsp.beamform import beamform_peaks, certified_argmax, dictionary_tables
 from radarpc.sensors.radial import RADIAL, Calibration, steering_vectors
@@ -151,6 +151,27 @@ def test_choice_is_the_fastest_measured_and_rejects_bad_timings():
         choose_beamformer({"fast": 1.0})
     with pytest.raises(ValueError, match="finite number"):
         choose_beamformer({"exact": float("nan")})
+
+
+def test_timing_survives_one_stall_and_cuts_off_slow_modes():
+    # the probe behind "auto": a mode whose first timed call stalls once is still timed in full
+    # and wins; a mode 10x slower than the best so far is cut off after the 16-snapshot calls
+    v = torch.zeros(64, 4, dtype=torch.complex64)
+    seconds = {"exact": [1.0], "subspace": [50.0, 0.2], "screened": [10.0]}   # per snapshot, call by call
+    calls = {m: 0 for m in seconds}
+
+    def clock(f, x):
+        mode = f(x)
+        per = seconds[mode]
+        i = calls[mode]
+        calls[mode] += 1
+        return per[min(i, len(per) - 1)]
+
+    run = {m: (lambda m: lambda x: m)(m) for m in seconds}
+    out = time_modes(run, v, clock)
+    assert out == {"exact": 1.0, "subspace": 0.2, "screened": 10.0}
+    assert calls == {"exact": 4, "subspace": 4, "screened": 2}               # screened: cut off at 16
+    assert choose_beamformer(out) == "subspace"
 
 
 def test_bad_input_errors(small):
