@@ -497,8 +497,9 @@ static Py_ssize_t argmax_finite(const double *q, Py_ssize_t m, int *finite)
 
 /* Per group: the residual bound R_g = sqrt(||v||^2 - max(0, ||y^_g|| - y_error ||v||)^2 / gram_max_g)
  * (||P_g v|| >= ||Q_g v|| / sqrt(lambda_max), ||Q_g v|| >= ||y^_g|| - y_error ||v||); ||v||^2 and
- * ||y^_g||^2 are summed in double from float32 values (relative errors < 2N 2^-53 and 2r 2^-53,
- * covered by the 2^-40 factors), so R_g >= ||(I - P_g) v|| and R_g <= ||v|| (1 + 2^-38) <= xn.
+ * ||y^_g||^2 are summed in double from float32 values (products exact, relative errors of the sums
+ * below 2N 2^-53 and 2r 2^-53, and of the square roots 2^-53: covered by the (2N + 2) 2^-52 and
+ * (2r + 2) 2^-52 factors), so R_g >= ||(I - P_g) v|| and, up to a few ulps, R_g <= ||v|| <= xn.
  * Group pruning: |z^_k| <= ||c_k|| ||y_g|| + |z^_k - c_k . y_g| <= cmax_g ||y_g|| + e_k (the second
  * product's rounding is part of the slack), so no direction of group g can be a candidate
  * (a_k + e_k >= L) when ub_g = cmax_g ||y_g|| + 2 (rmax_g R_g + smax_g xn) < L. The group with the
@@ -509,13 +510,13 @@ static Py_ssize_t subspace_points_one(const float *y, const float *vj, Py_ssize_
                                       double *rg, uint8_t *done, int64_t *cand, int *finite)
 {
     const Py_ssize_t n_groups = tb->n_groups, rank = tb->rank, m_rows = tb->m_rows, k_dir = tb->k_dir;
-    const double vn2 = sum_squares(vj, 2 * n_virtual) * (1.0 + 0x1p-40);
+    const double vn2 = sum_squares(vj, 2 * n_virtual) * (1.0 + (double)(2 * n_virtual + 2) * 0x1p-52);
     const double vn = sqrt(vn2) * (1.0 + 0x1p-40), y_err = tb->y_error * vn;
     double bad = vn2 * 0.0, low = -INFINITY;
     Py_ssize_t g0 = 0;
     for (Py_ssize_t g = 0; g < n_groups; ++g) {
         const double ny = sqrt(sum_squares(y + 2 * rank * g, 2 * rank));
-        double lo = ny * (1.0 - 0x1p-40) - y_err;
+        double lo = ny * (1.0 - (double)(2 * rank + 2) * 0x1p-52) - y_err;
         lo = lo > 0.0 ? lo : 0.0;
         const double r2 = vn2 - lo * lo / tb->gram_max[g];
         rg[g] = sqrt(r2 > 0.0 ? r2 : 0.0) * (1.0 + 0x1p-40);

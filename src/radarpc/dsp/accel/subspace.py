@@ -156,7 +156,8 @@ def subspace_tables(rows: torch.Tensor, grid: tuple[int, int], group: int = SUBS
     eye = torch.eye(r, dtype=torch.complex128)
     gram_dev = torch.linalg.matrix_norm(q128 @ q128.conj().transpose(1, 2) - eye) * inflate + 2.0 ** -40   # (G,)
     if bool((gram_dev >= 0.5).any()):
-        raise ValueError("the stored subspace basis is far from orthonormal; the table is not finite?")
+        raise ValueError(f"the float32 subspace bases are far from orthonormal (||Q Q^H - I||_F up to "
+                         f"{float(gram_dev.max()):.3g}, expected < 0.5): is the dictionary finite?")
     par = (torch.linalg.vector_norm(rho @ q128.conj().transpose(1, 2), dim=2)
            / torch.sqrt(1.0 - gram_dev)[:, None]).reshape(-1) * inflate
     w1 = torch.cat([stack_real(q[g].T.contiguous()) for g in range(n_groups)], dim=1)   # (2N, G 2r)
@@ -191,14 +192,15 @@ def group_residuals(y: torch.Tensor, vnorm2: torch.Tensor, tables: SubspaceTable
     n_groups, two_r = tables.n_groups, 2 * tables.rank
     ny = torch.linalg.vector_norm(y[:, :n_groups * two_r].view(p, n_groups, two_r).double(), dim=2)
     vn = vnorm2.sqrt() * (1.0 + 2.0 ** -40)
-    low = (ny * (1.0 - 2.0 ** -40) - tables.y_error * vn[:, None]).clamp_min(0.0)
+    low = (ny * (1.0 - (two_r + 2) * 2.0 ** -52) - tables.y_error * vn[:, None]).clamp_min(0.0)
     r2 = vnorm2[:, None] * (1.0 + 2.0 ** -40) - low * low / tables.gram_max.double()[None]
     return r2.clamp_min(0.0).sqrt() * (1.0 + 2.0 ** -40)
 
 
 def _norm2(v: torch.Tensor) -> torch.Tensor:
-    """``||v_j||^2`` in float64 (products of float32 values are exact; the sum is within 2^-40)."""
-    return torch.view_as_real(v).double().square().sum(dim=(1, 2))
+    """``||v_j||^2`` in float64, rounded up: products of float32 values are exact, and the sum of
+    ``2N`` of them is within ``2N 2^-53`` relative in any order."""
+    return torch.view_as_real(v).double().square().sum(dim=(1, 2)) * (1.0 + (2 * v.shape[-1] + 2) * 2.0 ** -52)
 
 
 def _select_torch(z: torch.Tensor, tables: SubspaceTables, residual: torch.Tensor, xn: torch.Tensor, k_dir: int,
