@@ -56,6 +56,19 @@ def test_subspace_and_exact_give_the_float64_argmax_on_a_751x11_table(real_size,
     assert torch.equal(sub.index, ex.index) and torch.equal(sub.amplitude, ex.amplitude)
 
 
+@pytest.mark.parametrize("exponent", [-90, -60, 50, 100])
+def test_extreme_magnitudes_give_the_exact_beamformers_answer(small, selection, exponent):
+    # |v| far outside float32's comfortable range: the snapshots are rescaled by a power of two,
+    # and the residual bound (||v||^2 - ||y_g||^2, in double) must still hold there
+    t = small
+    v = probe_snapshots(t, 48, seed=11)
+    v = torch.view_as_complex(torch.ldexp(torch.view_as_real(v), torch.tensor(exponent)).contiguous())
+    ex = beamform_peaks(v, t, t.grid)
+    sub = beamform_peaks_subspace(v, t, t.grid)
+    assert torch.equal(sub.index, ex.index) and torch.equal(sub.amplitude, ex.amplitude)
+    assert torch.equal(ex.index, _reference(v, t))
+
+
 def test_near_ties_and_exact_ties_are_decided_exactly(small, selection):
     t = small
     n_az, n_el = t.grid
