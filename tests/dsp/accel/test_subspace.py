@@ -139,7 +139,8 @@ def test_residual_and_subspace_bounds_hold(real_size):
     t = real_size
     st = t.subspace
     g = torch.Generator().manual_seed(2)
-    v = torch.cat([torch.randn(32, t.rows.shape[1], dtype=torch.complex64, generator=g), probe_snapshots(t, 32, seed=7)])
+    noise = torch.randn(32, t.rows.shape[1], dtype=torch.complex64, generator=g)
+    v = torch.cat([noise, probe_snapshots(t, 32, seed=7)])
     zc, s, r, vn = _bound_parts(t, v)
     true_r = _projection_residual(t, v)
     assert bool((r >= true_r).all()) and bool((r <= vn[:, None] * (1 + 2.0 ** -30)).all())
@@ -201,7 +202,8 @@ def test_bad_input_errors(small):
 
 
 def _screen(t, v):
-    """Float32 screen ``|z^_k|`` ``(P, K)``, group projections ``||y_g||`` ``(P, G)``, ``R`` ``(P, G)`` and ``||v||``."""
+    """Float32 screen ``|z^_k|`` ``(P, K)``, group projections ``||y_g||`` ``(P, G)``, ``R`` ``(P, G)``
+    and ``||v||``."""
     st = t.subspace
     zc, _, r, vn = _bound_parts(t, v)
     x = torch.view_as_real(v).reshape(len(v), -1)
