@@ -600,41 +600,29 @@ static Py_ssize_t subspace_points_one(const float *y, const float *vj, Py_ssize_
  * value, and |f_k - |s_k|| <= e = 2 sqrt(2) gamma_(2N+2) R ||v|| + 2^-22 f_k (R = max_k ||B[k]||;
  * the last term covers the modulus in double and its float32 rounding). Only candidates with
  * f_k + e_k >= f_b - e_b (b the largest f) can hold the maximum; they go to certify_points. */
-
-/* Keeps the candidates of a refine pass with f_k + e >= f_b - e_b (module comment above refine_f32);
- * f holds the float32 values of the n_cand candidates, base the part of e that does not scale with f. */
-static Py_ssize_t refine_keep(int64_t *cand, const double *f, Py_ssize_t n_cand, double base)
+static Py_ssize_t refine_f32(const float *vj, const float *rows, Py_ssize_t n_virtual, int64_t *cand,
+                             Py_ssize_t n_cand, double row_norm_max, double vnorm, dot_abs_fn dot, float *vs,
+                             double *work)
 {
+    const double m = (double)(2 * n_virtual + 2) * 0x1p-24;
+    const double base = 2.0 * sqrt(2.0) * (m / (1.0 - m)) * row_norm_max * vnorm * (1.0 + 0x1p-20);
+    for (Py_ssize_t i = 0; i < n_virtual; ++i) {
+        vs[2 * i] = vj[2 * i + 1];
+        vs[2 * i + 1] = vj[2 * i];
+    }
     double best = -1.0;
-    for (Py_ssize_t p = 0; p < n_cand; ++p)
-        best = f[p] > best ? f[p] : best;
+    for (Py_ssize_t p = 0; p < n_cand; ++p) {
+        work[p] = dot(rows + 2 * n_virtual * cand[p], vj, vs, n_virtual);
+        best = work[p] > best ? work[p] : best;
+    }
     if (!(best >= 0.0) || !isfinite(best) || !isfinite(base))   /* NaN or overflow: keep them all */
         return n_cand;
     const double low = best - (base + 0x1p-22 * best);
     Py_ssize_t kept = 0;
     for (Py_ssize_t p = 0; p < n_cand; ++p)
-        if (!(f[p] + base + 0x1p-22 * f[p] < low))           /* a NaN value is kept */
+        if (!(work[p] + base + 0x1p-22 * work[p] < low))      /* a NaN value is kept */
             cand[kept++] = cand[p];                           /* ascending order is kept */
     return kept;
-}
-
-static double refine_base(Py_ssize_t n_virtual, double row_norm_max, double vnorm)
-{
-    const double m = (double)(2 * n_virtual + 2) * 0x1p-24;
-    return 2.0 * sqrt(2.0) * (m / (1.0 - m)) * row_norm_max * vnorm * (1.0 + 0x1p-20);
-}
-
-static Py_ssize_t refine_f32(const float *vj, const float *rows, Py_ssize_t n_virtual, int64_t *cand,
-                             Py_ssize_t n_cand, double row_norm_max, double vnorm, dot_abs_fn dot, float *vs,
-                             double *work)
-{
-    for (Py_ssize_t i = 0; i < n_virtual; ++i) {
-        vs[2 * i] = vj[2 * i + 1];
-        vs[2 * i + 1] = vj[2 * i];
-    }
-    for (Py_ssize_t p = 0; p < n_cand; ++p)
-        work[p] = dot(rows + 2 * n_virtual * cand[p], vj, vs, n_virtual);
-    return refine_keep(cand, work, n_cand, refine_base(n_virtual, row_norm_max, vnorm));
 }
 
 static void subspace_points(const float *y, Py_ssize_t y_stride, const subspace_t *tb, const float *xn,
@@ -665,87 +653,6 @@ static void subspace_points(const float *y, Py_ssize_t y_stride, const subspace_
     }
 }
 
-/* The arguments of subspace_select. */
-typedef struct {
-    unsigned long long y, xn, v, rows, index, amplitude, ambiguous, heavy;
-    Py_ssize_t y_stride, n_points, n_virtual, n_az, n_el, max_cand;
-    double row_norm_max;
-    int kernel;
-    subspace_t tb;
-} subspace_args;
-
-static int parse_subspace(PyObject *args, subspace_args *a)
-{
-    unsigned long long coef, resid, slack, cmax, rmax, smax, gram_max;
-    Py_ssize_t n_groups, rank, m_rows, k_dir;
-    double y_error, e_max;
-    const char *name = "auto";
-    const int ok = PyArg_ParseTuple(args, "KnKKKKKKKddKnnnnnKKnnnndKKKK|s", &a->y, &a->y_stride, &coef, &resid, &slack,
-                                    &cmax, &rmax, &smax, &gram_max, &y_error, &e_max, &a->xn, &n_groups, &rank,
-                                    &m_rows, &k_dir, &a->n_points, &a->v, &a->rows, &a->n_virtual, &a->n_az, &a->n_el,
-                                    &a->max_cand, &a->row_norm_max, &a->index, &a->amplitude, &a->ambiguous,
-                                    &a->heavy, &name);
-    if (!ok)
-        return -1;
-    a->kernel = kernel_by_name(name);
-    if (a->kernel < 0)
-        return -1;
-    if (a->n_points < 0 || n_groups < 1 || rank < 1 || m_rows < 1 || k_dir < 1 || k_dir > n_groups * m_rows
-        || a->n_virtual < 1 || a->n_az * a->n_el != k_dir || a->max_cand < 1 || a->y_stride < 2 * rank * n_groups
-        || !(y_error >= 0.0) || !(e_max >= 0.0)) {
-        PyErr_SetString(PyExc_ValueError, "subspace_select: inconsistent sizes or bounds");
-        return -1;
-    }
-    if (a->max_cand > k_dir)
-        a->max_cand = k_dir;
-    const subspace_t tb = {(const float *)(uintptr_t)coef, (const float *)(uintptr_t)resid,
-                           (const float *)(uintptr_t)slack, (const float *)(uintptr_t)cmax,
-                           (const float *)(uintptr_t)rmax, (const float *)(uintptr_t)smax,
-                           (const double *)(uintptr_t)gram_max, y_error, e_max, n_groups, rank, m_rows, k_dir,
-                           kernel_group(a->kernel)};
-    a->tb = tb;
-    return 0;
-}
-
-/* Work arrays of one call: q (k_dir), work (2 (max_cand + 1)), ub and rg (G each), re and im (m_rows
- * each), vs (2 n_virtual), cand (max_cand + 1), done (G). */
-typedef struct {
-    double *q, *work, *ub, *rg;
-    float *re, *im, *vs;
-    int64_t *cand;
-    uint8_t *done;
-} subspace_work;
-
-static int alloc_subspace(const subspace_args *a, subspace_work *w)
-{
-    const subspace_t *tb = &a->tb;
-    w->q = malloc(sizeof(double) * (size_t)(tb->k_dir + 2 * (a->max_cand + 1) + 2 * tb->n_groups));
-    w->re = malloc(sizeof(float) * (size_t)(2 * tb->m_rows + 2 * a->n_virtual));
-    w->cand = malloc(sizeof(int64_t) * (size_t)(a->max_cand + 1));
-    w->done = malloc((size_t)tb->n_groups);
-    if (w->q == NULL || w->re == NULL || w->cand == NULL || w->done == NULL) {
-        free(w->q);
-        free(w->re);
-        free(w->cand);
-        free(w->done);
-        return -1;
-    }
-    w->work = w->q + tb->k_dir;
-    w->ub = w->work + 2 * (a->max_cand + 1);
-    w->rg = w->ub + tb->n_groups;
-    w->im = w->re + tb->m_rows;
-    w->vs = w->re + 2 * tb->m_rows;
-    return 0;
-}
-
-static void free_subspace(subspace_work *w)
-{
-    free(w->q);
-    free(w->re);
-    free(w->cand);
-    free(w->done);
-}
-
 PyDoc_STRVAR(subspace_select_doc,
 "subspace_select(y, y_stride, coef, resid, slack, cmax, rmax, smax, gram_max, y_error, e_max, xn,\n"
 "                n_groups, rank, m_rows, k_dir, n_points, v, rows, n_virtual, n_az, n_el, max_cand,\n"
@@ -764,23 +671,60 @@ PyDoc_STRVAR(subspace_select_doc,
 
 static PyObject *py_subspace_select(PyObject *self, PyObject *args)
 {
-    subspace_args a;
-    subspace_work w;
+    unsigned long long y, coef, resid, slack, cmax, rmax, smax, gram_max, xn, v, rows, index, amplitude, ambiguous,
+        heavy;
+    Py_ssize_t y_stride, n_groups, rank, m_rows, k_dir, n_points, n_virtual, n_az, n_el, max_cand;
+    double y_error, e_max, row_norm_max;
+    const char *name = "auto";
     (void)self;
-    if (parse_subspace(args, &a) < 0)
+    if (!PyArg_ParseTuple(args, "KnKKKKKKKddKnnnnnKKnnnndKKKK|s", &y, &y_stride, &coef, &resid, &slack, &cmax, &rmax,
+                          &smax, &gram_max, &y_error, &e_max, &xn, &n_groups, &rank, &m_rows, &k_dir, &n_points, &v,
+                          &rows, &n_virtual, &n_az, &n_el, &max_cand, &row_norm_max, &index, &amplitude, &ambiguous,
+                          &heavy, &name))
         return NULL;
-    if (a.n_points == 0)
+    const int kernel = kernel_by_name(name);
+    if (kernel < 0)
+        return NULL;
+    if (n_points < 0 || n_groups < 1 || rank < 1 || m_rows < 1 || k_dir < 1 || k_dir > n_groups * m_rows
+        || n_virtual < 1 || n_az * n_el != k_dir || max_cand < 1 || y_stride < 2 * rank * n_groups
+        || !(y_error >= 0.0) || !(e_max >= 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "subspace_select: inconsistent sizes or bounds");
+        return NULL;
+    }
+    if (n_points == 0)
         Py_RETURN_NONE;
-    if (alloc_subspace(&a, &w) < 0)
+    if (max_cand > k_dir)
+        max_cand = k_dir;
+    const subspace_t tb = {(const float *)(uintptr_t)coef, (const float *)(uintptr_t)resid,
+                           (const float *)(uintptr_t)slack, (const float *)(uintptr_t)cmax,
+                           (const float *)(uintptr_t)rmax, (const float *)(uintptr_t)smax,
+                           (const double *)(uintptr_t)gram_max, y_error, e_max, n_groups, rank, m_rows, k_dir,
+                           kernel_group(kernel)};
+    /* work arrays: q (k_dir), work (2 (max_cand + 1)), ub and rg (G each); re, im (m_rows each) and
+     * vs (2 n_virtual); cand (max_cand + 1); done (G) */
+    double *q = malloc(sizeof(double) * (size_t)(k_dir + 2 * (max_cand + 1) + 2 * n_groups));
+    float *re = malloc(sizeof(float) * (size_t)(2 * m_rows + 2 * n_virtual));
+    int64_t *cand = malloc(sizeof(int64_t) * (size_t)(max_cand + 1));
+    uint8_t *done = malloc((size_t)n_groups);
+    if (q == NULL || re == NULL || cand == NULL || done == NULL) {
+        free(q);
+        free(re);
+        free(cand);
+        free(done);
         return PyErr_NoMemory();
+    }
+    double *work = q + k_dir, *ub = work + 2 * (max_cand + 1), *rg = ub + n_groups;
     Py_BEGIN_ALLOW_THREADS
-    subspace_points((const float *)(uintptr_t)a.y, a.y_stride, &a.tb, (const float *)(uintptr_t)a.xn, a.n_points,
-                    (const float *)(uintptr_t)a.v, (const float *)(uintptr_t)a.rows, a.n_virtual, a.n_az, a.n_el,
-                    a.max_cand, a.row_norm_max, kernel_dot(a.kernel), (int64_t *)(uintptr_t)a.index,
-                    (float *)(uintptr_t)a.amplitude, (uint8_t *)(uintptr_t)a.ambiguous, (uint8_t *)(uintptr_t)a.heavy,
-                    w.q, w.re, w.im, w.ub, w.rg, w.done, w.cand, w.vs, w.work);
+    subspace_points((const float *)(uintptr_t)y, y_stride, &tb, (const float *)(uintptr_t)xn, n_points,
+                    (const float *)(uintptr_t)v, (const float *)(uintptr_t)rows, n_virtual, n_az, n_el, max_cand,
+                    row_norm_max, kernel_dot(kernel), (int64_t *)(uintptr_t)index, (float *)(uintptr_t)amplitude,
+                    (uint8_t *)(uintptr_t)ambiguous, (uint8_t *)(uintptr_t)heavy, q, re, re + m_rows, ub, rg, done,
+                    cand, re + 2 * m_rows, work);
     Py_END_ALLOW_THREADS
-    free_subspace(&w);
+    free(q);
+    free(re);
+    free(cand);
+    free(done);
     Py_RETURN_NONE;
 }
 
