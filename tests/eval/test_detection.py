@@ -101,6 +101,20 @@ def test_score_equal_to_threshold_is_not_kept():
     assert rep.tp == (1, 1, 1, 1, 0, 0, 0, 0, 0)
 
 
+def test_misses_with_a_detection_within_3_m_are_counted_as_localisation_misses():
+    # label A (50 m, 0 deg); detection at (50 m, 1 deg): 0.873 m sideways, 0.008 m nearer, so
+    # IoU = (1.8 - 0.873) (4 - 0.008) / (14.4 - that) = 0.346 < 0.5: a miss, 0.87 m off.
+    # label B (30 m, 10 deg); the only other detection is at (30 m, -10 deg), 10.4 m away.
+    rep = _eval(_det([(0.55, 50.0, 1.0), (0.95, 30.0, -10.0)]), _lab([(50.0, 0.0), (30.0, 10.0)]))
+    assert rep.tp == (0,) * ALL and rep.fn == (2,) * ALL
+    # the near detection is above thresholds 0.1 .. 0.5 only (scores are kept when > t)
+    assert rep.fn_near == (1, 1, 1, 1, 1, 0, 0, 0, 0)
+    assert (rep.fn_fixed, rep.fn_near_fixed) == (2, 1)
+    # with no detection at all nothing is near
+    rep = _eval(_det([]), _lab([(50.0, 0.0)]))
+    assert rep.fn_near == (0,) * ALL and (rep.fn_fixed, rep.fn_near_fixed) == (1, 0)
+
+
 def test_range_and_azimuth_errors_are_true_errors():
     # two frames, one matched pair each: |dR| = 0.3, 0.1; |dA| = 0.2, 0.4 (degrees, not metres)
     rep = _eval(_det([(0.95, 30.3, 10.2)], [(0.95, 59.9, -20.4)]), _lab([(30.0, 10.0)], [(60.0, -20.0)]))

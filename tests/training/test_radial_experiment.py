@@ -111,8 +111,10 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys):
     assert doc["split"] == "test" and doc["metrics"]["n_frames"] == 4
     assert doc["parameters"] == sum(p.numel() for p in pillars_tiny().parameters()) and doc["fps_batch1"] > 0
     assert set(doc["metrics"]) >= {"ap", "ar", "f1", "f1_fixed", "range_error_m", "azimuth_error_deg",
-                                   "freespace_miou"}
-    assert "| AP | AR | F1 |" in (out / "eval_test.md").read_text()
+                                   "freespace_miou", "fn_fixed", "fn_near_fixed"}
+    md = (out / "eval_test.md").read_text()
+    assert "| AP | AR | F1 |" in md
+    assert f"of the {doc['metrics']['fn_fixed']} labels missed, {doc['metrics']['fn_near_fixed']} have" in md
     assert (out / "figures" / "eval_test_0.png").stat().st_size > 1000
     assert (out / "figures" / "learning_curve.png").stat().st_size > 1000
     # another config in the same folder is refused

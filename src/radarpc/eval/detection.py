@@ -17,6 +17,11 @@ find). ``AP`` and ``AR`` are the means of ``P_t`` and ``R_t`` over the 9 thresho
 Also reported (the seed's density sweeps): precision, recall and ``F1 = 2 P R / (P + R)`` at the
 single confidence threshold 0.2.
 
+Not in RADIal, to tell a localisation error from a missed vehicle: ``fn_near`` counts, per
+threshold, the false-negative labels that a detection above the threshold comes within
+``NEAR_MISS_M`` (3 m, between the two reference points) of: the vehicle was found, but its box
+is off by enough to fail IoU 0.5 (e.g. 0.6 m sideways with the range right).
+
 Range and azimuth errors differ from the official code on purpose. The official code divides by
 the number of matched pairs, which is zero at a threshold without true positives, and it takes
 the wrong box columns (the lateral metre difference of a corner as "range error" and the forward
@@ -48,6 +53,7 @@ __all__ = [
     "FIXED_THRESHOLD",
     "IOU_THRESHOLD",
     "RANGE_GATE_M",
+    "NEAR_MISS_M",
     "FREESPACE_ROWS",
     "DetectionReport",
     "DetectionMetrics",
@@ -62,11 +68,13 @@ FIXED_THRESHOLD = 0.2
 """The seed's single confidence threshold of its density sweeps."""
 IOU_THRESHOLD = 0.5
 RANGE_GATE_M = (5.0, 100.0)
+NEAR_MISS_M = 3.0
+"""A missed label with a detection this close (m) is a localisation miss (``fn_near``)."""
 FREESPACE_ROWS = 124
 """Freespace rows scored: 0..123 of 256 (0-50 m)."""
 
 # columns of DetectionMetrics.counts
-_TP, _FP, _FN, _PAIRS, _DR, _DA = range(6)
+_TP, _FP, _FN, _PAIRS, _DR, _DA, _FN_NEAR = range(7)
 
 
 @dataclass(frozen=True)
@@ -77,12 +85,15 @@ class DetectionReport:
     ----------
     thresholds : confidence thresholds of the sweep
     tp, fp, fn : counts per threshold
+    fn_near : per threshold, the false negatives with a detection within ``NEAR_MISS_M``
     precision, recall : per threshold
     ap, ar, f1 : means over the sweep and their F1
     range_error_m, azimuth_error_deg : mean absolute errors of matched pairs (NaN without pairs)
     fixed_threshold : the single threshold (0.2)
     precision_fixed, recall_fixed, f1_fixed : at ``fixed_threshold``
     range_error_fixed_m, azimuth_error_fixed_deg : matched-pair errors at ``fixed_threshold``
+    fn_fixed, fn_near_fixed : false negatives, and those with a detection within ``NEAR_MISS_M``,
+        at ``fixed_threshold``
     n_frames : frames scored
     """
 
@@ -90,6 +101,7 @@ class DetectionReport:
     tp: tuple[int, ...]
     fp: tuple[int, ...]
     fn: tuple[int, ...]
+    fn_near: tuple[int, ...]
     precision: tuple[float, ...]
     recall: tuple[float, ...]
     ap: float
@@ -103,6 +115,8 @@ class DetectionReport:
     f1_fixed: float
     range_error_fixed_m: float
     azimuth_error_fixed_deg: float
+    fn_fixed: int
+    fn_near_fixed: int
     n_frames: int
 
     def to_dict(self) -> dict:
@@ -133,9 +147,10 @@ class DetectionMetrics:
 
     Attributes
     ----------
-    counts : float64 ``(len(thresholds) + 1, 6)``
+    counts : float64 ``(len(thresholds) + 1, 7)``
         Per threshold (the last row is ``fixed_threshold``): TP, FP, FN, matched pairs, sum of
-        ``|dR|`` (m), sum of ``|dA|`` (deg). Sum it across processes before :meth:`compute`.
+        ``|dR|`` (m), sum of ``|dA|`` (deg), FN with a detection within ``NEAR_MISS_M``. Sum it
+        across processes before :meth:`compute`.
     n_frames : int
     """
 
@@ -147,7 +162,7 @@ class DetectionMetrics:
         self.fixed_threshold = float(fixed_threshold)
         self.iou_threshold = float(iou_threshold)
         self.range_gate_m = (float(range_gate_m[0]), float(range_gate_m[1]))
-        self.counts = torch.zeros(len(self.thresholds) + 1, 6, dtype=torch.float64)
+        self.counts = torch.zeros(len(self.thresholds) + 1, 7, dtype=torch.float64)
         self.n_frames = 0
 
     def update(self, detections: Detections, labels: torch.Tensor, label_offset: torch.Tensor) -> None:
@@ -182,13 +197,17 @@ class DetectionMetrics:
             xy_d = ra_to_box_xy(r_d, a_d)                                      # (K, 2)
             keep_d = (xy_d[:, 1] >= lo) & (xy_d[:, 1] <= hi)                  # near-edge y, as RADIal
             score, r_d, a_d, xy_d = score[keep_d], r_d[keep_d], a_d[keep_d], xy_d[keep_d]
-            hit = box_iou(xy_d, ra_to_box_xy(r_l, a_l)) >= self.iou_threshold  # (K, M)
+            xy_l = ra_to_box_xy(r_l, a_l)                                      # (M, 2)
+            hit = box_iou(xy_d, xy_l) >= self.iou_threshold                    # (K, M)
+            near = (xy_d[:, None] - xy_l[None]).norm(dim=-1) <= NEAR_MISS_M      # (K, M)
             sel = score[None, :] > t[:, None]                                  # (T, K)
             pairs = sel[:, :, None] & hit[None]                                # (T, K, M)
+            missed = ~pairs.any(1)                                             # (T, M)
             tp = (sel & hit.any(1)[None]).sum(1)                               # (T,)
             add[:, _TP] += tp
             add[:, _FP] += sel.sum(1) - tp
-            add[:, _FN] += r_l.numel() - pairs.any(1).sum(1)
+            add[:, _FN] += missed.sum(1)
+            add[:, _FN_NEAR] += (missed & (sel[:, :, None] & near[None]).any(1)).sum(1)
             add[:, _PAIRS] += pairs.sum((1, 2))
             add[:, _DR] += (pairs * (r_d[:, None] - r_l[None, :]).abs()[None]).sum((1, 2))
             add[:, _DA] += (pairs * (a_d[:, None] - a_l[None, :]).abs()[None]).sum((1, 2))
@@ -213,14 +232,14 @@ class DetectionMetrics:
         return DetectionReport(
             thresholds=self.thresholds,
             tp=tuple(int(row[_TP]) for row in c[:-1]), fp=tuple(int(row[_FP]) for row in c[:-1]),
-            fn=tuple(int(row[_FN]) for row in c[:-1]),
+            fn=tuple(int(row[_FN]) for row in c[:-1]), fn_near=tuple(int(row[_FN_NEAR]) for row in c[:-1]),
             precision=tuple(prec), recall=tuple(rec), ap=ap, ar=ar, f1=_f1(ap, ar),
             range_error_m=sum(dr) / len(dr) if dr else nan,
             azimuth_error_deg=sum(da) / len(da) if da else nan,
             fixed_threshold=self.fixed_threshold, precision_fixed=pf, recall_fixed=rf, f1_fixed=_f1(pf, rf),
             range_error_fixed_m=fixed[_DR] / fixed[_PAIRS] if fixed[_PAIRS] else nan,
             azimuth_error_fixed_deg=fixed[_DA] / fixed[_PAIRS] if fixed[_PAIRS] else nan,
-            n_frames=self.n_frames)
+            fn_fixed=int(fixed[_FN]), fn_near_fixed=int(fixed[_FN_NEAR]), n_frames=self.n_frames)
 
 
 def evaluate_detections(detections: Detections, labels: torch.Tensor, label_offset: torch.Tensor,
