@@ -74,12 +74,14 @@ TINY_TRAIN = TrainConfig(epochs=30, batch_size=4, eval_batch_size=12, num_worker
 
 
 def _learned(history: list[dict]) -> None:
-    # 90 steps on the 12 frames it is scored on: the loss falls by more than 10x and the F1 at
-    # confidence 0.2 leaves 0 (untrained, no cell reaches 0.2); about 0.3 is what these tiny
-    # models reach here
+    # 90 steps on the 12 frames it is scored on. The heads start at p = 0.01, so the first
+    # epoch's loss is already small on the background; from there the loss falls ~4x (pillars,
+    # whose freespace from points stays high) to ~13x (FFTRadNet), its classification term 7-30x,
+    # and the F1 at confidence 0.2 leaves 0 (untrained, no cell reaches 0.2) for 0.45-0.8
     first, last = history[0], history[-1]
-    assert last["train_loss"] < 0.1 * first["train_loss"]
-    assert first["val_f1_fixed"] < 0.05 and max(h["val_f1_fixed"] for h in history[-5:]) >= 0.1
+    assert last["train_loss"] < 0.5 * first["train_loss"]
+    assert last["train_classification"] < 0.25 * first["train_classification"]
+    assert first["val_f1_fixed"] < 0.05 and max(h["val_f1_fixed"] for h in history[-5:]) >= 0.2
 
 
 def test_tiny_spectralpillars_overfits(root, store, tmp_path):
