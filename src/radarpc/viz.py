@@ -718,3 +718,48 @@ def plot_learning_curves(logs: dict[str, str | os.PathLike], out: str | os.PathL
     fig.tight_layout()
     _save(fig, out, dpi=90)
     return out
+
+
+def plot_label_outcomes(metrics: dict, out: str | os.PathLike, title: str = "") -> Path:
+    """What became of the labels at each confidence threshold: matched (IoU >= 0.5), missed with
+    a detection within :data:`~radarpc.eval.detection.NEAR_MISS_M` (a localisation miss), or
+    missed with nothing near; and the false alarms.
+
+    Parameters
+    ----------
+    metrics : dict
+        :meth:`radarpc.eval.detection.DetectionReport.to_dict` (``thresholds``, ``fn``, ``fn_near``,
+        ``fp``, ``n_labels``, ``n_frames``), e.g. the ``metrics`` of an ``eval_{split}.json``.
+    out : path-like
+        PNG to write.
+    title : str
+    """
+    from radarpc.eval.detection import NEAR_MISS_M
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    t = np.asarray(metrics["thresholds"], dtype=float)
+    fp = np.asarray(metrics["fp"], float)
+    fn, near = np.asarray(metrics["fn"], float), np.asarray(metrics["fn_near"], float)
+    n_labels = max(int(metrics["n_labels"]), 1)
+    matched = n_labels - fn                    # labels, not detections (TP counts detections)
+    fig = _figure((10, 4))
+    ax, ax_fp = fig.subplots(1, 2)
+    w = 0.07
+    ax.bar(t, matched / n_labels, w, label="matched (IoU >= 0.5)", color="tab:green")
+    ax.bar(t, near / n_labels, w, bottom=matched / n_labels, label=f"missed, a detection within {NEAR_MISS_M:g} m",
+           color="tab:orange")
+    ax.bar(t, (fn - near) / n_labels, w, bottom=(matched + near) / n_labels, label="missed, nothing near",
+           color="tab:red")
+    ax.set(xlabel="confidence threshold", ylabel="share of labels", ylim=(0, 1), xticks=t,
+           title=f"the {int(metrics['n_labels'])} labels")
+    ax.legend(fontsize=8, loc="lower left")
+    ax_fp.bar(t, fp / max(int(metrics.get("n_frames", 1)), 1), w, color="tab:gray")
+    ax_fp.set(xlabel="confidence threshold", ylabel="false alarms per frame", xticks=t, title="false alarms")
+    for a in (ax, ax_fp):
+        a.grid(alpha=0.3, axis="y")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    _save(fig, out, dpi=90)
+    return out

@@ -37,6 +37,7 @@ def test_perfect():
     rep = _eval(_det([(0.95, 20.0, 5.0), (0.97, 50.0, -30.0)], [(0.99, 70.0, 0.0)]),
                 _lab([(20.0, 5.0), (50.0, -30.0)], [(70.0, 0.0)]))
     assert rep.tp == (3,) * ALL and rep.fp == (0,) * ALL and rep.fn == (0,) * ALL
+    assert rep.n_labels == 3
     assert (rep.ap, rep.ar, rep.f1, rep.f1_fixed) == (1.0, 1.0, 1.0, 1.0)
     assert rep.range_error_m == pytest.approx(0, abs=1e-5) and rep.azimuth_error_deg == pytest.approx(0, abs=1e-5)
     assert rep.n_frames == 2
@@ -109,7 +110,7 @@ def test_misses_with_a_detection_within_3_m_are_counted_as_localisation_misses()
     assert rep.tp == (0,) * ALL and rep.fn == (2,) * ALL
     # the near detection is above thresholds 0.1 .. 0.5 only (scores are kept when > t)
     assert rep.fn_near == (1, 1, 1, 1, 1, 0, 0, 0, 0)
-    assert (rep.fn_fixed, rep.fn_near_fixed) == (2, 1)
+    assert (rep.fn_fixed, rep.fn_near_fixed, rep.n_labels) == (2, 1, 2)
     # with no detection at all nothing is near
     rep = _eval(_det([]), _lab([(50.0, 0.0)]))
     assert rep.fn_near == (0,) * ALL and (rep.fn_fixed, rep.fn_near_fixed) == (1, 0)
@@ -130,6 +131,7 @@ def test_range_gate():
     dets = _det([(0.96, 4.9, 0.0), (0.96, 5.0, 0.0), (0.96, 100.0, 0.0), (0.96, 100.2, 0.0)])
     rep = _eval(dets, labels)
     assert rep.tp == (2,) * ALL and rep.fp == (0,) * ALL and rep.fn == (0,) * ALL
+    assert rep.n_labels == 2                                  # the two outside the gate are not scored
     # a detection at R = 6 m, 40 deg has y = 4.6 m: dropped, so its label (R = 6 m, kept) is missed
     rep = _eval(_det([(0.96, 6.0, 40.0)]), _lab([(6.0, 40.0)]))
     assert rep.tp == (0,) * ALL and rep.fp == (0,) * ALL and rep.fn == (1,) * ALL

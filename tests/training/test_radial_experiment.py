@@ -118,6 +118,7 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys):
     assert "| AP | AR | F1 |" in md
     assert f"of the {doc['metrics']['fn_fixed']} labels missed, {doc['metrics']['fn_near_fixed']} have" in md
     assert (out / "figures" / "eval_test_0.png").stat().st_size > 1000
+    assert (out / "figures" / "eval_test_labels.png").stat().st_size > 1000
     assert (out / "figures" / "learning_curve.png").stat().st_size > 1000
     # another config in the same folder is refused
     other = dataclasses.replace(cfg, name="other")
@@ -146,6 +147,7 @@ def test_classical_row_cli(root, store, tmp_path):
         assert doc["metrics"][k] == pytest.approx(want[k], abs=1e-12, nan_ok=True)
     assert load_yaml(ClassicalConfig, out / "classical.yaml") == ClassicalConfig()
     assert (out / "figures" / "eval_test_0.png").stat().st_size > 1000
+    assert (out / "figures" / "eval_test_labels.png").stat().st_size > 1000
     # settings from a file: clusters of a million points never form, so nothing is detected
     save_yaml(ClassicalConfig(min_points=10**6), tmp_path / "c.yaml")
     assert main(["baseline", "detect", str(store), "--data", str(root), "--split", "test", "--out", str(out),

@@ -74,7 +74,7 @@ FREESPACE_ROWS = 124
 """Freespace rows scored: 0..123 of 256 (0-50 m)."""
 
 # columns of DetectionMetrics.counts
-_TP, _FP, _FN, _PAIRS, _DR, _DA, _FN_NEAR = range(7)
+_TP, _FP, _FN, _PAIRS, _DR, _DA, _FN_NEAR, _LABELS = range(8)
 
 
 @dataclass(frozen=True)
@@ -94,6 +94,7 @@ class DetectionReport:
     range_error_fixed_m, azimuth_error_fixed_deg : matched-pair errors at ``fixed_threshold``
     fn_fixed, fn_near_fixed : false negatives, and those with a detection within ``NEAR_MISS_M``,
         at ``fixed_threshold``
+    n_labels : labels scored (inside the range gate)
     n_frames : frames scored
     """
 
@@ -117,6 +118,7 @@ class DetectionReport:
     azimuth_error_fixed_deg: float
     fn_fixed: int
     fn_near_fixed: int
+    n_labels: int
     n_frames: int
 
     def to_dict(self) -> dict:
@@ -147,10 +149,10 @@ class DetectionMetrics:
 
     Attributes
     ----------
-    counts : float64 ``(len(thresholds) + 1, 7)``
+    counts : float64 ``(len(thresholds) + 1, 8)``
         Per threshold (the last row is ``fixed_threshold``): TP, FP, FN, matched pairs, sum of
-        ``|dR|`` (m), sum of ``|dA|`` (deg), FN with a detection within ``NEAR_MISS_M``. Sum it
-        across processes before :meth:`compute`.
+        ``|dR|`` (m), sum of ``|dA|`` (deg), FN with a detection within ``NEAR_MISS_M``, labels
+        (the same in every row). Sum it across processes before :meth:`compute`.
     n_frames : int
     """
 
@@ -162,7 +164,7 @@ class DetectionMetrics:
         self.fixed_threshold = float(fixed_threshold)
         self.iou_threshold = float(iou_threshold)
         self.range_gate_m = (float(range_gate_m[0]), float(range_gate_m[1]))
-        self.counts = torch.zeros(len(self.thresholds) + 1, 7, dtype=torch.float64)
+        self.counts = torch.zeros(len(self.thresholds) + 1, 8, dtype=torch.float64)
         self.n_frames = 0
 
     def update(self, detections: Detections, labels: torch.Tensor, label_offset: torch.Tensor) -> None:
@@ -208,6 +210,7 @@ class DetectionMetrics:
             add[:, _FP] += sel.sum(1) - tp
             add[:, _FN] += missed.sum(1)
             add[:, _FN_NEAR] += (missed & (sel[:, :, None] & near[None]).any(1)).sum(1)
+            add[:, _LABELS] += r_l.numel()
             add[:, _PAIRS] += pairs.sum((1, 2))
             add[:, _DR] += (pairs * (r_d[:, None] - r_l[None, :]).abs()[None]).sum((1, 2))
             add[:, _DA] += (pairs * (a_d[:, None] - a_l[None, :]).abs()[None]).sum((1, 2))
@@ -239,7 +242,7 @@ class DetectionMetrics:
             fixed_threshold=self.fixed_threshold, precision_fixed=pf, recall_fixed=rf, f1_fixed=_f1(pf, rf),
             range_error_fixed_m=fixed[_DR] / fixed[_PAIRS] if fixed[_PAIRS] else nan,
             azimuth_error_fixed_deg=fixed[_DA] / fixed[_PAIRS] if fixed[_PAIRS] else nan,
-            fn_fixed=int(fixed[_FN]), fn_near_fixed=int(fixed[_FN_NEAR]), n_frames=self.n_frames)
+            fn_fixed=int(fixed[_FN]), fn_near_fixed=int(fixed[_FN_NEAR]), n_labels=int(fixed[_LABELS]), n_frames=self.n_frames)
 
 
 def evaluate_detections(detections: Detections, labels: torch.Tensor, label_offset: torch.Tensor,

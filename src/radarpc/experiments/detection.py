@@ -268,6 +268,10 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
 
 
 def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
+    """``eval_{split}.json`` / ``.md`` and ``figures/eval_{split}_labels.png`` (what became of the
+    labels at each threshold, :func:`radarpc.viz.plot_label_outcomes`)."""
+    from radarpc.viz import plot_label_outcomes
+
     m = res.metrics
     doc = {"split": res.split, "metrics": m, "parameters": res.parameters, "fps_batch1": res.fps,
            "device": res.device, "threads": res.threads}
@@ -291,3 +295,4 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
     ]
     with atomic_write(folder / f"eval_{res.split}.md", "w") as f:
         f.write("\n".join(lines) + "\n")
+    plot_label_outcomes(m, folder / "figures" / f"eval_{res.split}_labels.png", title=f"{name}: {res.split} split")
