@@ -753,7 +753,7 @@ def plot_label_outcomes(metrics: dict, out: str | os.PathLike, title: str = "") 
            color="tab:red")
     ax.set(xlabel="confidence threshold", ylabel="share of labels", ylim=(0, 1), xticks=t,
            title=f"the {int(metrics['n_labels'])} labels")
-    ax.legend(fontsize=8, loc="lower left")
+    ax.legend(fontsize=8, loc="upper right", framealpha=0.9)
     ax_fp.bar(t, fp / max(int(metrics.get("n_frames", 1)), 1), w, color="tab:gray")
     ax_fp.set(xlabel="confidence threshold", ylabel="false alarms per frame", xticks=t, title="false alarms")
     for a in (ax, ax_fp):
