@@ -267,3 +267,14 @@ def test_no_pyplot_state(root, tmp_path):
     open_before = plt.get_fignums()
     viz.plot_coloradar_info(_colo_view(True, True), tmp_path / "c.png")
     assert plt.get_fignums() == open_before and matplotlib.get_backend() == backend
+
+
+def test_plot_learning_curves_against_time_or_steps(tmp_path):
+    log = tmp_path / "log.csv"
+    log.write_text("epoch,step,train_time_s,train_loss,val_f1,val_f1_fixed\n"
+                   "0,10,60.0,5.0,0.1,0.05\n1,20,90.0,3.0,0.2,0.1\n")
+    for against in ("time", "step"):
+        out = viz.plot_learning_curves({"run": log}, tmp_path / f"{against}.png", against=against)
+        assert Image.open(out).size[0] > 500
+    with pytest.raises(ValueError, match="against must be 'time' or 'step'"):
+        viz.plot_learning_curves({"run": log}, tmp_path / "x.png", against="epoch")

@@ -683,9 +683,9 @@ def plot_detection_frame(batch, detections, probability: torch.Tensor | None, ou
 
 
 # ---- training runs ------------------------------------------------------------------------------
-def plot_learning_curves(logs: dict[str, str | os.PathLike], out: str | os.PathLike) -> Path:
+def plot_learning_curves(logs: dict[str, str | os.PathLike], out: str | os.PathLike, against: str = "time") -> Path:
     """Validation F1 (RADIal's, and at confidence 0.2) and training loss of runs against their
-    cumulative training time, from each run's ``log.csv``.
+    cumulative training time or their optimizer steps, from each run's ``log.csv``.
 
     Parameters
     ----------
@@ -693,7 +693,12 @@ def plot_learning_curves(logs: dict[str, str | os.PathLike], out: str | os.PathL
         Curve label -> ``log.csv`` of a run (:func:`radarpc.training.loop.fit`).
     out : path-like
         PNG to write.
+    against : {"time", "step"}
+        The x axis: minutes of training, or optimizer steps (for runs whose epochs were slowed by
+        other work on the machine).
     """
+    if against not in ("time", "step"):
+        raise ValueError(f"against must be 'time' or 'step', got {against!r}")
     import csv
 
     out = Path(out)
@@ -705,13 +710,17 @@ def plot_learning_curves(logs: dict[str, str | os.PathLike], out: str | os.PathL
             rows = list(csv.DictReader(f))
         if not rows:
             continue
-        minutes = np.cumsum([float(r["train_time_s"]) for r in rows]) / 60
+        if against == "time":
+            x = np.cumsum([float(r["train_time_s"]) for r in rows]) / 60
+        else:
+            x = np.array([int(r["step"]) for r in rows])
         for ax, key in ((ax_f1, "val_f1"), (ax_fix, "val_f1_fixed"), (ax_loss, "train_loss")):
             if key in rows[0]:
-                ax.plot(minutes, [float(r[key]) if r[key] else np.nan for r in rows], marker="o", label=name)
-    ax_f1.set(xlabel="training time [min]", ylabel="F1", title="validation F1 (AP, AR over 0.1..0.9)", ylim=(0, 1))
-    ax_fix.set(xlabel="training time [min]", ylabel="F1", title="validation F1 at confidence 0.2", ylim=(0, 1))
-    ax_loss.set(xlabel="training time [min]", ylabel="loss", title="training loss (epoch mean)", yscale="log")
+                ax.plot(x, [float(r[key]) if r[key] else np.nan for r in rows], marker="o", label=name)
+    xlabel = "training time [min]" if against == "time" else "optimizer steps"
+    ax_f1.set(xlabel=xlabel, ylabel="F1", title="validation F1 (AP, AR over 0.1..0.9)", ylim=(0, 1))
+    ax_fix.set(xlabel=xlabel, ylabel="F1", title="validation F1 at confidence 0.2", ylim=(0, 1))
+    ax_loss.set(xlabel=xlabel, ylabel="loss", title="training loss (epoch mean)", yscale="log")
     for ax in (ax_f1, ax_fix, ax_loss):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
