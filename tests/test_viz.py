@@ -269,12 +269,15 @@ def test_no_pyplot_state(root, tmp_path):
     assert plt.get_fignums() == open_before and matplotlib.get_backend() == backend
 
 
-def test_plot_learning_curves_against_time_or_steps(tmp_path):
+def test_plot_learning_curves_against_time_or_steps(tmp_path, figures):
     log = tmp_path / "log.csv"
     log.write_text("epoch,step,train_time_s,train_loss,val_f1,val_f1_fixed\n"
                    "0,10,60.0,5.0,0.1,0.05\n1,20,90.0,3.0,0.2,0.1\n")
-    for against in ("time", "step"):
+    for against, x in (("time", [1.0, 2.5]), ("step", [10, 20])):          # minutes: 60 s, then 60 + 90 s
         out = viz.plot_learning_curves({"run": log}, tmp_path / f"{against}.png", against=against)
-        assert Image.open(out).size[0] > 500
+        assert out.stat().st_size > 1000
+        ax_f1 = figures[-1].axes[0]
+        np.testing.assert_allclose(ax_f1.lines[0].get_xdata(), x)
+        np.testing.assert_allclose(ax_f1.lines[0].get_ydata(), [0.1, 0.2])
     with pytest.raises(ValueError, match="against must be 'time' or 'step'"):
         viz.plot_learning_curves({"run": log}, tmp_path / "x.png", against="epoch")
