@@ -683,7 +683,8 @@ def plot_detection_frame(batch, detections, probability: torch.Tensor | None, ou
 
 
 # ---- training runs ------------------------------------------------------------------------------
-def plot_learning_curves(logs: dict[str, str | os.PathLike], out: str | os.PathLike, against: str = "time") -> Path:
+def plot_learning_curves(logs: dict[str, str | os.PathLike], out: str | os.PathLike,
+                         against: str = "time") -> Path:
     """Validation F1 (RADIal's, and at confidence 0.2) and training loss of runs against their
     cumulative training time or their optimizer steps, from each run's ``log.csv``.
 

@@ -242,7 +242,8 @@ class DetectionMetrics:
             fixed_threshold=self.fixed_threshold, precision_fixed=pf, recall_fixed=rf, f1_fixed=_f1(pf, rf),
             range_error_fixed_m=fixed[_DR] / fixed[_PAIRS] if fixed[_PAIRS] else nan,
             azimuth_error_fixed_deg=fixed[_DA] / fixed[_PAIRS] if fixed[_PAIRS] else nan,
-            fn_fixed=int(fixed[_FN]), fn_near_fixed=int(fixed[_FN_NEAR]), n_labels=int(fixed[_LABELS]), n_frames=self.n_frames)
+            fn_fixed=int(fixed[_FN]), fn_near_fixed=int(fixed[_FN_NEAR]), n_labels=int(fixed[_LABELS]),
+            n_frames=self.n_frames)
 
 
 def evaluate_detections(detections: Detections, labels: torch.Tensor, label_offset: torch.Tensor,

@@ -295,4 +295,5 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
     ]
     with atomic_write(folder / f"eval_{res.split}.md", "w") as f:
         f.write("\n".join(lines) + "\n")
-    plot_label_outcomes(m, folder / "figures" / f"eval_{res.split}_labels.png", title=f"{name}: {res.split} split")
+    plot_label_outcomes(m, folder / "figures" / f"eval_{res.split}_labels.png",
+                        title=f"{name}: {res.split} split")

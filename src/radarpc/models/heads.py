@@ -69,8 +69,9 @@ class DetectionHead(nn.Module):
 
     The classification bias starts at ``-log((1 - pi) / pi)`` (RetinaNet's prior, ``pi =
     prior_probability``) rather than near 0: with p ~ 0.5 on all 28,672 cells the summed focal
-    loss of the first steps is almost all background, and the first steps only push p down. The official model does
-    not do this; loading its weights overwrites the bias, so outputs for given weights are unchanged.
+    loss of the first steps is almost all background, and the first steps only push p down. The
+    official model does not do this; loading its weights overwrites the bias, so outputs for
+    given weights are unchanged.
 
     Parameters
     ----------
