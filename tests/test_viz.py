@@ -281,3 +281,15 @@ def test_plot_learning_curves_against_time_or_steps(tmp_path, figures):
         np.testing.assert_allclose(ax_f1.lines[0].get_ydata(), [0.1, 0.2])
     with pytest.raises(ValueError, match="against must be 'time' or 'step'"):
         viz.plot_learning_curves({"run": log}, tmp_path / "x.png", against="epoch")
+
+
+def test_plot_label_outcomes_bars_are_the_reports_shares(tmp_path, figures):
+    # 10 labels over 4 frames; at the two thresholds 6 and 3 matched (fn 4, 7), of the misses 3 and 2
+    # with a detection within 3 m; 8 and 2 false alarms
+    metrics = {"thresholds": [0.1, 0.2], "fn": [4, 7], "fn_near": [3, 2], "fp": [8, 2], "n_labels": 10,
+               "n_frames": 4}
+    viz.plot_label_outcomes(metrics, tmp_path / "labels.png")
+    ax, ax_fp = figures[-1].axes
+    heights = [p.get_height() for p in ax.patches]           # matched, near, nothing near; 2 bars each
+    np.testing.assert_allclose(heights, [0.6, 0.3, 0.3, 0.2, 0.1, 0.5])
+    np.testing.assert_allclose([p.get_height() for p in ax_fp.patches], [2.0, 0.5])
