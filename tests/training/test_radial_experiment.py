@@ -18,7 +18,8 @@ from radarpc.pipelines.pointclouds import convert_dataset
 from radarpc.sensors.radial import RADIAL_S
 from radarpc.sim.radial_writer import write_radial_dataset
 from radarpc.sim.scenes import scene_mix
-from radarpc.training.loop import TrainConfig, fit
+from radarpc.training.checkpoint import load_state
+from radarpc.training.loop import LAST_CHECKPOINT, TrainConfig, fit
 from radarpc.training.radial import ExperimentConfig, RadialDetectionTask, build_model
 
 CONFIGS = Path(__file__).parents[2] / "configs"
@@ -93,6 +94,35 @@ def test_tiny_spectralpillars_overfits(root, store, tmp_path):
 def test_tiny_fftradnet_overfits(root, store, tmp_path):
     cfg = ExperimentConfig(name="fft-tiny", fftradnet=fftradnet_tiny().cfg, train=TINY_TRAIN)
     _learned(_overfit(cfg, root, None, tmp_path))
+
+
+class _Kill(Exception):
+    pass
+
+
+def test_mirrored_run_resumes_to_the_same_weights(root, store, tmp_path):
+    # the mirrors are drawn in the loader's worker processes from (seed, epoch, item): a run killed
+    # in its second epoch and resumed ends with the weights of an uninterrupted one, and the
+    # mirrors reach the model (the weights differ from an unmirrored run)
+    train = dataclasses.replace(TINY_TRAIN, epochs=2, batch_size=4, num_workers=2)
+    cfg = ExperimentConfig(name="sp-mirror", pillars=pillars_tiny().cfg, mirror_probability=0.5, train=train)
+
+    def run(c: ExperimentConfig, out: Path, **kw):
+        return fit(RadialDetectionTask(c, root, store, splits=("all", "test")), c.train, out, {"name": c.name},
+                   progress=False, log=lambda s: None, **kw)
+
+    def stop(step):
+        if step == 5:                                                   # 3 steps an epoch: in epoch 1
+            raise _Kill
+
+    run(cfg, tmp_path / "full")
+    with pytest.raises(_Kill):
+        run(cfg, tmp_path / "cut", on_step=stop)
+    run(cfg, tmp_path / "cut")
+    run(dataclasses.replace(cfg, mirror_probability=0.0), tmp_path / "plain")
+    full, cut, plain = (load_state(tmp_path / d / LAST_CHECKPOINT).model for d in ("full", "cut", "plain"))
+    assert all(torch.equal(full[k], cut[k]) for k in full)
+    assert not all(torch.equal(full[k], plain[k]) for k in full)
 
 
 def test_train_and_evaluate_cli(root, store, tmp_path, capsys):

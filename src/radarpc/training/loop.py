@@ -97,7 +97,9 @@ class Task(Protocol):
     ``loss`` runs the (possibly DDP-wrapped) model on a collated batch already on the device and
     returns the total loss and its named parts (floats, for the logs); ``evaluate`` scores the
     unwrapped model on validation batches and returns named metrics (``select_metric`` among
-    them). ``to_device`` moves a collated batch.
+    them). ``to_device`` moves a collated batch. A ``train_set`` whose items depend on the epoch
+    (random augmentation) has a ``set_epoch(epoch)`` method, called before each epoch's loader is
+    built, as ``DistributedSampler.set_epoch``.
     """
 
     train_set: Dataset
@@ -330,6 +332,8 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, env: DistEnv, d
         while info["epoch"] < cfg.epochs:
             epoch = info["epoch"]
             batches = epoch_batches(n_train, cfg.batch_size, cfg.seed, epoch, env)[info["batch_in_epoch"]:]
+            if hasattr(task.train_set, "set_epoch"):
+                task.train_set.set_epoch(epoch)
             loader = DataLoader(task.train_set, batch_sampler=batches, collate_fn=task.collate,
                                 num_workers=cfg.num_workers,
                                 generator=torch.Generator().manual_seed(cfg.seed + epoch))

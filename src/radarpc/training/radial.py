@@ -21,6 +21,7 @@ from typing import Iterable
 import torch
 from torch import nn
 
+from radarpc.data.augment import MirroredFrames
 from radarpc.data.point_dataset import PointCloudDataset, PointFrameBatch, collate_point_frames
 from radarpc.data.radial import RADIal
 from radarpc.eval.detection import DetectionMetrics, FreespaceMetrics
@@ -58,6 +59,10 @@ class ExperimentConfig:
         Train and validate with RADIal's ``Difficult`` labels (RADIal's own evaluation keeps them).
     statistics_frames : int
         Training frames (evenly spaced) whose cubes give FFTRadNet's input normalisation.
+    mirror_probability : float in [0, 1]
+        Share of training frames mirrored about the boresight (:mod:`radarpc.data.augment`), drawn
+        per frame and epoch; point inputs only (mirroring an RD cube would need the array's
+        geometry). 0 (default) trains on the frames as they are.
     targets, loss, train :
         RADIal's encoding, the loss weights and the optimisation.
     """
@@ -67,6 +72,7 @@ class ExperimentConfig:
     pillars: PillarsConfig | None = None
     difficult: bool = True
     statistics_frames: int = 256
+    mirror_probability: float = 0.0
     targets: TargetConfig = field(default_factory=TargetConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
@@ -76,6 +82,11 @@ class ExperimentConfig:
             raise ValueError(f"experiment {self.name!r}: set exactly one of 'fftradnet' and 'pillars'")
         if self.statistics_frames < 1:
             raise ValueError(f"statistics_frames must be >= 1, got {self.statistics_frames}")
+        if not 0.0 <= self.mirror_probability <= 1.0:
+            raise ValueError(f"mirror_probability must be in [0, 1], got {self.mirror_probability}")
+        if self.mirror_probability > 0 and self.fftradnet is not None:
+            raise ValueError(f"experiment {self.name!r}: mirror_probability applies to point inputs only "
+                             f"(mirroring an RD cube would need the array's geometry); set it to 0")
 
     @property
     def input_kind(self) -> str:
@@ -172,6 +183,8 @@ class RadialDetectionTask:
                  splits: tuple[str, str] = ("train", "val")) -> None:
         self.cfg = cfg
         self.train_set = detection_dataset(cfg, data, points, splits[0])
+        if cfg.mirror_probability > 0:
+            self.train_set = MirroredFrames(self.train_set, cfg.mirror_probability, cfg.train.seed)
         self.val_set = detection_dataset(cfg, data, points, splits[1])
 
     # ---- the Task protocol --------------------------------------------------------------------

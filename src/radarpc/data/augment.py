@@ -1,0 +1,112 @@
+"""Training-time augmentation of point frames: the mirror about the radar's boresight.
+
+A frame mirrored about the boresight (azimuth ``a -> -a``, lateral ``y -> -y``) is the frame a
+radar with the mirrored array would see of the mirrored scene: range, Doppler, elevation and
+amplitude stay, and so do the labels' range and radial velocity. It is the polar form of
+OpenPCDet's random world flip. What it changes, per :class:`~radarpc.data.point_dataset.PointFrame`:
+
+* points: ``azimuth_deg`` and ``y`` negated; the angle-sector descriptor ``sector``
+  (``n_az_sec x n_el_sec``, azimuth-major) reversed along azimuth, which is exact when the
+  beamforming grid is symmetric about 0 (RADIal's ``Azimuth_table`` is, and
+  :func:`~radarpc.dsp.beamform.sector_pool`'s adaptive pooling keeps the symmetry);
+* labels: ``radar_A_deg``, ``radar_Y_m`` and ``laser_Y_m`` negated (the LiDAR sits on the
+  radar's axis). The camera box columns are left as they are: no image is mirrored;
+* freespace ``(256, 224)``: columns reversed. RADIal's target samples the odd PNG columns
+  227 .. 673 of 900 (:func:`~radarpc.data.radial.freespace_to_model`), whose mirror images are
+  the even columns 226 .. 672, so a mirrored target sits 0.2 deg (one PNG column, a quarter of a
+  target column) off the exact mirror.
+
+:class:`MirroredFrames` applies it to each training frame with a given probability, decided by
+``(seed, epoch, index)`` alone, so that a resumed run sees the same frames as an uninterrupted one.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+from radarpc.data.point_dataset import PointCloudDataset, PointFrame
+from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS
+from radarpc.dsp.pointcloud import SpectralPointCloudConfig
+
+__all__ = ["mirror_frame", "MirroredFrames"]
+
+_NEGATED_LABEL_COLUMNS = [LABEL_TENSOR_COLUMNS.index(c) for c in ("radar_A_deg", "radar_Y_m", "laser_Y_m")]
+
+
+def mirror_frame(frame: PointFrame, sectors: tuple[int, int] | None = None) -> PointFrame:
+    """``frame`` mirrored about the radar's boresight (module docstring).
+
+    Parameters
+    ----------
+    frame : PointFrame
+    sectors : (int, int), optional
+        ``(n_az_sec, n_el_sec)`` of the points' ``sector`` descriptor (the store's
+        ``sectorAxE`` enrichment); required when the points carry one.
+
+    Returns
+    -------
+    PointFrame
+        New tensors; ``frame`` is not modified.
+
+    Raises
+    ------
+    ValueError
+        The points carry a sector descriptor and ``sectors`` is missing or does not match its width.
+    """
+    p = frame.points
+    sector = p.sector
+    if sector is not None:
+        if sectors is None or sectors[0] * sectors[1] != sector.shape[1]:
+            raise ValueError(f"the points carry a {sector.shape[1]}-wide sector descriptor; give its "
+                             f"(n_az_sec, n_el_sec) to mirror it, got {sectors}")
+        n_as, n_es = sectors
+        sector = sector.reshape(-1, n_as, n_es).flip(1).reshape(-1, n_as * n_es)   # (N, n_as n_es)
+    points = dataclasses.replace(p, azimuth_deg=-p.azimuth_deg, y=-p.y, sector=sector)
+    labels = frame.labels.clone()                                                   # (n, 14)
+    labels[:, _NEGATED_LABEL_COLUMNS] = -labels[:, _NEGATED_LABEL_COLUMNS]
+    return dataclasses.replace(frame, points=points, labels=labels, freespace=frame.freespace.flip(-1))
+
+
+class MirroredFrames(torch.utils.data.Dataset):
+    """A :class:`~radarpc.data.point_dataset.PointCloudDataset` whose items are mirrored at random.
+
+    Item ``i`` of epoch ``e`` is mirrored (:func:`mirror_frame`) when a uniform draw seeded by
+    ``(seed, e, i)`` falls below ``probability``; the training loop sets ``e`` through
+    :meth:`set_epoch` before it builds each epoch's loader (whose workers receive a copy).
+
+    Parameters
+    ----------
+    frames : PointCloudDataset
+    probability : float in [0, 1]
+    seed : int
+    """
+
+    def __init__(self, frames: PointCloudDataset, probability: float, seed: int) -> None:
+        if not 0.0 <= probability <= 1.0:
+            raise ValueError(f"mirror probability must be in [0, 1], got {probability}")
+        self.frames = frames
+        self.probability = float(probability)
+        self.seed = int(seed)
+        self.epoch = 0
+        self._sectors = SpectralPointCloudConfig(enrich=frames.store.metadata.enrich).sectors
+
+    def set_epoch(self, epoch: int) -> None:
+        """Draw the mirrors of epoch ``epoch`` from now on."""
+        self.epoch = int(epoch)
+
+    def is_mirrored(self, i: int) -> bool:
+        """Whether item ``i`` is mirrored in the current epoch."""
+        u = np.random.default_rng([self.seed, self.epoch, int(i) % len(self)]).random()
+        return bool(u < self.probability)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, i: int) -> PointFrame:
+        frame = self.frames[i]
+        return mirror_frame(frame, self._sectors) if self.is_mirrored(i) else frame
+
+    def __repr__(self) -> str:
+        return f"MirroredFrames({self.frames!r}, probability={self.probability}, seed={self.seed})"

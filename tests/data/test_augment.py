@@ -1,0 +1,124 @@
+"""The boresight mirror of point frames: what it changes, against independent computations, and
+the per-(seed, epoch, item) draws of MirroredFrames."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from radarpc.data.augment import MirroredFrames, mirror_frame
+from radarpc.data.point_dataset import PointCloudDataset
+from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS
+from radarpc.dsp.beamform import sector_pool
+from radarpc.models.fftradnet import fftradnet_tiny
+from radarpc.models.targets import TargetConfig, encode_targets
+from radarpc.pipelines.pointclouds import convert_dataset
+from radarpc.sensors.radial import TINY
+from radarpc.sim.radial_writer import write_radial_dataset
+from radarpc.sim.scenes import scene_mix
+from radarpc.training.radial import ExperimentConfig
+
+COL = {c: k for k, c in enumerate(LABEL_TENSOR_COLUMNS)}
+LATERAL = ("radar_A_deg", "radar_Y_m", "laser_Y_m")
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    # city scenes, seed 3: the 25.6 m of the tiny sensor hold a few vehicles
+    root = write_radial_dataset(tmp_path_factory.mktemp("sim") / "root", TINY, 3, 3, seed=3, progress=False,
+                                scenes=scene_mix("city"))
+    out = tmp_path_factory.mktemp("pc") / "pc.parquet"
+    convert_dataset(root, out, tau=1.5, enrich=("sector4",), progress=False)    # TINY grid: 61 x 5
+    return PointCloudDataset(out, root)
+
+
+def test_mirror_negates_lateral_quantities_only(frames):
+    seen_points = seen_labels = 0
+    for f in (frames[i] for i in range(len(frames))):
+        m = mirror_frame(f, (4, 1))
+        p, q = f.points, m.points
+        assert torch.equal(q.azimuth_deg, -p.azimuth_deg) and torch.equal(q.y, -p.y)
+        for name in ("range_m", "elevation_deg", "velocity_mps", "amplitude", "snr", "x", "z", "range_bin",
+                     "doppler_bin", "doppler_full", "offset"):
+            assert torch.equal(getattr(q, name), getattr(p, name)), name
+        assert torch.equal(q.sector, p.sector.flip(1))                           # 4 x 1 sectors
+        for c, k in COL.items():
+            want = -f.labels[:, k] if c in LATERAL else f.labels[:, k]
+            assert torch.equal(m.labels[:, k], want), c
+        assert torch.equal(m.freespace, f.freespace.flip(-1))
+        twice = mirror_frame(m, (4, 1))
+        assert torch.equal(twice.points.azimuth_deg, p.azimuth_deg) and torch.equal(twice.labels, f.labels)
+        assert torch.equal(twice.points.sector, p.sector) and torch.equal(twice.freespace, f.freespace)
+        seen_points += p.num_points
+        seen_labels += len(f.labels)
+    assert seen_points > 0 and seen_labels > 0                                  # the checks ran on data
+
+
+@pytest.mark.parametrize("grid, sectors", [((181, 1), (32, 1)), ((751, 11), (8, 2)), ((61, 5), (7, 3))])
+def test_reversed_sectors_are_the_sectors_of_the_mirrored_spectrum(frames, grid, sectors):
+    # independent computation: pool the mirrored angle spectrum (azimuth rows reversed on a grid
+    # symmetric about 0), against mirror_frame's reversal of the original descriptor
+    g = torch.Generator().manual_seed(0)
+    f = frames[0]
+    n = f.points.num_points
+    spectrum = torch.rand(n, grid[0] * grid[1], generator=g)                        # (P, n_az n_el)
+    mirrored = spectrum.reshape(n, *grid).flip(1).reshape(n, -1)
+    f = dataclasses.replace(f, points=dataclasses.replace(f.points, sector=sector_pool(spectrum, grid, sectors)))
+    assert torch.equal(mirror_frame(f, sectors).points.sector, sector_pool(mirrored, grid, sectors))
+
+
+def test_mirrored_labels_encode_to_the_mirrored_target_map():
+    # azimuth cells are symmetric about 0 (224 x 0.8 deg over +-89.6): the probability of a mirrored
+    # label lands in the mirrored cells; labels are off the cell edges, so floor() is unambiguous
+    cfg = TargetConfig()
+    g = torch.Generator().manual_seed(1)
+    labels = torch.zeros(6, len(LABEL_TENSOR_COLUMNS))
+    labels[:, COL["radar_R_m"]] = 5 + 90 * torch.rand(6, generator=g)
+    labels[:, COL["radar_A_deg"]] = -80 + 160 * torch.rand(6, generator=g)
+    mirrored = labels.clone()
+    mirrored[:, COL["radar_A_deg"]] *= -1
+    a, b = encode_targets(labels, cfg), encode_targets(mirrored, cfg)
+    assert a[0].sum() > 0 and torch.equal(b[0], a[0].flip(-1))
+
+
+def test_draws_depend_on_seed_epoch_and_item_only(frames):
+    aug = MirroredFrames(frames, 0.5, seed=7)
+    draws = []
+    for epoch in range(400):
+        aug.set_epoch(epoch)
+        draws.append([aug.is_mirrored(i) for i in range(len(frames))])
+    draws = np.array(draws)
+    n = draws.size
+    assert abs(draws.mean() - 0.5) < 5 * np.sqrt(0.25 / n)                       # 5 binomial sigmas
+    again = MirroredFrames(frames, 0.5, seed=7)
+    again.set_epoch(3)
+    assert [again.is_mirrored(i) for i in range(len(frames))] == draws[3].tolist()
+    assert all(MirroredFrames(frames, 1.0, seed=7).is_mirrored(i) for i in range(len(frames)))
+    assert not any(MirroredFrames(frames, 0.0, seed=7).is_mirrored(i) for i in range(len(frames)))
+
+
+def test_loader_workers_draw_the_epoch_set_before_the_loader(frames):
+    aug = MirroredFrames(frames, 0.5, seed=1)
+    for epoch in (0, 5):
+        aug.set_epoch(epoch)
+        loader = torch.utils.data.DataLoader(aug, batch_size=2, num_workers=2, collate_fn=list)
+        got = [it for batch in loader for it in batch]
+        for i, it in enumerate(got):
+            sign = -1 if aug.is_mirrored(i) else 1
+            assert torch.equal(it.points.azimuth_deg, sign * frames[i].points.azimuth_deg)
+            assert torch.equal(it.freespace, frames[i].freespace.flip(-1) if sign < 0 else frames[i].freespace)
+
+
+def test_bad_input(frames):
+    with pytest.raises(ValueError, match=r"mirror probability must be in \[0, 1\], got 1.5"):
+        MirroredFrames(frames, 1.5, seed=0)
+    with pytest.raises(ValueError, match="4-wide sector descriptor; give its"):
+        mirror_frame(frames[0], None)
+    with pytest.raises(ValueError, match="4-wide sector descriptor"):
+        mirror_frame(frames[0], (2, 1))
+    with pytest.raises(ValueError, match="point inputs only"):
+        ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, mirror_probability=0.5)
+    with pytest.raises(ValueError, match=r"mirror_probability must be in \[0, 1\]"):
+        ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, mirror_probability=-0.1)
