@@ -7,8 +7,9 @@ OpenPCDet's random world flip. What it changes, per :class:`~radarpc.data.point_
 
 * points: ``azimuth_deg`` and ``y`` negated; the angle-sector descriptor ``sector``
   (``n_az_sec x n_el_sec``, azimuth-major) reversed along azimuth, which is exact when the
-  beamforming grid is symmetric about 0 (RADIal's ``Azimuth_table`` is, and
-  :func:`~radarpc.dsp.beamform.sector_pool`'s adaptive pooling keeps the symmetry);
+  calibration's ``Azimuth_table`` is symmetric about 0 (the simulator's is: -75 .. 75 deg in
+  0.2-deg steps; a real table was not checked) because
+  :func:`~radarpc.dsp.beamform.sector_pool`'s adaptive pooling keeps the symmetry;
 * labels: ``radar_A_deg``, ``radar_Y_m`` and ``laser_Y_m`` negated (the LiDAR sits on the
   radar's axis). The camera box columns are left as they are: no image is mirrored;
 * freespace ``(256, 224)``: columns reversed. RADIal's target samples the odd PNG columns
