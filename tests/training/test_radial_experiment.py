@@ -97,7 +97,7 @@ def test_tiny_fftradnet_overfits(root, store, tmp_path):
 
 
 class _Kill(Exception):
-    pass
+    """Raised from ``on_step`` to stop a run where a kill would."""
 
 
 def test_mirrored_run_resumes_to_the_same_weights(root, store, tmp_path):
