@@ -18,6 +18,12 @@ with a matching point is what a detector that does not learn offsets can reach. 
     python benchmarks/detection_ceiling.py --data data/sim_rs --points pc057.parquet pc200.parquet \\
         --split test --figure docs/results/figures/detection_ceiling.png
 
+and so are stores of different roots (e.g. the same scenes seen by the ``radial`` and ``radial-s``
+sensors), one ``--data`` root per store::
+
+    python benchmarks/detection_ceiling.py --data sim_r1 sim_rs1 --points pc_r1.parquet pc_rs1.parquet \\
+        --split test --figure reach.png
+
 Prints one JSON object per store.
 """
 from __future__ import annotations
@@ -70,17 +76,24 @@ def label_reach(points: str, data: str, split: str) -> dict:
         "median_points_within_3m": float(np.median(support)) if support else float("nan"),
         "share_of_points_within_3m_of_a_label": on_vehicle / max(sum(n_points), 1),
         "_nearest": nearest,
+        "_support": np.asarray(support),
     }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", required=True, help="RADIal root (labels)")
-    ap.add_argument("--points", nargs="+", required=True, help="point stores of that root")
+    ap.add_argument("--data", nargs="+", required=True,
+                    help="RADIal root (labels) of every store, or one root per store")
+    ap.add_argument("--points", nargs="+", required=True, help="point stores")
     ap.add_argument("--split", default="test")
-    ap.add_argument("--figure", default=None, help="PNG: cumulative share of labels vs distance to the nearest point")
+    ap.add_argument("--figure", default=None,
+                    help="PNG: cumulative shares of labels against the distance to the nearest point "
+                         "and against the number of points within 3 m")
     args = ap.parse_args()
-    results = [label_reach(p, args.data, args.split) for p in args.points]
+    if len(args.data) not in (1, len(args.points)):
+        ap.error(f"--data takes one root or one per store ({len(args.points)}), got {len(args.data)}")
+    roots = args.data * len(args.points) if len(args.data) == 1 else args.data
+    results = [label_reach(p, root, args.split) for p, root in zip(args.points, roots)]
     for r in results:
         print(json.dumps({k: v for k, v in r.items() if not k.startswith("_")}))
     if args.figure:
@@ -88,17 +101,23 @@ def main() -> None:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        fig, ax = plt.subplots(figsize=(6, 4))
+        fig, (ax, ax_n) = plt.subplots(1, 2, figsize=(11, 4))
         grid = np.linspace(0, 10, 201)
+        counts = np.arange(0, 31)
         for r in results:
             share = [(r["_nearest"] <= g).mean() for g in grid]
-            ax.plot(grid, share, label=f"{Path(r['points']).name} ({r['points_per_frame']:.0f} points/frame)")
+            label = f"{Path(r['points']).name} ({r['points_per_frame']:.0f} points/frame)"
+            ax.plot(grid, share, label=label)
+            ax_n.step(counts, [(r["_support"] >= n).mean() for n in counts], where="post", label=label)
         ax.axvline(0.6, color="0.6", ls=":", lw=1)
         ax.set(xlabel="distance from a label to the nearest point of its frame [m]",
                ylabel="share of labels", ylim=(0, 1), xlim=(0, 10),
                title=f"{args.split} split: labels within reach of the points")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="lower right")
+        ax_n.set(xlabel="n", ylabel="share of labels with >= n points within 3 m", ylim=(0, 1),
+                 xlim=(0, counts[-1]), title="support a detector has to place each box")
+        for a in (ax, ax_n):
+            a.grid(alpha=0.3)
+            a.legend(fontsize=8, loc="lower right" if a is ax else "upper right")
         Path(args.figure).parent.mkdir(parents=True, exist_ok=True)
         fig.tight_layout()
         fig.savefig(args.figure, dpi=100)
