@@ -122,3 +122,17 @@ def test_bad_input(frames):
         ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, mirror_probability=0.5)
     with pytest.raises(ValueError, match=r"mirror_probability must be in \[0, 1\]"):
         ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, mirror_probability=-0.1)
+
+
+
+def test_an_asymmetric_azimuth_table_is_refused(frames, tmp_path):
+    # a sensor whose calibration grid is not centred on the boresight: reversing the sector
+    # descriptor is no mirror there
+    sensor = dataclasses.replace(TINY, az_grid_deg=(-58.0, 62.0, 61))
+    root = write_radial_dataset(tmp_path / "root", sensor, 1, 1, seed=3, progress=False, scenes=scene_mix("city"))
+    convert_dataset(root, tmp_path / "pc.parquet", tau=1.5, enrich=("sector4",), progress=False)
+    shifted = PointCloudDataset(tmp_path / "pc.parquet", root)
+    with pytest.raises(ValueError, match=r"Azimuth_table that is not symmetric about 0 deg \(61 azimuths, "
+                                         r"-58.000 .. 62.000 deg\)"):
+        MirroredFrames(shifted, 0.5, seed=0)
+    MirroredFrames(frames, 0.5, seed=0)                                      # the simulator's table passes

@@ -8,8 +8,9 @@ OpenPCDet's random world flip. What it changes, per :class:`~radarpc.data.point_
 * points: ``azimuth_deg`` and ``y`` negated; the angle-sector descriptor ``sector``
   (``n_az_sec x n_el_sec``, azimuth-major) reversed along azimuth, which is exact when the
   calibration's ``Azimuth_table`` is symmetric about 0 (the simulator's is: -75 .. 75 deg in
-  0.2-deg steps; a real table was not checked) because
-  :func:`~radarpc.dsp.beamform.sector_pool`'s adaptive pooling keeps the symmetry;
+  0.2-deg steps) because :func:`~radarpc.dsp.beamform.sector_pool`'s adaptive pooling keeps the
+  symmetry. :class:`MirroredFrames` checks the root's table and refuses one that is not (a real
+  RADIal table was not available to check);
 * labels: ``radar_A_deg``, ``radar_Y_m`` and ``laser_Y_m`` negated (the LiDAR sits on the
   radar's axis). The camera box columns are left as they are: no image is mirrored;
 * freespace ``(256, 224)``: columns reversed. RADIal's target samples the odd PNG columns
@@ -92,6 +93,15 @@ class MirroredFrames(torch.utils.data.Dataset):
         self.seed = int(seed)
         self.epoch = 0
         self._sectors = SpectralPointCloudConfig(enrich=frames.store.metadata.enrich).sectors
+        if self._sectors is not None:
+            az = np.asarray(frames.reader.calibration.azimuth_deg, dtype=np.float64)
+            # float32 tables round at ~1e-5 deg; 1e-3 deg is far below any table's step
+            if not np.allclose(az, -az[::-1], rtol=0.0, atol=1e-3):
+                raise ValueError(
+                    f"the calibration table of {frames.root} has an Azimuth_table that is not symmetric about "
+                    f"0 deg ({az.size} azimuths, {az[0]:.3f} .. {az[-1]:.3f} deg), so reversing the sector "
+                    f"descriptor of {frames.store.path} would not mirror it; use mirror_probability 0 or a "
+                    f"store without a sector enrichment")
 
     def set_epoch(self, epoch: int) -> None:
         """Draw the mirrors of epoch ``epoch`` from now on."""
