@@ -124,7 +124,6 @@ def test_bad_input(frames):
         ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, mirror_probability=-0.1)
 
 
-
 def test_an_asymmetric_azimuth_table_is_refused(frames, tmp_path):
     # a sensor whose calibration grid is not centred on the boresight: reversing the sector
     # descriptor is no mirror there
