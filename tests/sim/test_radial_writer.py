@@ -21,6 +21,7 @@ from radarpc.sim.radial_calibration import make_calibration
 from radarpc.sim import radial_writer
 from radarpc.sim.radial_writer import RadialSimulator, SimulatedRADIal, write_radial_dataset
 from radarpc.sim.scenes import CITY, DEFAULT_MIX, SceneMix, scene_mix
+from radarpc.io import DataFileError
 from radarpc.runs import OutputBusyError, RunMismatchError
 from testkit import stalling_writer_script
 
@@ -359,3 +360,28 @@ def test_scenes_pick_the_presets_of_the_sequences(tmp_path):
     disk = RADIal(out, "all")
     for i in range(2):
         assert all(torch.equal(x, y) for x, y in zip(disk[i], fly[i]))
+    # the simulator rebuilt from the root regenerates its scenes (the mix included), e.g. for the
+    # scene truth behind a detector's false alarms
+    again = RadialSimulator.from_root(out)
+    assert (again.cfg, again.n_sequences, again.frames_per_sequence, again.seed) == (TINY, 2, 1, 4)
+    assert again.scenes == scene_mix("city") and again.scenes != DEFAULT_MIX
+    table = read_labels(out / "labels.csv")
+    assert [again.label_rows(q, 0) for q in range(2)] == [
+        [tuple(table.row(k)[c] for c in LABEL_COLUMNS) for k in range(len(table)) if table.row(k)["numSample"] == q]
+        for q in range(2)]
+
+
+def test_from_root_names_what_is_missing(root, tmp_path):
+    with pytest.raises(DataFileError, match=r"sensor\.json: sensor description is missing"):
+        RadialSimulator.from_root(tmp_path)
+    shutil.copy(root / "sensor.json", tmp_path / "sensor.json")
+    with pytest.raises(DataFileError, match=r"scene\.json: scene mix is missing"):
+        RadialSimulator.from_root(tmp_path)
+    (tmp_path / "scene.json").write_text(json.dumps({"mix": {"city": 1.0}, "presets": {"town": {}}}))
+    with pytest.raises(DataFileError, match=r"scene\.json: does not describe a scene mix .*differ"):
+        RadialSimulator.from_root(tmp_path)
+    meta = json.loads((root / "sensor.json").read_text())
+    del meta["seed"]
+    (tmp_path / "sensor.json").write_text(json.dumps(meta))
+    with pytest.raises(DataFileError, match=r"sensor\.json: lacks seed"):
+        RadialSimulator.from_root(tmp_path)

@@ -173,3 +173,17 @@ def test_highway_median_is_not_free_road():
     y = np.array([-0.5 * HIGHWAY.lane_width_m, 0.5 * HIGHWAY.median_m, HIGHWAY.median_m + 1.0]) - scene.ego_l
     on = fr.road.on_road(np.stack([np.full(3, 20.0), y], 1))      # straight or gently curved: ~lateral
     assert on.tolist() == [True, False, True]
+
+
+def test_a_scene_mix_survives_its_json_and_bad_dicts_name_the_problem():
+    import json
+
+    mix = SceneMix((CITY, dataclasses.replace(HIGHWAY, lanes_same=(3, 3))), (2.0, 1.0))
+    assert SceneMix.from_dict(json.loads(json.dumps(mix.to_dict()))) == mix
+    assert SceneMix.from_dict(json.loads(json.dumps(DEFAULT_MIX.to_dict()))) == DEFAULT_MIX
+    with pytest.raises(ValueError, match=r"^scene\.json: expected \{'mix'"):
+        SceneMix.from_dict({"mix": {"city": 1.0}}, where="scene.json")
+    bad = mix.to_dict()
+    bad["presets"]["city"]["lane_widht_m"] = 3.0
+    with pytest.raises(ValueError, match=r"preset 'city': RoadSceneConfig unknown keys \['lane_widht_m'\]"):
+        SceneMix.from_dict(bad)

@@ -40,8 +40,8 @@ from radarpc.models.targets import Detections, TargetConfig, decode_detections
 from radarpc.training.radial import (DetectionBatch, ExperimentConfig, RadialDetectionTask, collate_points,
                                      build_model, collate_detection, detection_dataset, evaluate_model)
 
-__all__ = ["load_experiment", "run_key", "train_runs", "EvalResult", "evaluate_run", "evaluate_classical",
-           "run_folders", "SUMMARY_METRICS"]
+__all__ = ["load_experiment", "run_key", "train_runs", "load_trained", "EvalResult", "evaluate_run",
+           "evaluate_classical", "run_folders", "SUMMARY_METRICS"]
 
 SUMMARY_METRICS = ("f1", "ap", "ar", "f1_fixed", "range_error_m", "azimuth_error_deg", "freespace_miou")
 """Metrics summarised over runs (mean and standard deviation)."""
@@ -138,6 +138,29 @@ def _load_run(folder: Path) -> tuple[ExperimentConfig, dict]:
     return from_dict(ExperimentConfig, key["experiment"], where=str(folder / "run.json")), key
 
 
+def load_trained(folder: str | os.PathLike, device: torch.device | str = "cpu"
+                 ) -> tuple[ExperimentConfig, torch.nn.Module, dict]:
+    """The config, model with its best weights (in eval mode, on ``device``) and run key of the
+    training run folder ``folder``.
+
+    Raises
+    ------
+    DataFileError
+        ``run.json`` is missing or is not a training run's.
+    FileNotFoundError
+        The run has no best weights yet.
+    """
+    folder = Path(folder)
+    cfg, key = _load_run(folder)
+    best = folder / BEST_WEIGHTS
+    if not best.is_file():
+        raise FileNotFoundError(f"{folder}: no {BEST_WEIGHTS} yet (the run has not finished an epoch)")
+    state, _ = load_weights(best)
+    model = build_model(cfg)
+    model.load_state_dict(state)
+    return cfg, model.to(device).eval(), key
+
+
 def _fps(model: torch.nn.Module, batches: list[DetectionBatch], device: torch.device, repeats: int = 3) -> float:
     """Batch-1 forward passes per second (after one warm-up pass), median of ``repeats`` sweeps."""
     if not batches:
@@ -170,14 +193,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: str | os.
     dev = torch.device(device) if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
     results = []
     for folder in run_folders(run):
-        cfg, key = _load_run(folder)
-        best = folder / BEST_WEIGHTS
-        if not best.is_file():
-            raise FileNotFoundError(f"{folder}: no {BEST_WEIGHTS} yet (the run has not finished an epoch)")
-        state, _ = load_weights(best)
-        model = build_model(cfg)
-        model.load_state_dict(state)
-        model.to(dev).eval()
+        cfg, model, key = load_trained(folder, dev)
         ds = detection_dataset(cfg, data or key["data"], points or key.get("points"), split)
         collate = functools.partial(collate_detection, cfg=cfg)
         loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate)

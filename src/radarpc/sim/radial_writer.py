@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import math
 import os
 from dataclasses import dataclass
@@ -37,6 +38,7 @@ from radarpc.data.radial import (
     check_cube,
     load_freespace,
     load_rd,
+    read_sensor_json,
     select_frames,
 )
 from radarpc.data.radial_format import (
@@ -127,6 +129,33 @@ class RadialSimulator:
         self.scenes = scenes if scenes is not None else DEFAULT_MIX
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self._scenes: dict[int, RoadScene] = {}
+
+    @classmethod
+    def from_root(cls, root: str | os.PathLike, device: torch.device | str | None = None) -> "RadialSimulator":
+        """The simulator that wrote the root ``root`` (from its ``sensor.json`` and ``scene.json``),
+        e.g. to regenerate the scene truth (scatterers and their owners) behind its frames.
+
+        Raises
+        ------
+        DataFileError
+            Either file is missing or unreadable, or ``sensor.json`` lacks the run keys (seed,
+            sequences, frames per sequence) that a root written by the simulator holds.
+        """
+        root = Path(root)
+        cfg, meta = read_sensor_json(root / "sensor.json")
+        if None in (meta.seed, meta.n_sequences, meta.frames_per_sequence):
+            raise DataFileError(root / "sensor.json", "lacks seed, n_sequences or frames_per_sequence: "
+                                "not a root written by `radarpc simulate radial`")
+        path = root / "scene.json"
+        if not path.is_file():
+            raise DataFileError(path, "scene mix is missing (a root written by `radarpc simulate radial` has one)")
+        try:
+            scenes = SceneMix.from_dict(json.loads(path.read_text(encoding="utf-8")), where=str(path))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise DataFileError(path, f"is not readable JSON ({e})") from e
+        except ValueError as e:
+            raise DataFileError(path, f"does not describe a scene mix ({e})") from e
+        return cls(cfg, meta.n_sequences, meta.frames_per_sequence, meta.seed, scenes=scenes, device=device)
 
     @property
     def n_frames(self) -> int:

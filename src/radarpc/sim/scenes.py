@@ -30,6 +30,7 @@ from typing import Sequence
 
 import numpy as np
 
+from radarpc.config import from_dict
 from radarpc.sim.road import RoadSceneConfig
 
 __all__ = [
@@ -143,6 +144,25 @@ class SceneMix:
         """JSON-able: ``{"mix": {name: weight}, "presets": {name: config fields}}``."""
         return {"mix": {p.name: float(w) for p, w in zip(self.presets, self.weights)},
                 "presets": {p.name: asdict(p) for p in self.presets}}
+
+    @classmethod
+    def from_dict(cls, d: dict, where: str = "scene mix") -> "SceneMix":
+        """Inverse of :meth:`to_dict` (the ``scene.json`` of a simulated root).
+
+        Raises
+        ------
+        ValueError
+            ``d`` lacks ``mix`` or ``presets``, their names differ, or a preset's fields are not
+            :class:`RoadSceneConfig`'s; the message starts with ``where``.
+        """
+        if not isinstance(d, dict) or not isinstance(d.get("mix"), dict) or not isinstance(d.get("presets"), dict):
+            raise ValueError(f"{where}: expected {{'mix': {{name: weight}}, 'presets': {{name: fields}}}}, "
+                             f"got {type(d).__name__} with keys {sorted(d) if isinstance(d, dict) else []}")
+        if list(d["mix"]) != list(d["presets"]):
+            raise ValueError(f"{where}: the mix names {list(d['mix'])} differ from the presets' {list(d['presets'])}")
+        presets = tuple(from_dict(RoadSceneConfig, d["presets"][name], where=f"{where}: preset {name!r}")
+                        for name in d["mix"])
+        return cls(presets, tuple(float(w) for w in d["mix"].values()))
 
 
 DEFAULT_MIX = SceneMix((CITY, COUNTRYSIDE, HIGHWAY), (0.31, 0.32, 0.38))
