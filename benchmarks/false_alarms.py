@@ -11,6 +11,7 @@ root written by another simulator version is refused rather than misread.
 ::
 
     python benchmarks/false_alarms.py runs/sp_r1 runs/sp1 --split test --threshold 0.2 \\
+        --names "spectralpillars-s, radial" "spectralpillars-s, radial-s" \\
         --figure docs/results/figures/detection_false_alarms.png
 
 Prints one JSON object per run. Runs must have been trained on simulated roots (``--data``
@@ -49,7 +50,7 @@ def run_false_alarms(run: str, split: str, threshold: float, data: str | None = 
     loader = DataLoader(ds, batch_size=batch_size, shuffle=False,
                         collate_fn=functools.partial(collate_detection, cfg=cfg))
     counts = np.zeros(len(FALSE_ALARM_CAUSES), np.int64)
-    by_range = {(5, 30): 0, (30, 60): 0, (60, 100): 0}
+    by_range = {(0, 30): 0, (30, 60): 0, (60, 1000): 0}  # of the detection's range (m)
     n_det, n_frames = 0, 0
     with torch.inference_mode():
         for b in tqdm(loader, desc=Path(run).name, disable=not progress):
@@ -86,7 +87,7 @@ def run_false_alarms(run: str, split: str, threshold: float, data: str | None = 
         "false_alarms_per_frame": total / max(n_frames, 1),
         "by_cause": {c: int(k) for c, k in zip(FALSE_ALARM_CAUSES, counts)},
         "share_by_cause": {c: (int(k) / total if total else float("nan")) for c, k in zip(FALSE_ALARM_CAUSES, counts)},
-        "by_range_m": {f"{lo}-{hi}": k for (lo, hi), k in by_range.items()},
+        "by_range_m": {f"{lo}-{hi}" if hi < 1000 else f">={lo}": k for (lo, hi), k in by_range.items()},
     }
 
 
@@ -101,7 +102,7 @@ def _check_labels(sim: RadialSimulator, root: str, num: int, seq: int, idx: int,
                          f"regenerated")
 
 
-def _figure(results: list[dict], path: str) -> None:
+def _figure(results: list[dict], names: list[str], path: str) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -113,7 +114,7 @@ def _figure(results: list[dict], path: str) -> None:
             w = res["by_cause"][c] / max(res["frames"], 1)
             ax.barh(i, w, left=left, color=colours[k], label=c if i == 0 else None)
             left += w
-    ax.set_yticks(range(len(results)), [Path(r["run"]).name for r in results])
+    ax.set_yticks(range(len(results)), names)
     ax.invert_yaxis()
     ax.set_xlabel(f"false alarms per frame at confidence {results[0]['threshold']:g} ({results[0]['split']} split)")
     ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=3, fontsize=8, frameon=False)
@@ -130,15 +131,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threshold", type=float, default=FIXED_THRESHOLD, help="confidence threshold (default 0.2)")
     ap.add_argument("--data", help="the simulated root, if not where the runs recorded it")
     ap.add_argument("--figure", help="write a bar chart of false alarms per frame by cause here")
+    ap.add_argument("--names", nargs="+", help="the runs' names in the figure (default: their folder names)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
+    if args.names and len(args.names) != len(args.runs):
+        ap.error(f"--names needs one name per run ({len(args.runs)}), got {len(args.names)}")
     results = []
     for run in args.runs:
         res = run_false_alarms(run, args.split, args.threshold, args.data, progress=not args.no_progress)
         print(json.dumps(res))
         results.append(res)
     if args.figure:
-        _figure(results, args.figure)
+        _figure(results, args.names or [Path(r).name for r in args.runs], args.figure)
 
 
 if __name__ == "__main__":
