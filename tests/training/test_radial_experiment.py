@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -18,8 +21,8 @@ from radarpc.pipelines.pointclouds import convert_dataset
 from radarpc.sensors.radial import RADIAL_S
 from radarpc.sim.radial_writer import write_radial_dataset
 from radarpc.sim.scenes import scene_mix
-from radarpc.training.checkpoint import load_state
-from radarpc.training.loop import LAST_CHECKPOINT, TrainConfig, fit
+from radarpc.training.checkpoint import load_state, load_weights, save_weights
+from radarpc.training.loop import BEST_WEIGHTS, LAST_CHECKPOINT, TrainConfig, fit
 from radarpc.training.radial import ExperimentConfig, RadialDetectionTask, build_model
 
 CONFIGS = Path(__file__).parents[2] / "configs"
@@ -150,6 +153,22 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys):
     assert (out / "figures" / "eval_test_0.png").stat().st_size > 1000
     assert (out / "figures" / "eval_test_labels.png").stat().st_size > 1000
     assert (out / "figures" / "learning_curve.png").stat().st_size > 1000
+    # the false alarms by cause (benchmarks/false_alarms.py, the scene regenerated from the root):
+    # as many as the metric's false positives at the same threshold, each given one cause. One
+    # epoch leaves every cell below 0.1, so a copy of the run whose head fires everywhere is scored
+    eager = tmp_path / "eager"
+    shutil.copytree(out, eager)
+    state, info = load_weights(eager / BEST_WEIGHTS)
+    state["detection_head.clshead.bias"] = torch.full_like(state["detection_head.clshead.bias"], 3.0)
+    save_weights(eager / BEST_WEIGHTS, state, info)
+    assert main(["evaluate", str(eager), "--split", "test", "--fps-frames", "1"]) == 0
+    fp = json.loads((eager / "eval_test.json").read_text())["metrics"]["fp"][0]
+    script = Path(__file__).parents[2] / "benchmarks" / "false_alarms.py"
+    res = subprocess.run([sys.executable, str(script), str(eager), "--threshold", "0.1", "--no-progress",
+                          "--figure", str(tmp_path / "fa.png")], capture_output=True, text=True, check=True)
+    fa = json.loads(res.stdout.splitlines()[-1])
+    assert fa["false_alarms"] == fp == sum(fa["by_cause"].values()) > 0
+    assert (tmp_path / "fa.png").stat().st_size > 1000
     # another config in the same folder is refused
     other = dataclasses.replace(cfg, name="other")
     save_yaml(other, tmp_path / "other.yaml")
