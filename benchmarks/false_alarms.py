@@ -29,7 +29,7 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from radarpc.eval.detection import FIXED_THRESHOLD
+from radarpc.eval.detection import FIXED_THRESHOLD, RANGE_GATE_M
 from radarpc.eval.false_alarms import FALSE_ALARM_CAUSES, false_alarm_causes, false_alarm_mask
 from radarpc.experiments.detection import load_trained
 from radarpc.models.targets import decode_detections, ra_to_box_xy
@@ -40,13 +40,13 @@ from radarpc.training.radial import collate_detection, detection_dataset
 MOVING_MPS = 0.5  # radial speed over the ground above which an unowned scatterer is a person or cyclist
 
 
-def run_false_alarms(run: str, split: str, threshold: float, data: str | None = None,
+def run_false_alarms(run: str, split: str, threshold: float, data: str | None = None, points: str | None = None,
                      batch_size: int = 8, progress: bool = True) -> dict:
     """Counts of false alarms by cause for one run (see the module docstring)."""
     cfg, model, key = load_trained(run)
     root = data or key["data"]
     sim = RadialSimulator.from_root(root)
-    ds = detection_dataset(cfg, root, key.get("points"), split)
+    ds = detection_dataset(cfg, root, points or key.get("points"), split)
     loader = DataLoader(ds, batch_size=batch_size, shuffle=False,
                         collate_fn=functools.partial(collate_detection, cfg=cfg))
     counts = np.zeros(len(FALSE_ALARM_CAUSES), np.int64)
@@ -62,15 +62,15 @@ def run_false_alarms(run: str, split: str, threshold: float, data: str | None = 
                 lab = b.labels[(ends[f - 1] if f else 0):ends[f]]
                 d = dets.frame(f)
                 fa = false_alarm_mask(d.score, d.range_m, d.azimuth_deg, lab, threshold=threshold)
-                n_det += int((d.score > threshold).sum())
+                n_det += int((d.score.double() > threshold).sum())
                 if not fa.any():
                     continue
                 fr = sim.scene_frame(seq, idx)
-                _check_labels(sim, root, num, seq, idx, fr, lab)
+                scored = _scored_vehicles(sim, root, num, seq, idx, fr, lab, cfg.difficult)
                 sc = fr.scatterers
                 az, el = torch.deg2rad(sc.azimuth_deg), torch.deg2rad(sc.elevation_deg)
                 static_v = -fr.ego_speed_mps * torch.cos(az) * torch.cos(el)
-                labelled = torch.isin(fr.owner, torch.from_numpy(labelled_vehicles(sim.cfg, fr)))
+                labelled = torch.isin(fr.owner, torch.as_tensor(scored, dtype=torch.long))
                 cause = false_alarm_causes(ra_to_box_xy(d.range_m[fa].double(), d.azimuth_deg[fa].double()),
                                            ra_to_box_xy(sc.range_m, sc.azimuth_deg).double(),
                                            sc.rcs_m2 / sc.range_m ** 4, fr.owner, labelled,
@@ -91,15 +91,24 @@ def run_false_alarms(run: str, split: str, threshold: float, data: str | None = 
     }
 
 
-def _check_labels(sim: RadialSimulator, root: str, num: int, seq: int, idx: int, fr, lab: torch.Tensor) -> None:
-    rows = [r for r in sim.label_rows(seq, idx, fr) if r[10] >= 0]
-    want = torch.tensor([[r[10], r[11]] for r in rows], dtype=torch.float64).reshape(-1, 2)
+def _scored_vehicles(sim: RadialSimulator, root: str, num: int, seq: int, idx: int, fr, lab: torch.Tensor,
+                     difficult: bool) -> list[int]:
+    """Indices into ``fr.vehicles`` of the vehicles whose labels the metric scores (the dataset's
+    rows of the frame, inside the range gate), after checking that the regenerated label rows are
+    the dataset's: a root written by another simulator version is refused, not misread."""
+    rows = sim.label_rows(seq, idx, fr)                    # in the order of labelled_vehicles
+    vehicles = labelled_vehicles(sim.cfg, fr)
+    kept = [(v, r) for v, r in zip(vehicles.tolist(), rows) if r[10] >= 0 and (difficult or r[16] != 1)]
+    want = torch.tensor([[r[10], r[11]] for _, r in kept], dtype=torch.float64).reshape(-1, 2)
     got = lab[:, :2].double()
-    # labels.csv rounds to 4 decimals; the reader may drop rows (difficult) but never adds any
-    if len(got) > len(want) or (len(got) and torch.cdist(got, want).min(1).values.max() > 1e-3):
-        raise SystemExit(f"{root}: frame {num} regenerated with {len(want)} labels {want.tolist()} but the root "
-                         f"lists {got.tolist()}: not written by this simulator version; its scenes cannot be "
-                         f"regenerated")
+    # labels.csv holds 4 decimals; match one to one
+    close = (torch.cdist(got, want) <= 1e-3 if len(got) and len(want)
+             else torch.zeros(len(got), len(want), dtype=torch.bool))
+    if len(got) != len(want) or not (close.any(0).all() and close.any(1).all()):
+        raise SystemExit(f"{root}: frame {num} regenerated with labels {want.tolist()} but the root lists "
+                         f"{got.tolist()}: not written by this simulator version; its scenes cannot be regenerated")
+    lo, hi = RANGE_GATE_M
+    return [v for v, r in kept if lo <= r[10] <= hi]
 
 
 def _figure(results: list[dict], names: list[str], path: str) -> None:
@@ -130,6 +139,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--split", default="test", choices=("train", "val", "test", "all"))
     ap.add_argument("--threshold", type=float, default=FIXED_THRESHOLD, help="confidence threshold (default 0.2)")
     ap.add_argument("--data", help="the simulated root, if not where the runs recorded it")
+    ap.add_argument("--points", help="the point store, if not where the runs recorded it")
     ap.add_argument("--figure", help="write a bar chart of false alarms per frame by cause here")
     ap.add_argument("--names", nargs="+", help="the runs' names in the figure (default: their folder names)")
     ap.add_argument("--no-progress", action="store_true")
@@ -138,7 +148,7 @@ def main(argv: list[str] | None = None) -> None:
         ap.error(f"--names needs one name per run ({len(args.runs)}), got {len(args.names)}")
     results = []
     for run in args.runs:
-        res = run_false_alarms(run, args.split, args.threshold, args.data, progress=not args.no_progress)
+        res = run_false_alarms(run, args.split, args.threshold, args.data, args.points, progress=not args.no_progress)
         print(json.dumps(res))
         results.append(res)
     if args.figure:

@@ -14,13 +14,16 @@ def _cause(name: str) -> int:
 
 def test_false_alarms_by_hand():
     labels = torch.tensor([[20.0, 0.0], [50.0, 10.0], [120.0, 0.0]])      # the last is outside the gate
-    score = torch.tensor([0.9, 0.9, 0.2, 0.25, 0.9, 0.9])
+    score = torch.tensor([0.9, 0.9, 0.2, 0.25, 0.9, 0.9], dtype=torch.float64)
     range_m = torch.tensor([20.0, 20.0, 40.0, 40.0, 101.0, 120.0])
     azimuth = torch.tensor([0.0, 5.7, 0.0, 0.0, 0.0, 0.0])
     # on the label; 2 m sideways (x = 20 sin 5.7 deg = 1.99 m > 1.8 m, no overlap); at the threshold
     # (not above it); above it, no label; near edge beyond 100 m; on the label outside the gate
     fa = false_alarm_mask(score, range_m, azimuth, labels, threshold=0.2)
     assert fa.tolist() == [False, True, False, True, False, False]
+    # a float32 0.2 is 0.2000000030 > 0.2, as the metric counts it
+    fa = false_alarm_mask(score.float(), range_m, azimuth, labels, threshold=0.2)
+    assert fa.tolist() == [False, True, True, True, False, False]
 
 
 def test_false_alarms_are_the_false_positives_of_the_metric():
@@ -36,6 +39,7 @@ def test_false_alarms_are_the_false_positives_of_the_metric():
         ra = torch.where(torch.rand(k, 1, generator=g) < 0.6, near + jitter,
                          torch.stack([torch.rand(k, generator=g) * 110, torch.rand(k, generator=g) * 60 - 30], 1))
         score = torch.rand(k, generator=g)
+        score[:2] = 0.2                                                  # float32 0.2, just above 0.2
         dets = Detections(score, ra[:, 0], ra[:, 1], torch.tensor([k]))
         metrics.update(dets, labels, torch.tensor([m]))
         n_fa += int(false_alarm_mask(score, ra[:, 0], ra[:, 1], labels).sum())

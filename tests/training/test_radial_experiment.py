@@ -161,13 +161,14 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys):
     state, info = load_weights(eager / BEST_WEIGHTS)
     state["detection_head.clshead.bias"] = torch.full_like(state["detection_head.clshead.bias"], 3.0)
     save_weights(eager / BEST_WEIGHTS, state, info)
-    assert main(["evaluate", str(eager), "--split", "test", "--fps-frames", "1"]) == 0
+    assert main(["evaluate", str(eager), "--split", "test", "--fps-frames", "1", "--device", "cpu"]) == 0
     fp = json.loads((eager / "eval_test.json").read_text())["metrics"]["fp"][0]
     script = Path(__file__).parents[2] / "benchmarks" / "false_alarms.py"
     res = subprocess.run([sys.executable, str(script), str(eager), "--threshold", "0.1", "--no-progress",
                           "--figure", str(tmp_path / "fa.png")], capture_output=True, text=True, check=True)
     fa = json.loads(res.stdout.splitlines()[-1])
-    assert fa["false_alarms"] == fp == sum(fa["by_cause"].values()) > 0
+    assert fa["false_alarms"] == fp == sum(fa["by_range_m"].values()) > 0
+    assert sum(fa["by_cause"].values()) == fp and fa["by_cause"]["nothing"] < fp   # scatterers under some
     assert (tmp_path / "fa.png").stat().st_size > 1000
     # another config in the same folder is refused
     other = dataclasses.replace(cfg, name="other")

@@ -66,9 +66,11 @@ def false_alarm_mask(score: torch.Tensor, range_m: torch.Tensor, azimuth_deg: to
         raise ValueError(f"labels must be (M, >= 2) with range_m, azimuth_deg in columns 0 and 1, got "
                          f"shape {tuple(labels.shape)}")
     lo, hi = range_gate_m
-    lab = labels[:, :2].double()
+    # float64 on the CPU, as DetectionMetrics: a float32 score of 0.2 is above the float64 0.2
+    score, range_m, azimuth_deg = (t.detach().to("cpu", torch.float64) for t in (score, range_m, azimuth_deg))
+    lab = labels[:, :2].detach().to("cpu", torch.float64)
     lab = lab[(lab[:, 0] >= lo) & (lab[:, 0] <= hi)]
-    xy_d = ra_to_box_xy(range_m.double(), azimuth_deg.double())                 # (K, 2)
+    xy_d = ra_to_box_xy(range_m, azimuth_deg)                                   # (K, 2)
     xy_l = ra_to_box_xy(lab[:, 0], lab[:, 1])                                   # (M, 2)
     hit = (box_iou(xy_d, xy_l) >= iou_threshold).any(1)                         # (K,)
     return (xy_d[:, 1] >= lo) & (xy_d[:, 1] <= hi) & (score > threshold) & ~hit
