@@ -76,8 +76,8 @@ def run_false_alarms(run: str, split: str, threshold: float, data: str | None = 
                                            sc.rcs_m2 / sc.range_m ** 4, fr.owner, labelled,
                                            (sc.velocity_mps - static_v).abs() > MOVING_MPS)
                 counts += np.bincount(cause.numpy(), minlength=len(FALSE_ALARM_CAUSES))
+                r = d.range_m[fa]
                 for (lo, hi) in by_range:
-                    r = d.range_m[fa]
                     by_range[(lo, hi)] += int(((r >= lo) & (r < hi)).sum())
             n_frames += len(dets)
     total = int(counts.sum())

@@ -57,6 +57,8 @@ __all__ = [
     "FREESPACE_ROWS",
     "DetectionReport",
     "DetectionMetrics",
+    "FrameMatch",
+    "match_frame",
     "evaluate_detections",
     "freespace_iou",
     "FreespaceMetrics",
@@ -127,6 +129,43 @@ class DetectionReport:
                 for f in dataclasses.fields(self)}
 
 
+@dataclass(frozen=True)
+class FrameMatch:
+    """RADIal's matching of one frame (:func:`match_frame`), float64 on the CPU.
+
+    ``kept`` ``(K,)`` marks the detections inside the range gate (near-edge ``y``); the other
+    detection fields hold those ``K'`` only, the label fields the ``M'`` labels inside the gate
+    (range ``R``), and ``hit`` ``(K', M')`` is box IoU >= the IoU threshold.
+    """
+
+    kept: torch.Tensor
+    score: torch.Tensor
+    range_m: torch.Tensor
+    azimuth_deg: torch.Tensor
+    label_range_m: torch.Tensor
+    label_azimuth_deg: torch.Tensor
+    xy: torch.Tensor
+    label_xy: torch.Tensor
+    hit: torch.Tensor
+
+
+def match_frame(score: torch.Tensor, range_m: torch.Tensor, azimuth_deg: torch.Tensor, labels: torch.Tensor, *,
+                iou_threshold: float = IOU_THRESHOLD,
+                range_gate_m: tuple[float, float] = RANGE_GATE_M) -> FrameMatch:
+    """Gate one frame's detections ``(K,)`` and labels ``(M, >= 2)`` (range, azimuth in columns 0
+    and 1) as RADIal does, and match their fixed boxes; in float64 on the CPU, so that a float32
+    score of 0.2 is above the threshold 0.2 wherever it is computed."""
+    lo, hi = range_gate_m
+    score, range_m, azimuth_deg = (t.detach().to("cpu", torch.float64) for t in (score, range_m, azimuth_deg))
+    lab = labels[:, :2].detach().to("cpu", torch.float64)
+    lab = lab[(lab[:, 0] >= lo) & (lab[:, 0] <= hi)]
+    xy = ra_to_box_xy(range_m, azimuth_deg)                                     # (K, 2)
+    kept = (xy[:, 1] >= lo) & (xy[:, 1] <= hi)                                  # near-edge y, as RADIal
+    xy_l = ra_to_box_xy(lab[:, 0], lab[:, 1])                                   # (M', 2)
+    return FrameMatch(kept, score[kept], range_m[kept], azimuth_deg[kept], lab[:, 0], lab[:, 1], xy[kept], xy_l,
+                      box_iou(xy[kept], xy_l) >= iou_threshold)                 # hit (K', M')
+
+
 def _prf(tp: float, fp: float, fn: float) -> tuple[float, float]:
     if tp == 0:
         return 0.0, 0.0
@@ -182,7 +221,6 @@ class DetectionMetrics:
                              f"shape {tuple(labels.shape)}")
         if label_offset.numel() != len(detections):
             raise ValueError(f"detections hold {len(detections)} frames but label_offset {label_offset.numel()}")
-        lo, hi = self.range_gate_m
         t = torch.tensor(self.thresholds + (self.fixed_threshold,), dtype=torch.float64)   # (T,)
         add = torch.zeros_like(self.counts)
         d_end = detections.offset.tolist()
@@ -190,17 +228,11 @@ class DetectionMetrics:
         for b in range(len(d_end)):
             d0 = d_end[b - 1] if b else 0
             l0 = l_end[b - 1] if b else 0
-            score = detections.score[d0:d_end[b]].detach().to("cpu", torch.float64)
-            r_d = detections.range_m[d0:d_end[b]].detach().to("cpu", torch.float64)
-            a_d = detections.azimuth_deg[d0:d_end[b]].detach().to("cpu", torch.float64)
-            lab = labels[l0:l_end[b], :2].detach().to("cpu", torch.float64)
-            keep_l = (lab[:, 0] >= lo) & (lab[:, 0] <= hi)
-            r_l, a_l = lab[keep_l, 0], lab[keep_l, 1]
-            xy_d = ra_to_box_xy(r_d, a_d)                                      # (K, 2)
-            keep_d = (xy_d[:, 1] >= lo) & (xy_d[:, 1] <= hi)                  # near-edge y, as RADIal
-            score, r_d, a_d, xy_d = score[keep_d], r_d[keep_d], a_d[keep_d], xy_d[keep_d]
-            xy_l = ra_to_box_xy(r_l, a_l)                                      # (M, 2)
-            hit = box_iou(xy_d, xy_l) >= self.iou_threshold                    # (K, M)
+            m = match_frame(detections.score[d0:d_end[b]], detections.range_m[d0:d_end[b]],
+                            detections.azimuth_deg[d0:d_end[b]], labels[l0:l_end[b]],
+                            iou_threshold=self.iou_threshold, range_gate_m=self.range_gate_m)
+            score, r_d, a_d, xy_d, hit = m.score, m.range_m, m.azimuth_deg, m.xy, m.hit      # (K,), (K, M)
+            r_l, a_l, xy_l = m.label_range_m, m.label_azimuth_deg, m.label_xy
             near = (xy_d[:, None] - xy_l[None]).norm(dim=-1) <= NEAR_MISS_M      # (K, M)
             sel = score[None, :] > t[:, None]                                  # (T, K)
             pairs = sel[:, :, None] & hit[None]                                # (T, K, M)

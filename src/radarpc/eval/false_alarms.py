@@ -23,8 +23,8 @@ from __future__ import annotations
 
 import torch
 
-from radarpc.eval.detection import FIXED_THRESHOLD, IOU_THRESHOLD, RANGE_GATE_M
-from radarpc.models.targets import BOX_LENGTH_M, BOX_WIDTH_M, box_iou, ra_to_box_xy
+from radarpc.eval.detection import FIXED_THRESHOLD, IOU_THRESHOLD, RANGE_GATE_M, match_frame
+from radarpc.models.targets import BOX_LENGTH_M, BOX_WIDTH_M
 from radarpc.sim.road import GHOST_OWNER
 
 __all__ = ["FALSE_ALARM_CAUSES", "false_alarm_mask", "false_alarm_causes"]
@@ -65,15 +65,10 @@ def false_alarm_mask(score: torch.Tensor, range_m: torch.Tensor, azimuth_deg: to
     if labels.ndim != 2 or labels.shape[1] < 2:
         raise ValueError(f"labels must be (M, >= 2) with range_m, azimuth_deg in columns 0 and 1, got "
                          f"shape {tuple(labels.shape)}")
-    lo, hi = range_gate_m
-    # float64 on the CPU, as DetectionMetrics: a float32 score of 0.2 is above the float64 0.2
-    score, range_m, azimuth_deg = (t.detach().to("cpu", torch.float64) for t in (score, range_m, azimuth_deg))
-    lab = labels[:, :2].detach().to("cpu", torch.float64)
-    lab = lab[(lab[:, 0] >= lo) & (lab[:, 0] <= hi)]
-    xy_d = ra_to_box_xy(range_m, azimuth_deg)                                   # (K, 2)
-    xy_l = ra_to_box_xy(lab[:, 0], lab[:, 1])                                   # (M, 2)
-    hit = (box_iou(xy_d, xy_l) >= iou_threshold).any(1)                         # (K,)
-    return (xy_d[:, 1] >= lo) & (xy_d[:, 1] <= hi) & (score > threshold) & ~hit
+    m = match_frame(score, range_m, azimuth_deg, labels, iou_threshold=iou_threshold, range_gate_m=range_gate_m)
+    fa = torch.zeros(score.shape, dtype=torch.bool)
+    fa[m.kept] = (m.score > threshold) & ~m.hit.any(1)
+    return fa
 
 
 def false_alarm_causes(box_xy: torch.Tensor, scatterer_xy: torch.Tensor, power: torch.Tensor,
