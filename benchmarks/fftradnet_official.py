@@ -51,6 +51,7 @@ from pathlib import Path
 import torch
 
 from radarpc.machine import cpu_model
+from radarpc.models.batchnorm import randomise_batchnorm_
 from radarpc.models.fftradnet import fftradnet, fuse_for_inference, official_to_radarpc
 from radarpc.models.targets import decode_detections
 
@@ -75,17 +76,6 @@ def _import_official(repo: Path):
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod.FFTRadNet, note
-
-
-def _randomise_bn(model: torch.nn.Module, g: torch.Generator) -> None:
-    with torch.no_grad():
-        for m in model.modules():
-            if isinstance(m, torch.nn.BatchNorm2d):
-                n = m.num_features
-                m.running_mean.copy_(0.1 * torch.randn(n, generator=g))
-                m.running_var.copy_(0.5 + torch.rand(n, generator=g))
-                m.weight.copy_(0.5 + torch.rand(n, generator=g))
-                m.bias.copy_(0.1 * torch.randn(n, generator=g))
 
 
 def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -142,7 +132,7 @@ def main(argv: list[str] | None = None) -> None:
     g = torch.Generator().manual_seed(a.seed)
     torch.manual_seed(a.seed)
     official = Official(mimo_layer=192, channels=[32, 40, 48, 56], blocks=[3, 6, 6, 3]).eval()
-    _randomise_bn(official, g)
+    randomise_batchnorm_(official, g)
     x = torch.randn(1, 32, 512, 256, generator=g)                     # a normalised input
     # Random weights put every cell near probability 0.5; shift the classification bias so that
     # about --detections cells reach RADIal's 0.05 candidate threshold, as a trained model's map.

@@ -9,23 +9,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from radarpc.models.batchnorm import randomise_batchnorm_
 from radarpc.models.fftradnet import (FFTRadNetConfig, cube_to_channels, fftradnet, fftradnet_s,
                                       fftradnet_tiny, fuse_for_inference, input_statistics, load_fftradnet,
                                       load_official_checkpoint, official_to_radarpc, radarpc_to_official,
                                       save_fftradnet)
-
-
-def _randomise_bn(model: torch.nn.Module, seed: int = 0) -> None:
-    """Non-trivial BN statistics and affine parameters (fresh BN is the identity in eval mode)."""
-    g = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for m in model.modules():
-            if isinstance(m, torch.nn.BatchNorm2d):
-                n = m.num_features
-                m.running_mean.copy_(0.1 * torch.randn(n, generator=g))
-                m.running_var.copy_(0.5 + torch.rand(n, generator=g))
-                m.weight.copy_(0.5 + torch.rand(n, generator=g))
-                m.bias.copy_(0.1 * torch.randn(n, generator=g))
 
 
 def _cube(b: int, cfg: FFTRadNetConfig, seed: int = 0) -> torch.Tensor:
@@ -37,7 +25,7 @@ def _cube(b: int, cfg: FFTRadNetConfig, seed: int = 0) -> torch.Tensor:
 def tiny():
     torch.manual_seed(0)
     m = fftradnet_tiny().eval()
-    _randomise_bn(m)
+    randomise_batchnorm_(m, torch.Generator().manual_seed(0))
     return m
 
 

@@ -8,6 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from radarpc.config import from_dict, to_dict
+from radarpc.models.batchnorm import randomise_batchnorm_
 from radarpc.models.heads import HeadOutput
 from radarpc.models.pillars import (PILLARS_MODELS, POINT_FEATURES, PillarsConfig, PillarVFE, PointPillarScatter,
                                     fuse_for_inference, pillar_coords, pillars_tiny, point_features)
@@ -214,15 +215,7 @@ def test_gradients_flow_and_loss_falls_on_one_batch():
 def test_fused_model_gives_the_same_outputs():
     torch.manual_seed(1)
     model = pillars_tiny(features=("r", "a", "d", "Ae", "pillar_offset"))
-    g = torch.Generator().manual_seed(2)
-    with torch.no_grad():                               # non-trivial BN statistics and affine parameters
-        for m in model.modules():
-            if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
-                m.running_mean.copy_(torch.randn(m.num_features, generator=g) * 2)
-                m.running_var.copy_(torch.rand(m.num_features, generator=g) * 3 + 0.2)
-                if m.affine:
-                    m.weight.copy_(torch.rand(m.num_features, generator=g) + 0.5)
-                    m.bias.copy_(torch.randn(m.num_features, generator=g) * 0.1)
+    randomise_batchnorm_(model, torch.Generator().manual_seed(2))
     model.eval()
     fused = fuse_for_inference(model)
     assert not any(isinstance(m, torch.nn.modules.batchnorm._BatchNorm) for m in fused.modules())

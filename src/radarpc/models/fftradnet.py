@@ -33,6 +33,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from radarpc.io import atomic_write
+from radarpc.models.batchnorm import fold_batchnorm
 from radarpc.models.heads import (DETECTION_SHAPE, FREESPACE_SHAPE, ConvBlock, DetectionHead, FreespaceHead,
                                   HeadOutput, conv3x3)
 from radarpc.config import from_dict, to_dict
@@ -475,14 +476,6 @@ def load_fftradnet(path: str | os.PathLike, device: torch.device | str = "cpu") 
 
 
 # ---- fast inference -----------------------------------------------------------------------------
-def _fold_bn(conv: nn.Conv2d, bn: nn.BatchNorm2d) -> None:
-    """``bn(conv(x)) = conv'(x)``: ``w' = w g / sqrt(v + eps)``, ``b' = (b - mu) g / sqrt(v + eps) + beta``."""
-    scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)                # (C_out,)
-    bias = conv.bias if conv.bias is not None else torch.zeros_like(bn.running_mean)
-    conv.weight = nn.Parameter((conv.weight * scale.view(-1, 1, 1, 1)).detach())
-    conv.bias = nn.Parameter(((bias - bn.running_mean) * scale + bn.bias).detach())
-
-
 def fuse_for_inference(model: FFTRadNet) -> FFTRadNet:
     """A copy of ``model`` in eval mode with every BatchNorm folded into the conv before it.
 
@@ -496,10 +489,10 @@ def fuse_for_inference(model: FFTRadNet) -> FFTRadNet:
                                        ("conv4", "bn4")):
                 conv, bn = getattr(mod, conv_name, None), getattr(mod, bn_name, None)
                 if isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d):
-                    _fold_bn(conv, bn)
+                    fold_batchnorm(conv, bn)
                     setattr(mod, bn_name, nn.Identity())
             if isinstance(mod, nn.Sequential) and len(mod) == 2 and isinstance(mod[0], nn.Conv2d) \
                     and isinstance(mod[1], nn.BatchNorm2d):                 # bottleneck shortcuts
-                _fold_bn(mod[0], mod[1])
+                fold_batchnorm(mod[0], mod[1])
                 mod[1] = nn.Identity()
     return m

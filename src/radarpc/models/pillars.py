@@ -53,6 +53,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from radarpc.models.batchnorm import fold_batchnorm
 from radarpc.models.heads import DETECTION_SHAPE, FREESPACE_SHAPE, DetectionHead, FreespaceHead, HeadOutput
 from radarpc.points import PointCloudBatch, offset2batch
 
@@ -445,20 +446,11 @@ def fuse_for_inference(model: PointPillars) -> PointPillars:
             if isinstance(mod, nn.Sequential):                                    # backbone: conv, BN, GELU
                 for i in range(len(mod) - 1):
                     if isinstance(mod[i], (nn.Conv2d, nn.ConvTranspose2d)) and isinstance(mod[i + 1], nn.BatchNorm2d):
-                        _fold_bn(mod[i], mod[i + 1])
+                        fold_batchnorm(mod[i], mod[i + 1])
                         mod[i + 1] = nn.Identity()
             for k in range(1, 5):                                                 # heads: conv{k}, bn{k}
                 conv, bn = getattr(mod, f"conv{k}", None), getattr(mod, f"bn{k}", None)
                 if isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d):
-                    _fold_bn(conv, bn)
+                    fold_batchnorm(conv, bn)
                     setattr(mod, f"bn{k}", nn.Identity())
     return m
-
-
-def _fold_bn(conv: nn.Conv2d | nn.ConvTranspose2d, bn: nn.BatchNorm2d) -> None:
-    """``bn(conv(x)) = conv'(x)`` (output channels: dim 0 of a conv's weight, dim 1 of a transposed one)."""
-    g = bn.weight / torch.sqrt(bn.running_var + bn.eps)                           # (C_out,)
-    shape = (1, -1, 1, 1) if isinstance(conv, nn.ConvTranspose2d) else (-1, 1, 1, 1)
-    bias = conv.bias if conv.bias is not None else torch.zeros_like(bn.running_mean)
-    conv.weight = nn.Parameter(conv.weight * g.view(shape))
-    conv.bias = nn.Parameter((bias - bn.running_mean) * g + bn.bias)
