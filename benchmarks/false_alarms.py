@@ -5,8 +5,8 @@ RADIal's metric counts as a false positive at the confidence threshold gets the 
 :func:`radarpc.eval.false_alarms.false_alarm_causes` finds in the regenerated scene of its frame
 (:meth:`radarpc.sim.radial_writer.RadialSimulator.from_root`): a labelled vehicle whose box is off,
 a vehicle without a label, a mirror ghost, a moving person or cyclist, static clutter, or nothing.
-The regenerated labels of each frame are checked against the root's ``labels.csv`` first, so a
-root written by another simulator version is refused rather than misread.
+The regenerated labels of every frame of the split are checked against the root's ``labels.csv``
+first, so a root written by another simulator version is refused rather than misread.
 
 ::
 
@@ -63,10 +63,10 @@ def run_false_alarms(run: str, split: str, threshold: float, data: str | None = 
                 d = dets.frame(f)
                 fa = false_alarm_mask(d.score, d.range_m, d.azimuth_deg, lab, threshold=threshold)
                 n_det += int((d.score.double() > threshold).sum())
+                fr = sim.scene_frame(seq, idx)                # every frame: its labels are checked
+                scored = _scored_vehicles(sim, root, num, seq, idx, fr, lab, cfg.difficult)
                 if not fa.any():
                     continue
-                fr = sim.scene_frame(seq, idx)
-                scored = _scored_vehicles(sim, root, num, seq, idx, fr, lab, cfg.difficult)
                 sc = fr.scatterers
                 az, el = torch.deg2rad(sc.azimuth_deg), torch.deg2rad(sc.elevation_deg)
                 static_v = -fr.ego_speed_mps * torch.cos(az) * torch.cos(el)

@@ -170,6 +170,24 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys):
     assert fa["false_alarms"] == fp == sum(fa["by_range_m"].values()) > 0
     assert sum(fa["by_cause"].values()) == fp and fa["by_cause"]["nothing"] < fp   # scatterers under some
     assert (tmp_path / "fa.png").stat().st_size > 1000
+    # a root whose labels the simulator does not regenerate is refused, even where no frame has a
+    # false alarm (the one-epoch run: nothing above 0.9)
+    moved = tmp_path / "moved"
+    shutil.copytree(root, moved)
+    rows = (moved / "labels.csv").read_text().splitlines()
+    head = rows[0].split(",")
+    r_col = head.index("radar_R_m")
+    for i, row in enumerate(rows[1:], 1):
+        f = row.split(",")
+        if float(f[r_col]) > 0:
+            f[r_col] = f"{float(f[r_col]) + 0.5:.4f}"
+            rows[i] = ",".join(f)
+    (moved / "labels.csv").write_text("\n".join(rows) + "\n")
+    convert_dataset(moved, tmp_path / "moved.parquet", density=0.057, enrich=("sector32",), progress=False)
+    res = subprocess.run([sys.executable, str(script), str(out), "--data", str(moved), "--points",
+                          str(tmp_path / "moved.parquet"), "--threshold", "0.9", "--no-progress"],
+                         capture_output=True, text=True)
+    assert res.returncode != 0 and "not written by this simulator version" in res.stderr, res.stderr[-2000:]
     # another config in the same folder is refused
     other = dataclasses.replace(cfg, name="other")
     save_yaml(other, tmp_path / "other.yaml")
