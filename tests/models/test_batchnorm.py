@@ -21,6 +21,20 @@ def test_folded_conv_equals_conv_then_bn(conv):
     assert torch.allclose(got, want, rtol=1e-12, atol=1e-12 * want.abs().max().item())
 
 
+def test_fold_without_affine_and_refusals():
+    conv, bn = nn.Conv2d(2, 3, 1).double(), nn.BatchNorm2d(3, affine=False).double()
+    randomise_batchnorm_(bn, torch.Generator().manual_seed(0)).eval()
+    x = torch.randn(1, 2, 4, 4, dtype=torch.float64)
+    with torch.no_grad():
+        want = bn(conv(x))
+        fold_batchnorm(conv, bn)
+        assert torch.allclose(conv(x), want, rtol=1e-12, atol=1e-12 * want.abs().max().item())
+    with pytest.raises(ValueError, match="groups=2"):
+        fold_batchnorm(nn.ConvTranspose2d(4, 4, 2, groups=2), nn.BatchNorm2d(4))
+    with pytest.raises(ValueError, match="running statistics"):
+        fold_batchnorm(nn.Conv2d(2, 3, 1), nn.BatchNorm2d(3, track_running_stats=False))
+
+
 def test_randomise_makes_bn_non_trivial_and_keeps_non_affine():
     g = torch.Generator().manual_seed(0)
     model = nn.Sequential(nn.BatchNorm2d(4), nn.BatchNorm1d(3, affine=False))

@@ -19,11 +19,18 @@ def fold_batchnorm(conv: nn.Conv2d | nn.ConvTranspose2d, bn: nn.BatchNorm2d) -> 
     ``w' = w g / sqrt(v + eps)``, ``b' = (b - mu) g / sqrt(v + eps) + beta``, scaled along the
     output channels: dim 0 of a convolution's weight, dim 1 of a transposed convolution's.
     """
-    scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)                      # (C_out,)
+    if isinstance(conv, nn.ConvTranspose2d) and conv.groups != 1:
+        # a grouped transposed weight is (C_in, C_out / groups, k, k): dim 1 is not the output channel
+        raise ValueError(f"fold_batchnorm: a transposed convolution with groups={conv.groups} is not supported")
+    if bn.running_mean is None or bn.running_var is None:
+        raise ValueError("fold_batchnorm: the BatchNorm tracks no running statistics (track_running_stats=False)")
+    gamma = bn.weight if bn.affine else torch.ones_like(bn.running_var)
+    beta = bn.bias if bn.affine else torch.zeros_like(bn.running_mean)
+    scale = gamma / torch.sqrt(bn.running_var + bn.eps)                          # (C_out,)
     shape = (1, -1, 1, 1) if isinstance(conv, nn.ConvTranspose2d) else (-1, 1, 1, 1)
     bias = conv.bias if conv.bias is not None else torch.zeros_like(bn.running_mean)
     conv.weight = nn.Parameter((conv.weight * scale.view(shape)).detach())
-    conv.bias = nn.Parameter(((bias - bn.running_mean) * scale + bn.bias).detach())
+    conv.bias = nn.Parameter(((bias - bn.running_mean) * scale + beta).detach())
 
 
 def randomise_batchnorm_(model: nn.Module, generator: torch.Generator) -> nn.Module:
@@ -37,8 +44,9 @@ def randomise_batchnorm_(model: nn.Module, generator: torch.Generator) -> nn.Mod
         for m in model.modules():
             if isinstance(m, nn.modules.batchnorm._BatchNorm):
                 n = m.num_features
-                m.running_mean.copy_(0.1 * torch.randn(n, generator=generator))
-                m.running_var.copy_(0.5 + torch.rand(n, generator=generator))
+                if m.track_running_stats:
+                    m.running_mean.copy_(0.1 * torch.randn(n, generator=generator))
+                    m.running_var.copy_(0.5 + torch.rand(n, generator=generator))
                 if m.affine:
                     m.weight.copy_(0.5 + torch.rand(n, generator=generator))
                     m.bias.copy_(0.1 * torch.randn(n, generator=generator))
