@@ -182,6 +182,24 @@ class MIMOPreEncoder(nn.Module):
 
 
 # ---- FPN backbone -------------------------------------------------------------------------------
+class StridedConv1x1(nn.Conv2d):
+    """A strided 1 x 1 convolution computed as subsampling, then a stride-1 1 x 1 convolution.
+
+    The same function and parameters as ``nn.Conv2d(c_in, c_out, 1, stride=stride)`` (the state
+    dict is unchanged). The detour exists because oneDNN's AVX-512 backward of some strided 1 x 1
+    convolutions corrupts memory in torch 2.13 (e.g. 8 -> 16 channels, stride (1, 2), on a
+    (4, 8, 128, 64) input: the tiny test model's first shortcut); a stride-1 1 x 1 convolution of
+    the subsampled input takes other kernels and is exact, since a 1 x 1 kernel reads one pixel.
+    """
+
+    def __init__(self, c_in: int, c_out: int, stride: tuple[int, int], bias: bool = False):
+        super().__init__(c_in, c_out, kernel_size=1, stride=stride, bias=bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        sr, sc = self.stride
+        return F.conv2d(x[:, :, ::sr, ::sc], self.weight, self.bias)          # (B, C_out, ceil(H/sr), ceil(W/sc))
+
+
 class Bottleneck(nn.Module):
     """ResNet bottleneck: 1x1 -> 3x3 (strided) -> 1x1 (x expansion), identity or 1x1 shortcut."""
 
@@ -216,7 +234,7 @@ class FPNBackbone(nn.Module):
         stages = []
         for n, planes, s in zip(cfg.blocks, cfg.channels, strides):
             out = planes * cfg.expansion
-            down = nn.Sequential(nn.Conv2d(c, out, kernel_size=1, stride=(s, 2), bias=False), nn.BatchNorm2d(out))
+            down = nn.Sequential(StridedConv1x1(c, out, stride=(s, 2)), nn.BatchNorm2d(out))
             layers = [Bottleneck(c, planes, stride=(s, 2), downsample=down, expansion=cfg.expansion)]
             layers += [Bottleneck(out, planes, expansion=cfg.expansion) for _ in range(1, n)]
             stages.append(nn.Sequential(*layers))
