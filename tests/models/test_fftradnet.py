@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from radarpc.models.batchnorm import randomise_batchnorm_
-from radarpc.models.fftradnet import (FFTRadNetConfig, cube_to_channels, fftradnet, fftradnet_s,
+from radarpc.models.fftradnet import (FFTRadNetConfig, StridedConv1x1, cube_to_channels, fftradnet, fftradnet_s,
                                       fftradnet_tiny, fuse_for_inference, input_statistics, load_fftradnet,
                                       load_official_checkpoint, official_to_radarpc, radarpc_to_official,
                                       save_fftradnet)
@@ -249,28 +249,29 @@ def test_fused_model_equals_plain_model(tiny):
 
 @pytest.mark.parametrize("stride", [(1, 2), (2, 2)])
 def test_strided_shortcut_is_the_strided_1x1_convolution(stride):
-    # StridedConv1x1 (subsample, then a 1 x 1 convolution) against the definition of a strided 1 x 1
-    # convolution written out as a sum over input channels, in float64, values and gradients; odd
-    # sizes check the ceil(H / s) output. The fp32 backward of the shape that crashed oneDNN's
-    # AVX-512 kernels (8 -> 16 channels, stride (1, 2), 4 x 8 x 128 x 64) must run.
-    from radarpc.models.fftradnet import StridedConv1x1
+    # StridedConv1x1 (subsample, then a 1 x 1 convolution) against torch's own strided convolution in
+    # float64 (not a oneDNN path), values and gradients; odd sizes check the ceil(H / s) output
     g = torch.Generator().manual_seed(0)
     conv = StridedConv1x1(3, 5, stride=stride, bias=True).double()
     assert dict(conv.state_dict()).keys() == {"weight", "bias"} and conv.weight.shape == (5, 3, 1, 1)
     x = torch.randn(2, 3, 7, 9, dtype=torch.float64, generator=g, requires_grad=True)
     y = conv(x)
-    sr, sc = stride
-    ref = torch.einsum("oi,bihw->bohw", conv.weight[:, :, 0, 0], x[:, :, ::sr, ::sc]) + conv.bias.view(1, -1, 1, 1)
-    assert y.shape == (2, 5, -(-7 // sr), -(-9 // sc))
+    ref = F.conv2d(x, conv.weight, conv.bias, stride=stride)
+    assert y.shape == ref.shape == (2, 5, -(-7 // stride[0]), -(-9 // stride[1]))
     torch.testing.assert_close(y, ref, rtol=1e-12, atol=1e-12)
     w = torch.randn(y.shape, dtype=torch.float64, generator=g)
-    gx, gw = torch.autograd.grad((y * w).sum(), (x, conv.weight))
-    rx, rw = torch.autograd.grad((ref * w).sum(), (x, conv.weight))
-    torch.testing.assert_close(gx, rx, rtol=1e-12, atol=1e-12)
-    torch.testing.assert_close(gw, rw, rtol=1e-12, atol=1e-12)
+    gx, gw, gb = torch.autograd.grad((y * w).sum(), (x, conv.weight, conv.bias))
+    rx, rw, rb = torch.autograd.grad((ref * w).sum(), (x, conv.weight, conv.bias))
+    for a, b in ((gx, rx), (gw, rw), (gb, rb)):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
 
-    crash = StridedConv1x1(8, 16, stride=(1, 2)).to(memory_format=torch.channels_last)
-    xc = torch.randn(4, 8, 128, 64, generator=g).contiguous(memory_format=torch.channels_last).requires_grad_()
+
+def test_strided_shortcut_backward_runs_where_onednn_crashed():
+    # the fp32 channels-last shape whose strided-conv backward corrupted memory in oneDNN's AVX-512
+    # kernels (torch 2.13): 8 -> 16 channels, stride (1, 2), a 4 x 8 x 128 x 64 input
+    g = torch.Generator().manual_seed(0)
+    conv = StridedConv1x1(8, 16, stride=(1, 2)).to(memory_format=torch.channels_last)
+    x = torch.randn(4, 8, 128, 64, generator=g).contiguous(memory_format=torch.channels_last).requires_grad_()
     for _ in range(2):
-        crash(xc).square().mean().backward()
-    assert torch.isfinite(xc.grad).all() and torch.isfinite(crash.weight.grad).all()
+        conv(x).square().mean().backward()
+    assert torch.isfinite(x.grad).all() and torch.isfinite(conv.weight.grad).all()
