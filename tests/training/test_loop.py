@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 import os
 import socket
@@ -17,7 +18,7 @@ import torch.multiprocessing as mp
 
 from radarpc.distributed import DistEnv
 from radarpc.runs import RunMismatchError
-from radarpc.training.checkpoint import load_state, load_weights
+from radarpc.training.checkpoint import load_state, load_weights, save_state
 from radarpc.training.loop import BEST_WEIGHTS, LAST_CHECKPOINT, LOG_CSV, TrainConfig, epoch_batches, fit
 from toytask import ToyTask
 
@@ -90,6 +91,51 @@ def test_interrupted_run_resumes_to_the_same_weights(tmp_path, kill_at):
     a, b = _final(tmp_path / "full"), _final(tmp_path / "cut")
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert res.history == full.history or [r["val_f1"] for r in res.history] == [r["val_f1"] for r in full.history]
+
+
+def test_auto_precision_is_kept_when_a_run_resumes_on_another_machine(tmp_path, monkeypatch):
+    """"auto" is bf16 on a CPU with native bf16 and fp32 elsewhere: a run started on the first and
+    resumed on the second goes on in bf16 and ends as an uninterrupted bf16 run."""
+    import radarpc.training.loop as loop
+
+    auto = dataclasses.replace(CFG, precision="auto")
+    monkeypatch.setattr(loop, "_cpu_has_native_bf16", lambda: True)
+    full = fit(ToyTask(), auto, tmp_path / "full", KEY, progress=False, log=lambda s: None)
+
+    def stop(step):
+        if step == 7:
+            raise _Kill
+
+    with pytest.raises(_Kill):
+        fit(ToyTask(), auto, tmp_path / "cut", KEY, progress=False, log=lambda s: None, on_step=stop)
+    monkeypatch.setattr(loop, "_cpu_has_native_bf16", lambda: False)       # "another machine"
+    logs: list[str] = []
+    res = fit(ToyTask(), auto, tmp_path / "cut", KEY, progress=False, log=logs.append)
+    assert any("resuming in bf16" in m and "would mean fp32" in m for m in logs), logs
+    a, b = _final(tmp_path / "full"), _final(tmp_path / "cut")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert [r["val_f1"] for r in res.history] == [r["val_f1"] for r in full.history]
+    assert load_state(tmp_path / "cut" / LAST_CHECKPOINT).info["precision"] == "bf16"
+    assert load_weights(tmp_path / "cut" / BEST_WEIGHTS)[1]["precision"] == "bf16"
+    # and the bf16 run is not the fp32 run: the precision did change the weights
+    fp32 = fit(ToyTask(), CFG, tmp_path / "fp32", KEY, progress=False, log=lambda s: None)
+    c = _final(fp32.out)
+    assert not all(torch.equal(a[k], c[k]) for k in a)
+
+
+def test_run_started_in_fp16_is_refused_on_a_cpu_with_the_reason(tmp_path):
+    def stop(step):
+        if step == 3:
+            raise _Kill
+
+    with pytest.raises(_Kill):
+        fit(ToyTask(), CFG, tmp_path / "run", KEY, progress=False, log=lambda s: None, on_step=stop)
+    last = tmp_path / "run" / LAST_CHECKPOINT
+    state = load_state(last)
+    state.info["precision"] = "fp16"                   # as a checkpoint written by a CUDA run
+    save_state(last, state)
+    with pytest.raises(ValueError, match=r"run started in fp16 and cannot resume on cpu.*needs a CUDA device"):
+        fit(ToyTask(), CFG, tmp_path / "run", KEY, progress=False, log=lambda s: None)
 
 
 def test_killed_process_resumes_to_the_same_weights(tmp_path):

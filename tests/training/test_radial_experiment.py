@@ -128,7 +128,7 @@ def test_mirrored_run_resumes_to_the_same_weights(root, store, tmp_path):
     assert not all(torch.equal(full[k], plain[k]) for k in full)
 
 
-def test_train_and_evaluate_cli(root, store, tmp_path, capsys):
+def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     cfg = ExperimentConfig(name="sp-tiny", pillars=pillars_tiny().cfg,
                            train=dataclasses.replace(TINY_TRAIN, epochs=1, batch_size=2, eval_batch_size=2))
     save_yaml(cfg, tmp_path / "sp.yaml")
@@ -153,6 +153,27 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys):
     assert (out / "figures" / "eval_test_0.png").stat().st_size > 1000
     assert (out / "figures" / "eval_test_labels.png").stat().st_size > 1000
     assert (out / "figures" / "learning_curve.png").stat().st_size > 1000
+    # the same weights under bf16 autocast: their own files beside the fp32 ones, scored in bf16
+    import radarpc.experiments.detection as detection
+
+    seen = []
+
+    def spy(*a, **k):
+        seen.append(torch.get_autocast_dtype("cpu") if torch.is_autocast_enabled("cpu") else None)
+        return scored(*a, **k)
+
+    scored = detection.evaluate_model
+    monkeypatch.setattr(detection, "evaluate_model", spy)
+    fp32_doc = (out / "eval_test.json").read_text()
+    assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--precision", "bf16",
+                 "--device", "cpu"]) == 0
+    assert seen == [torch.bfloat16]
+    bf = json.loads((out / "eval_test_bf16.json").read_text())
+    assert bf["precision"] == "bf16" and doc["precision"] == "fp32" and bf["metrics"]["n_frames"] == 4
+    assert "bf16 autocast" in (out / "eval_test_bf16.md").read_text().splitlines()[0]
+    assert (out / "eval_test.json").read_text() == fp32_doc                      # fp32 files untouched
+    with pytest.raises(SystemExit):
+        main(["evaluate", str(out), "--precision", "fp16"])
     # the false alarms by cause (benchmarks/false_alarms.py, the scene regenerated from the root):
     # as many as the metric's false positives at the same threshold, each given one cause. One
     # epoch leaves every cell below 0.1, so a copy of the run whose head fires everywhere is scored

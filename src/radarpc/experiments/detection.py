@@ -10,7 +10,9 @@ the best validation metrics.
 :func:`evaluate_run` scores a run's best weights on a split with RADIal's metrics and writes
 ``eval_{split}.json`` and ``eval_{split}.md`` into the run folder (for a multi-run folder: every
 run, then the mean and standard deviation), with the parameter count and the batch-1 inference
-frames/s on the evaluation device, and optionally BEV figures.
+frames/s on the evaluation device, and optionally BEV figures. ``precision="bf16"`` scores the
+same weights under bf16 autocast (fast where the CPU multiplies bf16 natively, or on a GPU) and
+writes ``eval_{split}_bf16.json`` / ``.md`` beside the fp32 files, so the two can be compared.
 """
 from __future__ import annotations
 
@@ -32,7 +34,7 @@ from radarpc.config import from_dict, load_yaml, save_yaml, to_dict
 from radarpc.io import DataFileError, atomic_write
 from radarpc.runs import read_json
 from radarpc.training.checkpoint import load_weights
-from radarpc.training.loop import BEST_WEIGHTS, LOG_CSV, FitResult, fit
+from radarpc.training.loop import BEST_WEIGHTS, LOG_CSV, FitResult, autocast_context, fit
 from radarpc.data.point_dataset import PointCloudDataset
 from radarpc.eval.detection import FIXED_THRESHOLD, NEAR_MISS_M, DetectionMetrics
 from radarpc.models.classical import ClassicalConfig, classical_detect
@@ -41,7 +43,10 @@ from radarpc.training.radial import (DetectionBatch, ExperimentConfig, RadialDet
                                      build_model, collate_detection, detection_dataset, evaluate_model)
 
 __all__ = ["load_experiment", "run_key", "train_runs", "load_trained", "EvalResult", "evaluate_run",
-           "evaluate_classical", "run_folders", "SUMMARY_METRICS"]
+           "evaluate_classical", "run_folders", "EVAL_PRECISIONS", "SUMMARY_METRICS"]
+
+EVAL_PRECISIONS = ("fp32", "bf16")
+"""Precisions :func:`evaluate_run` scores in (bf16: autocast; the weights stay fp32)."""
 
 SUMMARY_METRICS = ("f1", "ap", "ar", "f1_fixed", "range_error_m", "azimuth_error_deg", "freespace_miou")
 """Metrics summarised over runs (mean and standard deviation)."""
@@ -129,6 +134,12 @@ class EvalResult:
     fps: float
     device: str
     threads: int
+    precision: str = "fp32"
+
+    @property
+    def stem(self) -> str:
+        """``eval_{split}``, with ``_{precision}`` unless fp32: the name of the written files."""
+        return f"eval_{self.split}" + ("" if self.precision == "fp32" else f"_{self.precision}")
 
 
 def _load_run(folder: Path) -> tuple[ExperimentConfig, dict]:
@@ -161,12 +172,13 @@ def load_trained(folder: str | os.PathLike, device: torch.device | str = "cpu"
     return cfg, model.to(device).eval(), key
 
 
-def _fps(model: torch.nn.Module, batches: list[DetectionBatch], device: torch.device, repeats: int = 3) -> float:
+def _fps(model: torch.nn.Module, batches: list[DetectionBatch], device: torch.device, repeats: int = 3,
+         precision: str = "fp32") -> float:
     """Batch-1 forward passes per second (after one warm-up pass), median of ``repeats`` sweeps."""
     if not batches:
         return math.nan
     rates = []
-    with torch.inference_mode():
+    with torch.inference_mode(), autocast_context(precision, device):
         model(batches[0].inputs)
         for _ in range(repeats):
             if device.type == "cuda":
@@ -182,14 +194,17 @@ def _fps(model: torch.nn.Module, batches: list[DetectionBatch], device: torch.de
 
 def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: str | os.PathLike | None = None,
                  points: str | os.PathLike | None = None, device: str | None = None, show: int = 0,
-                 fps_frames: int = 20, batch_size: int = 4, progress: bool = True,
+                 fps_frames: int = 20, batch_size: int = 4, precision: str = "fp32", progress: bool = True,
                  log: Callable[[str], None] = print) -> list[EvalResult]:
     """Score the best weights of every run in ``run`` on ``split`` (see the module docstring).
 
     ``data`` / ``points`` override the paths stored with the run (e.g. a moved dataset).
+    ``precision`` is one of :data:`EVAL_PRECISIONS`.
     """
     from radarpc.viz import plot_detection_frame, plot_learning_curves
 
+    if precision not in EVAL_PRECISIONS:
+        raise ValueError(f"precision must be one of {EVAL_PRECISIONS}, got {precision!r}")
     dev = torch.device(device) if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
     results = []
     for folder in run_folders(run):
@@ -197,7 +212,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: str | os.
         ds = detection_dataset(cfg, data or key["data"], points or key.get("points"), split)
         collate = functools.partial(collate_detection, cfg=cfg)
         loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate)
-        with torch.inference_mode():
+        with torch.inference_mode(), autocast_context(precision, dev):
             report, miou = evaluate_model(model, loader, dev, cfg.targets, max_candidates=None)
         metrics = report.to_dict()
         metrics["freespace_miou"] = miou
@@ -207,29 +222,30 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: str | os.
             frames.append(b.to(dev))
             if len(frames) >= fps_frames:
                 break
-        fps = _fps(model, frames, dev)
+        fps = _fps(model, frames, dev, precision=precision)
         n_params = sum(p.numel() for p in model.parameters())
-        res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads())
+        res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision)
         _write_eval(folder, res, cfg.name)
         if (folder / LOG_CSV).is_file():
             plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
         if show:
-            with torch.inference_mode():
+            with torch.inference_mode(), autocast_context(precision, dev):
                 for k, b in _shown(ds, show, collate):
                     b = b.to(dev)
                     out = model(b.inputs)
                     dets = decode_detections(out.detection.float(), cfg.targets, threshold=FIXED_THRESHOLD)
                     plot_detection_frame(b.to(torch.device("cpu")), dets.to("cpu"), out.detection[0, 0].float().cpu(),
-                                         folder / "figures" / f"eval_{split}_{k}.png",
+                                         folder / "figures" / f"{res.stem}_{k}.png",
                                          title=f"{cfg.name} {split} item {k} ({len(b.labels)} labels)")
         log(f"{folder}: {split} F1 {metrics['f1']:.4f} (AP {metrics['ap']:.4f}, AR {metrics['ar']:.4f}), "
             f"F1@0.2 {metrics['f1_fixed']:.4f}, freespace mIoU {miou if miou is not None else float('nan'):.4f}, "
-            f"{n_params:,} parameters, {fps:.1f} frames/s at batch 1 on {dev}")
+            f"{n_params:,} parameters, {fps:.1f} frames/s at batch 1 on {dev}, {precision}")
         results.append(res)
     if len(results) > 1:
         rows = [{"run": k, **{m: (r.metrics.get(m) if r.metrics.get(m) is not None else math.nan)
                               for m in SUMMARY_METRICS}} for k, r in enumerate(results)]
-        _write_summary(Path(run) / f"eval_{split}_summary", rows, f"{split}: {len(results)} runs")
+        _write_summary(Path(run) / f"{results[0].stem}_summary", rows,
+                       f"{split}: {len(results)} runs" + ("" if precision == "fp32" else f", {precision}"))
     return results
 
 
@@ -284,18 +300,19 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
 
 
 def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
-    """``eval_{split}.json`` / ``.md`` and ``figures/eval_{split}_labels.png`` (what became of the
+    """``{res.stem}.json`` / ``.md`` and ``figures/{res.stem}_labels.png`` (what became of the
     labels at each threshold, :func:`radarpc.viz.plot_label_outcomes`)."""
     from radarpc.viz import plot_label_outcomes
 
     m = res.metrics
     doc = {"split": res.split, "metrics": m, "parameters": res.parameters, "fps_batch1": res.fps,
-           "device": res.device, "threads": res.threads}
-    with atomic_write(folder / f"eval_{res.split}.json", "w") as f:
+           "device": res.device, "threads": res.threads, "precision": res.precision}
+    with atomic_write(folder / f"{res.stem}.json", "w") as f:
         json.dump(doc, f, indent=2)
     thr = ", ".join(f"{t:.1f}" for t in m["thresholds"])
     lines = [
-        f"# {name}: {res.split} split ({m['n_frames']} frames)", "",
+        f"# {name}: {res.split} split ({m['n_frames']} frames)"
+        + ("" if res.precision == "fp32" else f", {res.precision} autocast"), "",
         "| AP | AR | F1 | F1 @ 0.2 | range error (m) | azimuth error (deg) | freespace mIoU | parameters | frames/s (batch 1) |",
         "|---|---|---|---|---|---|---|---|---|",
         f"| {m['ap']:.4f} | {m['ar']:.4f} | {m['f1']:.4f} | {m['f1_fixed']:.4f} | {m['range_error_m']:.3f} | "
@@ -309,7 +326,7 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
         f"{m['fn_fixed']} labels missed, {m['fn_near_fixed']} have a detection within {NEAR_MISS_M:g} m "
         f"(found, but the box is off by enough to fail IoU 0.5).",
     ]
-    with atomic_write(folder / f"eval_{res.split}.md", "w") as f:
+    with atomic_write(folder / f"{res.stem}.md", "w") as f:
         f.write("\n".join(lines) + "\n")
-    plot_label_outcomes(m, folder / "figures" / f"eval_{res.split}_labels.png",
+    plot_label_outcomes(m, folder / "figures" / f"{res.stem}_labels.png",
                         title=f"{name}: {res.split} split")

@@ -8,7 +8,9 @@ owns everything else:
   ``lr_start`` up to ``lr_max`` and cosine-annealed down over all steps;
 * **precision** -- ``"auto"`` is bf16 autocast on CUDA devices that support it, else fp16
   autocast with gradient scaling; on CPUs it is fp32 unless the CPU multiplies bf16 natively
-  (AMX or AVX512-BF16), where bf16 autocast keeps fp32 weights and optimizer state;
+  (AMX or AVX512-BF16), where bf16 autocast keeps fp32 weights and optimizer state. The
+  precision a run starts in is stored in its checkpoints and kept on a resume, so ``"auto"`` does
+  not switch precision when a run moves to another machine;
 * **data** -- the order of epoch ``e`` is a permutation drawn from ``(seed, e)`` alone; global
   batch ``b`` holds the same items whatever the number of ranks (rank ``r`` of ``W`` takes its
   ``batch_size / W`` share), loaded in ``num_workers`` worker processes;
@@ -48,7 +50,7 @@ from radarpc.runs import RunFolder
 from radarpc.training.checkpoint import TrainingState, load_state, save_state, save_weights
 
 __all__ = ["PRECISIONS", "TrainConfig", "Task", "FitResult", "epoch_batches", "resolve_precision",
-           "fit", "LAST_CHECKPOINT", "BEST_WEIGHTS", "LOG_CSV"]
+           "autocast_context", "fit", "LAST_CHECKPOINT", "BEST_WEIGHTS", "LOG_CSV"]
 
 PRECISIONS: tuple[str, ...] = ("auto", "fp32", "bf16", "fp16")
 LAST_CHECKPOINT = Path("checkpoints") / "last.safetensors"
@@ -162,7 +164,8 @@ def resolve_precision(precision: str, device: torch.device) -> str:
     return "bf16" if device.type == "cpu" and _cpu_has_native_bf16() else "fp32"
 
 
-def _autocast(precision: str, device: torch.device):
+def autocast_context(precision: str, device: torch.device):
+    """The autocast context of a resolved ``precision`` on ``device`` (``"fp32"``: autocast off)."""
     if precision == "fp32":
         return torch.autocast(device.type, enabled=False)
     return torch.autocast(device.type, dtype=torch.bfloat16 if precision == "bf16" else torch.float16)
@@ -284,13 +287,26 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, env: DistEnv, d
     scheduler = torch.optim.lr_scheduler.OneCycleLR(
         optimizer, max_lr=cfg.lr_max, total_steps=total_steps, pct_start=cfg.warmup_fraction,
         anneal_strategy="cos", div_factor=cfg.lr_max / cfg.lr_start, cycle_momentum=False)
-    scaler = torch.amp.GradScaler(device.type) if precision == "fp16" else None
 
     info: dict[str, Any] = {"epoch": 0, "batch_in_epoch": 0, "step": 0, "sums": {}, "n_sums": 0,
-                            "history": [], "best_score": -math.inf, "best_epoch": -1, "finished": False}
+                            "history": [], "best_score": -math.inf, "best_epoch": -1, "finished": False,
+                            "precision": precision}
     last = out / LAST_CHECKPOINT
-    if last.is_file():
-        state = load_state(last)
+    state = load_state(last) if last.is_file() else None
+    if state is not None:
+        # "auto" resolves per machine (bf16 where the CPU has it, fp32 elsewhere); a resumed run
+        # keeps the precision it started in, or its final weights would depend on where it ran
+        started = state.info.setdefault("precision", precision)     # older checkpoints: as before
+        if started != precision:
+            try:
+                precision = resolve_precision(started, device)
+            except ValueError as e:
+                raise ValueError(f"{out}: the run started in {started} and cannot resume on {device}: {e}") from None
+            if env.rank == 0:
+                log(f"{out}: resuming in {started}, the precision the run started in "
+                    f"(train.precision {cfg.precision!r} on {device} alone would mean {info['precision']})")
+    scaler = torch.amp.GradScaler(device.type) if precision == "fp16" else None
+    if state is not None:
         model.load_state_dict(state.model)
         optimizer.load_state_dict(state.optimizer)
         scheduler.load_state_dict(state.scheduler)
@@ -299,6 +315,9 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, env: DistEnv, d
         info = state.info
         if env.rank == 0:
             log(f"{out}: resuming at epoch {info['epoch']}, step {info['step']} of {total_steps}")
+    elif env.rank == 0:
+        log(f"{out}: {total_steps} steps on {device}, precision {precision}"
+            + (f" (train.precision {cfg.precision!r})" if cfg.precision != precision else ""))
     resumed_from = int(info["step"])
     _reseed(cfg.seed, env.rank, info["step"])
     if info["finished"]:
@@ -342,7 +361,7 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, env: DistEnv, d
             lr_used = math.nan
             for batch in loader:
                 batch = task.to_device(batch, device)
-                with _autocast(precision, device):
+                with autocast_context(precision, device):
                     loss, parts = task.loss(net, batch)
                 if not torch.isfinite(loss):
                     raise FloatingPointError(f"{out}: non-finite training loss at step {info['step']} "
@@ -387,7 +406,7 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, env: DistEnv, d
             row.update({f"train_{k}": v for k, v in train_means.items()})
             if env.rank == 0:
                 model.eval()
-                with torch.no_grad(), _autocast(precision, device):
+                with torch.no_grad(), autocast_context(precision, device):
                     metrics = task.evaluate(model, val_loader, device)
                 if cfg.select_metric not in metrics:
                     raise KeyError(f"validation gave {sorted(metrics)}, no train.select_metric "
@@ -397,7 +416,8 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, env: DistEnv, d
                 if score > info["best_score"]:
                     info["best_score"], info["best_epoch"] = score, epoch
                     save_weights(out / BEST_WEIGHTS, model.state_dict(),
-                                 {"run": run_key, "epoch": epoch, "metrics": {k: float(v) for k, v in metrics.items()}})
+                                 {"run": run_key, "epoch": epoch, "precision": precision,
+                                  "metrics": {k: float(v) for k, v in metrics.items()}})
                 if tb is not None:
                     for k, v in row.items():
                         if k not in ("epoch", "step"):
