@@ -7,7 +7,10 @@ non-trivial BN statistics, loads the same weights into radarpc's model through
 full RADIal size ``(1, 32, 512, 256)`` prints one JSON object with:
 
 * ``match``: max |ours - official| / max |official| of the detection and freespace maps (fp32,
-  requirement: <= 1e-4), for the plain model and for each fast path, and whether the decoded
+  requirement: <= 1e-4), for the plain model and for each fast path; the largest difference of
+  the classification logits (``max_logit_diff``) and whether it stays below
+  ``threshold_logit_margin`` (``decoding_decidable``: otherwise rounding alone may move cells of
+  the random map across the 0.05 threshold, as bf16's does); and whether the decoded
   detections (:func:`radarpc.models.targets.decode_detections`, threshold 0.05, NMS 0.05) are the
   same (scores within 1e-4, range and azimuth within 1e-3 m / deg; ``same_beyond_margin`` also
   accepts a difference in cells within 1e-4 of the 0.05 threshold);
@@ -80,6 +83,12 @@ def _import_official(repo: Path):
 
 def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a.double() - b.double()).abs().max() / b.double().abs().max())
+
+
+def _logit(det: torch.Tensor) -> torch.Tensor:
+    """Classification logits of a detection map (channel 0 holds probabilities)."""
+    p = det[:, 0].double().clamp(1e-12, 1 - 1e-12)
+    return torch.log(p / (1 - p))
 
 
 def _compare_detections(det: torch.Tensor, ref: torch.Tensor, tol: float = 1e-4) -> dict:
@@ -219,8 +228,13 @@ def main(argv: list[str] | None = None) -> None:
     for k, (det, fs) in outs.items():
         if k == "official":
             continue
+        logit_diff = float((_logit(det) - _logit(ref_det)).abs().max())
         match[k] = {"detection_rel": _rel(det, ref_det),
                     "freespace_rel": None if fs is None else _rel(fs, ref_fs),
+                    "max_logit_diff": logit_diff,
+                    # beyond the margin a cell may cross the candidate threshold by rounding alone:
+                    # then the decoded detections test the random map's flatness, not the path
+                    "decoding_decidable": logit_diff < margin,
                     "decoded_detections": _compare_detections(det, ref_det)}
     best = {k: min(times[k]) for k in methods}
     best_cpu = {k: min(cpu[k]) for k in methods}
