@@ -14,6 +14,9 @@ full RADIal size ``(1, 32, 512, 256)`` prints one JSON object with:
   detections (:func:`radarpc.models.targets.decode_detections`, threshold 0.05, NMS 0.05) are the
   same (scores within 1e-4, range and azimuth within 1e-3 m / deg; ``same_beyond_margin`` also
   accepts a difference in cells within 1e-4 of the 0.05 threshold);
+* ``bound`` (with ``--peak``): the model's convolution GMAC a frame, the CPU's best GMAC/s per
+  dtype (a 4096^3 matrix product and the model's largest convolution alone), and from them the
+  fastest the detection-only network could run and its speedup over the measured official time;
 * ``speed``: batch-1 inference seconds/frame (best and median of ``--repeats``, methods
   interleaved pass by pass so load from other processes hits them alike) and frames/s ratios to
   the official model measured in the same run, also in process CPU seconds (``cpu_s``: on a loaded
@@ -23,7 +26,9 @@ full RADIal size ``(1, 32, 512, 256)`` prints one JSON object with:
   ``fused_cl_det`` (+ the freespace head skipped: detections only, the decoded detections are
   unchanged); ``bf16`` (autocast, only where the CPU has native bf16: AVX512-BF16 or AMX);
   ``compiled`` (``torch.compile`` of ``fused_cl_det``) and ``compiled_frozen`` (the same with
-  Inductor's ``freezing``: weights as constants, prepacked for oneDNN), both with ``--compile``.
+  Inductor's ``freezing``: weights as constants, prepacked for oneDNN), both with ``--compile``;
+  ``bf16_compiled_frozen`` (``compiled_frozen`` under bf16 autocast, with ``--compile`` where
+  ``bf16`` runs).
 
 The random weights put every cell near probability 0.5, so the classification bias is shifted
 until ``--detections / 2`` to ``2 --detections`` cells lie above RADIal's 0.05 candidate
@@ -37,7 +42,7 @@ with that one name is registered (reported as ``torchvision``).
 
 Usage::
 
-    python benchmarks/fftradnet_official.py --radial-repo /work/peers/RADIal [--repeats 3] [--threads 2] [--compile]
+    python benchmarks/fftradnet_official.py --radial-repo /work/peers/RADIal [--repeats 3] [--threads 2] [--compile] [--peak]
 """
 from __future__ import annotations
 
@@ -53,7 +58,7 @@ from pathlib import Path
 
 import torch
 
-from radarpc.machine import cpu_model
+from radarpc.machine import cpu_has_native_bf16, cpu_model
 from radarpc.models.batchnorm import randomise_batchnorm_
 from radarpc.models.fftradnet import fftradnet, fuse_for_inference, official_to_radarpc
 from radarpc.models.targets import decode_detections
@@ -117,12 +122,49 @@ def _compare_rows(da, db, tol: float) -> dict:
             "same_beyond_margin": bool((torch.cat([ua[:, 0], ub[:, 0]]) < 0.05 + tol).all())}
 
 
-def _has_native_bf16() -> bool:
+def _conv_gmac(model: torch.nn.Module, x: torch.Tensor) -> float:
+    """Multiply-accumulates of every convolution in one forward pass, in GMAC (forward hooks:
+    each output element of a convolution takes kernel elements x input channels per group; each
+    input element of a transposed one feeds kernel elements x output channels per group)."""
+    total = [0]
+
+    def hook(conv, inp, out):
+        # weight[0]: (in / groups, kh, kw) for a convolution, (out / groups, kh, kw) for a transposed one
+        n = inp[0].numel() if isinstance(conv, torch.nn.ConvTranspose2d) else out.numel()
+        total[0] += n * conv.weight[0].numel()
+    hooks = [m.register_forward_hook(hook) for m in model.modules()
+             if isinstance(m, (torch.nn.Conv2d, torch.nn.ConvTranspose2d))]
     try:
-        flags = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return False
-    return any(f in flags for f in ("avx512_bf16", "amx_bf16"))
+        with torch.inference_mode():
+            model.forward_channels(x)
+    finally:
+        for h in hooks:
+            h.remove()
+    return total[0] / 1e9
+
+
+def _peak(threads: int, bf16: bool) -> dict:
+    """The fastest arithmetic this CPU gives, per dtype: a 4096^3 ``torch.mm`` and the model's
+    largest convolution alone (the backbone's 3 x 3 stem, 192 -> 192 channels on 512 x 256,
+    channels-last), in GMAC/s (best of 3 after a warm-up)."""
+    dtypes = [torch.float32] + ([torch.bfloat16] if bf16 else [])
+    g = torch.Generator().manual_seed(0)
+    out = {}
+    with torch.inference_mode():
+        for dt in dtypes:
+            a, b = (torch.randn(4096, 4096, generator=g).to(dt) for _ in range(2))
+            stem = torch.nn.Conv2d(192, 192, 3, padding=1).to(dt).eval()
+            x = torch.randn(1, 192, 512, 256, generator=g).to(dt).contiguous(memory_format=torch.channels_last)
+            for name, f, gmac in (("mm_4096", lambda: torch.mm(a, b), 4096 ** 3 / 1e9),
+                                  ("stem_conv", lambda: stem(x), 512 * 256 * 192 * 192 * 9 / 1e9)):
+                f()
+                ts = []
+                for _ in range(3):
+                    t = time.perf_counter()
+                    f()
+                    ts.append(time.perf_counter() - t)
+                out.setdefault(str(dt).removeprefix("torch."), {})[name] = round(gmac / min(ts), 1)
+    return out
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -133,6 +175,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--compile", action="store_true", help="also time torch.compile (slow to compile)")
     p.add_argument("--only", nargs="+", metavar="METHOD", help="time only these methods (and the official model)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--peak", action="store_true",
+                   help="also measure the CPU's peak GMAC/s per dtype and the model's GMAC: the speed bound")
     p.add_argument("--detections", type=int, default=40, help="about this many cells at or above probability 0.05 (before NMS)")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
@@ -179,7 +223,7 @@ def main(argv: list[str] | None = None) -> None:
         "fused_cl_det": lambda: tuple(fused_cl_det.forward_channels(x_cl)),
     }
     skipped = {}
-    if _has_native_bf16():
+    if cpu_has_native_bf16():
         def run_bf16():
             with torch.autocast("cpu", dtype=torch.bfloat16):
                 d, f = fused_cl_det.forward_channels(x_cl)
@@ -201,11 +245,21 @@ def main(argv: list[str] | None = None) -> None:
             with inductor_config.patch(freezing=True):
                 return tuple(frozen(x_cl))
         methods["compiled_frozen"] = run_frozen
+        if "bf16" in methods:
+            bf16_model = fuse_for_inference(ours).to(memory_format=torch.channels_last)
+            bf16_model.freespace_head = None
+            bf16_frozen = torch.compile(bf16_model.forward_channels)
+
+            def run_bf16_frozen():
+                with inductor_config.patch(freezing=True), torch.autocast("cpu", dtype=torch.bfloat16):
+                    d, f = bf16_frozen(x_cl)
+                return d.float(), f
+            methods["bf16_compiled_frozen"] = run_bf16_frozen
     else:
         skipped["compiled"] = "not requested (--compile)"
 
     if a.only:
-        unknown = set(a.only) - set(methods) - {"bf16", "compiled", "compiled_frozen"}
+        unknown = set(a.only) - set(methods) - {"bf16", "compiled", "compiled_frozen", "bf16_compiled_frozen"}
         if unknown:
             raise SystemExit(f"--only: unknown methods {sorted(unknown)}; choose from {sorted(methods)}")
         methods = {k: f for k, f in methods.items() if k == "official" or k in a.only}
@@ -243,6 +297,15 @@ def main(argv: list[str] | None = None) -> None:
                  "speedup_vs_official": round(best["official"] / best[k], 3),
                  "cpu_s": round(best_cpu[k], 4),
                  "cpu_speedup_vs_official": round(best_cpu["official"] / best_cpu[k], 3)} for k in methods}
+    bound = {}
+    if a.peak:
+        gmac = {"both_heads": _conv_gmac(ours, x), "detections_only": _conv_gmac(fused_cl_det, x_cl)}
+        peak = _peak(a.threads, "bf16" in methods)
+        # at the best GMAC/s measured for a dtype, the detection-only network needs at least this
+        floor = {dt: gmac["detections_only"] / max(v.values()) for dt, v in peak.items()}
+        bound = {"gmac": {k: round(v, 1) for k, v in gmac.items()}, "peak_gmac_per_s": peak,
+                 "floor_s_detections_only": {k: round(v, 3) for k, v in floor.items()},
+                 "max_speedup_vs_official": {k: round(best["official"] / v, 2) for k, v in floor.items()}}
     with open("/proc/loadavg") as f:
         load = f.read().split()[:3]
     print(json.dumps({
@@ -252,7 +315,7 @@ def main(argv: list[str] | None = None) -> None:
         "threshold_logit_margin": round(margin, 6),
         "requirement": {"plain_within_1e-4": match["plain"]["detection_rel"] <= 1e-4
                         and match["plain"]["freespace_rel"] <= 1e-4} if "plain" in match else {},
-        "match": match, "speed": speed, "skipped": skipped,
+        "match": match, "speed": speed, "bound": bound, "skipped": skipped,
     }, indent=1))
 
 

@@ -35,3 +35,13 @@ def test_check_device_names_what_is_wrong():
         n = torch.cuda.device_count()
         with pytest.raises(ValueError, match=f"only {n} CUDA device"):
             check_device(f"cuda:{n}")
+
+
+def test_cpu_has_native_bf16_reads_the_flags_line():
+    from radarpc.machine import cpu_has_native_bf16
+
+    head = "processor\t: 0\nmodel name\t: AMD EPYC avx512_bf16-ready\n"   # the name is not a flag
+    assert not cpu_has_native_bf16(head + "flags\t\t: fpu sse2 avx2 avx512f avx512bw\n")
+    assert cpu_has_native_bf16(head + "flags\t\t: fpu avx2 avx512f avx512_bf16 avx512_vnni\n")
+    assert cpu_has_native_bf16(head + "flags\t\t: fpu avx2 amx_tile amx_bf16\n")
+    assert not cpu_has_native_bf16("")

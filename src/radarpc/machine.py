@@ -5,7 +5,7 @@ from __future__ import annotations
 import platform
 from pathlib import Path
 
-__all__ = ["check_device", "cpu_model", "numeric_libraries"]
+__all__ = ["check_device", "cpu_has_native_bf16", "cpu_model", "numeric_libraries"]
 
 
 def cpu_model() -> str:
@@ -18,6 +18,29 @@ def cpu_model() -> str:
     except OSError:
         return platform.processor() or platform.machine()
     return platform.processor() or platform.machine()
+
+
+def cpu_has_native_bf16(cpuinfo: str | None = None) -> bool:
+    """Whether the CPU computes bf16 natively (the ``avx512_bf16`` or ``amx_bf16`` flag).
+
+    Elsewhere torch emulates bf16, which is slower than fp32; so this decides what the training
+    loop's ``precision: auto`` means on a CPU and whether a benchmark times a bf16 path.
+
+    Parameters
+    ----------
+    cpuinfo : str, optional
+        The text of ``/proc/cpuinfo``; read from the file when not given (False if unreadable).
+    """
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text(errors="replace")
+        except OSError:
+            return False
+    flags = set()
+    for line in cpuinfo.splitlines():
+        if line.startswith("flags"):
+            flags.update(line.split(":", 1)[1].split())
+    return bool(flags & {"avx512_bf16", "amx_bf16"})
 
 
 def numeric_libraries() -> dict[str, str]:

@@ -99,7 +99,7 @@ def test_auto_precision_is_kept_when_a_run_resumes_on_another_machine(tmp_path, 
     import radarpc.training.loop as loop
 
     auto = dataclasses.replace(CFG, precision="auto")
-    monkeypatch.setattr(loop, "_cpu_has_native_bf16", lambda: True)
+    monkeypatch.setattr(loop, "cpu_has_native_bf16", lambda: True)
     full = fit(ToyTask(), auto, tmp_path / "full", KEY, progress=False, log=lambda s: None)
 
     def stop(step):
@@ -108,7 +108,7 @@ def test_auto_precision_is_kept_when_a_run_resumes_on_another_machine(tmp_path, 
 
     with pytest.raises(_Kill):
         fit(ToyTask(), auto, tmp_path / "cut", KEY, progress=False, log=lambda s: None, on_step=stop)
-    monkeypatch.setattr(loop, "_cpu_has_native_bf16", lambda: False)       # "another machine"
+    monkeypatch.setattr(loop, "cpu_has_native_bf16", lambda: False)       # "another machine"
     logs: list[str] = []
     res = fit(ToyTask(), auto, tmp_path / "cut", KEY, progress=False, log=logs.append)
     assert any("resuming in bf16" in m and "would mean fp32" in m for m in logs), logs

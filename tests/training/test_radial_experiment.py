@@ -191,6 +191,16 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     assert fa["false_alarms"] == fp == sum(fa["by_range_m"].values()) > 0
     assert sum(fa["by_cause"].values()) == fp and fa["by_cause"]["nothing"] < fp   # scatterers under some
     assert (tmp_path / "fa.png").stat().st_size > 1000
+    # the same weights in fp32 and under bf16 autocast (benchmarks/bf16_detections.py): every
+    # detection is paired or reported alone, whatever this CPU's bf16 rounding does to them
+    script_bf16 = Path(__file__).parents[2] / "benchmarks" / "bf16_detections.py"
+    res = subprocess.run([sys.executable, str(script_bf16), str(eager), "--frames", "3", "--threads", "1"],
+                         capture_output=True, text=True, check=True)
+    bd = json.loads(res.stdout)
+    n, pairs, alone = bd["detections"], bd["matched"]["pairs"], bd["unmatched"]
+    assert bd["frames"] == 3 and 0 <= bd["frames_same"] <= 3 and n["fp32"] > 0
+    assert n["fp32"] == pairs + len(alone["fp32_only_scores"]) and n["bf16"] == pairs + len(alone["bf16_only_scores"])
+    assert bd["cells"]["cells"] == 3 * 128 * 224 and bd["cells"]["max_logit_diff"] >= 0
     # a root whose labels the simulator does not regenerate is refused, even where no frame has a
     # false alarm (the one-epoch run: nothing above 0.9)
     moved = tmp_path / "moved"

@@ -46,6 +46,7 @@ from tqdm import tqdm
 
 from radarpc.distributed import DistEnv, dist_env, rank_device
 from radarpc.io import atomic_write
+from radarpc.machine import cpu_has_native_bf16
 from radarpc.runs import RunFolder
 from radarpc.training.checkpoint import TrainingState, load_state, save_state, save_weights
 
@@ -145,14 +146,6 @@ def epoch_batches(n_items: int, batch_size: int, seed: int, epoch: int, env: Dis
     return [perm[b * batch_size + lo: b * batch_size + lo + per_rank] for b in range(n_items // batch_size)]
 
 
-def _cpu_has_native_bf16() -> bool:
-    try:
-        flags = Path("/proc/cpuinfo").read_text(errors="replace")
-    except OSError:
-        return False
-    return " amx_bf16" in flags or " avx512_bf16" in flags
-
-
 def resolve_precision(precision: str, device: torch.device) -> str:
     """The precision ``"auto"`` means on ``device`` (see the module docstring); others unchanged."""
     if precision != "auto":
@@ -161,7 +154,7 @@ def resolve_precision(precision: str, device: torch.device) -> str:
         return precision
     if device.type == "cuda":
         return "bf16" if torch.cuda.is_bf16_supported() else "fp16"
-    return "bf16" if device.type == "cpu" and _cpu_has_native_bf16() else "fp32"
+    return "bf16" if device.type == "cpu" and cpu_has_native_bf16() else "fp32"
 
 
 def autocast_context(precision: str, device: torch.device):

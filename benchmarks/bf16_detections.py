@@ -1,0 +1,130 @@
+"""Check: does bf16 autocast keep a trained run's decoded detections?
+
+On random weights every cell of the detection map sits near the same probability, so bf16's
+rounding moves cells across RADIal's 0.05 candidate threshold and the decoded detections of
+``benchmarks/fftradnet_official.py`` cannot tell whether bf16 keeps them. A trained model's map
+separates vehicles from the rest; this script runs a trained run's frames in fp32 and under bf16
+autocast (the same weights) and prints one JSON object with, over the frames:
+
+* ``frames_same``: frames whose decoded detections (threshold 0.05, NMS 0.05, as RADIal) pair one
+  to one within half a cell (0.4 m in range, 0.4 deg in azimuth) with scores within
+  ``--score-tol``;
+* ``matched``: paired detections and their largest score, range and azimuth differences;
+* ``unmatched``: detections found in one precision only, with their scores: near 0.05 they are
+  cells that rounding moved across the threshold (or an NMS order that changed with them);
+* ``cells``: the largest logit difference over all cells (``max_logit_diff``) and how many cells
+  lie within it of the threshold's logit (``cells_in_band``): the cells rounding can move across.
+
+Usage::
+
+    python benchmarks/bf16_detections.py runs/fft --split test [--frames 100] [--threads 2]
+"""
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+
+import torch
+from torch.utils.data import DataLoader, Subset
+
+from radarpc.experiments.detection import load_trained
+from radarpc.machine import cpu_has_native_bf16, cpu_model
+from radarpc.models.targets import Detections, decode_detections
+from radarpc.training.radial import DECODE_THRESHOLD, collate_detection, detection_dataset
+
+HALF_CELL = (0.4, 0.4)        # m, deg: below half a range (0.805 m) and azimuth (0.8 deg) cell
+
+
+def pair_detections(a: Detections, b: Detections, half_cell: tuple[float, float] = HALF_CELL
+                    ) -> tuple[list[tuple[int, int]], list[int], list[int]]:
+    """Greedy one-to-one pairs ``(i, j)`` of the detections of one frame, nearest first, within
+    ``half_cell`` in range and azimuth; and the rows of ``a`` and of ``b`` left without a pair."""
+    dr = (a.range_m[:, None] - b.range_m[None, :]).abs()
+    da = (a.azimuth_deg[:, None] - b.azimuth_deg[None, :]).abs()
+    ok = (dr <= half_cell[0]) & (da <= half_cell[1])
+    cost = torch.where(ok, dr / half_cell[0] + da / half_cell[1], torch.full_like(dr, math.inf))
+    pairs = []
+    while cost.numel() and bool(torch.isfinite(cost).any()):
+        k = int(torch.argmin(cost))
+        i, j = divmod(k, cost.shape[1])
+        pairs.append((i, j))
+        cost[i, :] = math.inf
+        cost[:, j] = math.inf
+    return (pairs, sorted(set(range(a.num_detections)) - {i for i, _ in pairs}),
+            sorted(set(range(b.num_detections)) - {j for _, j in pairs}))
+
+
+def _logit(p: torch.Tensor) -> torch.Tensor:
+    p = p.double().clamp(1e-12, 1 - 1e-12)
+    return torch.log(p / (1 - p))
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("run", help="a training run folder (radarpc train --out)")
+    p.add_argument("--split", default="test")
+    p.add_argument("--frames", type=int, help="only the split's first N frames")
+    p.add_argument("--batch-size", type=int, default=8)
+    p.add_argument("--threads", type=int, default=torch.get_num_threads())
+    p.add_argument("--score-tol", type=float, default=0.02, help="largest score difference of a same frame")
+    a = p.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    cfg, model, key = load_trained(a.run, "cpu")
+    ds = detection_dataset(cfg, key["data"], key.get("points"), a.split)
+    if a.frames is not None:
+        ds = Subset(ds, range(min(a.frames, len(ds))))
+    loader = DataLoader(ds, batch_size=a.batch_size, shuffle=False,
+                        collate_fn=functools.partial(collate_detection, cfg=cfg))
+    band_logit = math.log(DECODE_THRESHOLD / (1 - DECODE_THRESHOLD))
+    frames = same = n32 = n16 = 0
+    d_score = d_range = d_az = 0.0
+    paired = 0
+    only32: list[float] = []
+    only16: list[float] = []
+    logit_diffs, fp32_logits = [], []
+    with torch.inference_mode():
+        for batch in loader:
+            m32 = model(batch.inputs).detection.float()
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                m16 = model(batch.inputs).detection.float()
+            l32 = _logit(m32[:, 0])
+            logit_diffs.append((l32 - _logit(m16[:, 0])).abs().amax(dim=(1, 2)))
+            fp32_logits.append(l32)
+            d32 = decode_detections(m32, cfg.targets, threshold=DECODE_THRESHOLD)
+            d16 = decode_detections(m16, cfg.targets, threshold=DECODE_THRESHOLD)
+            for f in range(len(d32)):
+                x, y = d32.frame(f), d16.frame(f)
+                pairs, lone32, lone16 = pair_detections(x, y)
+                frames += 1
+                n32 += x.num_detections
+                n16 += y.num_detections
+                only32 += [round(float(x.score[i]), 4) for i in lone32]
+                only16 += [round(float(y.score[j]), 4) for j in lone16]
+                ds_ = max((abs(float(x.score[i] - y.score[j])) for i, j in pairs), default=0.0)
+                d_score = max(d_score, ds_)
+                d_range = max([d_range] + [abs(float(x.range_m[i] - y.range_m[j])) for i, j in pairs])
+                d_az = max([d_az] + [abs(float(x.azimuth_deg[i] - y.azimuth_deg[j])) for i, j in pairs])
+                paired += len(pairs)
+                same += not lone32 and not lone16 and ds_ <= a.score_tol
+    per_frame = torch.cat(logit_diffs)
+    worst = float(per_frame.max())
+    in_band = int(sum(((l - band_logit).abs() <= worst).sum() for l in fp32_logits))
+    with open("/proc/loadavg") as f:
+        load = f.read().split()[:3]
+    print(json.dumps({
+        "run": str(a.run), "split": a.split, "model": cfg.name, "cpu": cpu_model(),
+        "native_bf16": cpu_has_native_bf16(), "threads": a.threads, "torch": torch.__version__,
+        "loadavg": load, "frames": frames, "frames_same": same,
+        "detections": {"fp32": n32, "bf16": n16},
+        "matched": {"pairs": paired, "max_score_diff": round(d_score, 5), "max_range_diff_m": round(d_range, 4),
+                    "max_azimuth_diff_deg": round(d_az, 4)},
+        "unmatched": {"fp32_only_scores": sorted(only32), "bf16_only_scores": sorted(only16)},
+        "cells": {"max_logit_diff": round(worst, 4), "median_frame_max_logit_diff": round(float(per_frame.median()), 4),
+                  "cells_in_band": in_band, "cells": int(sum(l.numel() for l in fp32_logits))},
+    }, indent=1))
+
+
+if __name__ == "__main__":
+    main()
