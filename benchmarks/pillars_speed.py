@@ -16,7 +16,11 @@ processes hits them alike:
   extraction excluded) and ``<model>+points`` RD cube -> point cloud -> network (extraction
   included). The ``_det`` rows are compared with ``fftradnet_fused_cl_det``, the others with each
   full FFTRadNet (both models share the same heads, and the freespace head's ~32 GMAC at 256 x 224
-  is most of a pillar model's work).
+  is most of a pillar model's work);
+* where the CPU has native bf16 (:func:`radarpc.machine.cpu_has_native_bf16`), ``fftradnet_bf16``,
+  ``fftradnet_bf16_det``, ``<model>_bf16`` and ``<model>_bf16_det``: the fused channels-last
+  models under bf16 autocast (the point extraction stays fp32), compared with the FFTRadNet bf16
+  path with the same heads.
 
 Weights are random (the speed does not depend on them). Prints one JSON object: per method the
 best and median seconds per frame, frames/s, and the frames/s ratio to each FFTRadNet method; the
@@ -63,7 +67,7 @@ from collections.abc import Callable  # noqa: E402
 import torch  # noqa: E402
 
 from radarpc.dsp import SpectralPointCloud  # noqa: E402
-from radarpc.machine import cpu_model  # noqa: E402
+from radarpc.machine import cpu_has_native_bf16, cpu_model  # noqa: E402
 from radarpc.models import fftradnet as fft  # noqa: E402
 from radarpc.models import pillars  # noqa: E402
 from radarpc.sensors.radial import RADIAL, RADIAL_S  # noqa: E402
@@ -82,6 +86,14 @@ def _detections_only(model: torch.nn.Module) -> torch.nn.Module:
     """``model`` without its freespace head: ``forward`` then returns the detection map alone."""
     model.freespace_head = None
     return model
+
+
+def _bf16_autocast(model: torch.nn.Module) -> Callable[[object], object]:
+    """``model``'s forward under bf16 autocast (the point extraction before it stays fp32)."""
+    def run(x):
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            return model(x)
+    return run
 
 
 def time_interleaved(methods: dict[str, Callable[[int], object]], n_frames: int,
@@ -138,6 +150,12 @@ def main(args: argparse.Namespace) -> None:
         "fftradnet_fused_cl_det": (lambda m: lambda i: m(cubes[i]))(
             _detections_only(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last))),
     }
+    bf16 = cpu_has_native_bf16()
+    if bf16:
+        methods["fftradnet_bf16"] = (lambda m: lambda i: m(cubes[i]))(
+            _bf16_autocast(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last)))
+        methods["fftradnet_bf16_det"] = (lambda m: lambda i: m(cubes[i]))(_bf16_autocast(
+            _detections_only(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last))))
     points = {}
     parts = {}
     for name, (factory, enrich) in pillar_models.items():
@@ -146,7 +164,10 @@ def main(args: argparse.Namespace) -> None:
         fused_cl = pillars.fuse_for_inference(model).to(memory_format=torch.channels_last)
         fused_cl_det = _detections_only(pillars.fuse_for_inference(model).to(memory_format=torch.channels_last))
         spc, cl = extractors[enrich], clouds[enrich]
-        for suffix, m in (("", model), ("_fused", fused), ("_fused_cl", fused_cl), ("_fused_cl_det", fused_cl_det)):
+        variants = [("", model), ("_fused", fused), ("_fused_cl", fused_cl), ("_fused_cl_det", fused_cl_det)]
+        if bf16:
+            variants += [("_bf16", _bf16_autocast(fused_cl)), ("_bf16_det", _bf16_autocast(fused_cl_det))]
+        for suffix, m in variants:
             methods[name + suffix] = (lambda m, cl: lambda i: m(cl[i]))(m, cl)
             methods[name + suffix + "+points"] = (lambda m, spc: lambda i: m(spc(cubes[i])))(m, spc)
         points[name] = {"enrich": list(enrich),
@@ -166,7 +187,12 @@ def main(args: argparse.Namespace) -> None:
     for name, row in speed.items():
         if name.startswith("fftradnet"):
             continue
-        refs = ("fftradnet_fused_cl_det",) if "_det" in name else ("fftradnet", "fftradnet_fused", "fftradnet_fused_cl")
+        if "_bf16" in name:          # against the FFTRadNet path of the same precision and heads
+            refs = ("fftradnet_bf16_det",) if "_det" in name else ("fftradnet_bf16",)
+        elif "_det" in name:
+            refs = ("fftradnet_fused_cl_det",)
+        else:
+            refs = ("fftradnet", "fftradnet_fused", "fftradnet_fused_cl")
         for ref in refs:
             row[f"ratio_vs_{ref}"] = round(speed[ref]["s_per_frame"] / row["s_per_frame"], 2)
     n_params = {name: sum(p.numel() for p in f().parameters()) for name, (f, _) in pillar_models.items()}
@@ -174,7 +200,7 @@ def main(args: argparse.Namespace) -> None:
     print(json.dumps({
         "size": args.size, "sensor": sensor.name, "rd_shape": list(sensor.rd_shape), "batch": 1,
         "frames": args.frames, "repeats": args.repeats, "density_target": args.density,
-        "threads": args.threads, "cpu": cpu_model(), "torch": torch.__version__,
+        "threads": args.threads, "cpu": cpu_model(), "native_bf16": bf16, "torch": torch.__version__,
         "load_avg_1min": [load_before, os.getloadavg()[0]],
         "parameters": n_params, "point_clouds": points, "speed": speed, "parts_s": parts,
     }, indent=1), flush=True)
