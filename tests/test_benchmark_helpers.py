@@ -1,0 +1,60 @@
+"""Helpers of the benchmark scripts on hand-worked cases: ``bf16_detections.py``'s pairing of two
+precisions' detections (the script itself runs on a trained tiny run in
+tests/training/test_radial_experiment.py) and ``fftradnet_official.py``'s MAC count."""
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch
+
+from radarpc.models.targets import Detections
+
+
+
+def _script(name):
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).parents[1] / "benchmarks" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+bf16_detections = _script("bf16_detections")
+
+
+def _dets(rows):
+    t = torch.tensor(rows, dtype=torch.float32).reshape(-1, 2)
+    return Detections(torch.linspace(0.9, 0.1, len(t)), t[:, 0], t[:, 1], torch.tensor([len(t)]))
+
+
+def test_pairs_within_half_a_cell_and_reports_the_rest():
+    a = _dets([(10.0, 0.0), (20.0, 5.0), (30.0, -3.0)])
+    b = _dets([(10.3, 0.1), (20.0, 5.5), (29.9, -3.0), (50.0, 0.0)])
+    pairs, lone_a, lone_b = bf16_detections.pair_detections(a, b)
+    # (20, 5) and (20, 5.5) are 0.5 deg apart, more than half a 0.8-deg cell
+    assert sorted(pairs) == [(0, 0), (2, 2)] and lone_a == [1] and lone_b == [1, 3]
+
+
+def test_pairs_nearest_first_and_one_to_one():
+    pairs, lone_a, lone_b = bf16_detections.pair_detections(_dets([(10.0, 0.0), (10.3, 0.0)]),
+                                                            _dets([(10.25, 0.0)]))
+    assert pairs == [(1, 0)] and lone_a == [0] and lone_b == []
+    pairs, lone_a, lone_b = bf16_detections.pair_detections(_dets([]), _dets([(10.0, 0.0)]))
+    assert pairs == [] and lone_a == [] and lone_b == [0]
+
+
+def test_conv_gmac_counts_convolutions_and_transposed_convolutions():
+    conv_gmac = _script("fftradnet_official")._conv_gmac
+
+    class Net(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.conv = torch.nn.Conv2d(4, 6, 3, padding=1, groups=2)          # 4 x 6 outputs of 6 channels
+            self.up = torch.nn.ConvTranspose2d(6, 5, 3, stride=(2, 1), padding=1, output_padding=(1, 0))
+            self.act = torch.nn.ReLU()
+
+        def forward_channels(self, x):
+            return self.up(self.act(self.conv(x)))
+
+    # conv: 6 x 4 x 6 outputs, each 3 x 3 x (4 / 2) MACs = 144 x 18; transposed: each of its
+    # 6 x 4 x 6 inputs feeds 3 x 3 x 5 outputs = 144 x 45
+    assert conv_gmac(Net(), torch.randn(1, 4, 4, 6)) == pytest.approx((144 * 18 + 144 * 45) / 1e9, rel=1e-12)
