@@ -6,14 +6,15 @@ rounding moves cells across RADIal's 0.05 candidate threshold and the decoded de
 separates vehicles from the rest; this script runs a trained run's frames in fp32 and under bf16
 autocast (the same weights) and prints one JSON object with, over the frames:
 
-* ``frames_same``: frames whose decoded detections (threshold 0.05, NMS 0.05, as RADIal) pair one
-  to one within half a cell (0.4 m in range, 0.4 deg in azimuth) with scores within
-  ``--score-tol``;
-* ``matched``: paired detections and their largest score, range and azimuth differences;
-* ``unmatched``: detections found in one precision only, with their scores: near 0.05 they are
-  cells that rounding moved across the threshold (or an NMS order that changed with them);
+* ``by_threshold``: for the decoding threshold 0.05 and each of RADIal's confidence thresholds
+  0.1 ... 0.9 (the metrics see only detections at or above these), the detections at or above it
+  in each precision, those left without a partner in the other (pairs: one to one, nearest first,
+  within half a cell: 0.4 m in range and 0.4 deg in azimuth), and the frames where every detection
+  has its partner (``frames_same``);
+* ``matched``: over the pairs at 0.05, the largest score, range and azimuth differences;
 * ``cells``: the largest logit difference over all cells (``max_logit_diff``) and how many cells
-  lie within it of the threshold's logit (``cells_in_band``): the cells rounding can move across.
+  lie within it of the 0.05 threshold's logit (``cells_in_band``): the cells rounding can move
+  across it. A detection near a threshold may be in one precision only for that reason alone.
 
 Usage::
 
@@ -32,6 +33,7 @@ from torch.utils.data import DataLoader, Subset
 from radarpc.experiments.detection import load_trained
 from radarpc.machine import cpu_has_native_bf16, cpu_model
 from radarpc.models.targets import Detections, decode_detections
+from radarpc.eval.detection import THRESHOLDS as CONFIDENCE_THRESHOLDS
 from radarpc.training.radial import DECODE_THRESHOLD, collate_detection, detection_dataset
 
 HALF_CELL = (0.4, 0.4)        # m, deg: below half a range (0.805 m) and azimuth (0.8 deg) cell
@@ -56,6 +58,12 @@ def pair_detections(a: Detections, b: Detections, half_cell: tuple[float, float]
             sorted(set(range(b.num_detections)) - {j for _, j in pairs}))
 
 
+def _above(d: Detections, t: float) -> Detections:
+    """The detections of one frame with score ``>= t``."""
+    keep = d.score >= t
+    return Detections(d.score[keep], d.range_m[keep], d.azimuth_deg[keep], d.offset.new_tensor([int(keep.sum())]))
+
+
 def _logit(p: torch.Tensor) -> torch.Tensor:
     p = p.double().clamp(1e-12, 1 - 1e-12)
     return torch.log(p / (1 - p))
@@ -68,7 +76,6 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--frames", type=int, help="only the split's first N frames")
     p.add_argument("--batch-size", type=int, default=8)
     p.add_argument("--threads", type=int, default=torch.get_num_threads())
-    p.add_argument("--score-tol", type=float, default=0.02, help="largest score difference of a same frame")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     cfg, model, key = load_trained(a.run, "cpu")
@@ -78,11 +85,10 @@ def main(argv: list[str] | None = None) -> None:
     loader = DataLoader(ds, batch_size=a.batch_size, shuffle=False,
                         collate_fn=functools.partial(collate_detection, cfg=cfg))
     band_logit = math.log(DECODE_THRESHOLD / (1 - DECODE_THRESHOLD))
-    frames = same = n32 = n16 = 0
+    thresholds = (DECODE_THRESHOLD,) + CONFIDENCE_THRESHOLDS
+    counts = {t: {"fp32": 0, "bf16": 0, "fp32_unpaired": 0, "bf16_unpaired": 0, "frames_same": 0} for t in thresholds}
+    frames = 0
     d_score = d_range = d_az = 0.0
-    paired = 0
-    only32: list[float] = []
-    only16: list[float] = []
     logit_diffs, fp32_logits = [], []
     with torch.inference_mode():
         for batch in loader:
@@ -95,19 +101,21 @@ def main(argv: list[str] | None = None) -> None:
             d32 = decode_detections(m32, cfg.targets, threshold=DECODE_THRESHOLD)
             d16 = decode_detections(m16, cfg.targets, threshold=DECODE_THRESHOLD)
             for f in range(len(d32)):
-                x, y = d32.frame(f), d16.frame(f)
-                pairs, lone32, lone16 = pair_detections(x, y)
                 frames += 1
-                n32 += x.num_detections
-                n16 += y.num_detections
-                only32 += [round(float(x.score[i]), 4) for i in lone32]
-                only16 += [round(float(y.score[j]), 4) for j in lone16]
-                ds_ = max((abs(float(x.score[i] - y.score[j])) for i, j in pairs), default=0.0)
-                d_score = max(d_score, ds_)
-                d_range = max([d_range] + [abs(float(x.range_m[i] - y.range_m[j])) for i, j in pairs])
-                d_az = max([d_az] + [abs(float(x.azimuth_deg[i] - y.azimuth_deg[j])) for i, j in pairs])
-                paired += len(pairs)
-                same += not lone32 and not lone16 and ds_ <= a.score_tol
+                for t in thresholds:
+                    x, y = _above(d32.frame(f), t), _above(d16.frame(f), t)
+                    pairs, lone32, lone16 = pair_detections(x, y)
+                    c = counts[t]
+                    c["fp32"] += x.num_detections
+                    c["bf16"] += y.num_detections
+                    c["fp32_unpaired"] += len(lone32)
+                    c["bf16_unpaired"] += len(lone16)
+                    c["frames_same"] += not lone32 and not lone16
+                    if t == DECODE_THRESHOLD:
+                        for i, j in pairs:
+                            d_score = max(d_score, abs(float(x.score[i] - y.score[j])))
+                            d_range = max(d_range, abs(float(x.range_m[i] - y.range_m[j])))
+                            d_az = max(d_az, abs(float(x.azimuth_deg[i] - y.azimuth_deg[j])))
     per_frame = torch.cat(logit_diffs)
     worst = float(per_frame.max())
     in_band = int(sum(((l - band_logit).abs() <= worst).sum() for l in fp32_logits))
@@ -116,11 +124,11 @@ def main(argv: list[str] | None = None) -> None:
     print(json.dumps({
         "run": str(a.run), "split": a.split, "model": cfg.name, "cpu": cpu_model(),
         "native_bf16": cpu_has_native_bf16(), "threads": a.threads, "torch": torch.__version__,
-        "loadavg": load, "frames": frames, "frames_same": same,
-        "detections": {"fp32": n32, "bf16": n16},
-        "matched": {"pairs": paired, "max_score_diff": round(d_score, 5), "max_range_diff_m": round(d_range, 4),
+        "loadavg": load, "frames": frames,
+        "by_threshold": {f"{t:g}": c for t, c in counts.items()},
+        "matched": {"pairs": counts[DECODE_THRESHOLD]["fp32"] - counts[DECODE_THRESHOLD]["fp32_unpaired"],
+                    "max_score_diff": round(d_score, 5), "max_range_diff_m": round(d_range, 4),
                     "max_azimuth_diff_deg": round(d_az, 4)},
-        "unmatched": {"fp32_only_scores": sorted(only32), "bf16_only_scores": sorted(only16)},
         "cells": {"max_logit_diff": round(worst, 4), "median_frame_max_logit_diff": round(float(per_frame.median()), 4),
                   "cells_in_band": in_band, "cells": int(sum(l.numel() for l in fp32_logits))},
     }, indent=1))

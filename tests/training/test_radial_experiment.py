@@ -197,9 +197,12 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     res = subprocess.run([sys.executable, str(script_bf16), str(eager), "--frames", "3", "--threads", "1"],
                          capture_output=True, text=True, check=True)
     bd = json.loads(res.stdout)
-    n, pairs, alone = bd["detections"], bd["matched"]["pairs"], bd["unmatched"]
-    assert bd["frames"] == 3 and 0 <= bd["frames_same"] <= 3 and n["fp32"] > 0
-    assert n["fp32"] == pairs + len(alone["fp32_only_scores"]) and n["bf16"] == pairs + len(alone["bf16_only_scores"])
+    by_t = bd["by_threshold"]
+    assert bd["frames"] == 3 and list(by_t) == ["0.05"] + [f"{k / 10:g}" for k in range(1, 10)]
+    for c in by_t.values():               # pairs are one to one: both precisions leave the same number
+        assert 0 <= c["frames_same"] <= 3 and c["fp32"] - c["fp32_unpaired"] == c["bf16"] - c["bf16_unpaired"] >= 0
+    assert by_t["0.05"]["fp32"] >= by_t["0.1"]["fp32"] >= by_t["0.9"]["fp32"] and by_t["0.05"]["fp32"] > 0
+    assert bd["matched"]["pairs"] == by_t["0.05"]["fp32"] - by_t["0.05"]["fp32_unpaired"]
     assert bd["cells"]["cells"] == 3 * 128 * 224 and bd["cells"]["max_logit_diff"] >= 0
     # a root whose labels the simulator does not regenerate is refused, even where no frame has a
     # false alarm (the one-epoch run: nothing above 0.9)
