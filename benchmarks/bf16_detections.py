@@ -3,8 +3,8 @@
 On random weights every cell of the detection map sits near the same probability, so bf16's
 rounding moves cells across RADIal's 0.05 candidate threshold and the decoded detections of
 ``benchmarks/fftradnet_official.py`` cannot tell whether bf16 keeps them. A trained model's map
-separates vehicles from the rest; this script runs a trained run's frames in fp32 and under bf16
-autocast (the same weights) and prints one JSON object with, over the frames:
+separates vehicles from the rest; this script runs a trained run's frames on the CPU in fp32 and
+under bf16 autocast (the same weights) and prints one JSON object with, over the frames:
 
 * ``by_threshold``: for the decoding threshold 0.05 and each of RADIal's confidence thresholds
   0.1 ... 0.9 (the metrics see only detections at or above these), the detections at or above it
@@ -30,10 +30,10 @@ import math
 import torch
 from torch.utils.data import DataLoader, Subset
 
+from radarpc.eval.detection import THRESHOLDS as CONFIDENCE_THRESHOLDS
 from radarpc.experiments.detection import load_trained
 from radarpc.machine import cpu_has_native_bf16, cpu_model
 from radarpc.models.targets import Detections, decode_detections
-from radarpc.eval.detection import THRESHOLDS as CONFIDENCE_THRESHOLDS
 from radarpc.training.radial import DECODE_THRESHOLD, collate_detection, detection_dataset
 
 HALF_CELL = (0.4, 0.4)        # m, deg: below half a range (0.805 m) and azimuth (0.8 deg) cell

@@ -143,7 +143,7 @@ def _conv_gmac(model: torch.nn.Module, x: torch.Tensor) -> float:
     return total[0] / 1e9
 
 
-def _peak(threads: int, bf16: bool) -> dict:
+def _peak(bf16: bool) -> dict:
     """The fastest arithmetic this CPU gives, per dtype: a 4096^3 ``torch.mm`` and the model's
     largest convolution alone (the backbone's 3 x 3 stem, 192 -> 192 channels on 512 x 256,
     channels-last), in GMAC/s (best of 3 after a warm-up)."""
@@ -300,7 +300,7 @@ def main(argv: list[str] | None = None) -> None:
     bound = {}
     if a.peak:
         gmac = {"both_heads": _conv_gmac(ours, x), "detections_only": _conv_gmac(fused_cl_det, x_cl)}
-        peak = _peak(a.threads, "bf16" in methods)
+        peak = _peak("bf16" in methods)
         # at the best GMAC/s measured for a dtype, the detection-only network needs at least this
         floor = {dt: gmac["detections_only"] / max(v.values()) for dt, v in peak.items()}
         bound = {"gmac": {k: round(v, 1) for k, v in gmac.items()}, "peak_gmac_per_s": peak,
