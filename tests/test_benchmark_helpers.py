@@ -10,7 +10,6 @@ import torch
 from radarpc.models.targets import Detections
 
 
-
 def _script(name):
     spec = importlib.util.spec_from_file_location(name, Path(__file__).parents[1] / "benchmarks" / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
