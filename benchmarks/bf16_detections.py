@@ -34,6 +34,7 @@ from radarpc.eval.detection import THRESHOLDS as CONFIDENCE_THRESHOLDS
 from radarpc.experiments.detection import load_trained
 from radarpc.machine import cpu_has_native_bf16, cpu_model
 from radarpc.models.targets import Detections, decode_detections
+from radarpc.training.loop import autocast_context
 from radarpc.training.radial import DECODE_THRESHOLD, collate_detection, detection_dataset
 
 HALF_CELL = (0.4, 0.4)        # m, deg: below half a range (0.805 m) and azimuth (0.8 deg) cell
@@ -64,11 +65,6 @@ def _above(d: Detections, t: float) -> Detections:
     return Detections(d.score[keep], d.range_m[keep], d.azimuth_deg[keep], d.offset.new_tensor([int(keep.sum())]))
 
 
-def _logit(p: torch.Tensor) -> torch.Tensor:
-    p = p.double().clamp(1e-12, 1 - 1e-12)
-    return torch.log(p / (1 - p))
-
-
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("run", help="a training run folder (radarpc train --out)")
@@ -90,20 +86,22 @@ def main(argv: list[str] | None = None) -> None:
     frames = 0
     d_score = d_range = d_az = 0.0
     logit_diffs, fp32_logits = [], []
+    cpu = torch.device("cpu")
     with torch.inference_mode():
         for batch in loader:
             m32 = model(batch.inputs).detection.float()
-            with torch.autocast("cpu", dtype=torch.bfloat16):
+            with autocast_context("bf16", cpu):
                 m16 = model(batch.inputs).detection.float()
-            l32 = _logit(m32[:, 0])
-            logit_diffs.append((l32 - _logit(m16[:, 0])).abs().amax(dim=(1, 2)))
+            l32 = torch.logit(m32[:, 0].double(), eps=1e-12)
+            logit_diffs.append((l32 - torch.logit(m16[:, 0].double(), eps=1e-12)).abs().amax(dim=(1, 2)))
             fp32_logits.append(l32)
             d32 = decode_detections(m32, cfg.targets, threshold=DECODE_THRESHOLD)
             d16 = decode_detections(m16, cfg.targets, threshold=DECODE_THRESHOLD)
             for f in range(len(d32)):
                 frames += 1
+                f32, f16 = d32.frame(f), d16.frame(f)
                 for t in thresholds:
-                    x, y = _above(d32.frame(f), t), _above(d16.frame(f), t)
+                    x, y = _above(f32, t), _above(f16, t)
                     pairs, lone32, lone16 = pair_detections(x, y)
                     c = counts[t]
                     c["fp32"] += x.num_detections

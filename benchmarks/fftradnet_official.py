@@ -62,6 +62,7 @@ from radarpc.machine import cpu_has_native_bf16, cpu_model
 from radarpc.models.batchnorm import randomise_batchnorm_
 from radarpc.models.fftradnet import fftradnet, fuse_for_inference, official_to_radarpc
 from radarpc.models.targets import decode_detections
+from radarpc.training.loop import autocast_context
 
 
 def _import_official(repo: Path):
@@ -225,7 +226,7 @@ def main(argv: list[str] | None = None) -> None:
     skipped = {}
     if cpu_has_native_bf16():
         def run_bf16():
-            with torch.autocast("cpu", dtype=torch.bfloat16):
+            with autocast_context("bf16", torch.device("cpu")):
                 d, f = fused_cl_det.forward_channels(x_cl)
             return d.float(), f
         methods["bf16"] = run_bf16
@@ -251,7 +252,7 @@ def main(argv: list[str] | None = None) -> None:
             bf16_frozen = torch.compile(bf16_model.forward_channels)
 
             def run_bf16_frozen():
-                with inductor_config.patch(freezing=True), torch.autocast("cpu", dtype=torch.bfloat16):
+                with inductor_config.patch(freezing=True), autocast_context("bf16", torch.device("cpu")):
                     d, f = bf16_frozen(x_cl)
                 return d.float(), f
             methods["bf16_compiled_frozen"] = run_bf16_frozen

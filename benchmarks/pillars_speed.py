@@ -72,6 +72,7 @@ from radarpc.models import fftradnet as fft  # noqa: E402
 from radarpc.models import pillars  # noqa: E402
 from radarpc.sensors.radial import RADIAL, RADIAL_S  # noqa: E402
 from radarpc.sim.radial_writer import SimulatedRADIal  # noqa: E402
+from radarpc.training.loop import autocast_context  # noqa: E402
 
 SIZES = {   # sensor, FFTRadNet factory, {pillar model: (factory, enrichments of its point clouds)}
     "full": (RADIAL, fft.fftradnet, {"pointpillars": (pillars.polar_pointpillars, ()),
@@ -89,9 +90,10 @@ def _detections_only(model: torch.nn.Module) -> torch.nn.Module:
 
 
 def _bf16_autocast(model: torch.nn.Module) -> Callable[[object], object]:
-    """``model``'s forward under bf16 autocast (the point extraction before it stays fp32)."""
+    """``model``'s forward under the training loop's bf16 autocast (the point extraction before it
+    stays fp32)."""
     def run(x):
-        with torch.autocast("cpu", dtype=torch.bfloat16):
+        with autocast_context("bf16", torch.device("cpu")):
             return model(x)
     return run
 
