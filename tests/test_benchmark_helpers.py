@@ -1,6 +1,8 @@
 """Helpers of the benchmark scripts on hand-worked cases: ``bf16_detections.py``'s pairing of two
 precisions' detections (the script itself runs on a trained tiny run in
-tests/training/test_radial_experiment.py) and ``fftradnet_official.py``'s MAC count."""
+tests/training/test_radial_experiment.py), ``fftradnet_official.py``'s MAC count and
+``operating_points.py``'s F1 allowance."""
+import json
 import importlib.util
 from pathlib import Path
 
@@ -57,3 +59,40 @@ def test_conv_gmac_counts_convolutions_and_transposed_convolutions():
     # conv: 6 x 4 x 6 outputs, each 3 x 3 x (4 / 2) MACs = 144 x 18; transposed: each of its
     # 6 x 4 x 6 inputs feeds 3 x 3 x 5 outputs = 144 x 45
     assert conv_gmac(Net(), torch.randn(1, 4, 4, 6)) == pytest.approx((144 * 18 + 144 * 45) / 1e9, rel=1e-12)
+
+
+def test_allowed_false_alarms_on_hand_worked_counts():
+    allowed = _script("operating_points").allowed_false_alarms
+    # 100 labels, 80 found: F1 = 160 / (160 + FP + 20) >= 0.8 holds up to FP = 20
+    assert allowed(0.8, 100, 0.8) == pytest.approx(20.0, abs=1e-9)
+    # recall 2/3 reaches F1 0.8 only without false alarms; 0.6 not at all
+    assert allowed(2 / 3, 300, 0.8) == pytest.approx(0.0, abs=1e-9)
+    assert allowed(0.6, 100, 0.8) < 0
+    # full recall: FP <= L (2 / t - 2)
+    assert allowed(1.0, 50, 0.5) == pytest.approx(100.0, abs=1e-9)
+    with pytest.raises(ValueError, match="target F1"):
+        allowed(0.5, 10, 1.2)
+    with pytest.raises(ValueError, match="recall"):
+        allowed(1.5, 10, 0.8)
+
+
+def test_operating_points_from_an_evaluation_file(tmp_path, capsys):
+    mod = _script("operating_points")
+    # 10 labels on 4 frames; at 0.5: 8 found, 2 false alarms -> F1 16 / 20 = 0.8, exactly the allowance
+    ev = {"split": "test", "metrics": {"thresholds": [0.2, 0.5], "tp": [9, 8], "fp": [6, 2], "fn": [1, 2],
+                                        "n_labels": 10, "n_frames": 4}}
+    path = tmp_path / "eval_test.json"
+    path.write_text(json.dumps(ev))
+    mod.main([str(path), "--figure", str(tmp_path / "op.png")])
+    res = json.loads(capsys.readouterr().out)
+    assert res["recall"] == pytest.approx([0.9, 0.8])
+    assert res["false_alarms_per_label"] == pytest.approx([0.6, 0.2])
+    assert res["false_alarms_per_frame"] == pytest.approx([1.5, 0.5])
+    assert res["f1"] == pytest.approx([18 / 25, 0.8])
+    # at recall 0.9: 10 (1.5 x 0.9 - 1) = 3.5 -> 3 allowed; at 0.8: 2
+    assert res["allowed_false_alarms"] == [3, 2]
+    assert (tmp_path / "op.png").stat().st_size > 0
+    ev["metrics"]["fn"] = [1, 1]
+    path.write_text(json.dumps(ev))
+    with pytest.raises(SystemExit, match="eval_test.json.*n_labels"):
+        mod.main([str(path)])

@@ -1,0 +1,157 @@
+"""Where trained detectors operate against an F1 target: recall and false alarms per threshold.
+
+RADIal's F1 at one confidence threshold is ``2 TP / (2 TP + FP + FN)``. With ``L = TP + FN``
+labels, recall ``r = TP / L`` and ``q = FP / L`` false alarms per label it is
+
+    F1 = 2 r / (1 + r + q),
+
+so a target F1 ``t`` holds exactly where
+
+    q <= (2 / t - 1) r - 1,
+
+a half-plane in the (recall, false alarms per label) plane that needs ``r >= t / (2 - t)`` even
+without false alarms (0.667 for t = 0.8) and allows at most ``2 / t - 2`` false alarms per label
+at full recall (0.5). This script reads evaluation JSON files written by ``radarpc evaluate``
+(``RUN/eval_<split>.json``), prints for each and each threshold the recall, false alarms per label
+and frame, F1, and how many false alarms the target allows at that recall, and draws every file's
+thresholds as a curve over the target's region::
+
+    python benchmarks/operating_points.py runs/sp/eval_test.json runs/pp/eval_test.json \\
+        --names spectralpillars-s pointpillars-s --figure docs/results/figures/detection_operating_points.png
+
+Prints one JSON object per file.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from radarpc.eval.detection import FIXED_THRESHOLD
+
+
+def allowed_false_alarms(recall: np.ndarray, n_labels: int, target: float) -> np.ndarray:
+    """The most false alarms at which F1 still reaches ``target`` with this recall.
+
+    Parameters
+    ----------
+    recall : ndarray
+        Recall ``TP / L`` in [0, 1], any shape.
+    n_labels : int
+        Labels ``L = TP + FN`` (> 0).
+    target : float
+        F1 to reach, in (0, 1].
+
+    Returns
+    -------
+    ndarray
+        ``L ((2 / target - 1) recall - 1)``, negative where the recall alone keeps F1 below the
+        target.
+    """
+    recall = np.asarray(recall, dtype=np.float64)
+    if not 0.0 < target <= 1.0:
+        raise ValueError(f"target F1 must be in (0, 1], got {target}")
+    if n_labels <= 0:
+        raise ValueError(f"n_labels must be positive, got {n_labels}")
+    if np.any((recall < 0) | (recall > 1)):
+        raise ValueError(f"recall must lie in [0, 1], got {recall.min()}..{recall.max()}")
+    return n_labels * ((2.0 / target - 1.0) * recall - 1.0)
+
+
+def operating_points(evaluation: dict, target: float) -> dict:
+    """Per threshold: recall, false alarms per label and frame, F1, and the target's allowance.
+
+    ``evaluation`` is the object ``radarpc evaluate`` writes (its ``metrics`` hold per-threshold
+    ``tp``, ``fp``, ``fn`` and the split's ``n_labels`` and ``n_frames``).
+    """
+    m = evaluation["metrics"]
+    tp, fp, fn = (np.asarray(m[k], dtype=np.float64) for k in ("tp", "fp", "fn"))
+    n_labels, n_frames = int(m["n_labels"]), int(m["n_frames"])
+    if not np.all(tp + fn == n_labels):
+        raise ValueError(f"tp + fn per threshold {(tp + fn).tolist()} do not all equal n_labels {n_labels}")
+    recall = tp / n_labels
+    allowed = allowed_false_alarms(recall, n_labels, target)
+    return {
+        "split": evaluation["split"],
+        "n_labels": n_labels,
+        "n_frames": n_frames,
+        "target_f1": target,
+        "thresholds": list(m["thresholds"]),
+        "recall": recall.tolist(),
+        "false_alarms_per_label": (fp / n_labels).tolist(),
+        "false_alarms_per_frame": (fp / n_frames).tolist(),
+        "f1": (2 * tp / np.maximum(2 * tp + fp + fn, 1)).tolist(),
+        "false_alarms": fp.astype(int).tolist(),
+        "allowed_false_alarms": np.floor(np.maximum(allowed, -1)).astype(int).tolist(),  # -1: none suffice
+    }
+
+
+def _figure(results: list[dict], names: list[str], path: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    target = results[0]["target_f1"]
+    fig, ax = plt.subplots(figsize=(7.5, 5.2))
+    r = np.linspace(0, 1, 201)
+    # threshold 0.1 lies far above the rest; the axis ends a little above the 0.2 points
+    j = [int(np.argmin(np.abs(np.asarray(res["thresholds"]) - FIXED_THRESHOLD))) for res in results]
+    q_max = max(0.8, 1.3 * max(res["false_alarms_per_label"][i] for res, i in zip(results, j)))
+    for f1 in (0.5, 0.6, 0.7, 0.8, 0.9):
+        q = (2 / f1 - 1) * r - 1  # the F1 = f1 line
+        keep = q >= 0
+        ax.plot(r[keep], q[keep], color="0.75", lw=0.8, zorder=0)
+        i = np.argmin(np.abs(q - min(q_max * 0.9, q[-1])))
+        ax.annotate(f"F1 {f1:g}", (r[i], q[i]), fontsize=7, color="0.45", ha="right", va="bottom")
+    edge = np.maximum((2 / target - 1) * r - 1, 0)
+    ax.fill_between(r, 0, edge, color="tab:green", alpha=0.15, lw=0, label=f"F1 >= {target:g}")
+    colours = plt.get_cmap("tab10").colors
+    for k, (res, name) in enumerate(zip(results, names)):
+        th = np.asarray(res["thresholds"])
+        rec, q = np.asarray(res["recall"]), np.asarray(res["false_alarms_per_label"])
+        c = colours[k % 10]
+        ax.plot(rec, q, "-o", ms=3, color=c, label=f"{name} ({res['split']})")
+        j = int(np.argmin(np.abs(th - FIXED_THRESHOLD)))
+        ax.plot(rec[j], q[j], "s", ms=8, mfc="none", mec=c)
+    ax.plot([], [], "s", ms=8, mfc="none", mec="k", label=f"confidence {FIXED_THRESHOLD:g}")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, q_max)
+    ax.set_xlabel("recall (TP / labels)")
+    ax.set_ylabel("false alarms per label (FP / labels)")
+    ax.set_title("each curve: thresholds 0.1 (top right, may lie above) ... 0.9 (bottom left)", fontsize=9)
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("evaluations", nargs="+", help="eval_<split>.json files written by radarpc evaluate")
+    ap.add_argument("--target", type=float, default=0.8, help="the F1 to reach (default 0.8)")
+    ap.add_argument("--names", nargs="+", help="names in the figure (default: the files' run folders)")
+    ap.add_argument("--figure", help="write the operating curves over the target's region here")
+    args = ap.parse_args(argv)
+    if args.names and len(args.names) != len(args.evaluations):
+        ap.error(f"--names needs one name per file ({len(args.evaluations)}), got {len(args.names)}")
+    if not 0.0 < args.target <= 1.0:
+        ap.error(f"--target must be an F1 in (0, 1], got {args.target}")
+    results = []
+    for path in args.evaluations:
+        try:
+            evaluation = json.loads(Path(path).read_text())
+            res = operating_points(evaluation, args.target)
+        except (OSError, json.JSONDecodeError, KeyError, ValueError) as e:
+            raise SystemExit(f"{path}: expected an evaluation JSON written by radarpc evaluate "
+                             f"(metrics with per-threshold tp, fp, fn, n_labels, n_frames): {e!r}") from e
+        res["file"] = str(path)
+        print(json.dumps(res))
+        results.append(res)
+    if args.figure:
+        _figure(results, args.names or [Path(p).parent.name for p in args.evaluations], args.figure)
+
+
+if __name__ == "__main__":
+    main()
