@@ -13,8 +13,9 @@ a half-plane in the (recall, false alarms per label) plane that needs ``r >= t /
 without false alarms (0.667 for t = 0.8) and allows at most ``2 / t - 2`` false alarms per label
 at full recall (0.5). This script reads evaluation JSON files written by ``radarpc evaluate``
 (``RUN/eval_<split>.json``), prints for each and each threshold the recall, false alarms per label
-and frame, F1, and how many false alarms the target allows at that recall, and draws every file's
-thresholds as a curve over the target's region::
+and frame, F1, how many false alarms the target allows at that recall, and the share of true
+detections among those scored between the threshold and the next (a calibration check), and draws
+every file's thresholds as a curve over the target's region::
 
     python benchmarks/operating_points.py runs/sp/eval_test.json runs/pp/eval_test.json \\
         --names spectralpillars-s pointpillars-s --figure docs/results/figures/detection_operating_points.png
@@ -60,11 +61,40 @@ def allowed_false_alarms(recall: np.ndarray, n_labels: int, target: float) -> np
     return n_labels * ((2.0 / target - 1.0) * recall - 1.0)
 
 
-def operating_points(evaluation: dict, target: float) -> dict:
+def focal_implied_probability(score: np.ndarray, gamma: float) -> np.ndarray:
+    """The chance of being positive that a cell has when the focal loss is minimised at ``score``.
+
+    For a cell that is positive with probability ``q``, the expected focal loss
+    ``q (1 - p)^gamma (-log p) + (1 - q) p^gamma (-log(1 - p))`` is stationary where
+    ``q A(p) + (1 - q) B(p) = 0`` with ``A = d/dp (1 - p)^gamma (-log p)`` and
+    ``B = d/dp p^gamma (-log(1 - p))``, so ``q = B / (B - A)``: the inverse of the score a
+    perfectly trained model gives that cell. ``gamma = 0`` (cross-entropy) gives ``q = p``; RADIal's
+    ``gamma = 2`` gives ``q = 0.03`` at ``p = 0.2``.
+
+    Parameters
+    ----------
+    score : ndarray
+        Scores ``p`` in (0, 1), any shape.
+    gamma : float
+        Focusing exponent (>= 0).
+    """
+    p = np.asarray(score, dtype=np.float64)
+    if gamma < 0:
+        raise ValueError(f"gamma must be >= 0, got {gamma}")
+    if np.any((p <= 0) | (p >= 1)):
+        raise ValueError(f"scores must lie in (0, 1), got {p.min()}..{p.max()}")
+    log_p, log_q = -np.log(p), -np.log1p(-p)
+    a = -gamma * (1 - p) ** (gamma - 1) * log_p - (1 - p) ** gamma / p
+    b = gamma * p ** (gamma - 1) * log_q + p ** gamma / (1 - p)
+    return b / (b - a)
+
+
+def operating_points(evaluation: dict, target: float, gamma: float | None = None) -> dict:
     """Per threshold: recall, false alarms per label and frame, F1, and the target's allowance.
 
     ``evaluation`` is the object ``radarpc evaluate`` writes (its ``metrics`` hold per-threshold
-    ``tp``, ``fp``, ``fn`` and the split's ``n_labels`` and ``n_frames``).
+    ``tp``, ``fp``, ``fn`` and the split's ``n_labels`` and ``n_frames``); ``gamma``, the run's
+    focal exponent when known, adds the positive rate each threshold stands for under that loss.
     """
     m = evaluation["metrics"]
     tp, fp, fn = (np.asarray(m[k], dtype=np.float64) for k in ("tp", "fp", "fn"))
@@ -73,6 +103,8 @@ def operating_points(evaluation: dict, target: float) -> dict:
         raise ValueError(f"tp + fn per threshold {(tp + fn).tolist()} do not all equal n_labels {n_labels}")
     recall = tp / n_labels
     allowed = allowed_false_alarms(recall, n_labels, target)
+    band_tp = tp - np.append(tp[1:], 0)
+    band = band_tp + fp - np.append(fp[1:], 0)
     return {
         "split": evaluation["split"],
         "n_labels": n_labels,
@@ -85,19 +117,29 @@ def operating_points(evaluation: dict, target: float) -> dict:
         "f1": (2 * tp / np.maximum(2 * tp + fp + fn, 1)).tolist(),
         "false_alarms": fp.astype(int).tolist(),
         "allowed_false_alarms": np.floor(np.maximum(allowed, -1)).astype(int).tolist(),  # -1: none suffice
+        # the detections scored from each threshold up to the next (the last: and above): how
+        # many, and the share that are true; a calibrated score in [0.2, 0.3) would give ~0.25
+        "band_detections": band.astype(int).tolist(),
+        "band_precision": (band_tp / np.maximum(band, 1)).tolist(),
+        "focal_gamma": gamma,
+        "implied_probability": (None if gamma is None else
+                                focal_implied_probability(np.asarray(m["thresholds"]), gamma).tolist()),
     }
 
 
-def _figure(results: list[dict], names: list[str], path: str) -> None:
+def _at_fixed(res: dict) -> int:
+    return int(np.argmin(np.abs(np.asarray(res["thresholds"]) - FIXED_THRESHOLD)))
+
+
+def _figure(results: list[dict], names: list[str], path: str, q_max: float | None = None) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     target = results[0]["target_f1"]
-    fig, ax = plt.subplots(figsize=(7.5, 5.2))
+    fig, (ax, cal) = plt.subplots(1, 2, figsize=(13, 5.2), width_ratios=(1.3, 1))
     r = np.linspace(0, 1, 201)
-    # threshold 0.1 lies far above the rest; the axis ends a little above the 0.2 points
-    j = [int(np.argmin(np.abs(np.asarray(res["thresholds"]) - FIXED_THRESHOLD))) for res in results]
-    q_max = max(0.8, 1.3 * max(res["false_alarms_per_label"][i] for res, i in zip(results, j)))
+    if q_max is None:  # threshold 0.1 lies far above the rest; end a little above the 0.2 points
+        q_max = max(0.8, 1.3 * max(res["false_alarms_per_label"][_at_fixed(res)] for res in results))
     for f1 in (0.5, 0.6, 0.7, 0.8, 0.9):
         q = (2 / f1 - 1) * r - 1  # the F1 = f1 line
         keep = q >= 0
@@ -108,11 +150,10 @@ def _figure(results: list[dict], names: list[str], path: str) -> None:
     ax.fill_between(r, 0, edge, color="tab:green", alpha=0.15, lw=0, label=f"F1 >= {target:g}")
     colours = plt.get_cmap("tab10").colors
     for k, (res, name) in enumerate(zip(results, names)):
-        th = np.asarray(res["thresholds"])
         rec, q = np.asarray(res["recall"]), np.asarray(res["false_alarms_per_label"])
         c = colours[k % 10]
         ax.plot(rec, q, "-o", ms=3, color=c, label=f"{name} ({res['split']})")
-        j = int(np.argmin(np.abs(th - FIXED_THRESHOLD)))
+        j = _at_fixed(res)
         ax.plot(rec[j], q[j], "s", ms=8, mfc="none", mec=c)
     ax.plot([], [], "s", ms=8, mfc="none", mec="k", label=f"confidence {FIXED_THRESHOLD:g}")
     ax.set_xlim(0, 1)
@@ -121,6 +162,26 @@ def _figure(results: list[dict], names: list[str], path: str) -> None:
     ax.set_ylabel("false alarms per label (FP / labels)")
     ax.set_title("each curve: thresholds 0.1 (top right, may lie above) ... 0.9 (bottom left)", fontsize=9)
     ax.legend(fontsize=8, loc="upper left")
+
+    # right: the share of true detections in each score band against what the loss implies
+    grid = np.linspace(0.01, 0.99, 197)
+    cal.plot(grid, grid, color="0.6", lw=0.8, ls="--", label="cross-entropy (gamma 0): q = p")
+    for gamma in sorted({res["focal_gamma"] for res in results if res["focal_gamma"]}):
+        cal.plot(grid, focal_implied_probability(grid, gamma), color="0.3", lw=1,
+                 label=f"focal loss, gamma {gamma:g}: its minimiser")
+    for k, (res, name) in enumerate(zip(results, names)):
+        th = np.asarray(res["thresholds"])
+        hi = np.append(th[1:], 1.0)
+        for i, (a, b, prec, n) in enumerate(zip(th, hi, res["band_precision"], res["band_detections"])):
+            if n:
+                cal.plot([a, b], [prec, prec], color=colours[k % 10], lw=2,
+                         label=f"{name} ({res['split']})" if i == 0 else None)
+    cal.set_xlim(0, 1)
+    cal.set_ylim(0, 1)
+    cal.set_xlabel("detection score p (bands between thresholds)")
+    cal.set_ylabel("share of true detections in the band; loss: positive rate q")
+    cal.set_title("the score a fully trained model gives a cell positive with probability q", fontsize=9)
+    cal.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
@@ -133,6 +194,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--target", type=float, default=0.8, help="the F1 to reach (default 0.8)")
     ap.add_argument("--names", nargs="+", help="names in the figure (default: the files' run folders)")
     ap.add_argument("--figure", help="write the operating curves over the target's region here")
+    ap.add_argument("--ymax", type=float, help="top of the figure's false-alarm axis (default: above the 0.2 points)")
     args = ap.parse_args(argv)
     if args.names and len(args.names) != len(args.evaluations):
         ap.error(f"--names needs one name per file ({len(args.evaluations)}), got {len(args.names)}")
@@ -142,7 +204,10 @@ def main(argv: list[str] | None = None) -> None:
     for path in args.evaluations:
         try:
             evaluation = json.loads(Path(path).read_text())
-            res = operating_points(evaluation, args.target)
+            run_json = Path(path).parent / "run.json"  # the run folder's key, when the file sits in one
+            gamma = (json.loads(run_json.read_text())["experiment"]["loss"]["focal_gamma"]
+                     if run_json.exists() else None)
+            res = operating_points(evaluation, args.target, gamma)
         except (OSError, json.JSONDecodeError, KeyError, ValueError) as e:
             raise SystemExit(f"{path}: expected an evaluation JSON written by radarpc evaluate "
                              f"(metrics with per-threshold tp, fp, fn, n_labels, n_frames): {e!r}") from e
@@ -150,7 +215,7 @@ def main(argv: list[str] | None = None) -> None:
         print(json.dumps(res))
         results.append(res)
     if args.figure:
-        _figure(results, args.names or [Path(p).parent.name for p in args.evaluations], args.figure)
+        _figure(results, args.names or [Path(p).parent.name for p in args.evaluations], args.figure, args.ymax)
 
 
 if __name__ == "__main__":

@@ -6,6 +6,7 @@ import json
 import importlib.util
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -91,8 +92,26 @@ def test_operating_points_from_an_evaluation_file(tmp_path, capsys):
     assert res["f1"] == pytest.approx([18 / 25, 0.8])
     # at recall 0.9: 10 (1.5 x 0.9 - 1) = 3.5 -> 3 allowed; at 0.8: 2
     assert res["allowed_false_alarms"] == [3, 2]
+    # scored 0.2..0.5: 1 of 1 + 4 true; 0.5 and above: 8 of 10
+    assert res["band_detections"] == [5, 10] and res["band_precision"] == pytest.approx([0.2, 0.8])
+    assert res["implied_probability"] is None  # no run.json beside the file
     assert (tmp_path / "op.png").stat().st_size > 0
     ev["metrics"]["fn"] = [1, 1]
     path.write_text(json.dumps(ev))
     with pytest.raises(SystemExit, match="eval_test.json.*n_labels"):
         mod.main([str(path)])
+
+
+def test_focal_implied_probability_inverts_the_focal_minimiser():
+    from scipy.optimize import minimize_scalar
+    implied = _script("operating_points").focal_implied_probability
+    for gamma in (0.0, 1.0, 2.0):
+        for q in (0.003, 0.03, 0.2, 0.5, 0.8):
+            def expected_loss(p):
+                return q * (1 - p) ** gamma * -np.log(p) + (1 - q) * p ** gamma * -np.log1p(-p)
+            p_star = minimize_scalar(expected_loss, bounds=(1e-9, 1 - 1e-9), method="bounded",
+                                     options={"xatol": 1e-12}).x
+            # the inverse is smooth with slope below 3 here, so p* to 1e-8 gives q to ~1e-7
+            assert implied(p_star, gamma) == pytest.approx(q, abs=1e-6)
+    with pytest.raises(ValueError, match="scores"):
+        implied(np.array([0.0, 0.5]), 2.0)
