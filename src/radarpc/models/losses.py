@@ -36,7 +36,11 @@ class LossConfig:
 
     Attributes
     ----------
-    focal_gamma : focusing exponent of the focal loss
+    focal_gamma : focusing exponent of the focal loss. ``0`` is cross-entropy (up to the
+        ``1e-6``), RADIal's other classification loss. At ``2`` a fully trained model scores 0.2
+        on a cell that is positive 2.4 % of the time, so RADIal's fixed threshold 0.2 admits
+        mostly false detections; at ``0`` a score is that rate (``benchmarks/operating_points.py``
+        and ``docs/results/detection.md``).
     regression : ``"smooth_l1"`` or ``"l1"`` (what the official runs used, see the module docstring)
     weights : ``(classification, regression, freespace)`` multipliers
     """
