@@ -1,7 +1,8 @@
 """Where trained detectors operate against an F1 target: recall and false alarms per threshold.
 
 RADIal's F1 at one confidence threshold is ``2 TP / (2 TP + FP + FN)``. With ``L = TP + FN``
-labels, recall ``r = TP / L`` and ``q = FP / L`` false alarms per label it is
+(the labels, unless two detections hit one), recall ``r = TP / L`` and ``q = FP / L`` false
+alarms per label it is
 
     F1 = 2 r / (1 + r + q),
 
@@ -33,32 +34,33 @@ import numpy as np
 from radarpc.eval.detection import FIXED_THRESHOLD
 
 
-def allowed_false_alarms(recall: np.ndarray, n_labels: int, target: float) -> np.ndarray:
-    """The most false alarms at which F1 still reaches ``target`` with this recall.
+def allowed_false_alarms(tp: np.ndarray, fn: np.ndarray, target: float) -> np.ndarray:
+    """The most false alarms at which F1 still reaches ``target`` with these hits and misses.
+
+    ``2 TP / (2 TP + FP + FN) >= t`` holds exactly while ``FP <= 2 TP (1 / t - 1) - FN``; in
+    terms of ``L = TP + FN``, recall ``r`` and ``q = FP / L``: ``q <= (2 / t - 1) r - 1``.
 
     Parameters
     ----------
-    recall : ndarray
-        Recall ``TP / L`` in [0, 1], any shape.
-    n_labels : int
-        Labels ``L = TP + FN`` (> 0).
+    tp, fn : ndarray
+        True positives and missed labels (counts >= 0), broadcastable.
     target : float
         F1 to reach, in (0, 1].
 
     Returns
     -------
     ndarray
-        ``L ((2 / target - 1) recall - 1)``, negative where the recall alone keeps F1 below the
-        target.
+        The whole number of false alarms allowed; -1 where even none would do.
     """
-    recall = np.asarray(recall, dtype=np.float64)
+    tp, fn = np.asarray(tp, dtype=np.float64), np.asarray(fn, dtype=np.float64)
     if not 0.0 < target <= 1.0:
         raise ValueError(f"target F1 must be in (0, 1], got {target}")
-    if n_labels <= 0:
-        raise ValueError(f"n_labels must be positive, got {n_labels}")
-    if np.any((recall < 0) | (recall > 1)):
-        raise ValueError(f"recall must lie in [0, 1], got {recall.min()}..{recall.max()}")
-    return n_labels * ((2.0 / target - 1.0) * recall - 1.0)
+    if np.any(tp < 0) or np.any(fn < 0):
+        raise ValueError("tp and fn must be counts >= 0")
+    bound = 2 * tp * (1 / target - 1) - fn
+    # the bound is often a whole number (2 TP / t is, for t = 0.8 and even TP) that the float
+    # arithmetic leaves a few ulp below; counts are < 2^40, so 1e-6 cannot reach the next one
+    return np.maximum(np.floor(bound + 1e-6), -1).astype(np.int64)
 
 
 def focal_implied_probability(score: np.ndarray, gamma: float) -> np.ndarray:
@@ -66,10 +68,11 @@ def focal_implied_probability(score: np.ndarray, gamma: float) -> np.ndarray:
 
     For a cell that is positive with probability ``q``, the expected focal loss
     ``q (1 - p)^gamma (-log p) + (1 - q) p^gamma (-log(1 - p))`` is stationary where
-    ``q A(p) + (1 - q) B(p) = 0`` with ``A = d/dp (1 - p)^gamma (-log p)`` and
-    ``B = d/dp p^gamma (-log(1 - p))``, so ``q = B / (B - A)``: the inverse of the score a
-    perfectly trained model gives that cell. ``gamma = 0`` (cross-entropy) gives ``q = p``; RADIal's
-    ``gamma = 2`` gives ``q = 0.03`` at ``p = 0.2``.
+    ``q A(p) + (1 - q) B(p) = 0`` with ``A = d/dp (1 - p)^gamma (-log p) < 0`` and
+    ``B = d/dp p^gamma (-log(1 - p)) > 0``, so ``q = B / (B - A)``: the inverse of the score a
+    perfectly trained model gives that cell (a property of cells, not of detections after NMS).
+    ``gamma = 0`` (cross-entropy) gives ``q = p``; RADIal's ``gamma = 2`` gives ``q = 0.024`` at
+    ``p = 0.2``.
 
     Parameters
     ----------
@@ -77,58 +80,84 @@ def focal_implied_probability(score: np.ndarray, gamma: float) -> np.ndarray:
         Scores ``p`` in (0, 1), any shape.
     gamma : float
         Focusing exponent (>= 0).
+
+    Returns
+    -------
+    ndarray
+        ``q`` in (0, 1), the shape of ``score``; increasing in ``p``.
     """
     p = np.asarray(score, dtype=np.float64)
     if gamma < 0:
         raise ValueError(f"gamma must be >= 0, got {gamma}")
     if np.any((p <= 0) | (p >= 1)):
         raise ValueError(f"scores must lie in (0, 1), got {p.min()}..{p.max()}")
-    log_p, log_q = -np.log(p), -np.log1p(-p)
-    a = -gamma * (1 - p) ** (gamma - 1) * log_p - (1 - p) ** gamma / p
-    b = gamma * p ** (gamma - 1) * log_q + p ** gamma / (1 - p)
+    nlog_p, nlog_1mp = -np.log(p), -np.log1p(-p)
+    a = -gamma * (1 - p) ** (gamma - 1) * nlog_p - (1 - p) ** gamma / p
+    b = gamma * p ** (gamma - 1) * nlog_1mp + p ** gamma / (1 - p)
     return b / (b - a)
 
 
 def operating_points(evaluation: dict, target: float, gamma: float | None = None) -> dict:
     """Per threshold: recall, false alarms per label and frame, F1, and the target's allowance.
 
-    ``evaluation`` is the object ``radarpc evaluate`` writes (its ``metrics`` hold per-threshold
-    ``tp``, ``fp``, ``fn`` and the split's ``n_labels`` and ``n_frames``); ``gamma``, the run's
-    focal exponent when known, adds the positive rate each threshold stands for under that loss.
+    Parameters
+    ----------
+    evaluation : dict
+        What ``radarpc evaluate`` writes: ``split`` and ``metrics`` with ascending ``thresholds``,
+        per-threshold ``tp``, ``fp``, ``fn`` and the split's ``n_frames``.
+    target : float
+        F1 to reach, in (0, 1].
+    gamma : float, optional
+        The run's focal exponent; adds the positive rate each threshold stands for under it.
+
+    Returns
+    -------
+    dict
+        Per threshold (lists): ``recall`` ``TP / (TP + FN)``, ``false_alarms_per_label``
+        ``FP / (TP + FN)``, ``false_alarms_per_frame``, ``f1``, ``false_alarms``,
+        ``allowed_false_alarms`` (-1: the recall alone misses the target), ``band_detections`` and
+        ``band_precision`` (detections scored above this threshold and up to the next, and the
+        share of them that are true; None for an empty band), ``implied_probability`` (or None).
     """
     m = evaluation["metrics"]
+    th = np.asarray(m["thresholds"], dtype=np.float64)
     tp, fp, fn = (np.asarray(m[k], dtype=np.float64) for k in ("tp", "fp", "fn"))
-    n_labels, n_frames = int(m["n_labels"]), int(m["n_frames"])
-    if not np.all(tp + fn == n_labels):
-        raise ValueError(f"tp + fn per threshold {(tp + fn).tolist()} do not all equal n_labels {n_labels}")
-    recall = tp / n_labels
-    allowed = allowed_false_alarms(recall, n_labels, target)
+    if not (th.ndim == 1 and tp.shape == fp.shape == fn.shape == th.shape and len(th)):
+        raise ValueError(f"thresholds, tp, fp and fn must be lists of one length, got "
+                         f"{th.shape}, {tp.shape}, {fp.shape}, {fn.shape}")
+    if np.any(np.diff(th) <= 0):
+        raise ValueError(f"thresholds must ascend, got {th.tolist()}")
+    n_frames = int(m["n_frames"])
+    # a detection is kept above a threshold, so TP and FP only fall as it rises
+    if np.any(np.diff(tp) > 0) or np.any(np.diff(fp) > 0):
+        raise ValueError(f"tp {tp.tolist()} and fp {fp.tolist()} must not rise with the threshold")
+    labels = np.maximum(tp + fn, 1)  # RADIal's recall is TP / (TP + FN) at each threshold
     band_tp = tp - np.append(tp[1:], 0)
     band = band_tp + fp - np.append(fp[1:], 0)
     return {
         "split": evaluation["split"],
-        "n_labels": n_labels,
         "n_frames": n_frames,
         "target_f1": target,
-        "thresholds": list(m["thresholds"]),
-        "recall": recall.tolist(),
-        "false_alarms_per_label": (fp / n_labels).tolist(),
-        "false_alarms_per_frame": (fp / n_frames).tolist(),
+        "thresholds": th.tolist(),
+        "recall": (tp / labels).tolist(),
+        "false_alarms_per_label": (fp / labels).tolist(),
+        "false_alarms_per_frame": (fp / max(n_frames, 1)).tolist(),
         "f1": (2 * tp / np.maximum(2 * tp + fp + fn, 1)).tolist(),
         "false_alarms": fp.astype(int).tolist(),
-        "allowed_false_alarms": np.floor(np.maximum(allowed, -1)).astype(int).tolist(),  # -1: none suffice
-        # the detections scored from each threshold up to the next (the last: and above): how
-        # many, and the share that are true; a calibrated score in [0.2, 0.3) would give ~0.25
+        "allowed_false_alarms": allowed_false_alarms(tp, fn, target).tolist(),
+        # detections kept at threshold k but not at k + 1: scores in (t_k, t_k+1], the last band
+        # all above the top threshold
         "band_detections": band.astype(int).tolist(),
-        "band_precision": (band_tp / np.maximum(band, 1)).tolist(),
+        "band_precision": [float(t / n) if n else None for t, n in zip(band_tp, band)],
         "focal_gamma": gamma,
-        "implied_probability": (None if gamma is None else
-                                focal_implied_probability(np.asarray(m["thresholds"]), gamma).tolist()),
+        "implied_probability": None if gamma is None else focal_implied_probability(th, gamma).tolist(),
     }
 
 
-def _at_fixed(res: dict) -> int:
-    return int(np.argmin(np.abs(np.asarray(res["thresholds"]) - FIXED_THRESHOLD)))
+def _at_fixed(res: dict) -> int | None:
+    """Index of RADIal's fixed threshold 0.2 among the file's thresholds, if it is one of them."""
+    hit = np.flatnonzero(np.isclose(res["thresholds"], FIXED_THRESHOLD, rtol=0, atol=1e-9))
+    return int(hit[0]) if len(hit) else None
 
 
 def _figure(results: list[dict], names: list[str], path: str, q_max: float | None = None) -> None:
@@ -139,7 +168,8 @@ def _figure(results: list[dict], names: list[str], path: str, q_max: float | Non
     fig, (ax, cal) = plt.subplots(1, 2, figsize=(13, 5.2), width_ratios=(1.3, 1))
     r = np.linspace(0, 1, 201)
     if q_max is None:  # threshold 0.1 lies far above the rest; end a little above the 0.2 points
-        q_max = max(0.8, 1.3 * max(res["false_alarms_per_label"][_at_fixed(res)] for res in results))
+        at_fixed = [res["false_alarms_per_label"][j] for res in results if (j := _at_fixed(res)) is not None]
+        q_max = max([0.8] + [1.3 * q for q in at_fixed])
     for f1 in (0.5, 0.6, 0.7, 0.8, 0.9):
         q = (2 / f1 - 1) * r - 1  # the F1 = f1 line
         keep = q >= 0
@@ -153,8 +183,8 @@ def _figure(results: list[dict], names: list[str], path: str, q_max: float | Non
         rec, q = np.asarray(res["recall"]), np.asarray(res["false_alarms_per_label"])
         c = colours[k % 10]
         ax.plot(rec, q, "-o", ms=3, color=c, label=f"{name} ({res['split']})")
-        j = _at_fixed(res)
-        ax.plot(rec[j], q[j], "s", ms=8, mfc="none", mec=c)
+        if (j := _at_fixed(res)) is not None:
+            ax.plot(rec[j], q[j], "s", ms=8, mfc="none", mec=c)
     ax.plot([], [], "s", ms=8, mfc="none", mec="k", label=f"confidence {FIXED_THRESHOLD:g}")
     ax.set_xlim(0, 1)
     ax.set_ylim(0, q_max)
@@ -166,7 +196,7 @@ def _figure(results: list[dict], names: list[str], path: str, q_max: float | Non
     # right: the share of true detections in each score band against what the loss implies
     grid = np.linspace(0.01, 0.99, 197)
     cal.plot(grid, grid, color="0.6", lw=0.8, ls="--", label="cross-entropy (gamma 0): q = p")
-    for gamma in sorted({res["focal_gamma"] for res in results if res["focal_gamma"]}):
+    for gamma in sorted({res["focal_gamma"] for res in results if res["focal_gamma"]}):  # 0: the diagonal
         cal.plot(grid, focal_implied_probability(grid, gamma), color="0.3", lw=1,
                  label=f"focal loss, gamma {gamma:g}: its minimiser")
     for k, (res, name) in enumerate(zip(results, names)):
@@ -202,15 +232,20 @@ def main(argv: list[str] | None = None) -> None:
         ap.error(f"--target must be an F1 in (0, 1], got {args.target}")
     results = []
     for path in args.evaluations:
+        run_json = Path(path).parent / "run.json"  # the run folder's key, when the file sits in one
+        gamma = None
+        if run_json.exists():
+            try:
+                gamma = float(json.loads(run_json.read_text())["experiment"]["loss"]["focal_gamma"])
+            except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+                raise SystemExit(f"{run_json}: expected a run folder's run.json with "
+                                 f"experiment.loss.focal_gamma: {e!r}") from e
         try:
-            evaluation = json.loads(Path(path).read_text())
-            run_json = Path(path).parent / "run.json"  # the run folder's key, when the file sits in one
-            gamma = (json.loads(run_json.read_text())["experiment"]["loss"]["focal_gamma"]
-                     if run_json.exists() else None)
-            res = operating_points(evaluation, args.target, gamma)
-        except (OSError, json.JSONDecodeError, KeyError, ValueError) as e:
+            res = operating_points(json.loads(Path(path).read_text()), args.target, gamma)
+        except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
             raise SystemExit(f"{path}: expected an evaluation JSON written by radarpc evaluate "
-                             f"(metrics with per-threshold tp, fp, fn, n_labels, n_frames): {e!r}") from e
+                             f"(split, and metrics with ascending thresholds, per-threshold tp, fp, fn, "
+                             f"and n_frames): {e!r}") from e
         res["file"] = str(path)
         print(json.dumps(res))
         results.append(res)

@@ -65,16 +65,18 @@ def test_conv_gmac_counts_convolutions_and_transposed_convolutions():
 def test_allowed_false_alarms_on_hand_worked_counts():
     allowed = _script("operating_points").allowed_false_alarms
     # 100 labels, 80 found: F1 = 160 / (160 + FP + 20) >= 0.8 holds up to FP = 20
-    assert allowed(0.8, 100, 0.8) == pytest.approx(20.0, abs=1e-9)
+    assert allowed(80, 20, 0.8) == 20
+    # bounds that are whole numbers count in full: 1220 / (1220 + 68 + 237) = 0.8 exactly, and
+    # 12 / (12 + 2 + 1) = 0.8
+    assert allowed(610, 237, 0.8) == 68 and allowed(6, 1, 0.8) == 2
     # recall 2/3 reaches F1 0.8 only without false alarms; 0.6 not at all
-    assert allowed(2 / 3, 300, 0.8) == pytest.approx(0.0, abs=1e-9)
-    assert allowed(0.6, 100, 0.8) < 0
-    # full recall: FP <= L (2 / t - 2)
-    assert allowed(1.0, 50, 0.5) == pytest.approx(100.0, abs=1e-9)
+    assert allowed(200, 100, 0.8) == 0 and allowed(60, 40, 0.8) == -1
+    # full recall: FP <= TP (2 / t - 2)
+    assert allowed(50, 0, 0.5) == 100
     with pytest.raises(ValueError, match="target F1"):
-        allowed(0.5, 10, 1.2)
-    with pytest.raises(ValueError, match="recall"):
-        allowed(1.5, 10, 0.8)
+        allowed(5, 5, 1.2)
+    with pytest.raises(ValueError, match="counts"):
+        allowed(-1, 5, 0.8)
 
 
 def test_operating_points_from_an_evaluation_file(tmp_path, capsys):
@@ -90,22 +92,30 @@ def test_operating_points_from_an_evaluation_file(tmp_path, capsys):
     assert res["false_alarms_per_label"] == pytest.approx([0.6, 0.2])
     assert res["false_alarms_per_frame"] == pytest.approx([1.5, 0.5])
     assert res["f1"] == pytest.approx([18 / 25, 0.8])
-    # at recall 0.9: 10 (1.5 x 0.9 - 1) = 3.5 -> 3 allowed; at 0.8: 2
+    # at 0.2: FP <= 18 x 0.25 - 1 = 3.5 -> 3; at 0.5: 16 x 0.25 - 2 = 2
     assert res["allowed_false_alarms"] == [3, 2]
-    # scored 0.2..0.5: 1 of 1 + 4 true; 0.5 and above: 8 of 10
+    # scores in (0.2, 0.5]: 5 detections (1 true, 4 false); above 0.5: 10 (8 true)
     assert res["band_detections"] == [5, 10] and res["band_precision"] == pytest.approx([0.2, 0.8])
     assert res["implied_probability"] is None  # no run.json beside the file
     assert (tmp_path / "op.png").stat().st_size > 0
-    ev["metrics"]["fn"] = [1, 1]
-    path.write_text(json.dumps(ev))
-    with pytest.raises(SystemExit, match="eval_test.json.*n_labels"):
+    # a run folder's focal exponent is read from its run.json
+    (tmp_path / "run.json").write_text(json.dumps({"experiment": {"loss": {"focal_gamma": 0.0}}}))
+    mod.main([str(path)])
+    assert json.loads(capsys.readouterr().out)["implied_probability"] == pytest.approx([0.2, 0.5])
+    (tmp_path / "run.json").write_text(json.dumps({"experiment": {}}))
+    with pytest.raises(SystemExit, match="run.json.*focal_gamma"):
         mod.main([str(path)])
+    (tmp_path / "run.json").unlink()
+    for bad in ({"thresholds": [0.5, 0.2]}, {"tp": [9]}, {"fp": [2, 6]}):
+        path.write_text(json.dumps({"split": "test", "metrics": {**ev["metrics"], **bad}}))
+        with pytest.raises(SystemExit, match="eval_test.json.*expected an evaluation JSON"):
+            mod.main([str(path)])
 
 
 def test_focal_implied_probability_inverts_the_focal_minimiser():
     from scipy.optimize import minimize_scalar
     implied = _script("operating_points").focal_implied_probability
-    for gamma in (0.0, 1.0, 2.0):
+    for gamma in (0.0, 0.5, 1.0, 2.0):
         for q in (0.003, 0.03, 0.2, 0.5, 0.8):
             def expected_loss(p):
                 return q * (1 - p) ** gamma * -np.log(p) + (1 - q) * p ** gamma * -np.log1p(-p)
@@ -115,3 +125,5 @@ def test_focal_implied_probability_inverts_the_focal_minimiser():
             assert implied(p_star, gamma) == pytest.approx(q, abs=1e-6)
     with pytest.raises(ValueError, match="scores"):
         implied(np.array([0.0, 0.5]), 2.0)
+    with pytest.raises(ValueError, match="gamma"):
+        implied(0.5, -1.0)

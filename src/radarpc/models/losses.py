@@ -37,10 +37,10 @@ class LossConfig:
     Attributes
     ----------
     focal_gamma : focusing exponent of the focal loss. ``0`` is cross-entropy (up to the
-        ``1e-6``), RADIal's other classification loss. At ``2`` a fully trained model scores 0.2
-        on a cell that is positive 2.4 % of the time, so RADIal's fixed threshold 0.2 admits
-        mostly false detections; at ``0`` a score is that rate (``benchmarks/operating_points.py``
-        and ``docs/results/detection.md``).
+        ``1e-6``), RADIal's other classification loss. At ``2`` the loss is smallest, for a cell
+        that is positive 2.4 % of the time, at score 0.2 (at ``0``, at 0.024), so RADIal's fixed
+        threshold 0.2 can admit many weak detections (``benchmarks/operating_points.py``;
+        measured in ``docs/results/detection.md``).
     regression : ``"smooth_l1"`` or ``"l1"`` (what the official runs used, see the module docstring)
     weights : ``(classification, regression, freespace)`` multipliers
     """
