@@ -1,7 +1,7 @@
 """Helpers of the benchmark scripts on hand-worked cases: ``bf16_detections.py``'s pairing of two
 precisions' detections (the script itself runs on a trained tiny run in
 tests/training/test_radial_experiment.py), ``fftradnet_official.py``'s MAC count and
-``operating_points.py``'s F1 allowance."""
+``operating_points.py``'s F1 allowance and ``box_offsets.py``'s failing axis."""
 import json
 import importlib.util
 from pathlib import Path
@@ -127,3 +127,30 @@ def test_focal_implied_probability_inverts_the_focal_minimiser():
         implied(np.array([0.0, 0.5]), 2.0)
     with pytest.raises(ValueError, match="gamma"):
         implied(0.5, -1.0)
+
+
+def test_failing_axis_on_hand_worked_offsets_and_against_box_iou():
+    from radarpc.models.targets import box_iou
+    failing_axis = _script("box_offsets").failing_axis
+    # 1.8 m x 4 m boxes match while (1.8 - |dx|)(4 - |dy|) >= 4.8: alone |dx| <= 0.6, |dy| <= 4 / 3
+    got = failing_axis(np.array([0.59, 0.61, 0.0, 0.0, 0.5, 0.7, -0.3]), np.array([0.0, 0.0, 1.3, -1.4, 1.0, 1.5, 0.5]))
+    assert got.tolist() == ["match", "x", "match", "y", "x+y", "x,y", "match"]
+    # against the metric's own IoU on random offsets (closed-form boxes, an independent formula)
+    g = torch.Generator().manual_seed(0)
+    d = (torch.rand(2000, 2, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([3.0, 6.0], dtype=torch.float64)
+    zero = torch.zeros(1, 2, dtype=torch.float64)
+
+    def iou(off):
+        return box_iou(off, zero)[:, 0].numpy()
+
+    full, x_only, y_only = iou(d), iou(d * torch.tensor([1.0, 0.0])), iou(d * torch.tensor([0.0, 1.0]))
+    # keep clear of the boundary, where the two formulas may round differently
+    clear = (np.abs(full - 0.5) > 1e-9) & (np.abs(x_only - 0.5) > 1e-9) & (np.abs(y_only - 0.5) > 1e-9)
+    axis = failing_axis(d[:, 0].numpy(), d[:, 1].numpy())[clear]
+    full, x_ok, y_ok = full[clear] >= 0.5, x_only[clear] >= 0.5, y_only[clear] >= 0.5
+    assert ((axis == "match") == full).all()
+    assert ((axis == "x") == (~full & ~x_ok & y_ok)).all() and ((axis == "y") == (~full & x_ok & ~y_ok)).all()
+    assert ((axis == "x+y") == (~full & x_ok & y_ok)).all() and ((axis == "x,y") == (~x_ok & ~y_ok)).all()
+    assert {"match", "x", "y", "x+y", "x,y"} <= set(axis.tolist())
+    with pytest.raises(ValueError, match="iou_threshold"):
+        failing_axis(0.0, 0.0, 1.0)

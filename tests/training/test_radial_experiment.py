@@ -215,6 +215,18 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     assert {t: c["fp32"] for t, c in by_t.items()} == {t: int((scores >= float(t)).sum()) for t in by_t}
     assert bd["matched"]["pairs"] == by_t["0.05"]["fp32"] - by_t["0.05"]["fp32_unpaired"]
     assert bd["cells"]["cells"] == 3 * 128 * 224 and bd["cells"]["max_logit_diff"] >= 0
+    # where the eager run's boxes sit against its labels (benchmarks/box_offsets.py): the same
+    # labels, misses and near misses at 0.2 as the metrics count
+    script_box = Path(__file__).parents[2] / "benchmarks" / "box_offsets.py"
+    res = subprocess.run([sys.executable, str(script_box), str(eager), "--figure", str(tmp_path / "box.png")],
+                         capture_output=True, text=True, check=True)
+    bo = json.loads(res.stdout)
+    em = json.loads((eager / "eval_test.json").read_text())["metrics"]
+    assert bo["labels"] == em["n_labels"] > 0 and bo["labels"] - bo["matched"] == em["fn_fixed"]
+    assert bo["near_miss"] == em["fn_near_fixed"] == sum(bo["near_miss_by_axis"].values())
+    assert bo["labels"] == bo["matched"] + bo["near_miss"] + bo["far_miss"]
+    assert sum(b["labels"] for b in bo["by_range_m"].values()) == bo["labels"]
+    assert (tmp_path / "box.png").stat().st_size > 1000
     # a root whose labels the simulator does not regenerate is refused, even where no frame has a
     # false alarm (the one-epoch run: nothing above 0.9)
     moved = tmp_path / "moved"
