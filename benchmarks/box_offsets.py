@@ -32,6 +32,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from radarpc.eval.detection import FIXED_THRESHOLD, IOU_THRESHOLD, NEAR_MISS_M, match_frame
+from radarpc.io import atomic_write
 from radarpc.experiments.detection import load_trained
 from radarpc.models.targets import BOX_LENGTH_M, BOX_WIDTH_M, decode_detections
 from radarpc.training.radial import DECODE_THRESHOLD, collate_detection, detection_dataset
@@ -150,7 +151,8 @@ def _figure(o: dict, title: str, path: str) -> None:
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    with atomic_write(path, "wb") as f:  # a reader never sees half a figure
+        fig.savefig(f, format="png", dpi=120)
     plt.close(fig)
 
 
