@@ -7,8 +7,8 @@ separates vehicles from the rest; this script runs a trained run's frames on the
 under bf16 autocast (the same weights) and prints one JSON object with, over the frames:
 
 * ``by_threshold``: for the decoding threshold 0.05 and each of RADIal's confidence thresholds
-  0.1 ... 0.9 (the metrics see only detections at or above these), the detections at or above it
-  in each precision, those left without a partner in the other (pairs: one to one, nearest first,
+  0.1 ... 0.9 (the metrics see only detections above these), the detections above it in each
+  precision, those left without a partner in the other (pairs: one to one, nearest first,
   within half a cell: 0.4 m in range and 0.4 deg in azimuth), and the frames where every detection
   has its partner (``frames_same``);
 * ``matched``: over the pairs at 0.05, the largest score, range and azimuth differences;
@@ -60,8 +60,9 @@ def pair_detections(a: Detections, b: Detections, half_cell: tuple[float, float]
 
 
 def _above(d: Detections, t: float) -> Detections:
-    """The detections of one frame with score ``>= t``."""
-    keep = d.score >= t
+    """The detections of one frame with score ``> t``, compared in float64 as the metrics do
+    (:func:`radarpc.eval.detection.match_frame`)."""
+    keep = d.score.double() > t
     return Detections(d.score[keep], d.range_m[keep], d.azimuth_deg[keep], d.offset.new_tensor([int(keep.sum())]))
 
 

@@ -71,8 +71,8 @@ def failing_axis(dx: np.ndarray, dy: np.ndarray, iou_threshold: float = IOU_THRE
 
 def label_offsets(run: str, split: str, threshold: float) -> dict:
     """Per gated label of ``run``'s ``split``: range, nearest detection above ``threshold``
-    (offsets ``dx``, ``dy``, range and azimuth differences; NaN without one), and whether some
-    detection matches it."""
+    (offsets ``dx``, ``dy``, range and azimuth differences; NaN without one), whether some
+    detection matches it, and whether it is a near miss."""
     cfg, model, key = load_trained(run, "cpu")
     ds = detection_dataset(cfg, key["data"], key.get("points"), split)
     # batch 4 without a candidate cap, as radarpc evaluate scores
@@ -87,27 +87,29 @@ def label_offsets(run: str, split: str, threshold: float) -> dict:
                 labels = batch.labels[(l_end[f - 1] if f else 0):l_end[f]]
                 m = match_frame(d.score, d.range_m, d.azimuth_deg, labels)
                 keep = m.score > threshold
-                hit = m.hit[keep]                                               # (K, M)
-                xy_d, xy_l = m.xy[keep], m.label_xy
-                for j in range(len(xy_l)):
-                    row = [float(m.label_range_m[j]), bool(hit[:, j].any())] + [float("nan")] * 4
-                    if len(xy_d):
-                        dist = (xy_d - xy_l[j]).norm(dim=1)
-                        i = int(dist.argmin())
-                        row[2:] = [float(xy_d[i, 0] - xy_l[j, 0]), float(xy_d[i, 1] - xy_l[j, 1]),
-                                   float(m.range_m[keep][i] - m.label_range_m[j]),
-                                   float(m.azimuth_deg[keep][i] - m.label_azimuth_deg[j])]
-                    rows.append(row)
-    a = np.asarray(rows, dtype=np.float64).reshape(-1, 6)
-    return {"range_m": a[:, 0], "matched": a[:, 1] > 0, "dx": a[:, 2], "dy": a[:, 3],
-            "d_range_m": a[:, 4], "d_azimuth_deg": a[:, 5], "model": cfg.name,
-            "azimuth_cell_deg": cfg.targets.azimuth_cell_deg}
+                n_lab = len(m.label_xy)
+                row = torch.full((n_lab, 6), float("nan"), dtype=torch.float64)
+                row[:, 0] = m.label_range_m
+                row[:, 1] = m.hit[keep].any(0).double()                          # (M,)
+                if keep.any():
+                    dist = torch.cdist(m.xy[keep], m.label_xy, compute_mode="donot_use_mm_for_euclid_dist")
+                    i = dist.argmin(0)                                           # nearest detection per label
+                    row[:, 2:4] = m.xy[keep][i] - m.label_xy
+                    row[:, 4] = m.range_m[keep][i] - m.label_range_m
+                    row[:, 5] = m.azimuth_deg[keep][i] - m.label_azimuth_deg
+                rows.append(row)
+    a = torch.cat(rows).numpy() if rows else np.zeros((0, 6))
+    matched = a[:, 1] > 0
+    return {"range_m": a[:, 0], "matched": matched, "dx": a[:, 2], "dy": a[:, 3],
+            "d_range_m": a[:, 4], "d_azimuth_deg": a[:, 5],
+            # missed with a detection within NEAR_MISS_M (NaN, no detection, compares False)
+            "near": ~matched & (np.hypot(a[:, 2], a[:, 3]) <= NEAR_MISS_M),
+            "model": cfg.name, "azimuth_cell_deg": cfg.targets.azimuth_cell_deg}
 
 
 def summarise(o: dict) -> dict:
     """Counts and medians of :func:`label_offsets` (see the module docstring)."""
-    dist = np.hypot(o["dx"], o["dy"])
-    near = ~o["matched"] & (dist <= NEAR_MISS_M)                             # NaN compares False
+    near = o["near"]
     axis = failing_axis(np.nan_to_num(o["dx"], nan=99.0), np.nan_to_num(o["dy"], nan=99.0))
 
     def counts(sel: np.ndarray) -> dict:
@@ -133,8 +135,7 @@ def _figure(o: dict, title: str, path: str) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    dist = np.hypot(o["dx"], o["dy"])
-    near = ~o["matched"] & (dist <= NEAR_MISS_M)
+    near = o["near"]
     fig, ax = plt.subplots(figsize=(6.5, 6))
     gx, gy = np.meshgrid(np.linspace(-3, 3, 601), np.linspace(-3, 3, 601))
     inside = (failing_axis(gx, gy) == "match").astype(float)

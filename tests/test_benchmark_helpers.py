@@ -2,8 +2,8 @@
 precisions' detections (the script itself runs on a trained tiny run in
 tests/training/test_radial_experiment.py), ``fftradnet_official.py``'s MAC count and
 ``operating_points.py``'s F1 allowance and ``box_offsets.py``'s failing axis."""
-import json
 import importlib.util
+import json
 from pathlib import Path
 
 import numpy as np
