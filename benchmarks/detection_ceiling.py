@@ -10,6 +10,15 @@ For every label of a split (RADIal's 5..100 m gate) this measures, on the store'
 
 and, over all points, the share within 3 m of some label: the vehicle returns among the clutter.
 
+Where the points put a box across (``placement_by_range_m``, by label range 0-30, 30-60, >= 60 m):
+a box matches (IoU >= 0.5, no error along) only within ``W / 3 = 0.6 m`` of the label across, so
+for the points inside each label's box grown by that much on every side, it gives the share of
+labels whose points place the box that well by three rules: the centre of their extent across,
+the strongest point, and the power-weighted centroid. The grown box is centred on the truth, so
+these shares are optimistic for a detector, which must find the vehicle first; they say whether
+the points carry the vehicle's position across at all (``benchmarks/vehicle_glint.py`` gives the
+physics of one rear face).
+
 A label without a point within a few metres can only be found by guessing, so the share of labels
 with a point nearby bounds the recall of any point-cloud detector on that store, and the share
 with a matching point is what a detector that does not learn offsets can reach. Several stores
@@ -37,15 +46,86 @@ import torch
 
 from radarpc.data.point_dataset import PointCloudDataset
 from radarpc.eval.detection import IOU_THRESHOLD, RANGE_GATE_M
-from radarpc.models.targets import box_iou, ra_to_box_xy
+from radarpc.io import atomic_write
+from radarpc.models.targets import BOX_LENGTH_M, BOX_WIDTH_M, box_iou, ra_to_box_xy
 
 RADII_M = (1.0, 2.0, 3.0, 5.0)
+LABEL_RANGE_BINS_M = (30.0, 60.0)                        # as benchmarks/box_offsets.py
+# across, a box matches a label at IoU 0.5 within W (1 - t) / (1 + t) = W / 3
+LATERAL_TOLERANCE_M = BOX_WIDTH_M * (1 - IOU_THRESHOLD) / (1 + IOU_THRESHOLD)
+PLACEMENT_RULES = ("extent_centre", "strongest_point", "power_centroid")
+
+
+def lateral_placement(label_xy: torch.Tensor, point_xy: torch.Tensor, amplitude: torch.Tensor,
+                      grow_m: float = LATERAL_TOLERANCE_M) -> torch.Tensor:
+    """How one frame's points place each label's box across.
+
+    Parameters
+    ----------
+    label_xy : Tensor ``(L, 2)``
+        Labels' near-edge centres in RADIal's box frame (``x`` across, ``y`` along the boresight).
+    point_xy : Tensor ``(N, 2)``
+        The frame's points in the same frame.
+    amplitude : Tensor ``(N,)``
+        The points' amplitudes (``Ae``), non-negative.
+    grow_m : float
+        Margin by which each label's ``W x L`` box is grown on every side, >= 0.
+
+    Returns
+    -------
+    Tensor ``(L, 4)``, float64
+        Per label: the number of points inside its grown box, then the offset across (point minus
+        label, m) of the centre of their extent, of the strongest of them, and of their centroid
+        weighted by ``amplitude**2``; NaN offsets where no point is inside.
+    """
+    if label_xy.ndim != 2 or label_xy.shape[1] != 2 or point_xy.ndim != 2 or point_xy.shape[1] != 2:
+        raise ValueError(f"label_xy and point_xy must be (L, 2) and (N, 2), got {tuple(label_xy.shape)} "
+                         f"and {tuple(point_xy.shape)}")
+    if amplitude.shape != point_xy.shape[:1]:
+        raise ValueError(f"amplitude must be ({point_xy.shape[0]},), got {tuple(amplitude.shape)}")
+    if grow_m < 0:
+        raise ValueError(f"grow_m must be >= 0, got {grow_m}")
+    if len(point_xy) == 0:
+        out = torch.full((len(label_xy), 4), float("nan"), dtype=torch.float64)
+        out[:, 0] = 0
+        return out
+    d = point_xy.double()[None] - label_xy.double()[:, None]                     # (L, N, 2)
+    dx = d[..., 0]
+    inside = (dx.abs() <= BOX_WIDTH_M / 2 + grow_m) & (d[..., 1] >= -grow_m) & (d[..., 1] <= BOX_LENGTH_M + grow_m)
+    n = inside.sum(1)
+    inf = torch.tensor(float("inf"), dtype=torch.float64)
+    extent = (torch.where(inside, dx, inf).amin(1) + torch.where(inside, dx, -inf).amax(1)) / 2
+    power = torch.where(inside, amplitude.double()[None] ** 2, torch.zeros((), dtype=torch.float64))  # (L, N)
+    strongest = dx.gather(1, power.argmax(1, keepdim=True))[:, 0]
+    centroid = (power * dx).sum(1) / power.sum(1)
+    out = torch.stack([n.double(), extent, strongest, centroid], 1)
+    out[n == 0, 1:] = float("nan")
+    return out
+
+
+def placement_summary(range_m: np.ndarray, placement: np.ndarray, tolerance_m: float = LATERAL_TOLERANCE_M) -> dict:
+    """Counts and shares of :func:`lateral_placement` rows, overall and by label range."""
+    edges = (0.0,) + LABEL_RANGE_BINS_M + (np.inf,)
+
+    def one(sel: np.ndarray) -> dict:
+        p = placement[sel]
+        return {"labels": int(sel.sum()),
+                "median_points_in_grown_box": float(np.median(p[:, 0])) if len(p) else float("nan"),
+                "share_without_a_point": float(np.mean(p[:, 0] == 0)) if len(p) else float("nan"),
+                "share_placed_within_tolerance": {
+                    rule: float(np.mean(np.abs(p[:, 1 + k]) <= tolerance_m)) if len(p) else float("nan")
+                    for k, rule in enumerate(PLACEMENT_RULES)}}  # NaN (no point) compares False
+
+    return {"all": one(np.ones(len(range_m), bool)),
+            **{(f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}"): one((range_m >= lo) & (range_m < hi))
+               for lo, hi in zip(edges[:-1], edges[1:])}}
 
 
 def label_reach(points: str, data: str, split: str) -> dict:
     """Per-label reach statistics of one store (see the module docstring)."""
     ds = PointCloudDataset(points, data, split=split, difficult=True)
     nearest, matched, support, n_points, on_vehicle = [], [], [], [], 0
+    label_range, placement = [], []
     for i in range(len(ds)):
         item = ds[i]
         p, lab = item.points, item.labels
@@ -54,12 +134,14 @@ def label_reach(points: str, data: str, split: str) -> dict:
         if len(lab) == 0:
             continue
         xy_lab = ra_to_box_xy(lab[:, 0].double(), lab[:, 1].double())              # (L, 2)
+        xy_pt = ra_to_box_xy(p.range_m.double(), p.azimuth_deg.double())          # (N, 2)
+        label_range.append(lab[:, 0].double())
+        placement.append(lateral_placement(xy_lab, xy_pt, p.amplitude))
         if p.num_points == 0:
             nearest += [np.inf] * len(lab)
             matched += [False] * len(lab)
             support += [0] * len(lab)
             continue
-        xy_pt = ra_to_box_xy(p.range_m.double(), p.azimuth_deg.double())          # (N, 2)
         d = torch.cdist(xy_lab, xy_pt)                                             # (L, N)
         nearest += d.min(1).values.tolist()
         on_vehicle += int((d < 3.0).any(0).sum())
@@ -67,6 +149,8 @@ def label_reach(points: str, data: str, split: str) -> dict:
         iou = box_iou(xy_lab, xy_pt)                                               # (L, N)
         matched += (iou >= IOU_THRESHOLD).any(1).tolist()
     nearest = np.asarray(nearest)
+    label_range = torch.cat(label_range).numpy() if label_range else np.zeros(0)
+    placement = torch.cat(placement).numpy() if placement else np.zeros((0, 4))
     return {
         "points": str(points), "split": split, "frames": len(ds), "labels": int(nearest.size),
         "points_per_frame": float(np.mean(n_points)) if n_points else 0.0,
@@ -75,12 +159,16 @@ def label_reach(points: str, data: str, split: str) -> dict:
         "median_nearest_m": float(np.median(nearest)) if nearest.size else float("nan"),
         "median_points_within_3m": float(np.median(support)) if support else float("nan"),
         "share_of_points_within_3m_of_a_label": on_vehicle / max(sum(n_points), 1),
+        "lateral_tolerance_m": LATERAL_TOLERANCE_M,
+        "placement_by_range_m": placement_summary(label_range, placement),
+        "_label_range": label_range,
+        "_placement": placement,
         "_nearest": nearest,
         "_support": np.asarray(support),
     }
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", nargs="+", required=True,
                     help="RADIal root (labels) of every store, or one root per store")
@@ -88,8 +176,8 @@ def main() -> None:
     ap.add_argument("--split", default="test")
     ap.add_argument("--figure", default=None,
                     help="PNG: cumulative shares of labels against the distance to the nearest point "
-                         "and against the number of points within 3 m")
-    args = ap.parse_args()
+                         "and against the number of points within 3 m, and the placement shares by range")
+    args = ap.parse_args(argv)
     if len(args.data) not in (1, len(args.points)):
         ap.error(f"--data takes one root or one per store ({len(args.points)}), got {len(args.data)}")
     roots = args.data * len(args.points) if len(args.data) == 1 else args.data
@@ -101,26 +189,38 @@ def main() -> None:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        fig, (ax, ax_n) = plt.subplots(1, 2, figsize=(11, 4))
+        fig, (ax, ax_n, ax_p) = plt.subplots(1, 3, figsize=(16, 4))
         grid = np.linspace(0, 10, 201)
         counts = np.arange(0, 31)
+        edges = np.arange(0.0, 101.0, 10.0)
         for r in results:
             share = [(r["_nearest"] <= g).mean() for g in grid]
             label = f"{Path(r['points']).name} ({r['points_per_frame']:.0f} points/frame)"
-            ax.plot(grid, share, label=label)
+            line, = ax.plot(grid, share, label=label)
             ax_n.step(counts, [(r["_support"] >= n).mean() for n in counts], where="post", label=label)
+            placed = np.abs(r["_placement"][:, 1:]) <= LATERAL_TOLERANCE_M                  # (L, 3)
+            b = np.digitize(r["_label_range"], edges) - 1
+            has = [k for k in range(len(edges) - 1) if (b == k).any()]
+            centres = [(edges[k] + edges[k + 1]) / 2 for k in has]
+            for j, style in ((0, "-"), (1, "--")):
+                ax_p.plot(centres, [placed[b == k, j].mean() for k in has], style, color=line.get_color(),
+                          marker="o", ms=3, label=f"{PLACEMENT_RULES[j].replace('_', ' ')}, {Path(r['points']).name}")
         ax.axvline(0.6, color="0.6", ls=":", lw=1)
         ax.set(xlabel="distance from a label to the nearest point of its frame [m]",
                ylabel="share of labels", ylim=(0, 1), xlim=(0, 10),
                title=f"{args.split} split: labels within reach of the points")
         ax_n.set(xlabel="n", ylabel="share of labels with >= n points within 3 m", ylim=(0, 1),
                  xlim=(0, counts[-1]), title="support a detector has to place each box")
-        for a in (ax, ax_n):
+        ax_p.set(xlabel="label range [m] (10 m bins)", ylim=(0, 1), xlim=(0, 100),
+                 ylabel=f"share of labels placed within {LATERAL_TOLERANCE_M:.1f} m across",
+                 title="what the points say of the position across")
+        for a in (ax, ax_n, ax_p):
             a.grid(alpha=0.3)
-            a.legend(fontsize=8, loc="lower right" if a is ax else "upper right")
-        Path(args.figure).parent.mkdir(parents=True, exist_ok=True)
+            a.legend(fontsize=7, loc={ax: "lower right", ax_n: "upper right", ax_p: "lower left"}[a])
         fig.tight_layout()
-        fig.savefig(args.figure, dpi=100)
+        with atomic_write(args.figure, "wb") as f:  # a reader never sees half a figure
+            fig.savefig(f, format="png", dpi=100)
+        plt.close(fig)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
 """Helpers of the benchmark scripts on hand-worked cases: ``bf16_detections.py``'s pairing of two
 precisions' detections (the script itself runs on a trained tiny run in
 tests/training/test_radial_experiment.py), ``fftradnet_official.py``'s MAC count and
-``operating_points.py``'s F1 allowance and ``box_offsets.py``'s failing axis."""
+``operating_points.py``'s F1 allowance, ``box_offsets.py``'s failing axis,
+``detection_ceiling.py``'s placement of boxes from points and ``vehicle_glint.py``'s beamformer."""
 import importlib.util
 import json
 from pathlib import Path
@@ -154,3 +155,68 @@ def test_failing_axis_on_hand_worked_offsets_and_against_box_iou():
     assert {"match", "x", "y", "x+y", "x,y"} <= set(axis.tolist())
     with pytest.raises(ValueError, match="iou_threshold"):
         failing_axis(0.0, 0.0, 1.0)
+
+
+def test_lateral_placement_on_a_hand_worked_frame():
+    ceiling = _script("detection_ceiling")
+    assert ceiling.LATERAL_TOLERANCE_M == pytest.approx(0.6, abs=1e-12)
+    labels = torch.tensor([[0.0, 50.0], [10.0, 20.0]], dtype=torch.float64)
+    # label 0's box grown by 0.6 m: |dx| <= 1.5, -0.6 <= dy <= 4.6; the last two points lie outside it
+    points = torch.tensor([[-0.9, 51.0], [0.9, 53.0], [0.3, 49.5], [1.6, 51.0], [0.0, 54.7]], dtype=torch.float64)
+    amp = torch.tensor([2.0, 1.0, 1.0, 9.0, 9.0])
+    got = ceiling.lateral_placement(labels, points, amp)
+    # extent centre (-0.9 + 0.9) / 2 = 0; strongest -0.9; power centroid (-0.9 * 4 + 0.9 + 0.3) / 6 = -0.4
+    assert got[0].tolist() == pytest.approx([3, 0.0, -0.9, -0.4], abs=1e-12)
+    assert got[1, 0] == 0 and torch.isnan(got[1, 1:]).all()
+    assert torch.isnan(ceiling.lateral_placement(labels, torch.zeros(0, 2), torch.zeros(0))[:, 1:]).all()
+    with pytest.raises(ValueError, match="amplitude"):
+        ceiling.lateral_placement(labels, points, amp[:2])
+    # a label without a point counts as not placed; shares by label range
+    rows = np.array([[3, 0.0, -0.9, -0.4], [0, np.nan, np.nan, np.nan], [1, 0.7, 0.7, 0.7]])
+    s = ceiling.placement_summary(np.array([50.0, 20.0, 70.0]), rows)
+    assert s["all"]["labels"] == 3 and s["all"]["share_without_a_point"] == pytest.approx(1 / 3)
+    assert s["all"]["share_placed_within_tolerance"] == pytest.approx(
+        {"extent_centre": 1 / 3, "strongest_point": 0.0, "power_centroid": 1 / 3})
+    assert s["30-60"]["share_placed_within_tolerance"]["extent_centre"] == 1.0
+    assert s["0-30"]["labels"] == 1 and s[">=60"]["share_placed_within_tolerance"]["extent_centre"] == 0.0
+
+
+def test_vehicle_glint_tolerance_beamwidth_and_peaks():
+    from radarpc.models.targets import box_iou
+    from radarpc.sensors.radial import radial_sensor
+    from radarpc.sim.radial_calibration import make_calibration
+    glint = _script("vehicle_glint")
+    # the tolerance across is where the metric's own IoU crosses 0.5
+    tol = glint.lateral_tolerance_m(0.5)
+    iou = box_iou(torch.tensor([[tol - 1e-9, 50.0], [tol + 1e-9, 50.0]], dtype=torch.float64),
+                  torch.tensor([[0.0, 50.0]], dtype=torch.float64))[:, 0]
+    assert iou[0] >= 0.5 > iou[1]
+    cfg = radial_sensor("radial")
+    b = make_calibration(cfg).dictionary()
+    step = float(cfg.azimuth_table_deg[1] - cfg.azimuth_table_deg[0])
+    # -3 dB width against the ideal array factor of the Hamming-tapered horizontal aperture
+    # (positions in half wavelengths), on a fine grid: counting calibration-grid points above
+    # -3 dB is off by less than one grid step
+    p = cfg.virtual_positions[:, 0]
+    w = 0.54 - 0.46 * np.cos(2 * np.pi * (p - p.min()) / (p.max() - p.min()))
+    for a0 in (0.0, 30.0):
+        az = np.arange(a0 - 5, a0 + 5, 0.001)
+        u = np.sin(np.radians(az)) - np.sin(np.radians(a0))
+        af = np.abs((w * np.exp(1j * np.pi * p * u[:, None])).sum(1))
+        main = az[af >= af.max() / np.sqrt(2)]
+        assert abs(glint.beamwidth_deg(cfg, a0, b) - (main.max() - main.min())) < step
+    # one scatterer: the maximum is the grid azimuth nearest to it; two equal in-phase scatterers
+    # inside one beamwidth, symmetric about 10 deg: between them, at 10 deg; two resolved ones
+    # (three beamwidths apart): at the stronger
+    one = glint.beamformed_azimuth(cfg, np.array([[3.05]]), np.array([[1.0 + 0j]]), b)
+    assert abs(one[0] - 3.05) <= step / 2 + 1e-6
+    peaks = glint.beamformed_azimuth(cfg, np.array([[9.7, 10.3], [-3.0, 3.0]]),
+                                     np.array([[1.0, 1.0], [1.0, 2.0]], complex), b)
+    assert abs(peaks[0] - 10.0) <= step / 2 + 1e-6 and abs(peaks[1] - 3.0) <= step / 2 + 1e-6
+    # the rear face: bumper, lights and corners, all within the box's width
+    lateral, amp = glint.rear_face(np.random.default_rng(0))
+    assert len(lateral) == 7 and np.abs(lateral).max() == pytest.approx(0.9) and (amp > 0).all()
+    off = glint.peak_lateral_offsets(cfg, 80.0, 8, np.random.default_rng(0), dictionary=b)
+    assert off.shape == (8,) and np.abs(off).max() <= 80.0 * np.sin(np.radians(0.9 + 1.0))
+    with pytest.raises(ValueError, match="draws"):
+        glint.peak_lateral_offsets(cfg, 80.0, 0, np.random.default_rng(0), dictionary=b)
