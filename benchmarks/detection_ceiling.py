@@ -45,14 +45,13 @@ import numpy as np
 import torch
 
 from radarpc.data.point_dataset import PointCloudDataset
-from radarpc.eval.detection import IOU_THRESHOLD, RANGE_GATE_M
+from radarpc.eval.detection import IOU_THRESHOLD, RANGE_GATE_M, lateral_tolerance_m
 from radarpc.io import atomic_write
 from radarpc.models.targets import BOX_LENGTH_M, BOX_WIDTH_M, box_iou, ra_to_box_xy
 
 RADII_M = (1.0, 2.0, 3.0, 5.0)
 LABEL_RANGE_BINS_M = (30.0, 60.0)                        # as benchmarks/box_offsets.py
-# across, a box matches a label at IoU 0.5 within W (1 - t) / (1 + t) = W / 3
-LATERAL_TOLERANCE_M = BOX_WIDTH_M * (1 - IOU_THRESHOLD) / (1 + IOU_THRESHOLD)
+LATERAL_TOLERANCE_M = lateral_tolerance_m(IOU_THRESHOLD)  # 0.6 m across
 PLACEMENT_RULES = ("extent_centre", "strongest_point", "power_centroid")
 
 
@@ -96,7 +95,8 @@ def lateral_placement(label_xy: torch.Tensor, point_xy: torch.Tensor, amplitude:
     inf = torch.tensor(float("inf"), dtype=torch.float64)
     extent = (torch.where(inside, dx, inf).amin(1) + torch.where(inside, dx, -inf).amax(1)) / 2
     power = torch.where(inside, amplitude.double()[None] ** 2, torch.zeros((), dtype=torch.float64))  # (L, N)
-    strongest = dx.gather(1, power.argmax(1, keepdim=True))[:, 0]
+    # -1 outside: the strongest is an inside point even where all inside amplitudes are 0
+    strongest = dx.gather(1, torch.where(inside, power, -1.0).argmax(1, keepdim=True))[:, 0]
     centroid = (power * dx).sum(1) / power.sum(1)
     out = torch.stack([n.double(), extent, strongest, centroid], 1)
     out[n == 0, 1:] = float("nan")
@@ -104,17 +104,36 @@ def lateral_placement(label_xy: torch.Tensor, point_xy: torch.Tensor, amplitude:
 
 
 def placement_summary(range_m: np.ndarray, placement: np.ndarray, tolerance_m: float = LATERAL_TOLERANCE_M) -> dict:
-    """Counts and shares of :func:`lateral_placement` rows, overall and by label range."""
+    """Counts and shares of :func:`lateral_placement` rows, overall and by label range.
+
+    Parameters
+    ----------
+    range_m : ndarray ``(L,)``
+        The labels' ranges.
+    placement : ndarray ``(L, 4)``
+        Their :func:`lateral_placement` rows.
+    tolerance_m : float
+        An offset across counts as placed when ``|dx| <= tolerance_m``.
+
+    Returns
+    -------
+    dict
+        Under ``"all"`` and one key per range bin (``"0-30"``, ``"30-60"``, ``">=60"``: ``lo <= R <
+        hi``): ``labels``, ``median_points_in_grown_box``, ``share_without_a_point`` and, per rule of
+        :data:`PLACEMENT_RULES`, ``share_placed_within_tolerance`` (a label without a point is not
+        placed). Values of an empty bin are None.
+    """
     edges = (0.0,) + LABEL_RANGE_BINS_M + (np.inf,)
 
     def one(sel: np.ndarray) -> dict:
         p = placement[sel]
-        return {"labels": int(sel.sum()),
-                "median_points_in_grown_box": float(np.median(p[:, 0])) if len(p) else float("nan"),
-                "share_without_a_point": float(np.mean(p[:, 0] == 0)) if len(p) else float("nan"),
-                "share_placed_within_tolerance": {
-                    rule: float(np.mean(np.abs(p[:, 1 + k]) <= tolerance_m)) if len(p) else float("nan")
-                    for k, rule in enumerate(PLACEMENT_RULES)}}  # NaN (no point) compares False
+        if len(p) == 0:
+            return {"labels": 0, "median_points_in_grown_box": None, "share_without_a_point": None,
+                    "share_placed_within_tolerance": dict.fromkeys(PLACEMENT_RULES)}
+        return {"labels": int(sel.sum()), "median_points_in_grown_box": float(np.median(p[:, 0])),
+                "share_without_a_point": float(np.mean(p[:, 0] == 0)),
+                "share_placed_within_tolerance": {  # NaN (no point) compares False
+                    rule: float(np.mean(np.abs(p[:, 1 + k]) <= tolerance_m)) for k, rule in enumerate(PLACEMENT_RULES)}}
 
     return {"all": one(np.ones(len(range_m), bool)),
             **{(f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}"): one((range_m >= lo) & (range_m < hi))
@@ -199,7 +218,7 @@ def main(argv: list[str] | None = None) -> None:
             line, = ax.plot(grid, share, label=label)
             ax_n.step(counts, [(r["_support"] >= n).mean() for n in counts], where="post", label=label)
             placed = np.abs(r["_placement"][:, 1:]) <= LATERAL_TOLERANCE_M                  # (L, 3)
-            b = np.digitize(r["_label_range"], edges) - 1
+            b = np.clip(np.digitize(r["_label_range"], edges) - 1, 0, len(edges) - 2)  # 100 m in the last bin
             has = [k for k in range(len(edges) - 1) if (b == k).any()]
             centres = [(edges[k] + edges[k + 1]) / 2 for k in has]
             for j, style in ((0, "-"), (1, "--")):

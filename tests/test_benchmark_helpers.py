@@ -179,44 +179,98 @@ def test_lateral_placement_on_a_hand_worked_frame():
         {"extent_centre": 1 / 3, "strongest_point": 0.0, "power_centroid": 1 / 3})
     assert s["30-60"]["share_placed_within_tolerance"]["extent_centre"] == 1.0
     assert s["0-30"]["labels"] == 1 and s[">=60"]["share_placed_within_tolerance"]["extent_centre"] == 0.0
+    # bins are [lo, hi): 30 m and 60 m open the next bin; |dx| equal to the tolerance is placed;
+    # an empty bin gives None, not NaN (strict JSON)
+    edge = ceiling.placement_summary(np.array([30.0, 60.0]), np.array([[1, 0.6, 0.6, 0.6], [1, -0.6, 0.7, 0.0]]))
+    assert edge["0-30"] == {"labels": 0, "median_points_in_grown_box": None, "share_without_a_point": None,
+                            "share_placed_within_tolerance": dict.fromkeys(ceiling.PLACEMENT_RULES)}
+    assert edge["30-60"]["labels"] == 1 and edge[">=60"]["labels"] == 1
+    assert edge["all"]["share_placed_within_tolerance"] == {"extent_centre": 1.0, "strongest_point": 0.5,
+                                                            "power_centroid": 1.0}
+    json.dumps(edge, allow_nan=False)
+    # all inside amplitudes 0: the strongest is still an inside point, the centroid undefined
+    z = ceiling.lateral_placement(labels[:1], torch.tensor([[3.0, 50.0], [0.5, 51.0]], dtype=torch.float64),
+                                  torch.tensor([5.0, 0.0]))
+    assert z[0, :3].tolist() == [1, 0.5, 0.5] and torch.isnan(z[0, 3])
 
 
-def test_vehicle_glint_tolerance_beamwidth_and_peaks():
-    from radarpc.models.targets import box_iou
+def test_beamwidth_against_the_ideal_array_factor():
+    from radarpc.sensors.radial import radial_sensor, steering_vectors
+    glint = _script("vehicle_glint")
+    cfg = radial_sensor("radial")
+    az_t, el_t = cfg.azimuth_table_deg, cfg.elevation_table_deg
+    step = float(az_t[1] - az_t[0])
+    # the ideal dictionary (unit-modulus steering, Hamming taper over the horizontal positions):
+    # on the elevation-0 cut its spectrum of an ideal target is the tapered array factor
+    p = cfg.virtual_positions[:, 0]
+    w = 0.54 - 0.46 * np.cos(2 * np.pi * (p - p.min()) / (p.max() - p.min()))
+    ideal = np.conj(steering_vectors(cfg, az_t[:, None], el_t[None, :], hardware=False)).reshape(-1, cfg.n_virtual)
+    b = torch.as_tensor(ideal * w, dtype=torch.complex64)
+    for a0 in (0.0, 30.0):
+        az = np.arange(a0 - 4, a0 + 4, 1e-4)
+        af = np.abs((w * np.exp(1j * np.pi * p * (np.sin(np.radians(az)) - np.sin(np.radians(a0)))[:, None])).sum(1))
+        main = np.flatnonzero(af >= af.max() / np.sqrt(2))
+        # linear interpolation between grid samples misplaces a crossing by at most
+        # (h^2 / 8) max|f''| / |f'| (h the grid step), f' and f'' of the array factor near it
+        d1, d2 = np.gradient(af, az), np.gradient(np.gradient(af, az), az)
+        near = int(step / 1e-4)
+        bound = sum(step ** 2 / 8 * np.abs(d2[k - near:k + near]).max() / abs(d1[k]) for k in (main[0], main[-1]))
+        got = glint.beamwidth_deg(cfg, a0, b, hardware=False)
+        assert abs(got - (az[main[-1]] - az[main[0]])) <= bound + 2e-4
+        assert bound < step / 4                          # the check is tighter than the grid
+    with pytest.raises(ValueError, match="end of the calibration grid"):
+        glint.beamwidth_deg(cfg, 74.9, b, hardware=False)
+
+
+def test_vehicle_glint_paths_peaks_and_faces():
     from radarpc.sensors.radial import radial_sensor
     from radarpc.sim.radial_calibration import make_calibration
+    from radarpc.sim.road import RoadSceneConfig, _vehicle_template
     glint = _script("vehicle_glint")
-    # the tolerance across is where the metric's own IoU crosses 0.5
-    tol = glint.lateral_tolerance_m(0.5)
-    iou = box_iou(torch.tensor([[tol - 1e-9, 50.0], [tol + 1e-9, 50.0]], dtype=torch.float64),
-                  torch.tensor([[0.0, 50.0]], dtype=torch.float64))[:, 0]
-    assert iou[0] >= 0.5 > iou[1]
     cfg = radial_sensor("radial")
     b = make_calibration(cfg).dictionary()
     step = float(cfg.azimuth_table_deg[1] - cfg.azimuth_table_deg[0])
-    # -3 dB width against the ideal array factor of the Hamming-tapered horizontal aperture
-    # (positions in half wavelengths), on a fine grid: counting calibration-grid points above
-    # -3 dB is off by less than one grid step
-    p = cfg.virtual_positions[:, 0]
-    w = 0.54 - 0.46 * np.cos(2 * np.pi * (p - p.min()) / (p.max() - p.min()))
-    for a0 in (0.0, 30.0):
-        az = np.arange(a0 - 5, a0 + 5, 0.001)
-        u = np.sin(np.radians(az)) - np.sin(np.radians(a0))
-        af = np.abs((w * np.exp(1j * np.pi * p * u[:, None])).sum(1))
-        main = az[af >= af.max() / np.sqrt(2)]
-        assert abs(glint.beamwidth_deg(cfg, a0, b) - (main.max() - main.min())) < step
-    # one scatterer: the maximum is the grid azimuth nearest to it; two equal in-phase scatterers
-    # inside one beamwidth, symmetric about 10 deg: between them, at 10 deg; two resolved ones
-    # (three beamwidths apart): at the stronger
-    one = glint.beamformed_azimuth(cfg, np.array([[3.05]]), np.array([[1.0 + 0j]]), b)
+    # one path: the maximum is the grid azimuth nearest to it; two equal in-phase paths inside one
+    # beamwidth, symmetric about 10 deg: at 10 deg; two resolved ones (6 deg apart): the stronger
+    one = glint.beamformed_azimuth(cfg, np.array([[40.0]]), np.array([[3.05]]), np.zeros((1, 1)), np.ones((1, 1)), b)
     assert abs(one[0] - 3.05) <= step / 2 + 1e-6
-    peaks = glint.beamformed_azimuth(cfg, np.array([[9.7, 10.3], [-3.0, 3.0]]),
-                                     np.array([[1.0, 1.0], [1.0, 2.0]], complex), b)
+    r = np.full((2, 2), 40.0)
+    peaks = glint.beamformed_azimuth(cfg, r, np.array([[9.7, 10.3], [-3.0, 3.0]]), np.zeros((2, 2)),
+                                     np.array([[1.0, 1.0], [1.0, 4.0]]), b)
     assert abs(peaks[0] - 10.0) <= step / 2 + 1e-6 and abs(peaks[1] - 3.0) <= step / 2 + 1e-6
-    # the rear face: bumper, lights and corners, all within the box's width
-    lateral, amp = glint.rear_face(np.random.default_rng(0))
-    assert len(lateral) == 7 and np.abs(lateral).max() == pytest.approx(0.9) and (amp > 0).all()
-    off = glint.peak_lateral_offsets(cfg, 80.0, 8, np.random.default_rng(0), dictionary=b)
-    assert off.shape == (8,) and np.abs(off).max() <= 80.0 * np.sin(np.radians(0.9 + 1.0))
+    with pytest.raises(ValueError, match="dictionary"):
+        glint.beamformed_azimuth(cfg, r, r, r, r, b[:10])
+    # the rear face: the template's rear-facing points (3 bumper, 2 lights, 2 corners at 45 deg),
+    # RCS times sqrt(cos): 1 for the five facing back, 2^-1/4 for the corners
+    lateral_z, rcs = glint.rear_face(np.random.default_rng(3))
+    body = _vehicle_template(np.random.default_rng(3), *glint.CAR_LWH_M, truck=False, speed=10.0,
+                             under_rcs=RoadSceneConfig.underbody_rcs_m2)
+    back = (body.normal[:, 0] < 0) & ~body.under
+    assert np.sort(rcs / body.rcs[back]).tolist() == pytest.approx([2 ** -0.25] * 2 + [1.0] * 5)
+    assert np.abs(lateral_z[:, 0]).max() == pytest.approx(0.9)
+    # the paths of one point 0.5 m above the road, 50 m ahead, radar 0.8 m up: direct, ground
+    # bistatic (half the direct and image ranges, 4 |Gamma|^2) and ground double (|Gamma|^4)
+    r, az, el, rc = glint.face_paths(np.array([[0.3, 0.5]]), np.array([2.0]), 50.0, 0.0, 0.0, 0.8, -6.0)
+    g2 = 10 ** -0.6
+    direct, image = np.sqrt(50 ** 2 + 0.3 ** 2 + 0.3 ** 2), np.sqrt(50 ** 2 + 0.3 ** 2 + 1.3 ** 2)
+    assert r.tolist() == pytest.approx([direct, (direct + image) / 2, image], rel=1e-12)
+    assert rc.tolist() == pytest.approx([2.0, 8.0 * g2, 2.0 * g2 ** 2], rel=1e-12)
+    assert az == pytest.approx(np.degrees(np.arctan2(0.3, 50.0)), rel=1e-9) and el[2] < el[1] < el[0] < 0
+    # draws: scored by the metric's boxes; at 10 m the corners are resolved, so many cells sit
+    # on a corner, far outside the tolerance
+    matched, dx = glint.glint_draws(cfg, 10.0, 16, np.random.default_rng(0), dictionary=b)
+    assert matched.shape == dx.shape == (16,)
+    # level boxes match within 0.6 m across; here dy = R (cos A - 1) is at most 0.02 m, which
+    # still lets |dx| <= 0.59 pass ((1.8 - 0.59)(4 - 0.02) >= 4.8)
+    assert not (matched & (np.abs(dx) > 0.6)).any() and (matched | (np.abs(dx) > 0.59)).all()
+    assert (np.abs(dx) > 0.8).any()
     with pytest.raises(ValueError, match="draws"):
-        glint.peak_lateral_offsets(cfg, 80.0, 0, np.random.default_rng(0), dictionary=b)
+        glint.glint_draws(cfg, 80.0, 0, np.random.default_rng(0), dictionary=b)
+
+
+def test_vehicle_glint_script(tmp_path, capsys):
+    glint = _script("vehicle_glint")
+    glint.main(["--sensor", "radial", "--ranges", "20", "80", "--draws", "4", "--figure", str(tmp_path / "g.png")])
+    out = json.loads(capsys.readouterr().out)
+    assert out["lateral_tolerance_m"] == pytest.approx(0.6) and 1.5 < out["beamwidth_3db_deg"] < 2.5
+    assert [r["range_m"] for r in out["by_range"]] == [20, 80] and (tmp_path / "g.png").stat().st_size > 0

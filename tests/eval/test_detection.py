@@ -12,6 +12,7 @@ from radarpc.eval.detection import (
     FreespaceMetrics,
     evaluate_detections,
     freespace_iou,
+    lateral_tolerance_m,
 )
 from radarpc.models.targets import Detections
 
@@ -83,6 +84,18 @@ def test_iou_boundary():
     below = _eval(_det([(0.95, 20.0 + dy + 1e-4, 0.0)]), _lab([(20.0, 0.0)]))
     assert at.tp == (1,) * ALL and at.fn == (0,) * ALL
     assert below.tp == (0,) * ALL and below.fp == (1,) * ALL and below.fn == (1,) * ALL
+
+
+def test_lateral_tolerance_is_where_the_box_iou_crosses_the_threshold():
+    from radarpc.models.targets import box_iou
+    label = torch.tensor([[0.0, 50.0]], dtype=torch.float64)
+    for t in (0.3, 0.5, 0.7):
+        tol = lateral_tolerance_m(t)
+        iou = box_iou(torch.tensor([[tol - 1e-9, 50.0], [-tol - 1e-9, 50.0]], dtype=torch.float64), label)[:, 0]
+        assert iou[0] >= t > iou[1]
+    assert lateral_tolerance_m() == pytest.approx(0.6, abs=1e-12)
+    with pytest.raises(ValueError, match="iou_threshold"):
+        lateral_tolerance_m(1.0)
 
 
 def test_threshold_without_true_positive():

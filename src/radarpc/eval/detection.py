@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import torch
 
-from radarpc.models.targets import Detections, box_iou, ra_to_box_xy
+from radarpc.models.targets import BOX_WIDTH_M, Detections, box_iou, ra_to_box_xy
 
 __all__ = [
     "THRESHOLDS",
@@ -55,6 +55,7 @@ __all__ = [
     "RANGE_GATE_M",
     "NEAR_MISS_M",
     "FREESPACE_ROWS",
+    "lateral_tolerance_m",
     "DetectionReport",
     "DetectionMetrics",
     "FrameMatch",
@@ -74,6 +75,25 @@ NEAR_MISS_M = 3.0
 """A missed label with a detection this close (m) is a localisation miss (``fn_near``)."""
 FREESPACE_ROWS = 124
 """Freespace rows scored: 0..123 of 256 (0-50 m)."""
+
+
+
+def lateral_tolerance_m(iou_threshold: float = IOU_THRESHOLD) -> float:
+    """Largest offset across (m) at which two of RADIal's boxes, level along, still match.
+
+    Equal axis-aligned boxes ``W x L`` offset by ``dx`` across overlap ``(W - dx) L`` of a union
+    ``(W + dx) L``, so ``IoU >= t`` exactly when ``dx <= W (1 - t) / (1 + t)``: 0.6 m for
+    ``W = 1.8 m`` and ``t = 0.5``.
+
+    Parameters
+    ----------
+    iou_threshold : float
+        In (0, 1).
+    """
+    if not 0.0 < iou_threshold < 1.0:
+        raise ValueError(f"iou_threshold must be in (0, 1), got {iou_threshold}")
+    return BOX_WIDTH_M * (1 - iou_threshold) / (1 + iou_threshold)
+
 
 # columns of DetectionMetrics.counts
 _TP, _FP, _FN, _PAIRS, _DR, _DA, _FN_NEAR, _LABELS = range(8)
