@@ -15,9 +15,9 @@ a box matches (IoU >= 0.5, no error along) only within ``W / 3 = 0.6 m`` of the 
 for the points inside each label's box grown by that much on every side, it gives the share of
 labels whose points place the box that well by three rules: the centre of their extent across,
 the strongest point, and the power-weighted centroid. The grown box is centred on the truth, so
-these shares are optimistic for a detector, which must find the vehicle first; they say whether
-the points carry the vehicle's position across at all (``benchmarks/vehicle_glint.py`` gives the
-physics of one rear face).
+the rules know where the vehicle is (a detector must find it first), but its points come mixed
+with any clutter inside; they are simple rules, not bounds, and say how well the points carry the
+vehicle's position across (``benchmarks/vehicle_glint.py`` gives the physics of one rear face).
 
 A label without a point within a few metres can only be found by guessing, so the share of labels
 with a point nearby bounds the recall of any point-cloud detector on that store, and the share
