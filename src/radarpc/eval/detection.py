@@ -77,7 +77,6 @@ FREESPACE_ROWS = 124
 """Freespace rows scored: 0..123 of 256 (0-50 m)."""
 
 
-
 def lateral_tolerance_m(iou_threshold: float = IOU_THRESHOLD) -> float:
     """Largest offset across (m) at which two of RADIal's boxes, level along, still match.
 
