@@ -31,11 +31,11 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from radarpc.eval.detection import FIXED_THRESHOLD, IOU_THRESHOLD, NEAR_MISS_M, match_frame
-from radarpc.io import atomic_write
+from radarpc.eval.detection import FIXED_THRESHOLD, IOU_THRESHOLD, NEAR_MISS_M, lateral_tolerance_m, match_frame
 from radarpc.experiments.detection import load_trained
 from radarpc.models.targets import BOX_LENGTH_M, BOX_WIDTH_M, decode_detections
 from radarpc.training.radial import DECODE_THRESHOLD, collate_detection, detection_dataset
+from radarpc.viz import save_figure
 
 RANGE_BINS_M = (30.0, 60.0)
 
@@ -63,8 +63,8 @@ def failing_axis(dx: np.ndarray, dy: np.ndarray, iou_threshold: float = IOU_THRE
     # IoU = I / (2 W L - I) >= t  <=>  I >= 2 W L t / (1 + t)
     need = 2 * BOX_WIDTH_M * BOX_LENGTH_M * iou_threshold / (1 + iou_threshold)
     inter = np.clip(BOX_WIDTH_M - dx, 0, None) * np.clip(BOX_LENGTH_M - dy, 0, None)
-    x_ok = BOX_WIDTH_M - dx >= need / BOX_LENGTH_M          # passes with dy = 0
-    y_ok = BOX_LENGTH_M - dy >= need / BOX_WIDTH_M          # passes with dx = 0
+    x_ok = dx <= lateral_tolerance_m(iou_threshold)                         # passes with dy = 0
+    y_ok = dy <= BOX_LENGTH_M * (1 - iou_threshold) / (1 + iou_threshold)   # passes with dx = 0, likewise
     return np.select([inter >= need, y_ok & ~x_ok, x_ok & ~y_ok, x_ok & y_ok],
                      ["match", "x", "y", "x+y"], default="x,y")
 
@@ -152,8 +152,7 @@ def _figure(o: dict, title: str, path: str) -> None:
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
-    with atomic_write(path, "wb") as f:  # a reader never sees half a figure
-        fig.savefig(f, format="png", dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
 
 

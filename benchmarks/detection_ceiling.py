@@ -46,8 +46,8 @@ import torch
 
 from radarpc.data.point_dataset import PointCloudDataset
 from radarpc.eval.detection import IOU_THRESHOLD, RANGE_GATE_M, lateral_tolerance_m
-from radarpc.io import atomic_write
 from radarpc.models.targets import BOX_LENGTH_M, BOX_WIDTH_M, box_iou, ra_to_box_xy
+from radarpc.viz import save_figure
 
 RADII_M = (1.0, 2.0, 3.0, 5.0)
 LABEL_RANGE_BINS_M = (30.0, 60.0)                        # as benchmarks/box_offsets.py
@@ -237,8 +237,7 @@ def main(argv: list[str] | None = None) -> None:
             a.grid(alpha=0.3)
             a.legend(fontsize=7, loc={ax: "lower right", ax_n: "upper right", ax_p: "lower left"}[a])
         fig.tight_layout()
-        with atomic_write(args.figure, "wb") as f:  # a reader never sees half a figure
-            fig.savefig(f, format="png", dpi=100)
+        save_figure(fig, args.figure, dpi=100)
         plt.close(fig)
 
 

@@ -36,6 +36,7 @@ from radarpc.models.targets import decode_detections, ra_to_box_xy
 from radarpc.sim.radial_labels import labelled_vehicles
 from radarpc.sim.radial_writer import RadialSimulator
 from radarpc.training.radial import collate_detection, detection_dataset
+from radarpc.viz import save_figure
 
 MOVING_MPS = 0.5  # radial speed over the ground above which an unowned scatterer is a person or cyclist
 
@@ -128,8 +129,7 @@ def _figure(results: list[dict], names: list[str], path: str) -> None:
     ax.set_xlabel(f"false alarms per frame at confidence {results[0]['threshold']:g} ({results[0]['split']} split)")
     ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=3, fontsize=8, frameon=False)
     fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
 
 

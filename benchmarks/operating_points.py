@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from radarpc.eval.detection import FIXED_THRESHOLD
-from radarpc.io import atomic_write
+from radarpc.viz import save_figure
 
 
 def allowed_false_alarms(tp: np.ndarray, fn: np.ndarray, target: float) -> np.ndarray:
@@ -214,8 +214,7 @@ def _figure(results: list[dict], names: list[str], path: str, q_max: float | Non
     cal.set_title("the score a fully trained model gives a cell positive with probability q", fontsize=9)
     cal.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
-    with atomic_write(path, "wb") as f:  # a reader never sees half a figure
-        fig.savefig(f, format="png", dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
 
 

@@ -34,12 +34,12 @@ import torch
 
 from radarpc.dsp.beamform import angle_spectrum
 from radarpc.eval.detection import IOU_THRESHOLD, lateral_tolerance_m
-from radarpc.io import atomic_write
 from radarpc.models.targets import BOX_WIDTH_M, box_iou, ra_to_box_xy
 from radarpc.sensors.radial import DDMARadarConfig, radial_sensor, steering_vectors
 from radarpc.sim.multipath import bistatic_fields, ground_image, path_fields
 from radarpc.sim.radial_calibration import make_calibration
 from radarpc.sim.road import RoadSceneConfig, _vehicle_template
+from radarpc.viz import save_figure
 
 CAR_LWH_M = (4.0, BOX_WIDTH_M, 1.5)          # as wide as RADIal's box
 
@@ -262,8 +262,7 @@ def main(argv: list[str] | None = None) -> None:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
         fig.tight_layout()
-        with atomic_write(a.figure, "wb") as f:
-            fig.savefig(f, format="png", dpi=120)
+        save_figure(fig, a.figure, dpi=120)
         plt.close(fig)
 
 

@@ -29,13 +29,13 @@ def root(tmp_path_factory):
 def figures(monkeypatch):
     """The figures the viz functions save, in order."""
     saved = []
-    save = viz._save
+    save = viz.save_figure
 
     def keep(fig, out, dpi):
         saved.append(fig)
         save(fig, out, dpi)
 
-    monkeypatch.setattr(viz, "_save", keep)
+    monkeypatch.setattr(viz, "save_figure", keep)
     return saved
 
 

@@ -39,6 +39,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "COLOR_BY",
+    "save_figure",
     "RADIAL_BOX_LENGTH_M",
     "plot_detection_frame",
     "RADIAL_BOX_WIDTH_M",
@@ -70,8 +71,9 @@ def _figure(figsize: tuple[float, float]) -> "Figure":
     return Figure(figsize=figsize)
 
 
-def _save(fig: "Figure", out: Path, dpi: int) -> None:
-    """Write ``fig`` as a PNG at ``out`` (temp file + rename)."""
+def save_figure(fig: "Figure", out: str | os.PathLike, dpi: int) -> None:
+    """Write ``fig`` as a PNG at ``out`` atomically (temp file + rename): a reader never sees half
+    a figure, and two writers never mix one."""
     with atomic_write(out, "wb") as f:
         fig.savefig(f, format="png", dpi=dpi)
 
@@ -334,7 +336,7 @@ def plot_frame_view(view: FrameView, out: str | os.PathLike, color_by: str = "ve
                  loc="upper left", fontsize=10, framealpha=0.8)
     fig.suptitle(view.title, fontsize=13)
     fig.tight_layout()
-    _save(fig, out, dpi=80)
+    save_figure(fig, out, dpi=80)
     peak_density = float(pk.sum()) * cfg.n_tx / (cfg.n_range * cfg.n_doppler)
     return FramePlot(path=out, frame=view.frame, n_points=int(len(x)), n_peaks=int(pk.sum()),
                      density=density, tau=tau_used, n_vehicles=int(len(boxes)), peak_density=peak_density)
@@ -420,7 +422,7 @@ def plot_radial_info(summary: RadialSummary, labels: LabelTable, out: str | os.P
         ax[1, 1].set(xlabel="Doppler bin", ylabel="range [m]", title=f"RD envelope, frame {shown}")
     fig.suptitle(f"{summary.root.name}: {summary.n_frames} frames, {summary.n_vehicles} vehicles")
     fig.tight_layout()
-    _save(fig, out, dpi=90)
+    save_figure(fig, out, dpi=90)
     return out
 
 
@@ -509,7 +511,7 @@ def plot_coloradar_info(view: ColoRadarView, out: str | os.PathLike) -> Path:
         fig.suptitle(f"ColoRadar root '{view.root_name}', run {view.run}: radar frame {view.radar_index}, "
                      f"LiDAR scan {view.lidar_index}")
     fig.tight_layout()
-    _save(fig, out, dpi=110)
+    save_figure(fig, out, dpi=110)
     return out
 
 
@@ -544,7 +546,7 @@ def plot_coloradar_view(view: ColoRadarView, out: str | os.PathLike) -> Path:
     fig.suptitle(f"ColoRadar root '{view.root_name}', run {view.run}: radar frame {view.radar_index}, "
                  f"paired LiDAR scan {view.lidar_index}{dt}", fontsize=13)
     fig.tight_layout()
-    _save(fig, out, dpi=100)
+    save_figure(fig, out, dpi=100)
     return out
 
 
@@ -616,7 +618,7 @@ def plot_oscfar_tuning(table: TuningTable, out: str | os.PathLike) -> Path:
     fig.suptitle(f"OS-CFAR tuning ({table.path}): {len(table.tau_db)} candidates, mean over {table.n_frames} "
                  f"{table.split} frames", fontsize=12)
     fig.tight_layout()
-    _save(fig, out, dpi=100)
+    save_figure(fig, out, dpi=100)
     return out
 
 
@@ -678,7 +680,7 @@ def plot_detection_frame(batch, detections, probability: torch.Tensor | None, ou
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    _save(fig, out, dpi=90)
+    save_figure(fig, out, dpi=90)
     return out
 
 
@@ -726,7 +728,7 @@ def plot_learning_curves(logs: dict[str, str | os.PathLike], out: str | os.PathL
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    _save(fig, out, dpi=90)
+    save_figure(fig, out, dpi=90)
     return out
 
 
@@ -771,5 +773,5 @@ def plot_label_outcomes(metrics: dict, out: str | os.PathLike, title: str = "") 
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    _save(fig, out, dpi=90)
+    save_figure(fig, out, dpi=90)
     return out

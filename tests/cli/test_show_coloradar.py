@@ -38,13 +38,13 @@ def colo(tmp_path_factory):
 @pytest.fixture
 def figures(monkeypatch):
     saved = []
-    save = viz._save
+    save = viz.save_figure
 
     def keep(fig, out, dpi):
         saved.append(fig)
         save(fig, out, dpi)
 
-    monkeypatch.setattr(viz, "_save", keep)
+    monkeypatch.setattr(viz, "save_figure", keep)
     return saved
 
 
