@@ -15,8 +15,10 @@ processes hits them alike:
   and ``_fused_cl_det`` (detections only): ``<model>`` the network on the ready point cloud (point
   extraction excluded) and ``<model>+points`` RD cube -> point cloud -> network (extraction
   included). The ``_det`` rows are compared with ``fftradnet_fused_cl_det``, the others with each
-  full FFTRadNet (both models share the same heads, and the freespace head's ~32 GMAC at 256 x 224
-  is most of a pillar model's work);
+  full FFTRadNet. The pillar models' freespace head convolves the 128 x 224 map and resizes its
+  logits (``freespace_upsample_logits``); ``_fused_cl_fs256`` runs the same weights in the official
+  head's order, the features resized to 256 x 224 first (~32 GMAC at full size, most of a pillar
+  model's work), as FFTRadNet does;
 * where the CPU has native bf16 (:func:`radarpc.machine.cpu_has_native_bf16`), ``fftradnet_bf16``,
   ``fftradnet_bf16_det``, ``<model>_bf16`` and ``<model>_bf16_det``: the fused channels-last
   models under bf16 autocast (the point extraction stays fp32), compared with the FFTRadNet bf16
@@ -167,6 +169,12 @@ def main(args: argparse.Namespace) -> None:
         fused_cl_det = _detections_only(pillars.fuse_for_inference(model).to(memory_format=torch.channels_last))
         spc, cl = extractors[enrich], clouds[enrich]
         variants = [("", model), ("_fused", fused), ("_fused_cl", fused_cl), ("_fused_cl_det", fused_cl_det)]
+        if model.freespace_head is not None and model.freespace_head.upsample_logits:
+            # the same weights through the official head's order (features resized to 256 rows, then
+            # convolved): what the resized logits save, measured in this run
+            fused_cl_fs256 = pillars.fuse_for_inference(model).to(memory_format=torch.channels_last)
+            fused_cl_fs256.freespace_head.upsample_logits = False
+            variants.append(("_fused_cl_fs256", fused_cl_fs256))
         if bf16:
             variants += [("_bf16", _bf16_autocast(fused_cl)), ("_bf16_det", _bf16_autocast(fused_cl_det))]
         for suffix, m in variants:

@@ -1,10 +1,10 @@
-"""The common detection head's starting point."""
+"""The common heads: the detection head's starting point, the freespace head's two resizing orders."""
 import math
 
 import pytest
 import torch
 
-from radarpc.models.heads import DetectionHead
+from radarpc.models.heads import DetectionHead, FreespaceHead
 
 
 @pytest.mark.parametrize("prior", [0.01, 0.2])
@@ -23,3 +23,27 @@ def test_detection_head_starts_at_the_prior_probability(prior):
 def test_detection_head_rejects_a_prior_outside_0_1(prior):
     with pytest.raises(ValueError, match="prior_probability"):
         DetectionHead(in_channels=4, widths=(4, 4), prior_probability=prior)
+
+
+def test_freespace_head_can_resize_its_logits_instead_of_its_input():
+    # upsample_logits: the blocks run on the 128-row input and the 1-channel logits y are resized to
+    # 256 rows bilinearly with align_corners=False, which puts output row k at input row k / 2 - 1/4:
+    # out[2i] = 3/4 y[i] + 1/4 y[i-1], out[2i+1] = 3/4 y[i] + 1/4 y[i+1] (edge rows clamped); the 224
+    # azimuth columns are kept as they are
+    torch.manual_seed(0)
+    head = FreespaceHead(in_channels=4, widths=(4, 4), upsample_logits=True).eval()
+    official = FreespaceHead(in_channels=4, widths=(4, 4))
+    # the same parameters, so weights move between the two
+    assert {k: v.shape for k, v in head.state_dict().items()} == {k: v.shape for k, v in official.state_dict().items()}
+    x = torch.randn(2, 4, 128, 224)
+    with torch.no_grad():
+        y = head.out(head.block2(head.block1(x)))[:, 0]                           # (2, 128, 224)
+        out = head(x)
+    assert out.shape == (2, 1, 256, 224)
+    before = torch.cat([y[:, :1], y[:, :-1]], 1)
+    after = torch.cat([y[:, 1:], y[:, -1:]], 1)
+    want = torch.stack([0.75 * y + 0.25 * before, 0.75 * y + 0.25 * after], 2).reshape(2, 256, 224)
+    # either side rounds a few times on values of size <= 2 max|y| (|y[i+1] - y[i]|, should the
+    # kernel compute a + w (b - a)): within 8 ulps of max|y| in all
+    tol = 8 * torch.finfo(torch.float32).eps * float(y.abs().max())
+    torch.testing.assert_close(out[:, 0], want, rtol=0.0, atol=tol)

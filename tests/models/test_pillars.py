@@ -145,6 +145,12 @@ def test_config_round_trip_and_feature_widths():
     assert torch.equal(x[:, -1], cloud.is_neighbour[keep].float())
 
 
+@pytest.mark.parametrize("field, value", [("freespace", 1), ("freespace_upsample_logits", "yes")])
+def test_config_flags_must_be_booleans(field, value):
+    with pytest.raises(ValueError, match=f"PillarsConfig.{field} must be true or false"):
+        PillarsConfig(**{field: value})
+
+
 @pytest.mark.parametrize("name", sorted(PILLARS_MODELS))
 def test_output_shapes_of_every_variant(name):
     with torch.device("meta"):                          # full sizes without allocating or computing
@@ -212,9 +218,10 @@ def test_gradients_flow_and_loss_falls_on_one_batch():
     assert losses[-1] < 0.9 * losses[0], losses
 
 
-def test_fused_model_gives_the_same_outputs():
+@pytest.mark.parametrize("upsample_logits", [False, True])
+def test_fused_model_gives_the_same_outputs(upsample_logits):
     torch.manual_seed(1)
-    model = pillars_tiny(features=("r", "a", "d", "Ae", "pillar_offset"))
+    model = pillars_tiny(features=("r", "a", "d", "Ae", "pillar_offset"), freespace_upsample_logits=upsample_logits)
     randomise_batchnorm_(model, torch.Generator().manual_seed(2))
     model.eval()
     fused = fuse_for_inference(model)

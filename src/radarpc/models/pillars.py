@@ -113,6 +113,8 @@ class PillarsConfig:
     detection_widths: tuple[int, int] = (144, 96)        # DetectionHead conv widths (the official head's)
     freespace: bool = True                               # with the freespace head
     freespace_widths: tuple[int, int] = (128, 64)        # FreespaceHead block widths (the official head's)
+    freespace_upsample_logits: bool = False              # FreespaceHead on the 128 x 224 map, logits resized
+                                                         # (the size variants' choice; False: the official order)
 
     def __post_init__(self) -> None:
         feats = tuple(self.features.split(",")) if isinstance(self.features, str) else tuple(self.features)
@@ -128,6 +130,9 @@ class PillarsConfig:
         for k in ("grid", "layer_nums", "layer_strides", "num_filters", "upsample_strides", "num_upsample_filters",
                   "detection_widths", "freespace_widths"):
             object.__setattr__(self, k, tuple(int(v) for v in getattr(self, k)))
+        for k in ("freespace", "freespace_upsample_logits"):
+            if not isinstance(getattr(self, k), bool):
+                raise ValueError(f"PillarsConfig.{k} must be true or false, got {getattr(self, k)!r}")
         for k in ("n_sector", "n_patch", "pfn_channels"):
             if int(getattr(self, k)) < 1:
                 raise ValueError(f"PillarsConfig.{k} must be >= 1, got {getattr(self, k)}")
@@ -200,7 +205,8 @@ class PointPillars(nn.Module):
         self.scatter = PointPillarScatter(cfg)
         self.backbone = BaseBEVBackbone(cfg)
         self.detection_head = DetectionHead(cfg.out_channels, widths=cfg.detection_widths)
-        self.freespace_head = (FreespaceHead(cfg.out_channels, FREESPACE_SHAPE, cfg.freespace_widths)
+        self.freespace_head = (FreespaceHead(cfg.out_channels, FREESPACE_SHAPE, cfg.freespace_widths,
+                                             upsample_logits=cfg.freespace_upsample_logits)
                                if cfg.freespace else None)
 
     def bev(self, points: PointCloudBatch) -> torch.Tensor:
@@ -373,22 +379,27 @@ class BaseBEVBackbone(nn.Module):
 SPECTRAL_FEATURES = ("r", "a", "e", "d", "Ae", "pillar_offset", "sector")
 
 
+# The freespace head convolves the 128 x 224 map and resizes its logits: half the official head's
+# work, which is most of a pillar model's (docs/results/detection.md, same mIoU when trained so).
+_HEADS = dict(freespace_upsample_logits=True)
+
+
 def polar_pointpillars(**overrides) -> PointPillars:
     """Full size (~2.4M parameters): 256 x 448 pillars, features ``r a e d Ae`` + offsets."""
-    return PointPillars(PillarsConfig(**overrides))
+    return PointPillars(PillarsConfig(**{**_HEADS, **overrides}))
 
 
 def spectralpillars(**overrides) -> PointPillars:
     """Full size SpectralPillars: ``polar_pointpillars`` plus the 32-sector angle descriptor; the
     RD-neighbourhood points come with the data (a store made with ``--enrich rd3,sector32``)."""
-    return PointPillars(PillarsConfig(**{"features": SPECTRAL_FEATURES, **overrides}))
+    return PointPillars(PillarsConfig(**{**_HEADS, "features": SPECTRAL_FEATURES, **overrides}))
 
 
-# The heads run at the full 128 x 224 (freespace 256 x 224) map, where a 3 x 3 conv costs 29k (57k)
-# positions per channel pair: they, not the backbone, set the training time on a CPU, hence 16/8.
+# The heads run at the full 128 x 224 map, where a 3 x 3 conv costs 29k positions per channel
+# pair: they, not the backbone, set the training time on a CPU, hence 16/8.
 _SMALL = dict(grid=(128, 224), pfn_channels=32, layer_nums=(2, 3, 3), layer_strides=(1, 2, 2),
               num_filters=(16, 32, 64), upsample_strides=(1, 2, 4), num_upsample_filters=(16, 8, 8),
-              detection_widths=(16, 16), freespace_widths=(8, 8))
+              detection_widths=(16, 16), freespace_widths=(8, 8), **_HEADS)
 
 
 def polar_pointpillars_s(**overrides) -> PointPillars:
