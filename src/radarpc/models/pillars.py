@@ -14,7 +14,9 @@ The seed's point-cloud branch (Sec. 3.1), in OpenPCDet's vocabulary:
    PointPillars (channels 32/64/128 instead of 64/128/256, 6 convs per block instead of 4/6/6),
    GELU instead of ReLU, as the seed describes (about 2.4M parameters with the heads).
 4. :class:`~radarpc.models.heads.DetectionHead` and :class:`~radarpc.models.heads.FreespaceHead`,
-   the heads every radarpc detector shares.
+   the heads every radarpc detector shares; the size variants run the freespace head on the
+   128 x 224 map and resize its logits (``freespace_upsample_logits``), half the official order's
+   work, with no official weights to keep.
 
 Point features are named in :attr:`PillarsConfig.features`, so the seed's axis ablations
 (``r a e`` + ``Ae`` / ``d`` / both) and enrichment ablations are config changes:
