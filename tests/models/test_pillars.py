@@ -145,6 +145,16 @@ def test_config_round_trip_and_feature_widths():
     assert torch.equal(x[:, -1], cloud.is_neighbour[keep].float())
 
 
+def test_runs_stored_before_the_freespace_flag_keep_the_official_order():
+    # a run.json written before freespace_upsample_logits existed lacks the key: its weights were
+    # trained with the official head's order, which the dataclass default keeps; the size variants
+    # (and the shipped configs) choose the resized logits
+    stored = {k: v for k, v in to_dict(PillarsConfig()).items() if k != "freespace_upsample_logits"}
+    assert from_dict(PillarsConfig, stored).freespace_upsample_logits is False
+    with torch.device("meta"):
+        assert all(PILLARS_MODELS[name]().cfg.freespace_upsample_logits for name in PILLARS_MODELS)
+
+
 @pytest.mark.parametrize("field, value", [("freespace", 1), ("freespace_upsample_logits", "yes")])
 def test_config_flags_must_be_booleans(field, value):
     with pytest.raises(ValueError, match=f"PillarsConfig.{field} must be true or false"):
