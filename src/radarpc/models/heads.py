@@ -13,7 +13,8 @@ Layout and conventions (those of valeoai/RADIal ``FFTRadNet/model/FFTRadNet.py``
   same numbers); channels 1.. are the normalised range and azimuth offsets (see
   :mod:`radarpc.models.targets`).
 * Freespace output ``(B, 1, 256, 224)``: **logits** (the official code trains them with
-  ``BCEWithLogitsLoss`` and thresholds ``sigmoid >= 0.5``); rows are 0.2 m range cells.
+  ``BCEWithLogitsLoss`` and thresholds ``sigmoid >= 0.5``); rows are range cells of
+  ``2 x 0.201171875 = 0.4023 m`` (rows 0..123 are the scored 0-50 m).
 
 Parameter names follow the official modules (``conv1``, ``bn1``, ..., ``clshead``, ``reghead``),
 so an official state dict maps onto these heads by a key prefix only.
