@@ -46,6 +46,9 @@ def run_false_alarms(run: str, split: str, threshold: float, data: str | None = 
     """Counts of false alarms by cause for one run (see the module docstring)."""
     cfg, model, key = load_trained(run)
     root = data or key["data"]
+    if not isinstance(root, str):          # the scene is regenerated from one simulated root
+        raise ValueError(f"{run} was trained on {len(root)} roots ({', '.join(root)}): give --data ROOT "
+                         f"--points FILE of one of them")
     sim = RadialSimulator.from_root(root)
     ds = detection_dataset(cfg, root, points or key.get("points"), split)
     loader = DataLoader(ds, batch_size=batch_size, shuffle=False,

@@ -98,6 +98,24 @@ def test_draws_depend_on_seed_epoch_and_item_only(frames):
     assert [again.is_mirrored(i) for i in range(len(frames))] == draws[3].tolist()
     assert all(MirroredFrames(frames, 1.0, seed=7).is_mirrored(i) for i in range(len(frames)))
     assert not any(MirroredFrames(frames, 0.0, seed=7).is_mirrored(i) for i in range(len(frames)))
+    # the draw is the documented one: numpy's generator seeded by (seed, epoch, item)
+    assert draws[3].tolist() == [bool(np.random.default_rng([7, 3, i]).random() < 0.5) for i in range(len(frames))]
+
+
+def test_streams_draw_independently_under_one_seed(frames):
+    # stream 0 draws as a dataset without streams; another stream (a second root's position in a
+    # concatenation) draws (seed, epoch, item, stream): over 400 epochs its draws agree with
+    # stream 0's about half the time, not always
+    zero, one = MirroredFrames(frames, 0.5, seed=7, stream=0), MirroredFrames(frames, 0.5, seed=7, stream=1)
+    agree = []
+    for epoch in range(400):
+        zero.set_epoch(epoch)
+        one.set_epoch(epoch)
+        for i in range(len(frames)):
+            assert one.is_mirrored(i) == bool(np.random.default_rng([7, epoch, i, 1]).random() < 0.5)
+            agree.append(zero.is_mirrored(i) == one.is_mirrored(i))
+    assert abs(np.mean(agree) - 0.5) < 5 * np.sqrt(0.25 / len(agree))
+    assert "stream=1" in repr(one) and "stream" not in repr(zero)
 
 
 def test_loader_workers_draw_the_epoch_set_before_the_loader(frames):
@@ -115,6 +133,8 @@ def test_loader_workers_draw_the_epoch_set_before_the_loader(frames):
 def test_bad_input(frames):
     with pytest.raises(ValueError, match=r"mirror probability must be in \[0, 1\], got 1.5"):
         MirroredFrames(frames, 1.5, seed=0)
+    with pytest.raises(ValueError, match="stream must be >= 0, got -1"):
+        MirroredFrames(frames, 0.5, seed=0, stream=-1)
     with pytest.raises(ValueError, match="4-wide sector descriptor; give its"):
         mirror_frame(frames[0], None)
     with pytest.raises(ValueError, match="4-wide sector descriptor"):

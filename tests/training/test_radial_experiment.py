@@ -252,6 +252,71 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
                  "--out", str(out), "--no-progress"]) == 2
 
 
+@pytest.fixture(scope="module")
+def root2(tmp_path_factory):
+    # a second root of other scenes (seed 4): 3 sequences x 2 frames
+    return write_radial_dataset(tmp_path_factory.mktemp("sim2") / "root2", RADIAL_S, 3, 2, seed=4, progress=False,
+                                scenes=scene_mix("city"))
+
+
+@pytest.fixture(scope="module")
+def store2(root2, tmp_path_factory):
+    out = tmp_path_factory.mktemp("pc2") / "pc2.parquet"
+    convert_dataset(root2, out, density=0.057, enrich=("sector32",), progress=False)
+    return out
+
+
+def test_several_roots_train_and_evaluate_as_one(root, store, root2, store2, tmp_path, capsys):
+    from radarpc.data.augment import MirroredFrames
+    from radarpc.data.point_dataset import PointCloudDataset
+    from radarpc.experiments.detection import run_key
+    from radarpc.training.radial import ConcatFrames, detection_dataset
+
+    cfg = ExperimentConfig(name="sp-tiny", pillars=pillars_tiny().cfg,
+                           train=dataclasses.replace(TINY_TRAIN, epochs=1, batch_size=2, eval_batch_size=2))
+    # the frames of both roots, one after another, each root with its own split
+    both = detection_dataset(cfg, [root, root2], [store, store2], "test")
+    one, two = PointCloudDataset(store, root, split="test"), PointCloudDataset(store2, root2, split="test")
+    assert isinstance(both, ConcatFrames) and (len(one), len(two)) == (4, 2) and len(both) == 6
+    for k, want in enumerate([one[i] for i in range(4)] + [two[i] for i in range(2)]):
+        got = both[k]
+        assert (got.frame, got.sequence) == (want.frame, want.sequence)
+        assert torch.equal(got.labels, want.labels) and torch.equal(got.freespace, want.freespace)
+    # mirrors draw per root (streams 0 and 1 of the training seed), and the epoch reaches every root
+    mirrored = RadialDetectionTask(dataclasses.replace(cfg, mirror_probability=0.5), [root, root2],
+                                   [store, store2]).train_set
+    assert [(type(d), d.stream) for d in mirrored.datasets] == [(MirroredFrames, 0), (MirroredFrames, 1)]
+    mirrored.set_epoch(3)
+    assert [d.epoch for d in mirrored.datasets] == [3, 3]
+    # one root keeps the run key runs always had; several are stored as lists, in order
+    single = run_key(cfg, root, store)
+    assert single == run_key(cfg, [root], [store]) and single["data"] == str(Path(root).resolve())
+    assert run_key(cfg, [root, root2], [store, store2])["points"] == [str(Path(store).resolve()),
+                                                                       str(Path(store2).resolve())]
+    # the CLI: train on both, evaluate on both (the stored roots) or on one (given)
+    save_yaml(cfg, tmp_path / "sp.yaml")
+    out = tmp_path / "run"
+    assert main(["train", str(tmp_path / "sp.yaml"), "--data", str(root), str(root2), "--points", str(store),
+                 str(store2), "--out", str(out), "--no-progress"]) == 0
+    key = json.loads((out / "run.json").read_text())
+    assert key["data"] == [str(Path(root).resolve()), str(Path(root2).resolve())]
+    assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1"]) == 0
+    assert json.loads((out / "eval_test.json").read_text())["metrics"]["n_frames"] == 6
+    assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--data", str(root2),
+                 "--points", str(store2)]) == 0
+    assert json.loads((out / "eval_test.json").read_text())["metrics"]["n_frames"] == 2
+    capsys.readouterr()
+    # bad input: stores that do not pair with the roots, and stores of other point features
+    assert main(["train", str(tmp_path / "sp.yaml"), "--data", str(root), str(root2), "--points", str(store),
+                 "--out", str(tmp_path / "bad"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "2 dataset roots" in err and "but 1 point stores" in err and "one store per root" in err
+    plain = tmp_path / "plain.parquet"
+    convert_dataset(root2, plain, density=0.057, progress=False)
+    with pytest.raises(ValueError, match=r"point stores of different features.*plain.parquet.*\[\].*\['sector32'\]"):
+        detection_dataset(cfg, [root, root2], [store, plain], "test")
+
+
 def test_classical_row_cli(root, store, tmp_path):
     from radarpc.data.point_dataset import PointCloudDataset, collate_point_frames
     from radarpc.eval.detection import DetectionMetrics

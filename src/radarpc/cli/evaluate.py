@@ -4,6 +4,7 @@
 
     radarpc evaluate runs/sp057 --split test
     radarpc evaluate runs/fft --split test --show 5
+    radarpc evaluate runs/sp_ab --split test --data sim_a --points pc_a.parquet   # one root of several
 
 Prints and writes ``RUN/eval_{split}.md`` and ``.json``: AP, AR and F1 at IoU 0.5 over the
 confidence thresholds 0.1 .. 0.9, precision/recall/F1 at confidence 0.2, mean range (m) and
@@ -39,8 +40,10 @@ def add_parser(sub) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run", help="run folder of `radarpc train`")
     p.add_argument("--split", default="test", choices=("train", "val", "test", "all"), help="split (default test)")
-    p.add_argument("--data", default=None, help="RADIal root (default: the one the run was trained on)")
-    p.add_argument("--points", default=None, help="point store (default: the one the run was trained on)")
+    p.add_argument("--data", default=None, nargs="+", metavar="ROOT",
+                   help="RADIal root(s) (default: those the run was trained on)")
+    p.add_argument("--points", default=None, nargs="+", metavar="FILE",
+                   help="point store of each root (default: those the run was trained on)")
     p.add_argument("--device", default=None, help="torch device (default: a GPU if any, else the CPU)")
     p.add_argument("--show", type=int, default=0, metavar="K", help="draw K frames spread evenly over the split")
     p.add_argument("--fps-frames", type=int, default=20, help="frames timed for frames/s (default 20)")

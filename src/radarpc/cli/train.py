@@ -6,6 +6,12 @@ RADIal-layout root, with validation every epoch and resume.
     radarpc train configs/spectralpillars-s.yaml --data data/sim_radial_s --points data/sim_radial_s_pc057.parquet --out runs/sp057
     radarpc train configs/fftradnet-s.yaml --data data/sim_radial_s --out runs/fft
     torchrun --nproc-per-node 2 -m radarpc train configs/fftradnet.yaml --data data/radial --out runs/fft
+    radarpc train configs/spectralpillars-s.yaml --data sim_a sim_b --points pc_a.parquet pc_b.parquet --out runs/sp_ab
+
+Several roots (``--data A B``, with one point store each for the pillar models) train as one
+dataset: the training frames of every root, validated on the validation frames of every root.
+The point stores' RD cubes may be deleted once converted: the point models read only the stores
+and each root's labels and freespace.
 
 The run folder ``--out`` holds ``config.yaml`` (the resolved config), ``run.json`` (the key: the
 config and the data paths), ``checkpoints/last.safetensors`` (the whole training state, written
@@ -50,8 +56,10 @@ def add_parser(sub) -> None:
     p = sub.add_parser("train", help="train a detector from a config (resumable, DDP under torchrun)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("config", help="experiment YAML (see configs/)")
-    p.add_argument("--data", required=True, help="RADIal-layout root (or a sparse-RD root for FFTRadNet)")
-    p.add_argument("--points", default=None, help="point store made from --data (pillar models)")
+    p.add_argument("--data", required=True, nargs="+", metavar="ROOT",
+                   help="RADIal-layout root (or a sparse-RD root for FFTRadNet); several train together")
+    p.add_argument("--points", default=None, nargs="+", metavar="FILE",
+                   help="point store made from each --data root, in the same order (pillar models)")
     p.add_argument("--out", required=True, help="run folder")
     p.add_argument("--runs", type=int, default=1, help="train this many seeds (train.seed, +1, ...) and summarise")
     p.add_argument("--device", default=None, help="torch device (default: this rank's GPU, else the CPU)")

@@ -75,7 +75,7 @@ class MirroredFrames(torch.utils.data.Dataset):
     """A :class:`~radarpc.data.point_dataset.PointCloudDataset` whose items are mirrored at random.
 
     Item ``i`` of epoch ``e`` is mirrored (:func:`mirror_frame`) when a uniform draw seeded by
-    ``(seed, e, i)`` falls below ``probability``; the training loop sets ``e`` through
+    ``(seed, e, i)`` (``(seed, e, i, stream)`` for ``stream > 0``) falls below ``probability``; the training loop sets ``e`` through
     :meth:`set_epoch` before it builds each epoch's loader (whose workers receive a copy).
 
     Parameters
@@ -83,14 +83,20 @@ class MirroredFrames(torch.utils.data.Dataset):
     frames : PointCloudDataset
     probability : float in [0, 1]
     seed : int
+    stream : int
+        Independent draws for several datasets under one seed (their position in a
+        concatenation); 0 draws as without it.
     """
 
-    def __init__(self, frames: PointCloudDataset, probability: float, seed: int) -> None:
+    def __init__(self, frames: PointCloudDataset, probability: float, seed: int, stream: int = 0) -> None:
         if not 0.0 <= probability <= 1.0:
             raise ValueError(f"mirror probability must be in [0, 1], got {probability}")
         self.frames = frames
         self.probability = float(probability)
         self.seed = int(seed)
+        if stream < 0:
+            raise ValueError(f"stream must be >= 0, got {stream}")
+        self.stream = int(stream)
         self.epoch = 0
         self._sectors = SpectralPointCloudConfig(enrich=frames.store.metadata.enrich).sectors
         if self._sectors is not None:
@@ -109,7 +115,8 @@ class MirroredFrames(torch.utils.data.Dataset):
 
     def is_mirrored(self, i: int) -> bool:
         """Whether item ``i`` is mirrored in the current epoch."""
-        u = np.random.default_rng([self.seed, self.epoch, int(i) % len(self)]).random()
+        key = [self.seed, self.epoch, int(i) % len(self)] + ([self.stream] if self.stream else [])
+        u = np.random.default_rng(key).random()
         return bool(u < self.probability)
 
     def __len__(self) -> int:
@@ -120,4 +127,5 @@ class MirroredFrames(torch.utils.data.Dataset):
         return mirror_frame(frame, self._sectors) if self.is_mirrored(i) else frame
 
     def __repr__(self) -> str:
-        return f"MirroredFrames({self.frames!r}, probability={self.probability}, seed={self.seed})"
+        return (f"MirroredFrames({self.frames!r}, probability={self.probability}, seed={self.seed}"
+                + (f", stream={self.stream})" if self.stream else ")"))

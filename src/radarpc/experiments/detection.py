@@ -40,7 +40,8 @@ from radarpc.eval.detection import FIXED_THRESHOLD, NEAR_MISS_M, DetectionMetric
 from radarpc.models.classical import ClassicalConfig, classical_detect
 from radarpc.models.targets import Detections, TargetConfig, decode_detections
 from radarpc.training.radial import (DetectionBatch, ExperimentConfig, RadialDetectionTask, collate_points,
-                                     build_model, collate_detection, detection_dataset, evaluate_model)
+                                     build_model, collate_detection, data_pairs, detection_dataset,
+                                     evaluate_model)
 
 __all__ = ["load_experiment", "run_key", "train_runs", "load_trained", "EvalResult", "evaluate_run",
            "evaluate_classical", "run_folders", "EVAL_PRECISIONS", "SUMMARY_METRICS"]
@@ -57,10 +58,18 @@ def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
     return load_yaml(ExperimentConfig, path)
 
 
-def run_key(cfg: ExperimentConfig, data: str | os.PathLike, points: str | os.PathLike | None) -> dict:
-    """What identifies a run: the whole config and the absolute paths of its data."""
-    return {"experiment": to_dict(cfg), "data": str(Path(data).resolve()),
-            "points": str(Path(points).resolve()) if points is not None else None}
+def run_key(cfg: ExperimentConfig, data, points=None) -> dict:
+    """What identifies a run: the whole config and the absolute paths of its data.
+
+    One root (and store) is stored as a path, as runs always stored it; several as lists in the
+    order given (:func:`~radarpc.training.radial.data_pairs`).
+    """
+    pairs = data_pairs(data, points)
+    roots = [str(r.resolve()) for r, _ in pairs]
+    stores = None if points is None else [str(p.resolve()) for _, p in pairs]
+    if len(pairs) == 1:
+        return {"experiment": to_dict(cfg), "data": roots[0], "points": stores[0] if stores else None}
+    return {"experiment": to_dict(cfg), "data": roots, "points": stores}
 
 
 def _seeded(cfg: ExperimentConfig, k: int) -> ExperimentConfig:
@@ -79,11 +88,15 @@ def run_folders(out: str | os.PathLike) -> list[Path]:
     return runs
 
 
-def train_runs(cfg: ExperimentConfig, data: str | os.PathLike, out: str | os.PathLike, *,
-               points: str | os.PathLike | None = None, runs: int = 1, device: str | None = None,
+def train_runs(cfg: ExperimentConfig, data, out: str | os.PathLike, *,
+               points=None, runs: int = 1, device: str | None = None,
                overwrite: bool = False, progress: bool = True,
                log: Callable[[str], None] = print) -> list[FitResult]:
-    """Train ``runs`` seeds of ``cfg`` into ``out`` (see the module docstring); resumable."""
+    """Train ``runs`` seeds of ``cfg`` into ``out`` (see the module docstring); resumable.
+
+    ``data`` is a RADIal root or several, ``points`` their point stores (pillar models), one per
+    root: the training and validation frames of every root are used together.
+    """
     if runs < 1:
         raise ValueError(f"runs must be >= 1, got {runs}")
     out = Path(out)
@@ -192,13 +205,14 @@ def _fps(model: torch.nn.Module, batches: list[DetectionBatch], device: torch.de
     return float(statistics.median(rates))
 
 
-def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: str | os.PathLike | None = None,
-                 points: str | os.PathLike | None = None, device: str | None = None, show: int = 0,
+def evaluate_run(run: str | os.PathLike, split: str = "test", *, data=None,
+                 points=None, device: str | None = None, show: int = 0,
                  fps_frames: int = 20, batch_size: int = 4, precision: str = "fp32", progress: bool = True,
                  log: Callable[[str], None] = print) -> list[EvalResult]:
     """Score the best weights of every run in ``run`` on ``split`` (see the module docstring).
 
-    ``data`` / ``points`` override the paths stored with the run (e.g. a moved dataset).
+    ``data`` / ``points`` override the roots and stores stored with the run (a moved dataset, or
+    one root of a run trained on several).
     ``precision`` is one of :data:`EVAL_PRECISIONS`.
     """
     from radarpc.viz import plot_detection_frame, plot_learning_curves

@@ -34,7 +34,7 @@ from radarpc.points import PointCloudBatch
 from radarpc.training.loop import TrainConfig
 
 __all__ = ["ExperimentConfig", "DetectionBatch", "build_model", "RadialDetectionTask", "collate_cubes", "collate_points",
-           "collate_detection", "detection_dataset", "evaluate_model",
+           "collate_detection", "detection_dataset", "data_pairs", "ConcatFrames", "evaluate_model",
            "DECODE_THRESHOLD", "MAX_CANDIDATES"]
 
 DECODE_THRESHOLD = 0.05
@@ -141,11 +141,40 @@ def collate_detection(items: list, cfg: ExperimentConfig) -> DetectionBatch:
     return collate_points(items, cfg.targets)
 
 
-def detection_dataset(cfg: ExperimentConfig, data: str | os.PathLike, points: str | os.PathLike | None,
-                      split: str):
-    """The dataset of ``split`` for ``cfg``'s input: RD cubes of ``data``, or the point store
-    ``points`` joined with ``data``'s labels."""
-    data = Path(data)
+def data_pairs(data, points=None) -> list[tuple[Path, Path | None]]:
+    """Pair the RADIal roots ``data`` with their point stores ``points``, in order.
+
+    ``data`` is one root or a sequence of roots; ``points`` is None (RD cubes), one store or a
+    sequence of stores, one per root.
+
+    Raises
+    ------
+    ValueError
+        No root, or a number of stores that is not the number of roots.
+    """
+    roots = [Path(data)] if isinstance(data, (str, os.PathLike)) else [Path(d) for d in data]
+    if not roots:
+        raise ValueError("no dataset root given (--data ROOT [ROOT ...])")
+    if points is None:
+        return [(r, None) for r in roots]
+    stores = [Path(points)] if isinstance(points, (str, os.PathLike)) else [Path(p) for p in points]
+    if len(stores) != len(roots):
+        raise ValueError(f"{len(roots)} dataset roots ({', '.join(map(str, roots))}) but {len(stores)} point "
+                         f"stores ({', '.join(map(str, stores))}): give one store per root, in the same order")
+    return list(zip(roots, stores))
+
+
+class ConcatFrames(torch.utils.data.ConcatDataset):
+    """The frames of several roots, one after another (``torch.utils.data.ConcatDataset``) that
+    passes :meth:`set_epoch` on to the datasets that draw per epoch (mirroring)."""
+
+    def set_epoch(self, epoch: int) -> None:
+        for ds in self.datasets:
+            if hasattr(ds, "set_epoch"):
+                ds.set_epoch(epoch)
+
+
+def _root_dataset(cfg: ExperimentConfig, data: Path, points: Path | None, split: str):
     if cfg.input_kind == "rd":
         ds = RADIal(data, split=split, difficult=cfg.difficult)
         fc = cfg.fftradnet
@@ -160,6 +189,44 @@ def detection_dataset(cfg: ExperimentConfig, data: str | os.PathLike, points: st
     return PointCloudDataset(points, data, split=split, difficult=cfg.difficult)
 
 
+def detection_dataset(cfg: ExperimentConfig, data, points=None, split: str = "train", *,
+                      mirror_seed: int | None = None):
+    """The dataset of ``split`` for ``cfg``'s input: RD cubes of ``data``, or the point store
+    ``points`` joined with ``data``'s labels.
+
+    Parameters
+    ----------
+    cfg : ExperimentConfig
+    data : path-like or sequence of path-like
+        One RADIal root, or several whose frames are used one after another (:class:`ConcatFrames`),
+        each root with its own split.
+    points : path-like or sequence of path-like, optional
+        The point store of each root (pillar models); ignored by FFTRadNet.
+    split : {"train", "val", "test", "all"}
+    mirror_seed : int, optional
+        Mirror ``cfg.mirror_probability`` of the items at random (:class:`MirroredFrames`), drawn
+        from this seed (and the root's position, so roots draw independently).
+
+    Raises
+    ------
+    ValueError
+        Roots and stores do not pair up (:func:`data_pairs`), a root's cubes do not fit the model,
+        a pillar model without stores, or stores of different point features (enrichments).
+    """
+    pairs = data_pairs(data, points if cfg.input_kind == "points" else None)
+    parts = []
+    for k, (root, store) in enumerate(pairs):
+        ds = _root_dataset(cfg, root, store, split)
+        if parts and cfg.input_kind == "points" and ds.store.metadata.enrich != parts[0].store.metadata.enrich:
+            raise ValueError(f"point stores of different features cannot train one model: {store} has the "
+                             f"enrichments {list(ds.store.metadata.enrich)}, {parts[0].store.path} has "
+                             f"{list(parts[0].store.metadata.enrich)}")
+        parts.append(ds)
+    if mirror_seed is not None and cfg.mirror_probability > 0:
+        parts = [MirroredFrames(ds, cfg.mirror_probability, mirror_seed, stream=k) for k, ds in enumerate(parts)]
+    return parts[0] if len(parts) == 1 else ConcatFrames(parts)
+
+
 def build_model(cfg: ExperimentConfig) -> nn.Module:
     """The model of ``cfg`` (fresh weights)."""
     return FFTRadNet(cfg.fftradnet) if cfg.fftradnet is not None else PointPillars(cfg.pillars)
@@ -171,20 +238,19 @@ class RadialDetectionTask:
     Parameters
     ----------
     cfg : ExperimentConfig
-    data : path-like
-        RADIal-layout root (labels, freespace; cubes for FFTRadNet).
-    points : path-like, optional
-        Point store made from ``data`` (required by the pillar models).
+    data : path-like or sequence of path-like
+        RADIal-layout root (labels, freespace; cubes for FFTRadNet), or several
+        (:func:`detection_dataset`).
+    points : path-like or sequence of path-like, optional
+        Point store made from each root (required by the pillar models).
     splits : (str, str)
-        Training and validation splits of ``data``.
+        Training and validation splits of every root.
     """
 
-    def __init__(self, cfg: ExperimentConfig, data: str | os.PathLike, points: str | os.PathLike | None = None,
+    def __init__(self, cfg: ExperimentConfig, data, points=None,
                  splits: tuple[str, str] = ("train", "val")) -> None:
         self.cfg = cfg
-        self.train_set = detection_dataset(cfg, data, points, splits[0])
-        if cfg.mirror_probability > 0:
-            self.train_set = MirroredFrames(self.train_set, cfg.mirror_probability, cfg.train.seed)
+        self.train_set = detection_dataset(cfg, data, points, splits[0], mirror_seed=cfg.train.seed)
         self.val_set = detection_dataset(cfg, data, points, splits[1])
 
     # ---- the Task protocol --------------------------------------------------------------------
