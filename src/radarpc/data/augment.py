@@ -75,8 +75,9 @@ class MirroredFrames(torch.utils.data.Dataset):
     """A :class:`~radarpc.data.point_dataset.PointCloudDataset` whose items are mirrored at random.
 
     Item ``i`` of epoch ``e`` is mirrored (:func:`mirror_frame`) when a uniform draw seeded by
-    ``(seed, e, i)`` (``(seed, e, i, stream)`` for ``stream > 0``) falls below ``probability``; the training loop sets ``e`` through
-    :meth:`set_epoch` before it builds each epoch's loader (whose workers receive a copy).
+    ``(seed, e, i)`` (``(seed, e, i, stream)`` for ``stream > 0``) falls below ``probability``;
+    the training loop sets ``e`` through :meth:`set_epoch` before it builds each epoch's loader
+    (whose workers receive a copy).
 
     Parameters
     ----------

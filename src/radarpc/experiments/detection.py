@@ -41,7 +41,7 @@ from radarpc.models.classical import ClassicalConfig, classical_detect
 from radarpc.models.targets import Detections, TargetConfig, decode_detections
 from radarpc.training.radial import (DetectionBatch, ExperimentConfig, RadialDetectionTask, collate_points,
                                      build_model, collate_detection, data_pairs, detection_dataset,
-                                     evaluate_model)
+                                     evaluate_model, DataPaths)
 
 __all__ = ["load_experiment", "run_key", "train_runs", "load_trained", "EvalResult", "evaluate_run",
            "evaluate_classical", "run_folders", "EVAL_PRECISIONS", "SUMMARY_METRICS"]
@@ -58,7 +58,7 @@ def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
     return load_yaml(ExperimentConfig, path)
 
 
-def run_key(cfg: ExperimentConfig, data, points=None) -> dict:
+def run_key(cfg: ExperimentConfig, data: DataPaths, points: DataPaths | None = None) -> dict:
     """What identifies a run: the whole config and the absolute paths of its data.
 
     One root (and store) is stored as a path, as runs always stored it; several as lists in the
@@ -88,8 +88,8 @@ def run_folders(out: str | os.PathLike) -> list[Path]:
     return runs
 
 
-def train_runs(cfg: ExperimentConfig, data, out: str | os.PathLike, *,
-               points=None, runs: int = 1, device: str | None = None,
+def train_runs(cfg: ExperimentConfig, data: DataPaths, out: str | os.PathLike, *,
+               points: DataPaths | None = None, runs: int = 1, device: str | None = None,
                overwrite: bool = False, progress: bool = True,
                log: Callable[[str], None] = print) -> list[FitResult]:
     """Train ``runs`` seeds of ``cfg`` into ``out`` (see the module docstring); resumable.
@@ -205,8 +205,8 @@ def _fps(model: torch.nn.Module, batches: list[DetectionBatch], device: torch.de
     return float(statistics.median(rates))
 
 
-def evaluate_run(run: str | os.PathLike, split: str = "test", *, data=None,
-                 points=None, device: str | None = None, show: int = 0,
+def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths | None = None,
+                 points: DataPaths | None = None, device: str | None = None, show: int = 0,
                  fps_frames: int = 20, batch_size: int = 4, precision: str = "fp32", progress: bool = True,
                  log: Callable[[str], None] = print) -> list[EvalResult]:
     """Score the best weights of every run in ``run`` on ``split`` (see the module docstring).

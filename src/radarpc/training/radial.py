@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Sequence
 
 import torch
 from torch import nn
@@ -34,8 +34,11 @@ from radarpc.points import PointCloudBatch
 from radarpc.training.loop import TrainConfig
 
 __all__ = ["ExperimentConfig", "DetectionBatch", "build_model", "RadialDetectionTask", "collate_cubes", "collate_points",
-           "collate_detection", "detection_dataset", "data_pairs", "ConcatFrames", "evaluate_model",
-           "DECODE_THRESHOLD", "MAX_CANDIDATES"]
+           "collate_detection", "detection_dataset", "data_pairs", "ConcatFrames", "DataPaths",
+           "evaluate_model", "DECODE_THRESHOLD", "MAX_CANDIDATES"]
+
+DataPaths = str | os.PathLike | Sequence[str | os.PathLike]
+"""One path, or several in order (dataset roots, or their point stores)."""
 
 DECODE_THRESHOLD = 0.05
 """RADIal's decoding threshold: cells with probability >= 0.05 become candidates before NMS."""
@@ -141,7 +144,7 @@ def collate_detection(items: list, cfg: ExperimentConfig) -> DetectionBatch:
     return collate_points(items, cfg.targets)
 
 
-def data_pairs(data, points=None) -> list[tuple[Path, Path | None]]:
+def data_pairs(data: DataPaths, points: DataPaths | None = None) -> list[tuple[Path, Path | None]]:
     """Pair the RADIal roots ``data`` with their point stores ``points``, in order.
 
     ``data`` is one root or a sequence of roots; ``points`` is None (RD cubes), one store or a
@@ -189,7 +192,8 @@ def _root_dataset(cfg: ExperimentConfig, data: Path, points: Path | None, split:
     return PointCloudDataset(points, data, split=split, difficult=cfg.difficult)
 
 
-def detection_dataset(cfg: ExperimentConfig, data, points=None, split: str = "train", *,
+def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths | None = None,
+                      split: str = "train", *,
                       mirror_seed: int | None = None):
     """The dataset of ``split`` for ``cfg``'s input: RD cubes of ``data``, or the point store
     ``points`` joined with ``data``'s labels.
@@ -247,7 +251,7 @@ class RadialDetectionTask:
         Training and validation splits of every root.
     """
 
-    def __init__(self, cfg: ExperimentConfig, data, points=None,
+    def __init__(self, cfg: ExperimentConfig, data: DataPaths, points: DataPaths | None = None,
                  splits: tuple[str, str] = ("train", "val")) -> None:
         self.cfg = cfg
         self.train_set = detection_dataset(cfg, data, points, splits[0], mirror_seed=cfg.train.seed)
