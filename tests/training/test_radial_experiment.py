@@ -128,6 +128,23 @@ def test_mirrored_run_resumes_to_the_same_weights(root, store, tmp_path):
     assert not all(torch.equal(full[k], plain[k]) for k in full)
 
 
+def test_each_of_several_runs_draws_its_mirrors_from_its_seed(root, store, tmp_path, monkeypatch):
+    import radarpc.experiments.detection as detection
+
+    seen = []
+
+    def spy(task, train, *a, **k):
+        seen.append((train.seed, task.train_set.seed))
+        return fitted(task, train, *a, **k)
+
+    fitted = detection.fit
+    monkeypatch.setattr(detection, "fit", spy)
+    cfg = ExperimentConfig(name="sp-mirror", pillars=pillars_tiny().cfg, mirror_probability=0.5,
+                           train=dataclasses.replace(TINY_TRAIN, epochs=1, batch_size=4, seed=5))
+    detection.train_runs(cfg, root, tmp_path / "runs", points=store, runs=2, progress=False, log=lambda s: None)
+    assert seen == [(5, 5), (6, 6)]
+
+
 def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     cfg = ExperimentConfig(name="sp-tiny", pillars=pillars_tiny().cfg,
                            train=dataclasses.replace(TINY_TRAIN, epochs=1, batch_size=2, eval_batch_size=2))
@@ -300,11 +317,17 @@ def test_several_roots_train_and_evaluate_as_one(root, store, root2, store2, tmp
                  str(store2), "--out", str(out), "--no-progress"]) == 0
     key = json.loads((out / "run.json").read_text())
     assert key["data"] == [str(Path(root).resolve()), str(Path(root2).resolve())]
+    log = (out / "log.csv").read_text().splitlines()
+    row = dict(zip(log[0].split(","), log[-1].split(",")))
+    assert (row["epoch"], row["step"]) == ("0", "3")          # 4 + 2 training frames, batches of 2
     assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1"]) == 0
-    assert json.loads((out / "eval_test.json").read_text())["metrics"]["n_frames"] == 6
+    doc = json.loads((out / "eval_test.json").read_text())
+    assert doc["metrics"]["n_frames"] == 6 and (doc["data"], doc["points"]) == (key["data"], key["points"])
     assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--data", str(root2),
                  "--points", str(store2)]) == 0
-    assert json.loads((out / "eval_test.json").read_text())["metrics"]["n_frames"] == 2
+    doc = json.loads((out / "eval_test.json").read_text())            # what was scored is recorded
+    assert doc["metrics"]["n_frames"] == 2 and (doc["data"], doc["points"]) == (key["data"][1:], key["points"][1:])
+    assert f"Scored on `{key['data'][1]}` (points `{key['points'][1]}`)." in (out / "eval_test.md").read_text()
     capsys.readouterr()
     # bad input: stores that do not pair with the roots, and stores of other point features
     assert main(["train", str(tmp_path / "sp.yaml"), "--data", str(root), str(root2), "--points", str(store),

@@ -100,12 +100,11 @@ def train_runs(cfg: ExperimentConfig, data: DataPaths, out: str | os.PathLike, *
     if runs < 1:
         raise ValueError(f"runs must be >= 1, got {runs}")
     out = Path(out)
-    task = RadialDetectionTask(cfg, data, points)
     results = []
     for k in range(runs):
         run_cfg = _seeded(cfg, k)
         folder = out if runs == 1 else out / f"run{k}"
-        task.cfg = run_cfg
+        task = RadialDetectionTask(run_cfg, data, points)      # the run's seed also draws its mirrors
         res = fit(task, run_cfg.train, folder, run_key(run_cfg, data, points), device=device,
                   overwrite=overwrite, progress=progress, log=log, extra_outputs=("config.yaml",))
         if not (folder / "config.yaml").is_file():
@@ -148,6 +147,10 @@ class EvalResult:
     device: str
     threads: int
     precision: str = "fp32"
+    data: tuple[str, ...] = ()
+    """The roots scored (absolute paths)."""
+    points: tuple[str, ...] | None = None
+    """Their point stores (point models)."""
 
     @property
     def stem(self) -> str:
@@ -223,7 +226,8 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     results = []
     for folder in run_folders(run):
         cfg, model, key = load_trained(folder, dev)
-        ds = detection_dataset(cfg, data or key["data"], points or key.get("points"), split)
+        scored = data_pairs(data or key["data"], (points or key.get("points")) if cfg.input_kind == "points" else None)
+        ds = detection_dataset(cfg, [r for r, _ in scored], [p for _, p in scored] if scored[0][1] else None, split)
         collate = functools.partial(collate_detection, cfg=cfg)
         loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate)
         with torch.inference_mode(), autocast_context(precision, dev):
@@ -238,7 +242,9 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
                 break
         fps = _fps(model, frames, dev, precision=precision)
         n_params = sum(p.numel() for p in model.parameters())
-        res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision)
+        res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision,
+                         data=tuple(str(r.resolve()) for r, _ in scored),
+                         points=tuple(str(p.resolve()) for _, p in scored) if scored[0][1] else None)
         _write_eval(folder, res, cfg.name)
         if (folder / LOG_CSV).is_file():
             plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
@@ -301,7 +307,7 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
             classical_detect(b.inputs, cfg)
         rates.append(len(frames) / max(time.perf_counter() - t0, 1e-12))
     res = EvalResult(out, split, metrics, 0, float(statistics.median(rates)) if frames else math.nan, "cpu",
-                     torch.get_num_threads())
+                     torch.get_num_threads(), data=(str(Path(data).resolve()),), points=(str(Path(points).resolve()),))
     _write_eval(out, res, "classical (CFAR points, Doppler gating, BEV clusters)")
     for k, b in _shown(ds, show, collate):
         rows = classical_detect(b.inputs, cfg).rows()
@@ -319,7 +325,8 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
     from radarpc.viz import plot_label_outcomes
 
     m = res.metrics
-    doc = {"split": res.split, "metrics": m, "parameters": res.parameters, "fps_batch1": res.fps,
+    doc = {"split": res.split, "data": list(res.data), "points": list(res.points) if res.points else None,
+           "metrics": m, "parameters": res.parameters, "fps_batch1": res.fps,
            "device": res.device, "threads": res.threads, "precision": res.precision}
     with atomic_write(folder / f"{res.stem}.json", "w") as f:
         json.dump(doc, f, indent=2)
@@ -340,6 +347,10 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
         f"{m['fn_fixed']} labels missed, {m['fn_near_fixed']} have a detection within {NEAR_MISS_M:g} m "
         f"(found, but the box is off by enough to fail IoU 0.5).",
     ]
+    if res.data:
+        stores = res.points or (None,) * len(res.data)
+        lines += ["", "Scored on " + "; ".join(f"`{r}`" + (f" (points `{p}`)" if p else "")
+                                               for r, p in zip(res.data, stores)) + "."]
     with atomic_write(folder / f"{res.stem}.md", "w") as f:
         f.write("\n".join(lines) + "\n")
     plot_label_outcomes(m, folder / "figures" / f"{res.stem}_labels.png",
