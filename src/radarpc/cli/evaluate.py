@@ -9,8 +9,8 @@
 Prints and writes ``RUN/eval_{split}.md`` and ``.json``: AP, AR and F1 at IoU 0.5 over the
 confidence thresholds 0.1 .. 0.9, precision/recall/F1 at confidence 0.2, mean range (m) and
 azimuth (deg) errors of matched pairs, freespace mIoU (rows 0..123, 0-50 m), the parameter count,
-the batch-1 frames/s on the evaluation device and the roots (and point stores) scored. ``--show K`` draws K frames spread evenly over
-the split, first and last included (``RUN/figures/eval_{split}_{item}.png``): points or nothing in
+the batch-1 frames/s on the evaluation device and the roots (and point stores) scored. ``--show K``
+draws K frames spread evenly over the split, first and last included (``RUN/figures/eval_{split}_{item}.png``): points or nothing in
 bird's-eye view with the label and predicted boxes, and the predicted probability map.
 ``RUN/figures/learning_curve.png`` always (validation F1 and training loss per epoch, from
 ``log.csv``), and ``RUN/figures/eval_{split}_labels.png``: per threshold, the labels matched,

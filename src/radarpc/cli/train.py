@@ -10,8 +10,8 @@ RADIal-layout root, with validation every epoch and resume.
 
 Several roots (``--data A B``, with one point store each for the pillar models) train as one
 dataset: the training frames of every root, validated on the validation frames of every root.
-The point stores' RD cubes may be deleted once converted: the point models read only the stores
-and each root's labels and freespace.
+A root's RD cubes may be deleted once converted to its point store: the point models read only
+the stores and each root's labels and freespace.
 
 The run folder ``--out`` holds ``config.yaml`` (the resolved config), ``run.json`` (the key: the
 config and the data paths), ``checkpoints/last.safetensors`` (the whole training state, written
