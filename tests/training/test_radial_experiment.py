@@ -52,19 +52,26 @@ def test_experiment_config_needs_one_model():
         ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, pillars=pillars_tiny().cfg)
 
 
+def _city_root(tmp_path_factory, name: str, frames_per_sequence: int, seed: int) -> Path:
+    # 3 sequences of radial-s city scenes: one sequence each for train, val and test
+    return write_radial_dataset(tmp_path_factory.mktemp(name) / name, RADIAL_S, 3, frames_per_sequence, seed=seed,
+                                progress=False, scenes=scene_mix("city"))
+
+
+def _store_of(root: Path, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("pc") / f"{root.name}.parquet"
+    convert_dataset(root, out, density=0.057, enrich=("sector32",), progress=False)
+    return out
+
+
 @pytest.fixture(scope="module")
 def root(tmp_path_factory):
-    # 3 sequences x 4 frames of radial-s city scenes (24 vehicles with seed 3): one sequence each for
-    # train, val and test
-    return write_radial_dataset(tmp_path_factory.mktemp("sim") / "root", RADIAL_S, 3, 4, seed=3, progress=False,
-                                scenes=scene_mix("city"))
+    return _city_root(tmp_path_factory, "root", 4, seed=3)          # 24 vehicles with seed 3
 
 
 @pytest.fixture(scope="module")
 def store(root, tmp_path_factory):
-    out = tmp_path_factory.mktemp("pc") / "pc.parquet"
-    convert_dataset(root, out, density=0.057, enrich=("sector32",), progress=False)
-    return out
+    return _store_of(root, tmp_path_factory)
 
 
 def _overfit(cfg: ExperimentConfig, root, store, tmp_path) -> list[dict]:
@@ -271,16 +278,12 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
 
 @pytest.fixture(scope="module")
 def root2(tmp_path_factory):
-    # a second root of other scenes (seed 4): 3 sequences x 2 frames
-    return write_radial_dataset(tmp_path_factory.mktemp("sim2") / "root2", RADIAL_S, 3, 2, seed=4, progress=False,
-                                scenes=scene_mix("city"))
+    return _city_root(tmp_path_factory, "root2", 2, seed=4)         # other scenes, 2 frames a sequence
 
 
 @pytest.fixture(scope="module")
 def store2(root2, tmp_path_factory):
-    out = tmp_path_factory.mktemp("pc2") / "pc2.parquet"
-    convert_dataset(root2, out, density=0.057, enrich=("sector32",), progress=False)
-    return out
+    return _store_of(root2, tmp_path_factory)
 
 
 def test_several_roots_train_and_evaluate_as_one(root, store, root2, store2, tmp_path, capsys):
