@@ -226,8 +226,10 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     results = []
     for folder in run_folders(run):
         cfg, model, key = load_trained(folder, dev)
-        scored = data_pairs(data or key["data"], (points or key.get("points")) if cfg.input_kind == "points" else None)
-        ds = detection_dataset(cfg, [r for r, _ in scored], [p for _, p in scored] if scored[0][1] else None, split)
+        roots = data or key["data"]
+        stores = (points or key.get("points")) if cfg.input_kind == "points" else None
+        ds = detection_dataset(cfg, roots, stores, split)
+        scored = data_pairs(roots, stores)
         collate = functools.partial(collate_detection, cfg=cfg)
         loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate)
         with torch.inference_mode(), autocast_context(precision, dev):
@@ -244,7 +246,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
         n_params = sum(p.numel() for p in model.parameters())
         res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision,
                          data=tuple(str(r.resolve()) for r, _ in scored),
-                         points=tuple(str(p.resolve()) for _, p in scored) if scored[0][1] else None)
+                         points=None if stores is None else tuple(str(p.resolve()) for _, p in scored))
         _write_eval(folder, res, cfg.name)
         if (folder / LOG_CSV).is_file():
             plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")

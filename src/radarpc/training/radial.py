@@ -155,12 +155,15 @@ def data_pairs(data: DataPaths, points: DataPaths | None = None) -> list[tuple[P
     ValueError
         No root, or a number of stores that is not the number of roots.
     """
-    roots = [Path(data)] if isinstance(data, (str, os.PathLike)) else [Path(d) for d in data]
+    def paths(given: DataPaths) -> list[Path]:
+        return [Path(given)] if isinstance(given, (str, os.PathLike)) else [Path(g) for g in given]
+
+    roots = paths(data)
     if not roots:
         raise ValueError("no dataset root given (--data ROOT [ROOT ...])")
     if points is None:
         return [(r, None) for r in roots]
-    stores = [Path(points)] if isinstance(points, (str, os.PathLike)) else [Path(p) for p in points]
+    stores = paths(points)
     if len(stores) != len(roots):
         raise ValueError(f"{len(roots)} dataset roots ({', '.join(map(str, roots))}) but {len(stores)} point "
                          f"stores ({', '.join(map(str, stores))}): give one store per root, in the same order")
