@@ -328,9 +328,19 @@ def test_several_roots_train_and_evaluate_as_one(root, store, root2, store2, tmp
     assert doc["metrics"]["n_frames"] == 6 and (doc["data"], doc["points"]) == (key["data"], key["points"])
     assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--data", str(root2),
                  "--points", str(store2)]) == 0
-    doc = json.loads((out / "eval_test.json").read_text())            # what was scored is recorded
+    # other data than the run's own goes to files named after it, and what was scored is recorded
+    other = f"eval_test_on_{Path(root2).name}"
+    doc = json.loads((out / f"{other}.json").read_text())
     assert doc["metrics"]["n_frames"] == 2 and (doc["data"], doc["points"]) == (key["data"][1:], key["points"][1:])
-    assert f"Scored on `{key['data'][1]}` (points `{key['points'][1]}`)." in (out / "eval_test.md").read_text()
+    assert f"Scored on `{key['data'][1]}` (points `{key['points'][1]}`)." in (out / f"{other}.md").read_text()
+    assert json.loads((out / "eval_test.json").read_text())["metrics"]["n_frames"] == 6   # the run's own, kept
+    # the same roots with another store are named after the stores
+    copied = tmp_path / "copied.parquet"
+    shutil.copyfile(store, copied)
+    assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--data", str(root), str(root2),
+                 "--points", str(copied), str(store2)]) == 0
+    doc = json.loads((out / f"eval_test_on_copied+{Path(store2).stem}.json").read_text())
+    assert doc["metrics"]["n_frames"] == 6 and doc["points"] == [str(copied.resolve()), key["points"][1]]
     capsys.readouterr()
     # bad input: stores that do not pair with the roots, and stores of other point features
     assert main(["train", str(tmp_path / "sp.yaml"), "--data", str(root), str(root2), "--points", str(store),

@@ -4,12 +4,15 @@
 
     radarpc evaluate runs/sp057 --split test
     radarpc evaluate runs/fft --split test --show 5
-    radarpc evaluate runs/sp_ab --split test --data sim_a --points pc_a.parquet   # one root of several
+    radarpc evaluate runs/sp_ab --split test --data sim_a --points pc_a.parquet   # one root of several: eval_test_on_sim_a.*
 
 Prints and writes ``RUN/eval_{split}.md`` and ``.json``: AP, AR and F1 at IoU 0.5 over the
 confidence thresholds 0.1 .. 0.9, precision/recall/F1 at confidence 0.2, mean range (m) and
 azimuth (deg) errors of matched pairs, freespace mIoU (rows 0..123, 0-50 m), the parameter count,
-the batch-1 frames/s on the evaluation device and the roots (and point stores) scored. ``--show K``
+the batch-1 frames/s on the evaluation device and the roots (and point stores) scored. Data given
+with ``--data`` / ``--points`` that is not the run's own goes to ``RUN/eval_{split}_on_{names}.*``
+instead (the roots' folder names, and the stores' file names when a root of the run is scored with
+another store), so the run's own scores stay. ``--show K``
 draws K frames spread evenly over the split, first and last included (``RUN/figures/eval_{split}_{item}.png``): points or nothing in
 bird's-eye view with the label and predicted boxes, and the predicted probability map.
 ``RUN/figures/learning_curve.png`` always (validation F1 and training loss per epoch, from

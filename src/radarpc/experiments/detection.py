@@ -151,11 +151,15 @@ class EvalResult:
     """The roots scored (absolute paths)."""
     points: tuple[str, ...] | None = None
     """Their point stores (point models)."""
+    scored_on: str = ""
+    """Names the data when it is not the run's own (:func:`evaluate_run`), else empty."""
 
     @property
     def stem(self) -> str:
-        """``eval_{split}``, with ``_{precision}`` unless fp32: the name of the written files."""
-        return f"eval_{self.split}" + ("" if self.precision == "fp32" else f"_{self.precision}")
+        """The name of the written files: ``eval_{split}``, then ``_on_{scored_on}`` for data not
+        the run's own and ``_{precision}`` unless fp32."""
+        return (f"eval_{self.split}" + (f"_on_{self.scored_on}" if self.scored_on else "")
+                + ("" if self.precision == "fp32" else f"_{self.precision}"))
 
 
 def _load_run(folder: Path) -> tuple[ExperimentConfig, dict]:
@@ -215,7 +219,9 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     """Score the best weights of every run in ``run`` on ``split`` (see the module docstring).
 
     ``data`` / ``points`` override the roots and stores stored with the run (a moved dataset, or
-    one root of a run trained on several).
+    one root of a run trained on several). Scores on other data than the run's own go to files of
+    their own, ``eval_{split}_on_{names}``, so they do not replace the run's own scores
+    (:func:`_scored_on` gives the names).
     ``precision`` is one of :data:`EVAL_PRECISIONS`.
     """
     from radarpc.viz import plot_detection_frame, plot_learning_curves
@@ -230,6 +236,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
         stores = (points or key.get("points")) if cfg.input_kind == "points" else None
         ds = detection_dataset(cfg, roots, stores, split)
         scored = data_pairs(roots, stores)
+        own = data_pairs(key["data"], key.get("points") if stores is not None else None)
         collate = functools.partial(collate_detection, cfg=cfg)
         loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate)
         with torch.inference_mode(), autocast_context(precision, dev):
@@ -246,7 +253,8 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
         n_params = sum(p.numel() for p in model.parameters())
         res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision,
                          data=tuple(str(r.resolve()) for r, _ in scored),
-                         points=None if stores is None else tuple(str(p.resolve()) for _, p in scored))
+                         points=None if stores is None else tuple(str(p.resolve()) for _, p in scored),
+                         scored_on=_scored_on(scored, own))
         _write_eval(folder, res, cfg.name)
         if (folder / LOG_CSV).is_file():
             plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
@@ -269,6 +277,21 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
         _write_summary(Path(run) / f"{results[0].stem}_summary", rows,
                        f"{split}: {len(results)} runs" + ("" if precision == "fp32" else f", {precision}"))
     return results
+
+
+def _scored_on(scored: list[tuple[Path, Path | None]], own: list[tuple[Path, Path | None]]) -> str:
+    """How the eval files name data other than the run's own: the scored roots' folder names
+    joined by ``+`` when they are not the run's roots, then the stores' file stems when a root of
+    the run is scored with another store than its own (``sim_b`` for another root, ``pc200`` for
+    the run's root with the store of another density); ``""`` for the run's own data."""
+    own_store = {root.resolve(): store.resolve() for root, store in own if store is not None}
+    parts = []
+    if [root.resolve() for root, _ in scored] != [root.resolve() for root, _ in own]:
+        parts.append("+".join(root.name for root, _ in scored))
+    if any(store is not None and own_store.get(root.resolve(), store.resolve()) != store.resolve()
+           for root, store in scored):
+        parts.append("+".join(store.stem for _, store in scored))
+    return "_".join(parts)
 
 
 def _shown(ds, k: int, collate) -> list[tuple[int, DetectionBatch]]:
