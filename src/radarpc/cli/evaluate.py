@@ -12,8 +12,8 @@ azimuth (deg) errors of matched pairs, freespace mIoU (rows 0..123, 0-50 m), the
 the batch-1 frames/s on the evaluation device and the roots (and point stores) scored. Data given
 with ``--data`` / ``--points`` that is not the run's own goes to ``RUN/eval_{split}_on_{names}.*``
 instead (the roots' folder names, and the stores' file names when a root of the run is scored with
-another store), so the run's own scores stay. ``--show K``
-draws K frames spread evenly over the split, first and last included (``RUN/figures/eval_{split}_{item}.png``): points or nothing in
+another store), so the run's own scores stay. ``--show K`` draws K frames spread evenly over
+the split, first and last included (``RUN/figures/eval_{split}_{item}.png``): points or nothing in
 bird's-eye view with the label and predicted boxes, and the predicted probability map.
 ``RUN/figures/learning_curve.png`` always (validation F1 and training loss per epoch, from
 ``log.csv``), and ``RUN/figures/eval_{split}_labels.png``: per threshold, the labels matched,

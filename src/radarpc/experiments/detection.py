@@ -235,8 +235,8 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
         roots = data or key["data"]
         stores = (points or key.get("points")) if cfg.input_kind == "points" else None
         ds = detection_dataset(cfg, roots, stores, split)
-        scored = data_pairs(roots, stores)
-        own = data_pairs(key["data"], key.get("points") if stores is not None else None)
+        scored = _resolved(data_pairs(roots, stores))
+        own = _resolved(data_pairs(key["data"], key.get("points") if stores is not None else None))
         collate = functools.partial(collate_detection, cfg=cfg)
         loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate)
         with torch.inference_mode(), autocast_context(precision, dev):
@@ -252,8 +252,8 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
         fps = _fps(model, frames, dev, precision=precision)
         n_params = sum(p.numel() for p in model.parameters())
         res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision,
-                         data=tuple(str(r.resolve()) for r, _ in scored),
-                         points=None if stores is None else tuple(str(p.resolve()) for _, p in scored),
+                         data=tuple(str(r) for r, _ in scored),
+                         points=None if stores is None else tuple(str(p) for _, p in scored),
                          scored_on=_scored_on(scored, own))
         _write_eval(folder, res, cfg.name)
         if (folder / LOG_CSV).is_file():
@@ -279,17 +279,21 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     return results
 
 
+def _resolved(pairs: list[tuple[Path, Path | None]]) -> list[tuple[Path, Path | None]]:
+    return [(root.resolve(), None if store is None else store.resolve()) for root, store in pairs]
+
+
 def _scored_on(scored: list[tuple[Path, Path | None]], own: list[tuple[Path, Path | None]]) -> str:
-    """How the eval files name data other than the run's own: the scored roots' folder names
-    joined by ``+`` when they are not the run's roots, then the stores' file stems when a root of
-    the run is scored with another store than its own (``sim_b`` for another root, ``pc200`` for
-    the run's root with the store of another density); ``""`` for the run's own data."""
-    own_store = {root.resolve(): store.resolve() for root, store in own if store is not None}
+    """How the eval files name data other than the run's own, given both as resolved
+    (root, store) pairs: the scored roots' folder names joined by ``+`` when they are not the
+    run's roots, then the stores' file stems when a root of the run is scored with another store
+    than its own (``sim_b`` for another root, ``pc200`` for the run's root with the store of
+    another density); ``""`` for the run's own data."""
+    own_store = dict(own)
     parts = []
-    if [root.resolve() for root, _ in scored] != [root.resolve() for root, _ in own]:
+    if [root for root, _ in scored] != [root for root, _ in own]:
         parts.append("+".join(root.name for root, _ in scored))
-    if any(store is not None and own_store.get(root.resolve(), store.resolve()) != store.resolve()
-           for root, store in scored):
+    if any(store is not None and own_store.get(root, store) != store for root, store in scored):
         parts.append("+".join(store.stem for _, store in scored))
     return "_".join(parts)
 
