@@ -19,7 +19,8 @@ import torch.multiprocessing as mp
 from radarpc.distributed import DistEnv
 from radarpc.runs import RunMismatchError
 from radarpc.training.checkpoint import load_state, load_weights, save_state
-from radarpc.training.loop import BEST_WEIGHTS, LAST_CHECKPOINT, LOG_CSV, TrainConfig, epoch_batches, fit
+from radarpc.training.loop import (BEST_WEIGHTS, LAST_CHECKPOINT, LOG_CSV, TrainConfig, ema_decay_at, epoch_batches,
+                                   fit)
 from toytask import ToyTask
 
 CFG = TrainConfig(epochs=3, batch_size=4, eval_batch_size=4, num_workers=0, checkpoint_every=2,
@@ -50,6 +51,8 @@ def test_config_validation():
         TrainConfig(precision="half")
     with pytest.raises(ValueError, match="lr_start <= lr_max"):
         TrainConfig(lr_start=1e-2, lr_max=1e-3)
+    with pytest.raises(ValueError, match=r"ema_decay must be in \[0, 1\)"):
+        TrainConfig(ema_decay=1.0)
 
 
 def test_schedule_logs_and_best_checkpoint(tmp_path):
@@ -121,6 +124,75 @@ def test_auto_precision_is_kept_when_a_run_resumes_on_another_machine(tmp_path, 
     fp32 = fit(ToyTask(), CFG, tmp_path / "fp32", KEY, progress=False, log=lambda s: None)
     c = _final(fp32.out)
     assert not all(torch.equal(a[k], c[k]) for k in a)
+
+
+class _RecordingToyTask(ToyTask):
+    """Keeps the weights each training step starts from."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: list[dict[str, torch.Tensor]] = []
+
+    def loss(self, model, batch):
+        self.seen.append({k: v.detach().clone() for k, v in model.state_dict().items()})
+        return super().loss(model, batch)
+
+
+def test_weight_average_follows_its_equation_and_is_what_validation_scores(tmp_path):
+    # the decay ramp, by hand: (1 + n) / (10 + n) until it reaches ema_decay
+    assert ema_decay_at(1, 0.999) == pytest.approx(2 / 11)
+    assert ema_decay_at(90, 0.999) == pytest.approx(91 / 100)
+    assert ema_decay_at(10**6, 0.999) == 0.999 and ema_decay_at(50, 0.5) == 0.5
+    with pytest.raises(ValueError, match="1-based"):
+        ema_decay_at(0, 0.9)
+
+    cfg = dataclasses.replace(CFG, ema_decay=0.9)
+    task = _RecordingToyTask()
+    res = fit(task, cfg, tmp_path / "run", KEY, progress=False, log=lambda s: None)
+    state = load_state(tmp_path / "run" / LAST_CHECKPOINT)
+    # theta after step n is what step n + 1 starts from; the last step's is the checkpoint's model
+    thetas = task.seen[1:] + [state.model]
+    assert len(thetas) == 18
+    expected = {k: v.double() for k, v in task.seen[0].items()}     # the average starts at theta_0
+    for n, theta in enumerate(thetas, start=1):
+        beta = min(0.9, (1 + n) / (10 + n))
+        expected = {k: beta * v + (1 - beta) * theta[k].double() for k, v in expected.items()}
+    # 18 float32 lerps, each rounding to half an ulp: 1e-5 of the weights' scale is far above it
+    scale = max(float(v.abs().max()) for v in expected.values())
+    for k, v in expected.items():
+        torch.testing.assert_close(state.ema[k].double(), v, rtol=0, atol=1e-5 * scale)
+    assert not all(torch.equal(state.ema[k], state.model[k]) for k in state.model)
+    # validation scored the average, and the best weights are the average at the best epoch
+    best, info = load_weights(tmp_path / "run" / BEST_WEIGHTS)
+    assert info["weights"] == "ema"
+    if res.best_epoch == 2:
+        assert all(torch.equal(best[k], state.ema[k]) for k in best)
+    model = task.build_model()
+    model.load_state_dict(state.ema)
+    model.eval()
+    with torch.no_grad():
+        last = task.evaluate(model, [task.collate([task.val_set[i] for i in range(8)])], "cpu")
+    assert res.history[-1]["val_f1"] == pytest.approx(last["f1"], rel=1e-6)
+
+
+def test_interrupted_run_resumes_to_the_same_weight_average(tmp_path):
+    cfg = dataclasses.replace(CFG, ema_decay=0.9)
+    fit(ToyTask(), cfg, tmp_path / "full", KEY, progress=False, log=lambda s: None)
+
+    def stop(step):
+        if step == 7:
+            raise _Kill
+
+    with pytest.raises(_Kill):
+        fit(ToyTask(), cfg, tmp_path / "cut", KEY, progress=False, log=lambda s: None, on_step=stop)
+    fit(ToyTask(), cfg, tmp_path / "cut", KEY, progress=False, log=lambda s: None)
+    a, b = load_state(tmp_path / "full" / LAST_CHECKPOINT), load_state(tmp_path / "cut" / LAST_CHECKPOINT)
+    assert all(torch.equal(a.ema[k], b.ema[k]) and torch.equal(a.model[k], b.model[k]) for k in a.model)
+    # a checkpoint without an average cannot resume as a run that keeps one
+    with pytest.raises(_Kill):
+        fit(ToyTask(), CFG, tmp_path / "plain", KEY, progress=False, log=lambda s: None, on_step=stop)
+    with pytest.raises(ValueError, match=r"holds no weight average, but train.ema_decay is 0.9"):
+        fit(ToyTask(), cfg, tmp_path / "plain", KEY, progress=False, log=lambda s: None)
 
 
 def test_run_started_in_fp16_is_refused_on_a_cpu_with_the_reason(tmp_path):

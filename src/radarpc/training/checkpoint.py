@@ -3,8 +3,9 @@
 A checkpoint is one ``.safetensors`` file, written atomically, so a kill at any moment leaves
 either the previous checkpoint or the new one, never a mix:
 
-* tensors ``model.<name>`` (the model's ``state_dict``), ``optim.<param index>.<key>`` (the
-  optimizer's per-parameter state) and ``scaler.<key>``;
+* tensors ``model.<name>`` (the model's ``state_dict``), ``ema.<name>`` (its exponential moving
+  average, when the run keeps one), ``optim.<param index>.<key>`` (the optimizer's per-parameter
+  state) and ``scaler.<key>``;
 * the safetensors metadata entry ``radarpc`` holds, as JSON, everything else: the optimizer's
   param groups and non-tensor state, the scheduler's ``state_dict``, the progress counters and
   whatever the caller adds (history, best score). JSON writes floats by ``repr``, which parses
@@ -48,6 +49,8 @@ class TrainingState:
         ``torch.amp.GradScaler.state_dict()`` when fp16 scaling is on.
     info : dict
         JSON-able progress: epoch, step, running sums, history, best score...
+    ema : dict of Tensor or None
+        The exponential moving average of ``model`` (same keys), when the run keeps one.
     """
 
     model: dict[str, torch.Tensor]
@@ -55,6 +58,7 @@ class TrainingState:
     scheduler: dict
     scaler: dict | None
     info: dict[str, Any]
+    ema: dict[str, torch.Tensor] | None = None
 
 
 def _contiguous_cpu(t: torch.Tensor) -> torch.Tensor:
@@ -90,6 +94,8 @@ def _read(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
 def save_state(path: str | os.PathLike, state: TrainingState) -> Path:
     """Write ``state`` to ``path`` atomically (see the module docstring)."""
     tensors: dict[str, torch.Tensor] = {f"model.{k}": v for k, v in state.model.items()}
+    if state.ema is not None:
+        tensors.update({f"ema.{k}": v for k, v in state.ema.items()})
     opt_state: dict[str, dict[str, Any]] = {}
     for idx, s in state.optimizer["state"].items():
         plain = {}
@@ -123,6 +129,7 @@ def load_state(path: str | os.PathLike) -> TrainingState:
     model = {k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")}
     opt: dict[int, dict[str, Any]] = {int(i): dict(s) for i, s in meta["optimizer"]["state"].items()}
     scaler = dict(meta["scaler"]) if meta.get("scaler") is not None else None
+    ema = {k[len("ema."):]: v for k, v in tensors.items() if k.startswith("ema.")} or None
     for k, v in tensors.items():
         if k.startswith("optim."):
             _, idx, name = k.split(".", 2)
@@ -131,7 +138,7 @@ def load_state(path: str | os.PathLike) -> TrainingState:
             scaler[k[len("scaler."):]] = v
     optimizer = {"state": opt, "param_groups": meta["optimizer"]["param_groups"]}
     return TrainingState(model=model, optimizer=optimizer, scheduler=meta["scheduler"], scaler=scaler,
-                         info=meta["info"])
+                         info=meta["info"], ema=ema)
 
 
 def save_weights(path: str | os.PathLike, model_state: Mapping[str, torch.Tensor],

@@ -19,6 +19,9 @@ owns everything else:
   ``checkpoints/last.safetensors``, and every rank's RNG is reseeded from ``(seed, rank, step)``;
   a rerun resumes there and skips the batches already done, so a run killed at any moment ends
   with the same weights as an uninterrupted one;
+* **weight averaging** -- with ``ema_decay`` > 0 the loop keeps an exponential moving average of
+  the weights and buffers, updated after every optimizer step (see :func:`ema_decay_at`); it is
+  what validation scores and what ``best.safetensors`` holds, and checkpoints carry it;
 * **selection** -- after each epoch ``Task.evaluate`` scores the validation set; the best
   ``select_metric`` gives ``best.safetensors`` (weights and the resolved config);
 * **logs** -- ``log.csv`` (one row per epoch, rewritten whole from the history), TensorBoard
@@ -28,6 +31,7 @@ owns everything else:
 """
 from __future__ import annotations
 
+import copy
 import csv
 import io
 import math
@@ -51,7 +55,7 @@ from radarpc.runs import RunFolder
 from radarpc.training.checkpoint import TrainingState, load_state, save_state, save_weights
 
 __all__ = ["PRECISIONS", "TrainConfig", "Task", "FitResult", "epoch_batches", "resolve_precision",
-           "autocast_context", "fit", "LAST_CHECKPOINT", "BEST_WEIGHTS", "LOG_CSV"]
+           "autocast_context", "ema_decay_at", "fit", "LAST_CHECKPOINT", "BEST_WEIGHTS", "LOG_CSV"]
 
 PRECISIONS: tuple[str, ...] = ("auto", "fp32", "bf16", "fp16")
 LAST_CHECKPOINT = Path("checkpoints") / "last.safetensors"
@@ -79,6 +83,7 @@ class TrainConfig:
     num_workers: int = 2                     # data-loading worker processes (0 = in the main process)
     checkpoint_every: int = 50               # steps between mid-epoch checkpoints
     select_metric: str = "f1"                # validation metric of the best checkpoint (higher is better)
+    ema_decay: float = 0.0                   # weight averaging: 0 = off, else its decay (e.g. 0.999)
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "eval_batch_size", "checkpoint_every"):
@@ -90,6 +95,8 @@ class TrainConfig:
             raise ValueError(f"train.warmup_fraction must be in (0, 1), got {self.warmup_fraction}")
         if self.weight_decay < 0 or self.grad_clip_norm < 0 or self.num_workers < 0 or self.seed < 0:
             raise ValueError("train: weight_decay, grad_clip_norm, num_workers and seed must be >= 0")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"train.ema_decay must be in [0, 1) (0 = no weight averaging), got {self.ema_decay}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"train.precision must be one of {PRECISIONS}, got {self.precision!r}")
 
@@ -162,6 +169,34 @@ def autocast_context(precision: str, device: torch.device):
     if precision == "fp32":
         return torch.autocast(device.type, enabled=False)
     return torch.autocast(device.type, dtype=torch.bfloat16 if precision == "bf16" else torch.float16)
+
+
+def ema_decay_at(step: int, ema_decay: float) -> float:
+    r"""Decay of the weight average at optimizer step ``step`` (1-based).
+
+    The average after step :math:`n` is
+
+    .. math:: \bar\theta_n = \beta_n \bar\theta_{n-1} + (1 - \beta_n) \theta_n, \qquad
+              \beta_n = \min\left(\beta, \frac{1 + n}{10 + n}\right),
+
+    with :math:`\beta` = ``ema_decay``. The ramp keeps the first steps' weights, still near the
+    random initialisation, from weighing on an average a short run reads after a few hundred
+    steps (with a fixed 0.999, step 1 would still carry half the weight at step 700).
+    """
+    if step < 1:
+        raise ValueError(f"step is 1-based, got {step}")
+    return min(ema_decay, (1.0 + step) / (10.0 + step))
+
+
+@torch.no_grad()
+def _ema_update(average: nn.Module, model: nn.Module, beta: float) -> None:
+    # buffers too: batch-norm statistics averaged with the weights they normalise
+    current = model.state_dict()
+    for name, a in average.state_dict().items():
+        if a.is_floating_point():
+            a.lerp_(current[name], 1.0 - beta)
+        else:
+            a.copy_(current[name])
 
 
 def _reseed(seed: int, rank: int, step: int) -> None:
@@ -299,8 +334,16 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, env: DistEnv, d
                 log(f"{out}: resuming in {started}, the precision the run started in "
                     f"(train.precision {cfg.precision!r} on {device} alone would mean {info['precision']})")
     scaler = torch.amp.GradScaler(device.type) if precision == "fp16" else None
+    average: nn.Module | None = None
+    if cfg.ema_decay > 0:
+        average = copy.deepcopy(model).requires_grad_(False).eval()
     if state is not None:
         model.load_state_dict(state.model)
+        if average is not None:
+            if state.ema is None:
+                raise ValueError(f"{last}: the checkpoint holds no weight average, but train.ema_decay is "
+                                 f"{cfg.ema_decay}; resume with the config the run started with")
+            average.load_state_dict(state.ema)
         optimizer.load_state_dict(state.optimizer)
         scheduler.load_state_dict(state.scheduler)
         if scaler is not None and state.scaler:
@@ -328,7 +371,8 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, env: DistEnv, d
         if env.rank == 0:
             save_state(last, TrainingState(
                 model=model.state_dict(), optimizer=optimizer.state_dict(), scheduler=scheduler.state_dict(),
-                scaler=scaler.state_dict() if scaler is not None else None, info=info))
+                scaler=scaler.state_dict() if scaler is not None else None, info=info,
+                ema=average.state_dict() if average is not None else None))
         _barrier(env)
         _reseed(cfg.seed, env.rank, info["step"])
 
@@ -379,6 +423,8 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, env: DistEnv, d
                     info["sums"][k] = info["sums"].get(k, 0.0) + float(v)
                 info["n_sums"] += 1
                 info["step"] += 1
+                if average is not None:
+                    _ema_update(average, model, ema_decay_at(info["step"], cfg.ema_decay))
                 info["batch_in_epoch"] += 1
                 bar.update(1)
                 bar.set_postfix(loss=f"{parts['loss']:.4f}", epoch=epoch)
@@ -398,9 +444,10 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, env: DistEnv, d
                                    "train_time_s": time.perf_counter() - t0}
             row.update({f"train_{k}": v for k, v in train_means.items()})
             if env.rank == 0:
-                model.eval()
+                scored = model if average is None else average
+                scored.eval()
                 with torch.no_grad(), autocast_context(precision, device):
-                    metrics = task.evaluate(model, val_loader, device)
+                    metrics = task.evaluate(scored, val_loader, device)
                 if cfg.select_metric not in metrics:
                     raise KeyError(f"validation gave {sorted(metrics)}, no train.select_metric "
                                    f"{cfg.select_metric!r}")
@@ -408,8 +455,9 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, env: DistEnv, d
                 score = float(metrics[cfg.select_metric])
                 if score > info["best_score"]:
                     info["best_score"], info["best_epoch"] = score, epoch
-                    save_weights(out / BEST_WEIGHTS, model.state_dict(),
+                    save_weights(out / BEST_WEIGHTS, scored.state_dict(),
                                  {"run": run_key, "epoch": epoch, "precision": precision,
+                                  "weights": "model" if average is None else "ema",
                                   "metrics": {k: float(v) for k, v in metrics.items()}})
                 if tb is not None:
                     for k, v in row.items():
