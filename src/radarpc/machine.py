@@ -2,10 +2,11 @@
 devices it has (:func:`check_device`)."""
 from __future__ import annotations
 
+import os
 import platform
 from pathlib import Path
 
-__all__ = ["check_device", "cpu_has_native_bf16", "cpu_model", "numeric_libraries"]
+__all__ = ["check_device", "cpu_has_native_bf16", "cpu_model", "numeric_libraries", "physical_memory_bytes"]
 
 
 def cpu_model() -> str:
@@ -18,6 +19,14 @@ def cpu_model() -> str:
     except OSError:
         return platform.processor() or platform.machine()
     return platform.processor() or platform.machine()
+
+
+def physical_memory_bytes() -> int | None:
+    """The machine's physical memory in bytes (POSIX ``sysconf``), or None where it cannot be read."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return None
 
 
 def cpu_has_native_bf16(cpuinfo: str | None = None) -> bool:

@@ -245,6 +245,14 @@ class PointCloudDataset(torch.utils.data.Dataset):
                           freespace=self.reader.freespace(k), frame=self.frame_ids[i],
                           sequence=self.sequences[i])
 
+    def decoded_bytes(self) -> int:
+        """Estimated memory of this dataset's point frames once decoded (:meth:`PointStore.decoded_bytes`)."""
+        return self.store.decoded_bytes(self._store_index)
+
+    def preload(self) -> int:
+        """Hold this dataset's point frames in memory (:meth:`PointStore.preload`); bytes held."""
+        return self.store.preload(self._store_index)
+
     def index_of(self, frame: int) -> int:
         """Position of RADIal frame ``frame`` among the items."""
         try:

@@ -609,11 +609,16 @@ class PointStore:
                 raise DataFileError(self.path, f"row group {g} holds frames {mm[0]}..{mm[1]} but the frame table "
                                                f"puts frames {int(ids.min())}..{int(ids.max())} there")
         self.num_row_groups = int(len(rg_rows))
+        self._rg_rows = rg_rows                                                  # (G,)
         self.frames: list[int] = ft.frame.tolist()
         self.sequences: list[str] = list(ft.sequence)
         self._pf: pq.ParquetFile | None = None
         self._pf_pid = -1
         self._cache: tuple[int, pa.Table] | None = None
+        self._rg_bytes = np.asarray([pf.metadata.row_group(g).total_byte_size for g in range(pf.num_row_groups)],
+                                    dtype=np.int64)                     # uncompressed, from the footer
+        self._memory: pa.Table | None = None                            # rows of the preloaded items
+        self._memory_start: np.ndarray | None = None                    # (F,) row in _memory, -1 if not there
 
     # -- file access (one handle per process, so that DataLoader workers each open their own)
     def _file(self) -> pq.ParquetFile:
@@ -626,6 +631,9 @@ class PointStore:
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
         state["_pf"], state["_pf_pid"], state["_cache"] = None, -1, None
+        # a spawned worker gets the store without its preloaded rows (pickling them would copy
+        # them into every worker each epoch) and reads row groups; forked workers share them
+        state["_memory"], state["_memory_start"] = None, None
         return state
 
     def read_row_group(self, rg: int) -> pa.Table:
@@ -641,6 +649,63 @@ class PointStore:
 
     def __len__(self) -> int:
         return len(self.frames)
+
+    def _items(self, items: Sequence[int] | None) -> np.ndarray:
+        n = len(self)
+        idx = np.arange(n, dtype=np.int64) if items is None else np.asarray(items, dtype=np.int64).reshape(-1)
+        if idx.size and (idx.min() < -n or idx.max() >= n):
+            raise IndexError(f"{self.path}: item indices must be in [-{n}, {n}), got {idx.min()}..{idx.max()}")
+        return np.unique(idx % max(n, 1))
+
+    def decoded_bytes(self, items: Sequence[int] | None = None) -> int:
+        """Estimated memory (bytes) of items ``items`` (all by default) once decoded: each row
+        group's uncompressed size from the footer, shared out by rows."""
+        idx = self._items(items)
+        idx = idx[self.frame_table.n_points[idx] > 0]
+        rows = self._rg_rows.astype(np.float64)
+        per_row = np.divide(self._rg_bytes, rows, out=np.zeros_like(rows), where=rows > 0)
+        return int(np.sum(self.frame_table.n_points[idx] * per_row[self._rg[idx]]))
+
+    def preload(self, items: Sequence[int] | None = None) -> int:
+        """Hold the rows of items ``items`` (all by default) in memory, decoded.
+
+        A store is compressed in row groups of many frames, and reading one frame decodes its
+        whole row group; an epoch in random order reads each row group about as many times as it
+        holds frames. Once preloaded, an item is a slice of one in-memory table. DataLoader
+        workers started by fork share the rows with the process that loaded them; items not
+        preloaded (and every item in a spawned worker) are read from the file as before.
+
+        Parameters
+        ----------
+        items : sequence of int, optional
+            Item positions; replaces what an earlier call held.
+
+        Returns
+        -------
+        int
+            Bytes held (Arrow buffers).
+        """
+        idx = self._items(items)
+        idx = idx[self.frame_table.n_points[idx] > 0]
+        self._memory, self._memory_start = None, None
+        if idx.size == 0:
+            return 0
+        groups = np.unique(self._rg[idx])
+        try:
+            table = self._file().read_row_groups([int(g) for g in groups])
+        except (pa.ArrowException, OSError) as e:
+            raise DataFileError(self.path, f"row groups could not be read ({e})") from e
+        # row of each item inside ``table`` (its row groups one after another)
+        rows = self._rg_rows[groups]
+        group_start = dict(zip(groups.tolist(), np.concatenate([[0], np.cumsum(rows)[:-1]]).tolist()))
+        counts = self.frame_table.n_points[idx]
+        src = np.asarray([group_start[int(g)] for g in self._rg[idx]], dtype=np.int64) + self._rg_offset[idx]
+        take = np.repeat(src - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts) + np.arange(counts.sum())
+        self._memory = table.take(pa.array(take)).combine_chunks()
+        start = np.full(len(self), -1, dtype=np.int64)
+        start[idx] = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        self._memory_start = start
+        return int(self._memory.nbytes)
 
     def index_of(self, frame: int) -> int:
         """Position of RADIal frame ``frame`` in the store."""
@@ -658,7 +723,10 @@ class PointStore:
         count = int(self.frame_table.n_points[i])
         if count == 0:
             return self.schema.empty_table()
-        table = self.read_row_group(int(self._rg[i])).slice(int(self._rg_offset[i]), count)
+        if self._memory_start is not None and self._memory_start[i] >= 0:
+            table = self._memory.slice(int(self._memory_start[i]), count)
+        else:
+            table = self.read_row_group(int(self._rg[i])).slice(int(self._rg_offset[i]), count)
         got = table.column("frame")
         expect = int(self.frame_table.frame[i])
         if got[0].as_py() != expect or got[count - 1].as_py() != expect:

@@ -105,6 +105,8 @@ def train_runs(cfg: ExperimentConfig, data: DataPaths, out: str | os.PathLike, *
         run_cfg = _seeded(cfg, k)
         folder = out if runs == 1 else out / f"run{k}"
         task = RadialDetectionTask(run_cfg, data, points)      # the run's seed also draws its mirrors
+        if task.preloaded_bytes:
+            log(f"{folder}: point frames preloaded in memory, {task.preloaded_bytes / 2**30:.2f} GiB")
         res = fit(task, run_cfg.train, folder, run_key(run_cfg, data, points), device=device,
                   overwrite=overwrite, progress=progress, log=log, extra_outputs=("config.yaml",))
         if not (folder / "config.yaml").is_file():

@@ -14,6 +14,7 @@ RADIal's metrics (:mod:`radarpc.eval.detection`).
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -25,6 +26,7 @@ from radarpc.data.augment import MirroredFrames
 from radarpc.data.point_dataset import PointCloudDataset, PointFrameBatch, collate_point_frames
 from radarpc.data.radial import RADIal
 from radarpc.eval.detection import DetectionMetrics, FreespaceMetrics
+from radarpc.machine import physical_memory_bytes
 from radarpc.models.fftradnet import FFTRadNet, FFTRadNetConfig, input_statistics
 from radarpc.models.heads import HeadOutput
 from radarpc.models.losses import LossConfig, detection_loss
@@ -35,7 +37,7 @@ from radarpc.training.loop import TrainConfig
 
 __all__ = ["ExperimentConfig", "DetectionBatch", "build_model", "RadialDetectionTask", "collate_cubes", "collate_points",
            "collate_detection", "detection_dataset", "data_pairs", "ConcatFrames", "DataPaths",
-           "evaluate_model", "DECODE_THRESHOLD", "MAX_CANDIDATES"]
+           "evaluate_model", "preload_point_frames", "preload_budget_bytes", "DECODE_THRESHOLD", "MAX_CANDIDATES"]
 
 DataPaths = str | os.PathLike | Sequence[str | os.PathLike]
 """One path, or several in order (dataset roots, or their point stores)."""
@@ -234,6 +236,58 @@ def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths 
     return parts[0] if len(parts) == 1 else ConcatFrames(parts)
 
 
+def _point_datasets(ds) -> list[PointCloudDataset]:
+    if isinstance(ds, PointCloudDataset):
+        return [ds]
+    if isinstance(ds, MirroredFrames):
+        return _point_datasets(ds.frames)
+    if isinstance(ds, ConcatFrames):
+        return [p for d in ds.datasets for p in _point_datasets(d)]
+    return []
+
+
+def preload_budget_bytes() -> int:
+    """Memory the point frames of a training run may take when preloaded: a quarter of the
+    machine's memory, shared by the ranks torchrun starts on it (``LOCAL_WORLD_SIZE``); 0 where
+    the memory cannot be read."""
+    total = physical_memory_bytes()
+    ranks = max(int(os.environ.get("LOCAL_WORLD_SIZE", "1")), 1)
+    return 0 if total is None else total // (4 * ranks)
+
+
+def preload_point_frames(datasets: Iterable, budget_bytes: int | None = None) -> int:
+    """Preload the point frames of ``datasets`` (:meth:`PointCloudDataset.preload`) if they fit.
+
+    Training reads the frames in random order, and each read from a store decodes a row group
+    of many frames; preloaded, a frame is a slice in memory, so the loader's workers take little
+    of the cores the model needs.
+
+    Parameters
+    ----------
+    datasets : iterable
+        Datasets of :func:`detection_dataset`; those without point frames are skipped.
+    budget_bytes : int, optional
+        Preload nothing when the frames, decoded, would take more (a warning says so). Default
+        :func:`preload_budget_bytes`.
+
+    Returns
+    -------
+    int
+        Bytes held.
+    """
+    found = [p for ds in datasets for p in _point_datasets(ds)]
+    if not found:
+        return 0
+    need = sum(p.decoded_bytes() for p in found)
+    budget = preload_budget_bytes() if budget_bytes is None else int(budget_bytes)
+    if need > budget:
+        warnings.warn(f"the point frames of {', '.join(sorted({str(p.store.path) for p in found}))} would take "
+                      f"{need / 2**30:.2f} GiB decoded, above the preload budget of {budget / 2**30:.2f} GiB; "
+                      f"they are read from the stores, which is slower in random order", stacklevel=2)
+        return 0
+    return sum(p.preload() for p in found)
+
+
 def build_model(cfg: ExperimentConfig) -> nn.Module:
     """The model of ``cfg`` (fresh weights)."""
     return FFTRadNet(cfg.fftradnet) if cfg.fftradnet is not None else PointPillars(cfg.pillars)
@@ -252,13 +306,21 @@ class RadialDetectionTask:
         Point store made from each root (required by the pillar models).
     splits : (str, str)
         Training and validation splits of every root.
+    preload : bool
+        Hold the point frames of both splits in memory when they fit (:func:`preload_point_frames`).
+
+    Attributes
+    ----------
+    preloaded_bytes : int
+        What the preloaded point frames take (0 when none are).
     """
 
     def __init__(self, cfg: ExperimentConfig, data: DataPaths, points: DataPaths | None = None,
-                 splits: tuple[str, str] = ("train", "val")) -> None:
+                 splits: tuple[str, str] = ("train", "val"), *, preload: bool = True) -> None:
         self.cfg = cfg
         self.train_set = detection_dataset(cfg, data, points, splits[0], mirror_seed=cfg.train.seed)
         self.val_set = detection_dataset(cfg, data, points, splits[1])
+        self.preloaded_bytes = preload_point_frames([self.train_set, self.val_set]) if preload else 0
 
     # ---- the Task protocol --------------------------------------------------------------------
     def build_model(self) -> nn.Module:
