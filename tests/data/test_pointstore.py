@@ -2,7 +2,9 @@
 bad files."""
 from __future__ import annotations
 
+import dataclasses
 import json
+import pickle
 
 import numpy as np
 import pyarrow as pa
@@ -143,6 +145,55 @@ def test_empty_frames_and_empty_store(tmp_path):
     path2 = tmp_path / "none.parquet"
     PointStoreWriter(path2, make_meta()).close()
     assert len(PointStore(path2)) == 0
+
+
+def _same_cloud(a: PointCloudBatch, b: PointCloudBatch) -> bool:
+    for f in dataclasses.fields(a):
+        u, v = getattr(a, f.name), getattr(b, f.name)
+        if (u is None) != (v is None) or (u is not None and not torch.equal(u, v)):
+            return False
+    return True
+
+
+def _no_file_reads(rg):
+    raise AssertionError(f"row group {rg} read from the file")
+
+
+def test_preloaded_items_are_the_items_of_the_file(tmp_path):
+    counts = [3, 0, 5, 1, 4, 2, 6]
+    path = tmp_path / "pc.parquet"
+    with PointStoreWriter(path, make_meta(), row_group_frames=3) as w:
+        w.write(make_batch(counts, seed=7), frames=list(range(20, 27)), sequences=["A"] * 4 + ["B"] * 3)
+    plain, held = PointStore(path), PointStore(path)
+    # the estimate shares each row group's uncompressed footer size out by rows
+    md = pq.ParquetFile(path).metadata
+    sizes = [md.row_group(g).total_byte_size for g in range(md.num_row_groups)]
+    assert held.num_row_groups == 3 and held.decoded_bytes() == pytest.approx(sum(sizes), abs=3)
+    assert held.decoded_bytes([0]) == pytest.approx(sizes[0] * 3 / 8, abs=1) and held.decoded_bytes([1]) == 0
+    assert held.preload([4, 0, 1, -1]) > 0                 # items 0 (row group 0), 4 and 6 (1, 2); 1 is empty
+    assert all(_same_cloud(held[i], plain[i]) for i in range(7))
+    assert _same_cloud(held.read_frames([6, 2, 0]), plain.read_frames([6, 2, 0]))
+    # preloaded items come from memory, the others from the file
+    held.read_row_group = _no_file_reads
+    assert _same_cloud(held.read_frames([0, 4, 1, 6]), plain.read_frames([0, 4, 1, 6]))
+    with pytest.raises(AssertionError, match="row group 1 read from the file"):
+        held[3]
+    # workers started by fork share the preloaded rows
+    loader = torch.utils.data.DataLoader(held, batch_size=2, sampler=[6, 0, 4, 1], collate_fn=collate_clouds,
+                                         num_workers=2, multiprocessing_context="fork")
+    got = list(loader)
+    assert _same_cloud(got[0], plain.read_frames([6, 0])) and _same_cloud(got[1], plain.read_frames([4, 1]))
+    # a pickled store (a spawned worker's) reads from the file again
+    del held.read_row_group
+    copy = pickle.loads(pickle.dumps(held))
+    assert all(_same_cloud(copy[i], plain[i]) for i in range(7))
+    # another call replaces what was held; bad items name the file
+    assert held.preload([]) == 0
+    held.read_row_group = _no_file_reads
+    with pytest.raises(AssertionError, match="row group 0"):
+        held[0]
+    with pytest.raises(IndexError, match=rf"{path.name}: item indices must be in \[-7, 7\), got 2..9"):
+        held.preload([2, 9])
 
 
 def test_atomic_write_and_abort(tmp_path):

@@ -23,7 +23,9 @@ from radarpc.sim.radial_writer import write_radial_dataset
 from radarpc.sim.scenes import scene_mix
 from radarpc.training.checkpoint import load_state, load_weights, save_weights
 from radarpc.training.loop import BEST_WEIGHTS, LAST_CHECKPOINT, TrainConfig, fit
-from radarpc.training.radial import ExperimentConfig, RadialDetectionTask, build_model
+import radarpc.training.radial as radial
+from radarpc.training.radial import (ExperimentConfig, RadialDetectionTask, build_model, preload_budget_bytes,
+                                     preload_point_frames)
 
 CONFIGS = Path(__file__).parents[2] / "configs"
 FACTORIES = {"fftradnet": fftradnet, "fftradnet-s": fftradnet_s, "pointpillars": polar_pointpillars,
@@ -104,6 +106,43 @@ def test_tiny_spectralpillars_overfits(root, store, tmp_path):
 def test_tiny_fftradnet_overfits(root, store, tmp_path):
     cfg = ExperimentConfig(name="fft-tiny", fftradnet=fftradnet_tiny().cfg, train=TINY_TRAIN)
     _learned(_overfit(cfg, root, None, tmp_path))
+
+
+def test_training_preloads_the_point_frames_that_fit(root, store, monkeypatch):
+    cfg = ExperimentConfig(name="sp-pre", pillars=pillars_tiny().cfg, mirror_probability=0.5, train=TINY_TRAIN)
+    held = RadialDetectionTask(cfg, root, store)              # train frames behind the mirroring wrapper
+    plain = RadialDetectionTask(cfg, root, store, preload=False)
+    assert plain.preloaded_bytes == 0 and held.preloaded_bytes > 0
+    for a, b in ((held.train_set, plain.train_set), (held.val_set, plain.val_set)):
+        assert len(a) == len(b)
+        for i in range(len(a)):
+            x, y = a[i], b[i]
+            assert x.frame == y.frame and torch.equal(x.labels, y.labels)
+            assert all(torch.equal(getattr(x.points, f), getattr(y.points, f))
+                       for f in ("offset", "range_m", "azimuth_deg", "velocity_mps", "amplitude", "sector"))
+    # frames that would not fit stay in the store, and a warning says so
+    with pytest.warns(UserWarning, match=r"above the preload budget of 0.00 GiB; they are read from the stores"):
+        assert preload_point_frames([plain.train_set], budget_bytes=0) == 0
+    assert preload_point_frames([plain.train_set], budget_bytes=2**40) > 0
+    # the default budget: a quarter of the memory, shared by the ranks torchrun starts on the machine
+    monkeypatch.setattr(radial, "physical_memory_bytes", lambda: 8 * 2**30)
+    monkeypatch.setenv("LOCAL_WORLD_SIZE", "2")
+    assert preload_budget_bytes() == 2**30
+    monkeypatch.setattr(radial, "physical_memory_bytes", lambda: None)
+    assert preload_budget_bytes() == 0
+
+
+def test_training_data_benchmark_runs(root, store, tmp_path):
+    # the 4 training frames of the root in 2 batches
+    cfg = ExperimentConfig(name="sp-pre", pillars=pillars_tiny().cfg, train=dataclasses.replace(TINY_TRAIN, batch_size=2))
+    save_yaml(cfg, tmp_path / "sp.yaml")
+    script = Path(__file__).parents[2] / "benchmarks" / "training_data.py"
+    res = subprocess.run([sys.executable, str(script), str(tmp_path / "sp.yaml"), "--data", str(root), "--points",
+                          str(store), "--batches", "2", "--threads", "1", "--precision", "fp32"],
+                         capture_output=True, text=True, check=True)
+    out = json.loads(res.stdout)
+    assert out["train_frames"] == 4 and out["batches"] == 2 and out["batch_size"] == 2 and out["preloaded_gib"] > 0
+    assert out["file_over_preloaded"] == pytest.approx(out["file_s_per_batch"] / out["preloaded_s_per_batch"])
 
 
 class _Kill(Exception):
