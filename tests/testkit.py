@@ -1,4 +1,5 @@
-"""What several test modules share: tiny ColoRadar simulation settings and a stalling writer.
+"""What several test modules share: tiny ColoRadar simulation settings, a stalling writer and a
+point-cloud comparison.
 
 Importable from any test as ``testkit`` (``pythonpath = ["tests"]`` in pyproject.toml).
 """
@@ -7,10 +8,12 @@ from __future__ import annotations
 import dataclasses
 import textwrap
 
+import torch
+
 from radarpc.sensors.coloradar import AWR1843, CASCADE, DEFAULT_CALIB, beam_angles
 from radarpc.sim.coloradar_synth import RadarSimConfig
 
-__all__ = ["TINY_CASCADE", "TINY_CALIB", "TINY_RADAR", "TINY_KW", "stalling_writer_script"]
+__all__ = ["TINY_CASCADE", "TINY_CALIB", "TINY_RADAR", "TINY_KW", "same_cloud", "stalling_writer_script"]
 
 TINY_CASCADE = CASCADE.replace(num_range_bins=64, num_azimuth_bins=16, num_elevation_bins=4,
                                azimuth_bins=beam_angles(16, CASCADE.element_spacing, half_bin=True),
@@ -45,3 +48,13 @@ def stalling_writer_script(module: str, suffix: str, call: str) -> str:
 
         writer.atomic_write = stalling
     """) + call + "\n"
+
+
+def same_cloud(a, b) -> bool:
+    """Whether two :class:`~radarpc.points.PointCloudBatch` hold equal tensors in every
+    field (the same optional fields absent)."""
+    for f in dataclasses.fields(a):
+        u, v = getattr(a, f.name), getattr(b, f.name)
+        if (u is None) != (v is None) or (u is not None and not torch.equal(u, v)):
+            return False
+    return True

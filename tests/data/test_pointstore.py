@@ -2,9 +2,8 @@
 bad files."""
 from __future__ import annotations
 
-import dataclasses
+import copy
 import json
-import pickle
 
 import numpy as np
 import pyarrow as pa
@@ -25,6 +24,7 @@ from radarpc.data.pointstore import (
 from radarpc.points import PointCloudBatch
 from radarpc.io import DataFileError
 from radarpc.sensors.radial import TINY
+from testkit import same_cloud
 
 POINT_TENSORS = FLOAT_COLUMNS + INT_COLUMNS + ("is_neighbour",)
 
@@ -147,14 +147,6 @@ def test_empty_frames_and_empty_store(tmp_path):
     assert len(PointStore(path2)) == 0
 
 
-def _same_cloud(a: PointCloudBatch, b: PointCloudBatch) -> bool:
-    for f in dataclasses.fields(a):
-        u, v = getattr(a, f.name), getattr(b, f.name)
-        if (u is None) != (v is None) or (u is not None and not torch.equal(u, v)):
-            return False
-    return True
-
-
 def _no_file_reads(rg):
     raise AssertionError(f"row group {rg} read from the file")
 
@@ -171,22 +163,22 @@ def test_preloaded_items_are_the_items_of_the_file(tmp_path):
     assert held.num_row_groups == 3 and held.decoded_bytes() == pytest.approx(sum(sizes), abs=3)
     assert held.decoded_bytes([0]) == pytest.approx(sizes[0] * 3 / 8, abs=1) and held.decoded_bytes([1]) == 0
     assert held.preload([4, 0, 1, -1]) > 0                 # items 0 (row group 0), 4 and 6 (1, 2); 1 is empty
-    assert all(_same_cloud(held[i], plain[i]) for i in range(7))
-    assert _same_cloud(held.read_frames([6, 2, 0]), plain.read_frames([6, 2, 0]))
+    assert all(same_cloud(held[i], plain[i]) for i in range(7))
+    assert same_cloud(held.read_frames([6, 2, 0]), plain.read_frames([6, 2, 0]))
     # preloaded items come from memory, the others from the file
     held.read_row_group = _no_file_reads
-    assert _same_cloud(held.read_frames([0, 4, 1, 6]), plain.read_frames([0, 4, 1, 6]))
+    assert same_cloud(held.read_frames([0, 4, 1, 6]), plain.read_frames([0, 4, 1, 6]))
     with pytest.raises(AssertionError, match="row group 1 read from the file"):
         held[3]
     # workers started by fork share the preloaded rows
     loader = torch.utils.data.DataLoader(held, batch_size=2, sampler=[6, 0, 4, 1], collate_fn=collate_clouds,
                                          num_workers=2, multiprocessing_context="fork")
     got = list(loader)
-    assert _same_cloud(got[0], plain.read_frames([6, 0])) and _same_cloud(got[1], plain.read_frames([4, 1]))
-    # a pickled store (a spawned worker's) reads from the file again
+    assert same_cloud(got[0], plain.read_frames([6, 0])) and same_cloud(got[1], plain.read_frames([4, 1]))
+    # a copy through __getstate__ (what pickling sends a spawned worker) reads from the file again
     del held.read_row_group
-    copy = pickle.loads(pickle.dumps(held))
-    assert all(_same_cloud(copy[i], plain[i]) for i in range(7))
+    clone = copy.deepcopy(held)
+    assert clone._memory is None and all(same_cloud(clone[i], plain[i]) for i in range(7))
     # another call replaces what was held; bad items name the file
     assert held.preload([]) == 0
     held.read_row_group = _no_file_reads

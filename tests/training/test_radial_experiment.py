@@ -26,6 +26,7 @@ from radarpc.training.loop import BEST_WEIGHTS, LAST_CHECKPOINT, TrainConfig, fi
 import radarpc.training.radial as radial
 from radarpc.training.radial import (ExperimentConfig, RadialDetectionTask, build_model, preload_budget_bytes,
                                      preload_point_frames)
+from testkit import same_cloud
 
 CONFIGS = Path(__file__).parents[2] / "configs"
 FACTORIES = {"fftradnet": fftradnet, "fftradnet-s": fftradnet_s, "pointpillars": polar_pointpillars,
@@ -121,9 +122,7 @@ def test_training_preloads_the_point_frames_that_fit(root, store, monkeypatch):
         assert len(a) == len(b)
         for i in range(len(a)):
             x, y = a[i], b[i]
-            assert x.frame == y.frame and torch.equal(x.labels, y.labels)
-            assert all(torch.equal(getattr(x.points, f), getattr(y.points, f))
-                       for f in ("offset", "range_m", "azimuth_deg", "velocity_mps", "amplitude", "sector"))
+            assert x.frame == y.frame and torch.equal(x.labels, y.labels) and same_cloud(x.points, y.points)
     # frames that would not fit stay in the store, and a warning says so
     with pytest.warns(UserWarning, match=r"above the preload budget of 0.00 GiB; they are read from the stores"):
         assert preload_point_frames([plain.train_set], budget_bytes=0) == 0
