@@ -1,5 +1,5 @@
-"""What several test modules share: tiny ColoRadar simulation settings, a stalling writer and a
-point-cloud comparison.
+"""What several test modules share: tiny ColoRadar simulation settings, a stalling writer, a
+point-cloud comparison and point clouds from (range, azimuth) pairs.
 
 Importable from any test as ``testkit`` (``pythonpath = ["tests"]`` in pyproject.toml).
 """
@@ -10,10 +10,11 @@ import textwrap
 
 import torch
 
+from radarpc.points import PointCloudBatch
 from radarpc.sensors.coloradar import AWR1843, CASCADE, DEFAULT_CALIB, beam_angles
 from radarpc.sim.coloradar_synth import RadarSimConfig
 
-__all__ = ["TINY_CASCADE", "TINY_CALIB", "TINY_RADAR", "TINY_KW", "same_cloud", "stalling_writer_script"]
+__all__ = ["TINY_CASCADE", "TINY_CALIB", "TINY_RADAR", "TINY_KW", "make_cloud", "same_cloud", "stalling_writer_script"]
 
 TINY_CASCADE = CASCADE.replace(num_range_bins=64, num_azimuth_bins=16, num_elevation_bins=4,
                                azimuth_bins=beam_angles(16, CASCADE.element_spacing, half_bin=True),
@@ -58,3 +59,23 @@ def same_cloud(a, b) -> bool:
         if (u is None) != (v is None) or (u is not None and not torch.equal(u, v)):
             return False
     return True
+
+
+def make_cloud(frames: list[list[tuple[float, float]]], *, sector: int | None = None, patch: int | None = None,
+               seed: int = 0) -> PointCloudBatch:
+    """Clouds of ``len(frames)`` frames from (range m, azimuth deg) pairs; other fields drawn at random."""
+    g = torch.Generator().manual_seed(seed)
+    ra = [p for f in frames for p in f]
+    n = len(ra)
+    r = torch.tensor([p[0] for p in ra], dtype=torch.float32)
+    a = torch.tensor([p[1] for p in ra], dtype=torch.float32)
+    rand = lambda lo, hi: lo + (hi - lo) * torch.rand(n, generator=g)   # noqa: E731
+    return PointCloudBatch(
+        offset=torch.cumsum(torch.tensor([len(f) for f in frames]), 0), range_bin=torch.zeros(n, dtype=torch.long),
+        doppler_bin=torch.randint(0, 16, (n,), generator=g), doppler_full=torch.zeros(n, dtype=torch.long),
+        range_m=r, azimuth_deg=a, elevation_deg=rand(-10, 10), velocity_mps=rand(-20, 20),
+        amplitude=rand(1e2, 1e5), snr=rand(1, 100), x=r * torch.cos(torch.deg2rad(a)),
+        y=r * torch.sin(torch.deg2rad(a)), z=torch.zeros(n), is_neighbour=torch.rand(n, generator=g) < 0.5,
+        sector=None if sector is None else torch.rand(n, sector, generator=g) * 1e4,
+        rd_patch=None if patch is None else torch.rand(n, patch, generator=g) * 1e8,
+        tau=torch.ones(len(frames)), density=torch.full((len(frames),), 0.057))

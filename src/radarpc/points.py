@@ -28,6 +28,7 @@ __all__ = [
     "offset2batch",
     "batch2offset",
     "collate_clouds",
+    "mirror_points",
 ]
 
 FLOAT_FIELDS: tuple[str, ...] = (
@@ -184,3 +185,37 @@ def collate_clouds(clouds: Sequence[PointCloudBatch]) -> PointCloudBatch:
     peak = None if any(p is None for p in peaks) else torch.cat(peaks)
     return PointCloudBatch(offset=torch.cumsum(counts, 0), tau=torch.cat([c.tau for c in clouds]),
                            density=torch.cat([c.density for c in clouds]), peak_density=peak, **out)
+
+
+def mirror_points(points: PointCloudBatch, sectors: tuple[int, int] | None = None) -> PointCloudBatch:
+    """``points`` (any number of frames) mirrored about the radar's boresight: ``azimuth_deg`` and
+    ``y`` negated, the ``sector`` descriptor (``n_az_sec x n_el_sec``, azimuth-major) reversed
+    along azimuth; range, elevation, Doppler and amplitude stay. The frame a radar with the mirrored
+    array would see of the mirrored scene (:mod:`radarpc.data.augment` says when the sector reversal
+    is exact).
+
+    Parameters
+    ----------
+    points : PointCloudBatch
+    sectors : (int, int), optional
+        ``(n_az_sec, n_el_sec)`` of the points' ``sector`` descriptor (the store's
+        ``sectorAxE`` enrichment); required when the points carry one.
+
+    Returns
+    -------
+    PointCloudBatch
+        New tensors where they change; ``points`` is not modified.
+
+    Raises
+    ------
+    ValueError
+        The points carry a sector descriptor and ``sectors`` is missing or does not match its width.
+    """
+    sector = points.sector
+    if sector is not None:
+        if sectors is None or sectors[0] * sectors[1] != sector.shape[1]:
+            raise ValueError(f"the points carry a {sector.shape[1]}-wide sector descriptor; give its "
+                             f"(n_az_sec, n_el_sec) to mirror it, got {sectors}")
+        n_as, n_es = sectors
+        sector = sector.reshape(-1, n_as, n_es).flip(1).reshape(-1, n_as * n_es)   # (N, n_as n_es)
+    return dataclasses.replace(points, azimuth_deg=-points.azimuth_deg, y=-points.y, sector=sector)

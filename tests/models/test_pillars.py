@@ -12,27 +12,7 @@ from radarpc.models.batchnorm import randomise_batchnorm_
 from radarpc.models.heads import HeadOutput
 from radarpc.models.pillars import (PILLARS_MODELS, POINT_FEATURES, PillarsConfig, PillarVFE, PointPillarScatter,
                                     fuse_for_inference, pillar_coords, pillars_tiny, point_features)
-from radarpc.points import PointCloudBatch
-
-
-def make_cloud(frames: list[list[tuple[float, float]]], *, sector: int | None = None, patch: int | None = None,
-               seed: int = 0) -> PointCloudBatch:
-    """Clouds of ``len(frames)`` frames from (range m, azimuth deg) pairs; other fields drawn at random."""
-    g = torch.Generator().manual_seed(seed)
-    ra = [p for f in frames for p in f]
-    n = len(ra)
-    r = torch.tensor([p[0] for p in ra], dtype=torch.float32)
-    a = torch.tensor([p[1] for p in ra], dtype=torch.float32)
-    rand = lambda lo, hi: lo + (hi - lo) * torch.rand(n, generator=g)   # noqa: E731
-    return PointCloudBatch(
-        offset=torch.cumsum(torch.tensor([len(f) for f in frames]), 0), range_bin=torch.zeros(n, dtype=torch.long),
-        doppler_bin=torch.randint(0, 16, (n,), generator=g), doppler_full=torch.zeros(n, dtype=torch.long),
-        range_m=r, azimuth_deg=a, elevation_deg=rand(-10, 10), velocity_mps=rand(-20, 20),
-        amplitude=rand(1e2, 1e5), snr=rand(1, 100), x=r * torch.cos(torch.deg2rad(a)),
-        y=r * torch.sin(torch.deg2rad(a)), z=torch.zeros(n), is_neighbour=torch.rand(n, generator=g) < 0.5,
-        sector=None if sector is None else torch.rand(n, sector, generator=g) * 1e4,
-        rd_patch=None if patch is None else torch.rand(n, patch, generator=g) * 1e8,
-        tau=torch.ones(len(frames)), density=torch.full((len(frames),), 0.057))
+from testkit import make_cloud
 
 
 def random_frame(n: int, seed: int) -> list[tuple[float, float]]:

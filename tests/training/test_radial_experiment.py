@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from radarpc.cli import main
-from radarpc.config import load_yaml, save_yaml
+from radarpc.config import load_yaml, save_yaml, to_dict
 from radarpc.models.fftradnet import FFTRadNet, fftradnet, fftradnet_s, fftradnet_tiny
 from radarpc.models.pillars import (PointPillars, pillars_tiny, polar_pointpillars, polar_pointpillars_s,
                                     spectralpillars, spectralpillars_s)
@@ -240,6 +240,33 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     assert (out / "eval_test.json").read_text() == fp32_doc                      # fp32 files untouched
     with pytest.raises(SystemExit):
         main(["evaluate", str(out), "--precision", "fp16"])
+    # averaged over each frame and its mirror image: its own files, scored through MirrorAveraged
+    from radarpc.models.mirror import MirrorAveraged
+
+    models = []
+
+    def spy_model(model, *a, **k):
+        models.append(model)
+        return scored(model, *a, **k)
+
+    monkeypatch.setattr(detection, "evaluate_model", spy_model)
+    assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--mirror-average",
+                 "--device", "cpu"]) == 0
+    assert len(models) == 1 and isinstance(models[0], MirrorAveraged) and models[0].sectors == (32, 1)
+    mi = json.loads((out / "eval_test_mirror.json").read_text())
+    assert mi["mirror_average"] is True and doc["mirror_average"] is False and mi["metrics"]["n_frames"] == 4
+    assert mi["parameters"] == doc["parameters"]
+    assert "mirror image" in (out / "eval_test_mirror.md").read_text().splitlines()[0]
+    assert (out / "eval_test.json").read_text() == fp32_doc                      # fp32 files untouched
+    # an RD-cube model cannot be mirrored: refused, naming the run
+    cubes = tmp_path / "cubes"
+    shutil.copytree(out, cubes)
+    key = json.loads((cubes / "run.json").read_text())
+    key["experiment"] = to_dict(ExperimentConfig(name="fft-tiny", fftradnet=fftradnet_tiny().cfg, train=TINY_TRAIN))
+    (cubes / "run.json").write_text(json.dumps(key))
+    assert main(["evaluate", str(cubes), "--mirror-average"]) == 2
+    err = capsys.readouterr().err
+    assert str(cubes) in err and "mirror averaging applies to point models" in err
     # the false alarms by cause (benchmarks/false_alarms.py, the scene regenerated from the root):
     # as many as the metric's false positives at the same threshold, each given one cause. One
     # epoch leaves every cell below 0.1, so a copy of the run whose head fires everywhere is scored

@@ -22,6 +22,8 @@ the false alarms per frame. A folder of several runs (``--runs N``) is evaluated
 summarised (mean and standard deviation). ``--precision bf16`` scores the same weights under bf16
 autocast, fast on GPUs and on CPUs with native bf16 (AVX512-BF16, AMX), and writes
 ``eval_{split}_bf16.*`` beside the fp32 files: compare the two before trusting bf16 for a model.
+``--mirror-average`` scores a point model averaged over each frame and its mirror image about the
+boresight (``radarpc.models.mirror``; twice the forward passes) into ``eval_{split}_mirror.*``.
 """
 from __future__ import annotations
 
@@ -34,7 +36,8 @@ def run(args: argparse.Namespace) -> int:
     from radarpc.experiments.detection import evaluate_run
 
     evaluate_run(args.run, args.split, data=args.data, points=args.points, device=args.device,
-                 show=args.show, fps_frames=args.fps_frames, precision=args.precision)
+                 show=args.show, fps_frames=args.fps_frames, precision=args.precision,
+                 mirror_average=args.mirror_average)
     return 0
 
 
@@ -52,4 +55,7 @@ def add_parser(sub) -> None:
     p.add_argument("--fps-frames", type=int, default=20, help="frames timed for frames/s (default 20)")
     p.add_argument("--precision", default="fp32", choices=("fp32", "bf16"),
                    help="fp32 (default) or bf16 autocast; bf16 writes eval_{split}_bf16.*")
+    p.add_argument("--mirror-average", action="store_true",
+                   help="point models: average each frame's output with its mirror image's (two forward "
+                        "passes); writes eval_{split}_mirror.*")
     p.set_defaults(func=run)

@@ -31,21 +31,23 @@ import torch
 from radarpc.data.point_dataset import PointCloudDataset, PointFrame
 from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS
 from radarpc.dsp.pointcloud import SpectralPointCloudConfig
+from radarpc.points import mirror_points
 
-__all__ = ["mirror_frame", "MirroredFrames"]
+__all__ = ["mirror_frame", "mirror_sectors", "MirroredFrames"]
 
 _NEGATED_LABEL_COLUMNS = [LABEL_TENSOR_COLUMNS.index(c) for c in ("radar_A_deg", "radar_Y_m", "laser_Y_m")]
 
 
 def mirror_frame(frame: PointFrame, sectors: tuple[int, int] | None = None) -> PointFrame:
-    """``frame`` mirrored about the radar's boresight (module docstring).
+    """``frame`` mirrored about the radar's boresight (module docstring): its points
+    (:func:`radarpc.points.mirror_points`), labels and freespace.
 
     Parameters
     ----------
     frame : PointFrame
     sectors : (int, int), optional
-        ``(n_az_sec, n_el_sec)`` of the points' ``sector`` descriptor (the store's
-        ``sectorAxE`` enrichment); required when the points carry one.
+        ``(n_az_sec, n_el_sec)`` of the points' ``sector`` descriptor; required when the points
+        carry one.
 
     Returns
     -------
@@ -57,18 +59,33 @@ def mirror_frame(frame: PointFrame, sectors: tuple[int, int] | None = None) -> P
     ValueError
         The points carry a sector descriptor and ``sectors`` is missing or does not match its width.
     """
-    p = frame.points
-    sector = p.sector
-    if sector is not None:
-        if sectors is None or sectors[0] * sectors[1] != sector.shape[1]:
-            raise ValueError(f"the points carry a {sector.shape[1]}-wide sector descriptor; give its "
-                             f"(n_az_sec, n_el_sec) to mirror it, got {sectors}")
-        n_as, n_es = sectors
-        sector = sector.reshape(-1, n_as, n_es).flip(1).reshape(-1, n_as * n_es)   # (N, n_as n_es)
-    points = dataclasses.replace(p, azimuth_deg=-p.azimuth_deg, y=-p.y, sector=sector)
     labels = frame.labels.clone()                                                   # (n, 14)
     labels[:, _NEGATED_LABEL_COLUMNS] = -labels[:, _NEGATED_LABEL_COLUMNS]
-    return dataclasses.replace(frame, points=points, labels=labels, freespace=frame.freespace.flip(-1))
+    return dataclasses.replace(frame, points=mirror_points(frame.points, sectors), labels=labels,
+                               freespace=frame.freespace.flip(-1))
+
+
+def mirror_sectors(frames: PointCloudDataset) -> tuple[int, int] | None:
+    """The ``(n_az_sec, n_el_sec)`` that :func:`mirror_points` needs for the points of ``frames``
+    (None without a sector descriptor), once the root's calibration is checked to allow the mirror.
+
+    Raises
+    ------
+    ValueError
+        The points carry a sector descriptor and the root's ``Azimuth_table`` is not symmetric
+        about 0 deg, so reversing the descriptor would not mirror it.
+    """
+    sectors = SpectralPointCloudConfig(enrich=frames.store.metadata.enrich).sectors
+    if sectors is not None:
+        az = np.asarray(frames.reader.calibration.azimuth_deg, dtype=np.float64)
+        # float32 tables round at ~1e-5 deg; 1e-3 deg is far below any table's step
+        if not np.allclose(az, -az[::-1], rtol=0.0, atol=1e-3):
+            raise ValueError(
+                f"the calibration table of {frames.root} has an Azimuth_table that is not symmetric about "
+                f"0 deg ({az.size} azimuths, {az[0]:.3f} .. {az[-1]:.3f} deg), so reversing the sector "
+                f"descriptor of {frames.store.path} would not mirror it; mirror nothing (mirror_probability "
+                f"0, no mirror averaging) or use a store without a sector enrichment")
+    return sectors
 
 
 class MirroredFrames(torch.utils.data.Dataset):
@@ -99,16 +116,7 @@ class MirroredFrames(torch.utils.data.Dataset):
             raise ValueError(f"stream must be >= 0, got {stream}")
         self.stream = int(stream)
         self.epoch = 0
-        self._sectors = SpectralPointCloudConfig(enrich=frames.store.metadata.enrich).sectors
-        if self._sectors is not None:
-            az = np.asarray(frames.reader.calibration.azimuth_deg, dtype=np.float64)
-            # float32 tables round at ~1e-5 deg; 1e-3 deg is far below any table's step
-            if not np.allclose(az, -az[::-1], rtol=0.0, atol=1e-3):
-                raise ValueError(
-                    f"the calibration table of {frames.root} has an Azimuth_table that is not symmetric about "
-                    f"0 deg ({az.size} azimuths, {az[0]:.3f} .. {az[-1]:.3f} deg), so reversing the sector "
-                    f"descriptor of {frames.store.path} would not mirror it; use mirror_probability 0 or a "
-                    f"store without a sector enrichment")
+        self._sectors = mirror_sectors(frames)
 
     def set_epoch(self, epoch: int) -> None:
         """Draw the mirrors of epoch ``epoch`` from now on."""

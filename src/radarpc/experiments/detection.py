@@ -37,9 +37,11 @@ from radarpc.training.checkpoint import load_weights
 from radarpc.training.loop import BEST_WEIGHTS, LOG_CSV, FitResult, autocast_context, fit
 from radarpc.data.point_dataset import PointCloudDataset
 from radarpc.eval.detection import FIXED_THRESHOLD, NEAR_MISS_M, DetectionMetrics
+from radarpc.data.augment import mirror_sectors
 from radarpc.models.classical import ClassicalConfig, classical_detect
+from radarpc.models.mirror import MirrorAveraged
 from radarpc.models.targets import Detections, TargetConfig, decode_detections
-from radarpc.training.radial import (DetectionBatch, ExperimentConfig, RadialDetectionTask, collate_points,
+from radarpc.training.radial import (ConcatFrames, DetectionBatch, ExperimentConfig, RadialDetectionTask, collate_points,
                                      build_model, collate_detection, data_pairs, detection_dataset,
                                      evaluate_model, DataPaths)
 
@@ -155,12 +157,15 @@ class EvalResult:
     """Their point stores (point models)."""
     scored_on: str = ""
     """Names the data when it is not the run's own (:func:`evaluate_run`), else empty."""
+    mirror_average: bool = False
+    """Scored with :class:`~radarpc.models.mirror.MirrorAveraged` (the frame and its mirror image)."""
 
     @property
     def stem(self) -> str:
         """The name of the written files: ``eval_{split}``, then ``_on_{scored_on}`` for data not
-        the run's own and ``_{precision}`` unless fp32."""
+        the run's own, ``_mirror`` when mirror-averaged and ``_{precision}`` unless fp32."""
         return (f"eval_{self.split}" + (f"_on_{self.scored_on}" if self.scored_on else "")
+                + ("_mirror" if self.mirror_average else "")
                 + ("" if self.precision == "fp32" else f"_{self.precision}"))
 
 
@@ -216,15 +221,17 @@ def _fps(model: torch.nn.Module, batches: list[DetectionBatch], device: torch.de
 
 def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths | None = None,
                  points: DataPaths | None = None, device: str | None = None, show: int = 0,
-                 fps_frames: int = 20, batch_size: int = 4, precision: str = "fp32", progress: bool = True,
-                 log: Callable[[str], None] = print) -> list[EvalResult]:
+                 fps_frames: int = 20, batch_size: int = 4, precision: str = "fp32", mirror_average: bool = False,
+                 progress: bool = True, log: Callable[[str], None] = print) -> list[EvalResult]:
     """Score the best weights of every run in ``run`` on ``split`` (see the module docstring).
 
     ``data`` / ``points`` override the roots and stores stored with the run (a moved dataset, or
     one root of a run trained on several). Scores on other data than the run's own go to files of
     their own, ``eval_{split}_on_{names}``, so they do not replace the run's own scores
     (:func:`_scored_on` gives the names).
-    ``precision`` is one of :data:`EVAL_PRECISIONS`.
+    ``precision`` is one of :data:`EVAL_PRECISIONS`. ``mirror_average`` scores a pillar model
+    averaged over each frame and its mirror image (:class:`~radarpc.models.mirror.MirrorAveraged`;
+    two forward passes a frame) into ``eval_{split}[_on_...]_mirror.*``.
     """
     from radarpc.viz import plot_detection_frame, plot_learning_curves
 
@@ -233,10 +240,15 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     dev = torch.device(device) if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
     results = []
     for folder in run_folders(run):
+        if mirror_average and _load_run(folder)[0].input_kind != "points":
+            raise ValueError(f"{folder}: mirror averaging applies to point models; {_load_run(folder)[0].name!r} "
+                             f"takes RD cubes (mirroring a cube would need the array's geometry)")
         cfg, model, key = load_trained(folder, dev)
         roots = data or key["data"]
         stores = (points or key.get("points")) if cfg.input_kind == "points" else None
         ds = detection_dataset(cfg, roots, stores, split)
+        if mirror_average:
+            model = MirrorAveraged(model, cfg.targets, sectors=_mirror_sectors(ds))
         scored = _resolved(data_pairs(roots, stores))
         own = _resolved(data_pairs(key["data"], key.get("points") if stores is not None else None))
         collate = functools.partial(collate_detection, cfg=cfg)
@@ -256,7 +268,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
         res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision,
                          data=tuple(str(r) for r, _ in scored),
                          points=None if stores is None else tuple(str(p) for _, p in scored),
-                         scored_on=_scored_on(scored, own))
+                         scored_on=_scored_on(scored, own), mirror_average=mirror_average)
         _write_eval(folder, res, cfg.name)
         if (folder / LOG_CSV).is_file():
             plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
@@ -271,14 +283,24 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
                                          title=f"{cfg.name} {split} item {k} ({len(b.labels)} labels)")
         log(f"{folder}: {split} F1 {metrics['f1']:.4f} (AP {metrics['ap']:.4f}, AR {metrics['ar']:.4f}), "
             f"F1@0.2 {metrics['f1_fixed']:.4f}, freespace mIoU {miou if miou is not None else float('nan'):.4f}, "
-            f"{n_params:,} parameters, {fps:.1f} frames/s at batch 1 on {dev}, {precision}")
+            f"{n_params:,} parameters, {fps:.1f} frames/s at batch 1 on {dev}, {precision}"
+            + (", mirror-averaged" if mirror_average else ""))
         results.append(res)
     if len(results) > 1:
         rows = [{"run": k, **{m: (r.metrics.get(m) if r.metrics.get(m) is not None else math.nan)
                               for m in SUMMARY_METRICS}} for k, r in enumerate(results)]
         _write_summary(Path(run) / f"{results[0].stem}_summary", rows,
-                       f"{split}: {len(results)} runs" + ("" if precision == "fp32" else f", {precision}"))
+                       f"{split}: {len(results)} runs" + ("" if precision == "fp32" else f", {precision}")
+                       + (", mirror-averaged" if mirror_average else ""))
     return results
+
+
+def _mirror_sectors(ds) -> tuple[int, int] | None:
+    """The sector layout :class:`~radarpc.models.mirror.MirrorAveraged` needs, every root checked
+    to allow the mirror (:func:`~radarpc.data.augment.mirror_sectors`)."""
+    parts = ds.datasets if isinstance(ds, ConcatFrames) else [ds]
+    sectors = [mirror_sectors(part) for part in parts]     # the same layout: one model's stores
+    return sectors[0]
 
 
 def _resolved(pairs: list[tuple[Path, Path | None]]) -> list[tuple[Path, Path | None]]:
@@ -358,13 +380,15 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
     m = res.metrics
     doc = {"split": res.split, "data": list(res.data), "points": list(res.points) if res.points else None,
            "metrics": m, "parameters": res.parameters, "fps_batch1": res.fps,
-           "device": res.device, "threads": res.threads, "precision": res.precision}
+           "device": res.device, "threads": res.threads, "precision": res.precision,
+           "mirror_average": res.mirror_average}
     with atomic_write(folder / f"{res.stem}.json", "w") as f:
         json.dump(doc, f, indent=2)
     thr = ", ".join(f"{t:.1f}" for t in m["thresholds"])
     lines = [
         f"# {name}: {res.split} split ({m['n_frames']} frames)"
-        + ("" if res.precision == "fp32" else f", {res.precision} autocast"), "",
+        + ("" if res.precision == "fp32" else f", {res.precision} autocast")
+        + (", averaged over each frame and its mirror image" if res.mirror_average else ""), "",
         "| AP | AR | F1 | F1 @ 0.2 | range error (m) | azimuth error (deg) | freespace mIoU | parameters | frames/s (batch 1) |",
         "|---|---|---|---|---|---|---|---|---|",
         f"| {m['ap']:.4f} | {m['ar']:.4f} | {m['f1']:.4f} | {m['f1_fixed']:.4f} | {m['range_error_m']:.3f} | "
