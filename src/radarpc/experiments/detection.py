@@ -240,9 +240,11 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     dev = torch.device(device) if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
     results = []
     for folder in run_folders(run):
-        if mirror_average and _load_run(folder)[0].input_kind != "points":
-            raise ValueError(f"{folder}: mirror averaging applies to point models; {_load_run(folder)[0].name!r} "
-                             f"takes RD cubes (mirroring a cube would need the array's geometry)")
+        if mirror_average:
+            stored, _ = _load_run(folder)
+            if stored.input_kind != "points":
+                raise ValueError(f"{folder}: mirror averaging applies to point models; {stored.name!r} takes RD "
+                                 f"cubes (mirroring a cube would need the array's geometry)")
         cfg, model, key = load_trained(folder, dev)
         roots = data or key["data"]
         stores = (points or key.get("points")) if cfg.input_kind == "points" else None
