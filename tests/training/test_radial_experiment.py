@@ -258,6 +258,16 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     assert mi["parameters"] == doc["parameters"]
     assert "mirror image" in (out / "eval_test_mirror.md").read_text().splitlines()[0]
     assert (out / "eval_test.json").read_text() == fp32_doc                      # fp32 files untouched
+    # benchmarks/mirror_symmetry.py: the split as it is and mirror-averaged score as evaluate scored
+    # them, and every frame mirrored is scored too
+    script_mirror = Path(__file__).parents[2] / "benchmarks" / "mirror_symmetry.py"
+    res = subprocess.run([sys.executable, str(script_mirror), str(out)], capture_output=True, text=True, check=True)
+    ms = json.loads(res.stdout)
+    assert ms["frames"] == 4 and set(ms) >= {"as_is", "mirrored", "mirror_averaged"}
+    for name, ev in (("as_is", doc), ("mirror_averaged", mi)):
+        for m in ("f1", "f1_fixed", "freespace_miou"):
+            assert ms[name][m] == pytest.approx(ev["metrics"][m], rel=1e-6, abs=1e-9), (name, m)
+    assert ms["mirrored"]["n_labels"] == ms["as_is"]["n_labels"] == doc["metrics"]["n_labels"]
     # an RD-cube model cannot be mirrored: refused, naming the run
     cubes = tmp_path / "cubes"
     shutil.copytree(out, cubes)
