@@ -1,11 +1,14 @@
 """Mirror averaging at test time: a pillar detector run on a frame and on its mirror image.
 
 The frame mirrored about the radar's boresight (azimuth ``a -> -a``,
-:func:`radarpc.points.mirror_points`) is a frame the detector could equally have been given.
-:class:`MirrorAveraged` runs the detector on both, maps the second output back through the mirror
-and averages the two (the polar form of the flip test-time augmentation of image detectors): a
-detection that one view alone sees weakly loses half its probability, one both views see keeps it.
-It costs a second forward pass, so frames/s halve.
+:func:`radarpc.points.mirror_points`) is a frame of the mirrored world. :class:`MirrorAveraged`
+runs the detector on both, maps the second output back through the mirror and averages the two
+(the polar form of the flip test-time augmentation of image detectors): a detection that one view
+alone sees weakly loses half its probability, one both views see keeps it. It costs a second
+forward pass, so frames/s halve. It helps only where the world is left-right symmetric: road
+traffic keeps to one side, and a model that has learned where roads and oncoming cars lie scores
+mirrored frames worse (``benchmarks/mirror_symmetry.py`` measures how much; on the simulator's
+right-hand traffic the average lowered F1, ``docs/results/detection.md``).
 
 Mirroring an output map back (:func:`mirror_detection_map`): column ``j`` of the 224 azimuth
 columns starts at ``(j - 112) c_a`` (:mod:`radarpc.models.targets`), so a vehicle at azimuth
