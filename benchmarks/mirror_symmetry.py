@@ -21,11 +21,11 @@ import json
 import torch
 from torch.utils.data import DataLoader
 
-from radarpc.data.augment import MirroredFrames, mirror_sectors
+from radarpc.data.augment import MirroredFrames
 from radarpc.eval.detection import FIXED_THRESHOLD
-from radarpc.experiments.detection import load_trained
+from radarpc.experiments.detection import load_trained, mirror_sectors_of
 from radarpc.models.mirror import MirrorAveraged
-from radarpc.training.radial import ConcatFrames, collate_detection, detection_dataset, evaluate_model
+from radarpc.training.radial import ConcatFrames, collate_detection, detection_dataset, evaluate_model, point_datasets
 
 
 def scores(model, frames, cfg, batch_size: int = 4) -> dict:
@@ -51,12 +51,11 @@ def main(argv: list[str] | None = None) -> None:
     if cfg.input_kind != "points":
         raise SystemExit(f"{args.run}: {cfg.name!r} takes RD cubes; mirroring applies to point models")
     ds = detection_dataset(cfg, args.data or key["data"], args.points or key.get("points"), args.split)
-    parts = ds.datasets if isinstance(ds, ConcatFrames) else [ds]
-    mirrored = ConcatFrames([MirroredFrames(part, 1.0, seed=0) for part in parts])
+    mirrored = ConcatFrames([MirroredFrames(part, 1.0, seed=0) for part in point_datasets(ds)])
     res = {"run": str(args.run), "split": args.split, "frames": len(ds),
            "as_is": scores(model, ds, cfg),
            "mirrored": scores(model, mirrored, cfg),
-           "mirror_averaged": scores(MirrorAveraged(model, cfg.targets, mirror_sectors(parts[0])), ds, cfg)}
+           "mirror_averaged": scores(MirrorAveraged(model, cfg.targets, mirror_sectors_of(ds)), ds, cfg)}
     print(json.dumps(res))
 
 

@@ -114,7 +114,7 @@ def test_training_preloads_the_point_frames_that_fit(root, store, monkeypatch):
     held = RadialDetectionTask(cfg, root, store)              # train frames behind the mirroring wrapper
     plain = RadialDetectionTask(cfg, root, store, preload=False)
     assert plain.preloaded_bytes == 0 and held.preloaded_bytes > 0
-    stores = [d.store for s in (held.train_set, held.val_set) for d in radial._point_datasets(s)]
+    stores = [d.store for s in (held.train_set, held.val_set) for d in radial.point_datasets(s)]
     assert len(stores) == 2 and stores[0] is not stores[1]    # each split holds its own frames
     for st in stores:                                         # every item comes from memory
         st.read_row_group = lambda g: pytest.fail(f"row group {g} read from the file")

@@ -41,12 +41,12 @@ from radarpc.data.augment import mirror_sectors
 from radarpc.models.classical import ClassicalConfig, classical_detect
 from radarpc.models.mirror import MirrorAveraged
 from radarpc.models.targets import Detections, TargetConfig, decode_detections
-from radarpc.training.radial import (ConcatFrames, DetectionBatch, ExperimentConfig, RadialDetectionTask, collate_points,
+from radarpc.training.radial import (DetectionBatch, ExperimentConfig, RadialDetectionTask, collate_points,
                                      build_model, collate_detection, data_pairs, detection_dataset,
-                                     evaluate_model, DataPaths)
+                                     evaluate_model, point_datasets, DataPaths)
 
 __all__ = ["load_experiment", "run_key", "train_runs", "load_trained", "EvalResult", "evaluate_run",
-           "evaluate_classical", "run_folders", "EVAL_PRECISIONS", "SUMMARY_METRICS"]
+           "evaluate_classical", "mirror_sectors_of", "run_folders", "EVAL_PRECISIONS", "SUMMARY_METRICS"]
 
 EVAL_PRECISIONS = ("fp32", "bf16")
 """Precisions :func:`evaluate_run` scores in (bf16: autocast; the weights stay fp32)."""
@@ -250,7 +250,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
         stores = (points or key.get("points")) if cfg.input_kind == "points" else None
         ds = detection_dataset(cfg, roots, stores, split)
         if mirror_average:
-            model = MirrorAveraged(model, cfg.targets, sectors=_mirror_sectors(ds))
+            model = MirrorAveraged(model, cfg.targets, sectors=mirror_sectors_of(ds))
         scored = _resolved(data_pairs(roots, stores))
         own = _resolved(data_pairs(key["data"], key.get("points") if stores is not None else None))
         collate = functools.partial(collate_detection, cfg=cfg)
@@ -297,11 +297,10 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     return results
 
 
-def _mirror_sectors(ds) -> tuple[int, int] | None:
+def mirror_sectors_of(ds) -> tuple[int, int] | None:
     """The sector layout :class:`~radarpc.models.mirror.MirrorAveraged` needs, every root checked
     to allow the mirror (:func:`~radarpc.data.augment.mirror_sectors`)."""
-    parts = ds.datasets if isinstance(ds, ConcatFrames) else [ds]
-    sectors = [mirror_sectors(part) for part in parts]     # the same layout: one model's stores
+    sectors = [mirror_sectors(part) for part in point_datasets(ds)]   # the same layout: one model's stores
     return sectors[0]
 
 

@@ -37,7 +37,7 @@ from radarpc.training.loop import TrainConfig
 
 __all__ = ["ExperimentConfig", "DetectionBatch", "build_model", "RadialDetectionTask", "collate_cubes", "collate_points",
            "collate_detection", "detection_dataset", "data_pairs", "ConcatFrames", "DataPaths",
-           "evaluate_model", "preload_point_frames", "preload_budget_bytes", "DECODE_THRESHOLD", "MAX_CANDIDATES"]
+           "evaluate_model", "point_datasets", "preload_point_frames", "preload_budget_bytes", "DECODE_THRESHOLD", "MAX_CANDIDATES"]
 
 DataPaths = str | os.PathLike | Sequence[str | os.PathLike]
 """One path, or several in order (dataset roots, or their point stores)."""
@@ -236,13 +236,14 @@ def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths 
     return parts[0] if len(parts) == 1 else ConcatFrames(parts)
 
 
-def _point_datasets(ds) -> list[PointCloudDataset]:
+def point_datasets(ds) -> list[PointCloudDataset]:
+    """The point datasets inside ``ds`` (a dataset of :func:`detection_dataset`), in order; [] for RD cubes."""
     if isinstance(ds, PointCloudDataset):
         return [ds]
     if isinstance(ds, MirroredFrames):
-        return _point_datasets(ds.frames)
+        return point_datasets(ds.frames)
     if isinstance(ds, ConcatFrames):
-        return [p for d in ds.datasets for p in _point_datasets(d)]
+        return [p for d in ds.datasets for p in point_datasets(d)]
     return []
 
 
@@ -275,7 +276,7 @@ def preload_point_frames(datasets: Iterable, budget_bytes: int | None = None) ->
     int
         Bytes held.
     """
-    found = [p for ds in datasets for p in _point_datasets(ds)]
+    found = [p for ds in datasets for p in point_datasets(ds)]
     if not found:
         return 0
     need = sum(p.decoded_bytes() for p in found)
