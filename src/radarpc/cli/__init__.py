@@ -18,9 +18,10 @@ RESUMABLE_COMMANDS = ("simulate", "pointcloud", "demo", "baseline", "export", "t
 
 def _command_modules():
     # Imported lazily so that `radarpc --help` stays fast and one broken stage cannot hide the others.
-    from radarpc.cli import (baseline, demo, evaluate, evaluate_points, export, info, pointcloud, show, simulate,
-                             train)
-    return [simulate, info, pointcloud, show, demo, baseline, evaluate_points, export, train, evaluate]
+    from radarpc.cli import (baseline, demo, evaluate, evaluate_points, export, import_fftradnet, info, pointcloud,
+                             show, simulate, train)
+    return [simulate, info, pointcloud, show, demo, baseline, evaluate_points, export, train, evaluate,
+            import_fftradnet]
 
 
 def build_parser() -> argparse.ArgumentParser:

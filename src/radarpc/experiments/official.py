@@ -1,0 +1,236 @@
+"""Official FFTRadNet weights as a radarpc run folder, so that ``radarpc evaluate`` scores them.
+
+valeoai/RADIal publishes FFTRadNet's trained weights as a ``.pth`` checkpoint and its settings as a
+JSON config (``FFTRadNet/config/config_FFTRadNet_192_56.json``): the network sizes under
+``model`` and, under ``dataset.statistics``, the per-channel input normalisation (``input_mean``,
+``input_std``, real parts then imaginary parts of the 16 receivers) and the regression offsets'
+``reg_mean`` / ``reg_std``. The weights alone do not make a usable model: the statistics belong
+to them. :func:`import_official_fftradnet` joins the two into a run folder like one
+``radarpc train`` writes:
+
+* ``run.json`` -- the key: the resolved :class:`~radarpc.training.radial.ExperimentConfig`, the
+  RADIal root(s) to score by default, and under ``imported`` the two files' paths and SHA-256;
+* ``config.yaml`` -- the same config;
+* ``best.safetensors`` -- the weights in radarpc's key names, with the input statistics.
+
+The checkpoint is read with ``torch.load(weights_only=True)``
+(:func:`~radarpc.models.fftradnet.load_official_checkpoint`); the bare state dict and the
+training script's ``{"net_state_dict": ...}`` layout both load. A rerun with the same files
+rewrites the folder; other files in a folder that holds a run are refused unless ``overwrite``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import torch
+
+from radarpc.config import save_yaml
+from radarpc.experiments.detection import run_key
+from radarpc.io import DataFileError
+from radarpc.models.fftradnet import FFTRadNet, FFTRadNetConfig, load_official_checkpoint
+from radarpc.models.targets import TargetConfig
+from radarpc.runs import RunFolder
+from radarpc.training.checkpoint import save_weights
+from radarpc.training.loop import BEST_WEIGHTS
+from radarpc.training.radial import DataPaths, ExperimentConfig
+
+__all__ = ["OfficialConfig", "read_official_config", "official_experiment", "import_official_fftradnet"]
+
+CONFIG_YAML = "config.yaml"
+
+
+@dataclasses.dataclass(frozen=True)
+class OfficialConfig:
+    """What radarpc takes from an official FFTRadNet JSON config.
+
+    Attributes
+    ----------
+    name : str
+        The config's ``name`` (e.g. ``FFTRadNet_RA_192_56``).
+    blocks, channels : tuple of 4 int
+        ``model.backbone_block`` and ``model.channels``.
+    mimo_channels : int
+        ``model.MIMO_output``.
+    freespace : bool
+        ``model.SegmentationHead``.
+    input_mean, input_std : tuple of float
+        ``dataset.statistics.input_mean`` / ``input_std``, one per input channel.
+    reg_mean, reg_std : tuple of 2 float
+        ``dataset.statistics.reg_mean`` / ``reg_std`` (range m, azimuth deg).
+    """
+
+    name: str
+    blocks: tuple[int, ...]
+    channels: tuple[int, ...]
+    mimo_channels: int
+    freespace: bool
+    input_mean: tuple[float, ...]
+    input_std: tuple[float, ...]
+    reg_mean: tuple[float, float]
+    reg_std: tuple[float, float]
+
+
+def _flag(value: object, where: str, path: Path) -> bool:
+    # the official configs write booleans as the strings "True" / "False"
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, str) and value in ("True", "False", "true", "false"):
+        return value.lower() == "true"
+    raise DataFileError(path, f"{where} must be true or false (or the string 'True' / 'False'), got {value!r}")
+
+
+def _numbers(value: object, where: str, path: Path, n: int | None = None, integer: bool = False) -> tuple:
+    kinds = (int,) if integer else (int, float)
+    if (not isinstance(value, list) or not value or (n is not None and len(value) != n)
+            or not all(isinstance(v, kinds) and not isinstance(v, bool) for v in value)):
+        want = f"{n} " if n is not None else ""
+        raise DataFileError(path, f"{where} must be a list of {want}{'integers' if integer else 'numbers'}, "
+                                  f"got {value!r}")
+    return tuple(int(v) if integer else float(v) for v in value)
+
+
+def read_official_config(path: str | os.PathLike) -> OfficialConfig:
+    """Read the sizes and statistics of an official FFTRadNet JSON config (see the module docstring).
+
+    Raises
+    ------
+    DataFileError
+        The file is not JSON, or a field is missing or malformed (the message names the field).
+    FileNotFoundError
+        ``path`` does not exist.
+    """
+    path = Path(path)
+    try:
+        raw = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise DataFileError(path, f"expected an official FFTRadNet JSON config, could not read it as JSON ({e})") from None
+
+    def get(*keys: str) -> object:
+        node: object = raw
+        for k in keys:
+            if not isinstance(node, dict) or k not in node:
+                raise DataFileError(path, f"expected an official FFTRadNet config with '{'.'.join(keys)}' "
+                                          f"(as in valeoai/RADIal's config_FFTRadNet_192_56.json)")
+            node = node[k]
+        return node
+
+    if not _flag(get("model", "DetectionHead"), "model.DetectionHead", path):
+        raise DataFileError(path, "model.DetectionHead is False: radarpc scores detections and needs the detection head")
+    mimo = get("model", "MIMO_output")
+    if not isinstance(mimo, int) or isinstance(mimo, bool) or mimo < 1:
+        raise DataFileError(path, f"model.MIMO_output must be a positive integer, got {mimo!r}")
+    std = _numbers(get("dataset", "statistics", "input_std"), "dataset.statistics.input_std", path)
+    if min(std) <= 0:
+        raise DataFileError(path, "dataset.statistics.input_std must be positive in every channel")
+    mean = _numbers(get("dataset", "statistics", "input_mean"), "dataset.statistics.input_mean", path, n=len(std))
+    name = raw.get("name", path.stem)
+    return OfficialConfig(
+        name=str(name),
+        blocks=_numbers(get("model", "backbone_block"), "model.backbone_block", path, n=4, integer=True),
+        channels=_numbers(get("model", "channels"), "model.channels", path, n=4, integer=True),
+        mimo_channels=mimo,
+        freespace=_flag(get("model", "SegmentationHead"), "model.SegmentationHead", path),
+        input_mean=mean,
+        input_std=std,
+        reg_mean=_numbers(get("dataset", "statistics", "reg_mean"), "dataset.statistics.reg_mean", path, n=2),
+        reg_std=_numbers(get("dataset", "statistics", "reg_std"), "dataset.statistics.reg_std", path, n=2),
+    )
+
+
+def official_experiment(official: OfficialConfig, base: FFTRadNetConfig = FFTRadNetConfig()) -> ExperimentConfig:
+    """The experiment config of an official FFTRadNet: its sizes on ``base`` (RADIal's cube
+    geometry by default), its regression statistics in the targets, RADIal's loss and radarpc's
+    training defaults (used only if the run is trained further).
+
+    Raises
+    ------
+    ValueError
+        The sizes do not make an FFTRadNet (:class:`~radarpc.models.fftradnet.FFTRadNetConfig`), or
+        the statistics do not have one value per input channel (``2 n_rx``).
+    """
+    net = dataclasses.replace(base, blocks=official.blocks, channels=official.channels,
+                              mimo_channels=official.mimo_channels, freespace=official.freespace)
+    if len(official.input_mean) != 2 * net.n_rx:
+        raise ValueError(f"{official.name}: {len(official.input_mean)} input statistics, but the model takes "
+                         f"{2 * net.n_rx} channels (real and imaginary parts of {net.n_rx} receivers)")
+    targets = TargetConfig(reg_mean=official.reg_mean, reg_std=official.reg_std)
+    return ExperimentConfig(name=official.name, fftradnet=net, targets=targets)
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def import_official_fftradnet(checkpoint: str | os.PathLike, official_config: str | os.PathLike, data: DataPaths,
+                              out: str | os.PathLike, *, base: FFTRadNetConfig = FFTRadNetConfig(),
+                              overwrite: bool = False) -> Path:
+    """Write the run folder ``out`` for an official FFTRadNet checkpoint (see the module docstring).
+
+    Parameters
+    ----------
+    checkpoint : path-like
+        The official ``.pth`` (a state dict, or ``{"net_state_dict": ...}``).
+    official_config : path-like
+        The official JSON config the weights were trained with (its statistics are the input
+        normalisation).
+    data : path-like or sequence of path-like
+        The RADIal root(s) ``radarpc evaluate`` scores by default (``--data`` overrides it there).
+    out : path-like
+        The run folder.
+    base : FFTRadNetConfig
+        Cube geometry (RADIal's by default); the official config sets the sizes on it.
+    overwrite : bool
+        Replace a folder that holds another run.
+
+    Returns
+    -------
+    Path of the run folder.
+
+    Raises
+    ------
+    DataFileError
+        The config is malformed, or the checkpoint's tensors do not fit the model its config
+        describes (the message names both files).
+    ValueError
+        The checkpoint is not a readable state dict (:func:`load_official_checkpoint`).
+    RunMismatchError
+        ``out`` holds another run and ``overwrite`` is False.
+    """
+    checkpoint, official_config, out = Path(checkpoint), Path(official_config), Path(out)
+    official = read_official_config(official_config)
+    try:
+        cfg = official_experiment(official, base)
+    except ValueError as e:
+        raise DataFileError(official_config, str(e)) from None
+    state = load_official_checkpoint(checkpoint)
+    model = FFTRadNet(cfg.fftradnet)
+    try:
+        model.set_input_statistics(torch.tensor(official.input_mean), torch.tensor(official.input_std))
+        missing, unexpected = model.load_state_dict(state, strict=False)
+    except RuntimeError as e:     # a tensor of another shape
+        raise DataFileError(checkpoint, f"its weights do not fit the FFTRadNet that {official_config.name} "
+                                        f"describes: {e}") from None
+    missing = [k for k in missing if k not in ("input_mean", "input_std")]
+    if missing or unexpected:
+        raise DataFileError(checkpoint, f"its weights do not fit the FFTRadNet that {official_config.name} describes "
+                                        f"(missing: {missing[:5]}, unexpected: {unexpected[:5]}); is "
+                                        f"model.SegmentationHead right?")
+    key = run_key(cfg, data) | {"imported": {
+        "checkpoint": str(checkpoint.resolve()), "checkpoint_sha256": _sha256(checkpoint),
+        "official_config": str(official_config.resolve()), "official_config_sha256": _sha256(official_config)}}
+    with RunFolder(out, {"run.json": key}, what="imported FFTRadNet run", indent=2,
+                   owned=("run.json", str(BEST_WEIGHTS), CONFIG_YAML)).start(overwrite=overwrite) as run:
+        save_weights(run.path / BEST_WEIGHTS, model.state_dict(),
+                     {"run": key, "epoch": None, "precision": "fp32", "weights": "official"})
+        save_yaml(cfg, run.path / CONFIG_YAML)
+    return out
