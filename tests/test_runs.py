@@ -95,6 +95,18 @@ def test_overwrite_deletes_only_owned_entries(tmp_path):
     assert not (d / "radar_FFT").exists()
 
 
+def test_overwrite_deletes_owned_patterns(tmp_path):
+    # a run's evaluations (eval_*) are stale once its weights are replaced; other files stay
+    d = tmp_path / "run"
+    d.mkdir()
+    for name in ("best.safetensors", "eval_test.json", "eval_test_on_b.md", "evaluation_notes.txt"):
+        (d / name).write_text("x")
+    run = RunFolder(d, {"run.json": {"k": 2}}, owned=("best.safetensors", "eval_*"))
+    run.start(overwrite=True)
+    run.close()
+    assert sorted(p.name for p in d.iterdir()) == ["evaluation_notes.txt", "run.json"]
+
+
 def test_not_resume_clears_a_matching_run(tmp_path):
     d = tmp_path / "run"
     with RunFolder(d, {"run.json": {"k": 1}}):

@@ -110,6 +110,7 @@ def test_import_then_evaluate_from_the_command_line(root, tmp_path, capsys):
     with pytest.raises(RunMismatchError):
         import_official_fftradnet(ckpt, conf, root, out, base=TINY)
     import_official_fftradnet(ckpt, conf, root, out, base=TINY, overwrite=True)
+    assert not (out / "eval_test.json").exists()            # the scores of the replaced weights go with them
     assert load_trained(out)[2]["imported"]["checkpoint_sha256"] == hashlib.sha256(ckpt.read_bytes()).hexdigest()
 
 

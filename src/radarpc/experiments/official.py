@@ -16,7 +16,8 @@ to them. :func:`import_official_fftradnet` joins the two into a run folder like 
 The checkpoint is read with ``torch.load(weights_only=True)``
 (:func:`~radarpc.models.fftradnet.load_official_checkpoint`); the bare state dict and the
 training script's ``{"net_state_dict": ...}`` layout both load. A rerun with the same files
-rewrites the folder; other files in a folder that holds a run are refused unless ``overwrite``.
+rewrites the folder; other files in a folder that holds a run are refused unless ``overwrite``,
+which also deletes the evaluations of the weights it replaces.
 """
 from __future__ import annotations
 
@@ -229,7 +230,8 @@ def import_official_fftradnet(checkpoint: str | os.PathLike, official_config: st
         "checkpoint": str(checkpoint.resolve()), "checkpoint_sha256": _sha256(checkpoint),
         "official_config": str(official_config.resolve()), "official_config_sha256": _sha256(official_config)}}
     with RunFolder(out, {"run.json": key}, what="imported FFTRadNet run", indent=2,
-                   owned=("run.json", str(BEST_WEIGHTS), CONFIG_YAML)).start(overwrite=overwrite) as run:
+                   owned=("run.json", str(BEST_WEIGHTS), CONFIG_YAML, "eval_*", "figures")
+                   ).start(overwrite=overwrite) as run:
         save_weights(run.path / BEST_WEIGHTS, model.state_dict(),
                      {"run": key, "epoch": None, "precision": "fp32", "weights": "official"})
         save_yaml(cfg, run.path / CONFIG_YAML)

@@ -291,9 +291,10 @@ def fit(task: Task, cfg: TrainConfig, out: str | os.PathLike, run_key: dict, *,
 
     run = None
     if env.rank == 0:
+        # evaluations of the weights (radarpc evaluate's eval_* and figures) go with them
         run = RunFolder(out, {"run.json": run_key}, what="training run", indent=2,
                         owned=("run.json", "checkpoints", str(BEST_WEIGHTS), str(LOG_CSV), "tb",
-                               *extra_outputs))
+                               "eval_*", "figures", *extra_outputs))
         run.start(overwrite=overwrite, resume=not overwrite)
     _barrier(env)
     try:
