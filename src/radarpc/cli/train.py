@@ -19,7 +19,8 @@ atomically every ``train.checkpoint_every`` steps and each epoch), ``best.safete
 weights of the best validation F1), ``log.csv`` and TensorBoard events in ``tb/`` (when the
 ``tensorboard`` package is installed). Run the same command again after an interruption: it
 resumes from the last checkpoint and ends with the same weights as an uninterrupted run. Another
-config in the same folder is refused unless ``--overwrite``. ``--runs N`` trains N seeds into
+config in the same folder is refused unless ``--overwrite``, which deletes that run's files and the
+evaluations of its weights (``eval_*``, ``figures/``). ``--runs N`` trains N seeds into
 ``OUT/run0 .. OUT/run{N-1}`` and writes ``OUT/summary.md`` with the mean and standard deviation.
 Under ``torchrun`` the run uses DistributedDataParallel (NCCL on GPUs, gloo on CPUs); ``train.batch_size``
 is the global batch. The loop is :mod:`radarpc.training.loop`.
