@@ -101,7 +101,8 @@ def test_overwrite_deletes_owned_patterns(tmp_path):
     d.mkdir()
     for name in ("best.safetensors", "eval_test.json", "eval_test_on_b.md", "evaluation_notes.txt"):
         (d / name).write_text("x")
-    run = RunFolder(d, {"run.json": {"k": 2}}, owned=("best.safetensors", "eval_*"))
+    (d / "tb").symlink_to(tmp_path / "gone")              # an owned name is deleted even as a broken link
+    run = RunFolder(d, {"run.json": {"k": 2}}, owned=("best.safetensors", "tb", "eval_*"))
     run.start(overwrite=True)
     run.close()
     assert sorted(p.name for p in d.iterdir()) == ["evaluation_notes.txt", "run.json"]

@@ -249,9 +249,10 @@ class RunFolder:
     indent : int, optional
         JSON indentation of the manifests as written.
     owned : sequence of str, optional
-        The entries of the folder that the job writes (files or subfolders), or glob patterns of
-        them (``"eval_*"``: outputs made from the job's, stale once it is replaced). ``overwrite``
-        deletes these and the manifests; None means the whole folder's content is the job's.
+        The entries of the folder that the job writes (files or subfolders); a name with ``*`` is
+        a glob pattern (``"eval_*"``: outputs made from the job's, stale once it is replaced).
+        ``overwrite`` deletes these and the manifests; None means the whole folder's content is
+        the job's.
     lock_output : path-like, optional
         The output to lock, when it is not the folder itself (a store file whose parts folder
         this is). Default: the folder.
@@ -411,7 +412,8 @@ class RunFolder:
         if self.owned is None:
             owned = {p.name for p in self.path.iterdir()}
         else:
-            owned = {p.name for pattern in self.owned for p in self.path.glob(pattern)}
+            owned = {name for name in self.owned if "*" not in name}
+            owned |= {p.name for name in self.owned if "*" in name for p in self.path.glob(name)}
         # The manifests go last: a kill half-way leaves a folder that still says whose it is.
         names = sorted(owned - set(self.manifests)) + sorted(self.manifests)
         for name in names:
