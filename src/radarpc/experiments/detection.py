@@ -46,10 +46,14 @@ from radarpc.training.radial import (DetectionBatch, ExperimentConfig, RadialDet
                                      evaluate_model, point_datasets, DataPaths)
 
 __all__ = ["load_experiment", "run_key", "train_runs", "load_trained", "EvalResult", "evaluate_run",
-           "evaluate_classical", "mirror_sectors_of", "run_folders", "EVAL_PRECISIONS", "SUMMARY_METRICS"]
+           "evaluate_classical", "mirror_sectors_of", "run_folders", "CONFIG_YAML", "EVAL_PRECISIONS",
+           "SUMMARY_METRICS"]
 
 EVAL_PRECISIONS = ("fp32", "bf16")
 """Precisions :func:`evaluate_run` scores in (bf16: autocast; the weights stay fp32)."""
+
+CONFIG_YAML = "config.yaml"
+"""The resolved config a run folder keeps beside its key (``run.json``)."""
 
 SUMMARY_METRICS = ("f1", "ap", "ar", "f1_fixed", "range_error_m", "azimuth_error_deg", "freespace_miou")
 """Metrics summarised over runs (mean and standard deviation)."""
@@ -110,9 +114,9 @@ def train_runs(cfg: ExperimentConfig, data: DataPaths, out: str | os.PathLike, *
         if task.preloaded_bytes:
             log(f"{folder}: point frames preloaded in memory, {task.preloaded_bytes / 2**30:.2f} GiB")
         res = fit(task, run_cfg.train, folder, run_key(run_cfg, data, points), device=device,
-                  overwrite=overwrite, progress=progress, log=log, extra_outputs=("config.yaml",))
-        if not (folder / "config.yaml").is_file():
-            save_yaml(run_cfg, folder / "config.yaml")
+                  overwrite=overwrite, progress=progress, log=log, extra_outputs=(CONFIG_YAML,))
+        if not (folder / CONFIG_YAML).is_file():
+            save_yaml(run_cfg, folder / CONFIG_YAML)
         results.append(res)
     if runs > 1:
         rows = [{"run": k, "best_epoch": r.best_epoch,

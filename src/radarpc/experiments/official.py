@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 
 from radarpc.config import save_yaml
-from radarpc.experiments.detection import run_key
+from radarpc.experiments.detection import CONFIG_YAML, run_key
 from radarpc.io import DataFileError
 from radarpc.models.fftradnet import FFTRadNet, FFTRadNetConfig, load_official_checkpoint
 from radarpc.models.targets import TargetConfig
@@ -40,8 +40,6 @@ from radarpc.training.loop import BEST_WEIGHTS
 from radarpc.training.radial import DataPaths, ExperimentConfig
 
 __all__ = ["OfficialConfig", "read_official_config", "official_experiment", "import_official_fftradnet"]
-
-CONFIG_YAML = "config.yaml"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -213,19 +211,15 @@ def import_official_fftradnet(checkpoint: str | os.PathLike, official_config: st
         cfg = official_experiment(official, base)
     except ValueError as e:
         raise DataFileError(official_config, str(e)) from None
-    state = load_official_checkpoint(checkpoint)
+    # the official model keeps its input statistics in the JSON config, radarpc in the weights
+    state = load_official_checkpoint(checkpoint) | {"input_mean": torch.tensor(official.input_mean),
+                                                    "input_std": torch.tensor(official.input_std)}
     model = FFTRadNet(cfg.fftradnet)
     try:
-        model.set_input_statistics(torch.tensor(official.input_mean), torch.tensor(official.input_std))
-        missing, unexpected = model.load_state_dict(state, strict=False)
-    except RuntimeError as e:     # a tensor of another shape
-        raise DataFileError(checkpoint, f"its weights do not fit the FFTRadNet that {official_config.name} "
-                                        f"describes: {e}") from None
-    missing = [k for k in missing if k not in ("input_mean", "input_std")]
-    if missing or unexpected:
+        model.load_state_dict(state)
+    except RuntimeError as e:     # keys missing or left over, or a tensor of another shape
         raise DataFileError(checkpoint, f"its weights do not fit the FFTRadNet that {official_config.name} describes "
-                                        f"(missing: {missing[:5]}, unexpected: {unexpected[:5]}); is "
-                                        f"model.SegmentationHead right?")
+                                        f"(is model.SegmentationHead right?): {e}") from None
     key = run_key(cfg, data) | {"imported": {
         "checkpoint": str(checkpoint.resolve()), "checkpoint_sha256": _sha256(checkpoint),
         "official_config": str(official_config.resolve()), "official_config_sha256": _sha256(official_config)}}
