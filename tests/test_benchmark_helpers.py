@@ -2,9 +2,12 @@
 precisions' detections (the script itself runs on a trained tiny run in
 tests/training/test_radial_experiment.py), ``fftradnet_official.py``'s MAC count and
 ``operating_points.py``'s F1 allowance, ``box_offsets.py``'s failing axis,
-``detection_ceiling.py``'s placement of boxes from points and ``vehicle_glint.py``'s beamformer."""
+``detection_ceiling.py``'s placement of boxes from points, ``vehicle_glint.py``'s beamformer and
+``vml_first_call.py`` (run whole)."""
 import importlib.util
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -274,3 +277,15 @@ def test_vehicle_glint_script(tmp_path, capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["lateral_tolerance_m"] == pytest.approx(0.6) and 1.5 < out["beamwidth_3db_deg"] < 2.5
     assert [r["range_m"] for r in out["by_range"]] == [20, 80] and (tmp_path / "g.png").stat().st_size > 0
+
+
+def test_vml_first_call_script():
+    # benchmarks/vml_first_call.py in fresh processes (where torch's first VML call can be inexact:
+    # 20 of 40 processes in docs/results/vml_first_call.md): ra_to_box_xy's boxes agree in each
+    res = subprocess.run([sys.executable, str(Path(__file__).parents[1] / "benchmarks" / "vml_first_call.py"),
+                          "--processes", "2"], capture_output=True, text=True, check=True)
+    cases = {c["first_call"] + str(c["env"]): c for c in json.loads(res.stdout)["cases"]}
+    assert list(cases) == ["sqrt{}", "sqrt{'MKL_NUM_THREADS': '1'}", "boxes_torch{}", "boxes{}"]
+    assert all(c["processes"] == 2 and 0 <= c["inaccurate"] <= 2 for c in cases.values())
+    assert cases["sqrt{'MKL_NUM_THREADS': '1'}"]["torch_threads"] == [1]
+    assert cases["boxes{}"]["inaccurate"] == 0 and cases["boxes{}"]["max_rel_error"] == 0.0

@@ -129,6 +129,30 @@ def test_box_iou_hand_values():
         pytest.approx([5.0, 10 * math.sqrt(3) / 2])
 
 
+def test_ra_to_box_xy_numpy_and_torch_paths_agree():
+    # on the CPU the boxes come from numpy in float64, elsewhere (and under autograd) from torch:
+    # the same x = R sin A, y = R cos A, in the inputs' dtype and broadcast shape
+    g = torch.Generator().manual_seed(0)
+    r = torch.rand(5000, generator=g) * 100                                    # m
+    a = torch.rand(5000, generator=g) * 180 - 90                               # deg
+    xy = ra_to_box_xy(r, a)
+    assert xy.dtype == torch.float32 and xy.shape == (5000, 2)
+    exact = torch.tensor([[R * math.sin(math.radians(A)), R * math.cos(math.radians(A))]
+                          for R, A in zip(r.tolist(), a.tolist())], dtype=torch.float64)  # libm, per element
+    # float64 (a few of its ulps) then one rounding to float32 (half an ulp of |x|, |y| <= R)
+    tol = (0.5 * torch.finfo(torch.float32).eps + 8 * torch.finfo(torch.float64).eps) * r.double()[:, None]
+    assert ((xy.double() - exact).abs() <= tol).all()
+    # broadcasting (one range, many azimuths) and float64 kept
+    xy64 = ra_to_box_xy(torch.tensor(10.0, dtype=torch.float64), torch.tensor([0.0, 90.0], dtype=torch.float64))
+    assert xy64.dtype == torch.float64 and xy64.flatten().tolist() == pytest.approx([0.0, 10.0, 10.0, 0.0], abs=1e-14)
+    # the autograd path (torch) gives the same boxes and a gradient: d x / d R = sin A
+    rg = r[:3].double().requires_grad_()
+    xg = ra_to_box_xy(rg, a[:3].double())
+    assert torch.allclose(xg, exact[:3], rtol=0, atol=1e-12)
+    xg[:, 0].sum().backward()
+    assert rg.grad.tolist() == pytest.approx([math.sin(math.radians(A)) for A in a[:3].tolist()], abs=1e-15)
+
+
 def test_nms_hand_case():
     # A suppresses B (same place); D overlaps only B, which was suppressed, so D stays; C is far.
     xy = torch.tensor([[0.0, 20.0], [0.0, 20.5], [0.0, 30.0], [0.0, 24.0], [0.3, 20.2]])

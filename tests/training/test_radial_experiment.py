@@ -292,9 +292,9 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
                           "--figure", str(tmp_path / "fa.png")], capture_output=True, text=True, check=True)
     fa = json.loads(res.stdout.splitlines()[-1])
     assert fa["false_alarms"] == sum(fa["by_range_m"].values()) == sum(fa["by_cause"].values()) > 0
-    # the script's count should equal evaluate's false positives; once in CI it came out 0.03 % low
-    # (5,983 against 5,985), not yet explained: within 1 % until it is
-    assert abs(fa["false_alarms"] - fp) <= 0.01 * fp
+    # the script's count equals evaluate's false positives: boxes no longer come from torch's CPU
+    # sin/cos, whose first call in a process was sometimes inexact (benchmarks/vml_first_call.py)
+    assert fa["false_alarms"] == fp
     assert fa["by_cause"]["nothing"] < fa["false_alarms"]                           # scatterers under some
     assert (tmp_path / "fa.png").stat().st_size > 1000
     # the same weights in fp32 and under bf16 autocast (benchmarks/bf16_detections.py): every

@@ -253,7 +253,19 @@ def ra_to_box_xy(range_m: torch.Tensor, azimuth_deg: torch.Tensor) -> torch.Tens
     RADIal's metric uses ``x = R sin A`` (lateral) and ``y = R cos A`` (forward) and places an
     axis-aligned box ``[x - W/2, x + W/2] x [y, y + L]`` (``W`` = :data:`BOX_WIDTH_M`, ``L`` =
     :data:`BOX_LENGTH_M`) with its near edge centred on the point.
+
+    On the CPU (without autograd) the box is computed in float64 by numpy and returned in the
+    inputs' dtype: torch's CPU ``sin``/``cos`` run through MKL VML, whose first call on an OpenMP
+    worker after an MKL GEMM came out of some processes at reduced accuracy (1e-4 relative in
+    float32, 1e-8 in float64; torch 2.13, ``benchmarks/vml_first_call.py``), and these positions
+    decide NMS and true positives at IoU thresholds, so they must be the same in every process.
     """
+    if range_m.device.type == azimuth_deg.device.type == "cpu" and not (range_m.requires_grad
+                                                                        or azimuth_deg.requires_grad):
+        r = range_m.detach().to(torch.float64).numpy()
+        a = np.deg2rad(azimuth_deg.detach().to(torch.float64).numpy())
+        xy = np.stack(np.broadcast_arrays(r * np.sin(a), r * np.cos(a)), axis=-1)
+        return torch.from_numpy(xy).to(torch.result_type(range_m, azimuth_deg))
     a = torch.deg2rad(azimuth_deg)
     return torch.stack([range_m * torch.sin(a), range_m * torch.cos(a)], dim=-1)
 
