@@ -1,11 +1,11 @@
 """How often torch's first CPU transcendental call in a process comes out at reduced accuracy.
 
-On torch 2.13's CPU wheel (MKL 2024.2, OpenMP) on 2-core VMs (AMD EPYC, Intel Xeon), the first MKL VML call
-(``sqrt``, ``sin``, ``cos``, ``exp``, ``log``, ``tanh``, ``erf``, ...) that an OpenMP worker thread
-ran after MKL or oneDNN work came out of some processes at reduced accuracy on the worker's share
-of the tensor, and every later call exact (docs/results/vml_first_call.md). Run to run it moved
-NMS and true-positive decisions of the same weights, so
-:func:`radarpc.models.targets.ra_to_box_xy` computes boxes with numpy on the CPU.
+On torch 2.13's CPU wheel (MKL 2024.2, OpenMP) on a 2-core Intel Xeon VM (and, by the symptom,
+an AMD EPYC one), the first MKL VML call (``sqrt``, ``sin``, ``cos``, ``exp``, ``log``, ``tanh``,
+``erf``, ...) that an OpenMP worker thread ran after MKL or oneDNN work came out of some
+processes at reduced accuracy on the worker's share of the tensor, and every later call exact
+(docs/results/vml_first_call.md). Run to run it moved NMS and true-positive decisions of the same
+weights, so :func:`radarpc.models.targets.ra_to_box_xy` computes boxes with numpy on the CPU.
 
 Each trial is a fresh Python process running what a pillar model's forward starts with (a
 Linear + GELU on 156 points, scattered into a 4 x 8 x 128 x 224 canvas, one 3 x 3 convolution,
@@ -64,7 +64,10 @@ def run(first: str, processes: int, env: dict[str, str]) -> dict:
     errors, threads = [], set()
     for _ in range(processes):
         res = subprocess.run([sys.executable, __file__, "--child", first], capture_output=True, text=True,
-                             check=True, env={**os.environ, **env})
+                             env={**os.environ, **env})
+        if res.returncode != 0:
+            raise SystemExit(f"vml_first_call.py: the {first!r} trial failed (exit {res.returncode}):\n"
+                             f"{res.stderr[-2000:]}")
         t = json.loads(res.stdout)
         errors.append(t["max_rel_error"])
         threads.add(t["threads"])
@@ -77,6 +80,8 @@ def main() -> None:
     ap.add_argument("--processes", type=int, default=20, help="fresh processes per case")
     ap.add_argument("--child", choices=("sqrt", "boxes_torch", "boxes"), help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.processes < 1:
+        ap.error(f"--processes must be >= 1, got {args.processes}")
     if args.child:
         print(json.dumps(trial(args.child)))
         return
