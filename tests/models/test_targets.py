@@ -145,6 +145,9 @@ def test_ra_to_box_xy_numpy_and_torch_paths_agree():
     # broadcasting (one range, many azimuths) and float64 kept
     xy64 = ra_to_box_xy(torch.tensor(10.0, dtype=torch.float64), torch.tensor([0.0, 90.0], dtype=torch.float64))
     assert xy64.dtype == torch.float64 and xy64.flatten().tolist() == pytest.approx([0.0, 10.0, 10.0, 0.0], abs=1e-14)
+    # integer inputs give the default float dtype, as the torch path does
+    xyi = ra_to_box_xy(torch.tensor([10]), torch.tensor([90]))
+    assert xyi.dtype == torch.get_default_dtype() and xyi.flatten().tolist() == pytest.approx([10.0, 0.0], abs=1e-6)
     # the autograd path (torch) gives the same boxes and a gradient: d x / d R = sin A
     rg = r[:3].double().requires_grad_()
     xg = ra_to_box_xy(rg, a[:3].double())

@@ -264,8 +264,9 @@ def ra_to_box_xy(range_m: torch.Tensor, azimuth_deg: torch.Tensor) -> torch.Tens
                                                                         or azimuth_deg.requires_grad):
         r = range_m.detach().to(torch.float64).numpy()
         a = np.deg2rad(azimuth_deg.detach().to(torch.float64).numpy())
-        xy = np.stack(np.broadcast_arrays(r * np.sin(a), r * np.cos(a)), axis=-1)
-        return torch.from_numpy(xy).to(torch.result_type(range_m, azimuth_deg))
+        dtype = torch.result_type(range_m, azimuth_deg)                        # as torch's sin would give
+        dtype = dtype if dtype.is_floating_point else torch.get_default_dtype()
+        return torch.from_numpy(np.stack([r * np.sin(a), r * np.cos(a)], axis=-1)).to(dtype)
     a = torch.deg2rad(azimuth_deg)
     return torch.stack([range_m * torch.sin(a), range_m * torch.cos(a)], dim=-1)
 
