@@ -28,7 +28,9 @@ full RADIal size ``(1, 32, 512, 256)`` prints one JSON object with:
   ``compiled`` (``torch.compile`` of ``fused_cl_det``) and ``compiled_frozen`` (the same with
   Inductor's ``freezing``: weights as constants, prepacked for oneDNN), both with ``--compile``;
   ``bf16_compiled_frozen`` (``compiled_frozen`` under bf16 autocast, with ``--compile`` where
-  ``bf16`` runs).
+  ``bf16`` runs); ``winograd`` (``fused_cl_det`` with its 3 x 3 stride-1 layers of at least
+  ``--winograd-min-channels`` channels as Winograd F(4x4, 3x3):
+  :func:`radarpc.models.winograd.winograd_for_inference`; its first pass compiles the transforms).
 
 The random weights put every cell near probability 0.5, so the classification bias is shifted
 until ``--detections / 2`` to ``2 --detections`` cells lie above RADIal's 0.05 candidate
@@ -62,6 +64,7 @@ from radarpc.machine import cpu_has_native_bf16, cpu_model
 from radarpc.models.batchnorm import randomise_batchnorm_
 from radarpc.models.fftradnet import fftradnet, fuse_for_inference, official_to_radarpc
 from radarpc.models.targets import decode_detections
+from radarpc.models.winograd import winograd_for_inference
 from radarpc.training.loop import autocast_context
 
 
@@ -178,6 +181,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--peak", action="store_true",
                    help="also measure the CPU's peak GMAC/s per dtype and the model's GMAC: the speed bound")
+    p.add_argument("--winograd-min-channels", type=int, default=96,
+                   help="the winograd path converts 3 x 3 layers with at least this many input and output channels")
     p.add_argument("--detections", type=int, default=40, help="about this many cells at or above probability 0.05 (before NMS)")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
@@ -223,6 +228,8 @@ def main(argv: list[str] | None = None) -> None:
         "fused_cl": lambda: tuple(fused_cl.forward_channels(x_cl)),
         "fused_cl_det": lambda: tuple(fused_cl_det.forward_channels(x_cl)),
     }
+    winograd = winograd_for_inference(fused_cl_det, min_channels=a.winograd_min_channels)
+    methods["winograd"] = lambda: tuple(winograd.forward_channels(x_cl))
     skipped = {}
     if cpu_has_native_bf16():
         def run_bf16():
