@@ -183,6 +183,7 @@ def main(argv: list[str] | None = None) -> None:
                    help="also measure the CPU's peak GMAC/s per dtype and the model's GMAC: the speed bound")
     p.add_argument("--winograd-min-channels", type=int, default=96,
                    help="the winograd path converts 3 x 3 layers with at least this many input and output channels")
+    p.add_argument("--winograd-tile-rows", type=int, default=4, help="the winograd path's block height in 4-row tiles")
     p.add_argument("--detections", type=int, default=40, help="about this many cells at or above probability 0.05 (before NMS)")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
@@ -228,7 +229,8 @@ def main(argv: list[str] | None = None) -> None:
         "fused_cl": lambda: tuple(fused_cl.forward_channels(x_cl)),
         "fused_cl_det": lambda: tuple(fused_cl_det.forward_channels(x_cl)),
     }
-    winograd = winograd_for_inference(fused_cl_det, min_channels=a.winograd_min_channels)
+    winograd = winograd_for_inference(fused_cl_det, min_channels=a.winograd_min_channels,
+                                      tile_rows=a.winograd_tile_rows)
     methods["winograd"] = lambda: tuple(winograd.forward_channels(x_cl))
     skipped = {}
     if cpu_has_native_bf16():

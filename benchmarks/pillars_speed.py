@@ -22,7 +22,11 @@ processes hits them alike:
 * where the CPU has native bf16 (:func:`radarpc.machine.cpu_has_native_bf16`), ``fftradnet_bf16``,
   ``fftradnet_bf16_det``, ``<model>_bf16`` and ``<model>_bf16_det``: the fused channels-last
   models under bf16 autocast (the point extraction stays fp32), compared with the FFTRadNet bf16
-  path with the same heads.
+  path with the same heads;
+* with ``--winograd``, ``fftradnet_winograd_det`` and ``<model>_winograd_det``: the ``_fused_cl_det``
+  models with their wide 3 x 3 stride-1 layers as Winograd F(4x4, 3x3)
+  (:func:`radarpc.models.winograd.winograd_for_inference`; the first pass compiles the transforms),
+  compared with ``fftradnet_winograd_det`` and ``fftradnet_fused_cl_det``.
 
 Weights are random (the speed does not depend on them). Prints one JSON object: per method the
 best and median seconds per frame, frames/s, and the frames/s ratio to each FFTRadNet method; the
@@ -53,6 +57,8 @@ def _parse() -> argparse.Namespace:
     p.add_argument("--repeats", type=int, default=5, help="timed passes over the frames (best and median)")
     p.add_argument("--density", type=float, default=0.057, help="point-cloud density (fraction of RD cells)")
     p.add_argument("--seed", type=int, default=0, help="simulator seed")
+    p.add_argument("--winograd", action="store_true",
+                   help="also time the detection-only models with Winograd 3 x 3 layers (compiles on the first pass)")
     return p.parse_args()
 
 
@@ -72,6 +78,7 @@ from radarpc.dsp import SpectralPointCloud  # noqa: E402
 from radarpc.machine import cpu_has_native_bf16, cpu_model  # noqa: E402
 from radarpc.models import fftradnet as fft  # noqa: E402
 from radarpc.models import pillars  # noqa: E402
+from radarpc.models.winograd import winograd_for_inference  # noqa: E402
 from radarpc.sensors.radial import RADIAL, RADIAL_S  # noqa: E402
 from radarpc.sim.radial_writer import SimulatedRADIal  # noqa: E402
 from radarpc.training.loop import autocast_context  # noqa: E402
@@ -160,6 +167,9 @@ def main(args: argparse.Namespace) -> None:
             _bf16_autocast(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last)))
         methods["fftradnet_bf16_det"] = (lambda m: lambda i: m(cubes[i]))(_bf16_autocast(
             _detections_only(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last))))
+    if args.winograd:
+        methods["fftradnet_winograd_det"] = (lambda m: lambda i: m(cubes[i]))(winograd_for_inference(
+            _detections_only(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last))))
     points = {}
     parts = {}
     for name, (factory, enrich) in pillar_models.items():
@@ -177,6 +187,8 @@ def main(args: argparse.Namespace) -> None:
             variants.append(("_fused_cl_fs256", fused_cl_fs256))
         if bf16:
             variants += [("_bf16", _bf16_autocast(fused_cl)), ("_bf16_det", _bf16_autocast(fused_cl_det))]
+        if args.winograd:
+            variants.append(("_winograd_det", winograd_for_inference(fused_cl_det)))
         for suffix, m in variants:
             methods[name + suffix] = (lambda m, cl: lambda i: m(cl[i]))(m, cl)
             methods[name + suffix + "+points"] = (lambda m, spc: lambda i: m(spc(cubes[i])))(m, spc)
@@ -199,6 +211,8 @@ def main(args: argparse.Namespace) -> None:
             continue
         if "_bf16" in name:          # against the FFTRadNet path of the same precision and heads
             refs = ("fftradnet_bf16_det",) if "_det" in name else ("fftradnet_bf16",)
+        elif "_winograd" in name:
+            refs = ("fftradnet_winograd_det", "fftradnet_fused_cl_det")
         elif "_det" in name:
             refs = ("fftradnet_fused_cl_det",)
         else:
