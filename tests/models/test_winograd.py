@@ -72,11 +72,27 @@ def test_a_wrong_transform_breaks_the_bound(monkeypatch):
 
 
 def test_compiled_transforms_agree_with_the_bound():
-    # one block (tile_rows covers the map): two small graphs to compile
+    # three blocks of one tile row (first, middle, last: three input graphs, one output graph) on
+    # a crop of a channels-last tensor, which is read without a copy
     g = torch.Generator().manual_seed(2)
-    x, weight, bias = torch.randn(2, 6, 7, 10, generator=g), torch.randn(5, 6, 3, 3, generator=g), torch.randn(5, generator=g)
+    full = torch.randn(2, 3, 10, 9, generator=g).contiguous(memory_format=torch.channels_last)
+    x = full[:, :, :, 1:8]
+    assert x.stride(1) == 1 and not x.is_contiguous(memory_format=torch.channels_last)
+    weight, bias = torch.randn(4, 3, 3, 3, generator=g), torch.randn(4, generator=g)
     with torch.inference_mode():
-        y = winograd_conv3x3(x, winograd_weight(weight), bias, tile_rows=8, compiled=True)
+        y = winograd_conv3x3(x, winograd_weight(weight), bias, tile_rows=1, compiled=True)
+    ref = F.conv2d(x.double(), weight.double(), bias.double(), padding=1)
+    assert ((y.double() - ref).abs() <= rounding_bound(x, weight, bias)).all()
+
+
+@pytest.mark.parametrize("layout", ["channels_last_crop", "rows_crop", "channels_first"])
+def test_any_memory_layout(layout):
+    g = torch.Generator().manual_seed(6)
+    full = torch.randn(3, 5, 14, 11, generator=g)
+    x = {"channels_last_crop": full.contiguous(memory_format=torch.channels_last)[:, :, 2:13, 1:10],
+         "rows_crop": full[:, :, 3:, :], "channels_first": full}[layout]
+    weight, bias = torch.randn(2, 5, 3, 3, generator=g), torch.randn(2, generator=g)
+    y = winograd_conv3x3(x, winograd_weight(weight), bias, tile_rows=1, compiled=False)
     ref = F.conv2d(x.double(), weight.double(), bias.double(), padding=1)
     assert ((y.double() - ref).abs() <= rounding_bound(x, weight, bias)).all()
 
@@ -87,9 +103,10 @@ def test_float64_input_stays_float64():
     y = winograd_conv3x3(x, winograd_weight(weight), compiled=False)
     ref = F.conv2d(x, weight, padding=1)
     assert y.dtype == torch.float64
-    # both round now: Winograd's n = C + 24, the direct sum's 9 C + 1; the Winograd magnitude is at
-    # least the direct one (every direct term appears in it with coefficients summing to 1)
-    n, u64 = (3 + 24) + (9 * 3 + 1), 2.0 ** -53
+    # both round now: Winograd's n = C + 24, the direct sum's 9 C + 1, and U's float64 einsum
+    # (1/6, 1/12, 1/24 inexact; 8 more); the Winograd magnitude is at least the direct one (every
+    # direct term appears in it with coefficients summing to 1)
+    n, u64 = (3 + 24) + (9 * 3 + 1) + 8, 2.0 ** -53
     assert ((y - ref).abs() <= n * u64 / (1 - n * u64) * magnitude(x, weight, None)).all()
 
 
@@ -134,7 +151,7 @@ def test_bad_input_is_named():
         winograd_conv3x3(torch.randn(1, 5, 8, 8), u)
     with pytest.raises(ValueError, match="float64 on cpu, x is torch.float32"):
         winograd_conv3x3(torch.randn(1, 3, 8, 8), u.double())
-    with pytest.raises(ValueError, match="must be a .B, C, H, W. float tensor"):
+    with pytest.raises(ValueError, match="must be a .B, C, H, W. float32 or float64 tensor"):
         winograd_conv3x3(torch.ones(3, 8, 8), u)
     with pytest.raises(ValueError, match=r"bias must be \(4,\)"):
         winograd_conv3x3(torch.randn(1, 3, 8, 8), u, torch.zeros(3))
@@ -142,3 +159,31 @@ def test_bad_input_is_named():
         winograd_conv3x3(torch.randn(1, 3, 8, 8), u, tile_rows=0)
     with pytest.raises(ValueError, match="stride 1, padding 1"):
         WinogradConv2d(nn.Conv2d(3, 4, 3, stride=2, padding=1))
+    with pytest.raises(ValueError, match="WinogradConv2d: tile_rows must be >= 1"):
+        WinogradConv2d(nn.Conv2d(3, 4, 3, padding=1), tile_rows=0)
+    with pytest.raises(ValueError, match="float32 or float64"):
+        winograd_conv3x3(torch.randn(1, 3, 8, 8).bfloat16(), u.bfloat16())
+    with pytest.raises(ValueError, match=r"bias must be \(4,\) torch.float32 on cpu, got \(4,\) torch.float64"):
+        winograd_conv3x3(torch.randn(1, 3, 8, 8), u, torch.zeros(4, dtype=torch.float64))
+
+
+def test_autograd_is_refused():
+    conv = nn.Conv2d(3, 4, 3, padding=1)
+    layer = WinogradConv2d(conv, compiled=False)
+    x = torch.randn(1, 3, 8, 8, requires_grad=True)
+    with pytest.raises(RuntimeError, match="inference only"):
+        layer(x)
+    with torch.no_grad():
+        assert layer(x).shape == (1, 4, 8, 8)
+
+
+def test_reduced_float32_matmul_precision_is_warned():
+    u = winograd_weight(torch.randn(4, 3, 3, 3))
+    x = torch.randn(1, 3, 8, 8)
+    prev = torch.get_float32_matmul_precision()
+    try:
+        torch.set_float32_matmul_precision("medium")
+        with pytest.warns(RuntimeWarning, match="float32 matmul precision is reduced"):
+            winograd_conv3x3(x, u, compiled=False)
+    finally:
+        torch.set_float32_matmul_precision(prev)

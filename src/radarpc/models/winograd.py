@@ -6,7 +6,8 @@ of the output of a 3 x 3 correlation comes from the 6 x 6 input tile ``d`` aroun
     Y = A^T [ sum_c (G g_c G^T) (.) (B^T d_c B) ] A,
 
 so each tile and channel pair costs 36 multiplications instead of 4 x 4 x 9 = 144, and the sum over
-input channels ``c`` is one matrix product per tile position (36 of them, batched). ``B^T``, ``G``
+input channels ``c`` is one matrix product per position of the 6 x 6 transformed tile (36 of them,
+batched). ``B^T``, ``G``
 and ``A^T`` below are the paper's matrices for the interpolation points 0, +-1, +-2 and infinity.
 The transforms add rounding: in float32 the result differs from a direct convolution by about 1e-5
 relative to the largest output, against about 1e-6 for the direct one (the tests bound it).
@@ -16,21 +17,25 @@ detection head): on GPUs cuDNN already picks Winograd kernels itself. The input 
 transforms are short sums of strided slices; compiled by Inductor (``compiled=True``, the default)
 they become one pass each over a block of ``tile_rows`` tile rows, small enough to stay in cache.
 The first call of each layer shape compiles (seconds to a minute); eager transforms give the same
-result slower.
+result slower. Inference only: the layers hold their transformed weights as buffers, and autograd
+through them is refused.
 """
 from __future__ import annotations
 
 import copy
 import functools
+import warnings
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from radarpc.dsp.beamform import reduced_fp32_matmul
+
 __all__ = ["BT", "G", "AT", "winograd_weight", "winograd_conv3x3", "WinogradConv2d", "supports_winograd",
            "winograd_for_inference"]
 
-# B^T (6 x 6), G (6 x 3), A^T (4 x 6) of F(4 x 4, 3 x 3) (Lavin and Gray, section 4.2)
+# B^T (6 x 6), G (6 x 3), A^T (4 x 6) of F(4 x 4, 3 x 3) (Lavin and Gray)
 BT = ((4, 0, -5, 0, 1, 0),
       (0, -4, -4, 1, 1, 0),
       (0, 4, -4, -1, 1, 0),
@@ -122,11 +127,13 @@ def winograd_conv3x3(x: torch.Tensor, u: torch.Tensor, bias: torch.Tensor | None
 
     Parameters
     ----------
-    x : (B, C, H, W) float tensor
+    x : (B, C, H, W) float32 or float64 tensor
         Any memory format; with channels innermost (channels-last, or a crop of it) no copy is made.
+        Not under autograd (inference only).
     u : (36, C, K) tensor
         ``winograd_weight(weight)``, same dtype and device as ``x``.
     bias : (K,) tensor, optional
+        Same dtype and device as ``x``.
     tile_rows : int
         Tile rows (4 image rows each) transformed and multiplied per block; small blocks keep the
         transformed tiles in cache.
@@ -137,18 +144,35 @@ def winograd_conv3x3(x: torch.Tensor, u: torch.Tensor, bias: torch.Tensor | None
     Returns
     -------
     (B, K, H, W) tensor in channels-last memory format.
+
+    Notes
+    -----
+    The transforms multiply rounding errors (the terms reach several hundred times the outputs),
+    so half precisions are refused, and under a reduced float32 matmul precision (TF32, or bf16
+    through oneDNN on CPUs with AMX) a ``RuntimeWarning`` says the result is far from float32's.
     """
-    if x.ndim != 4 or not x.is_floating_point():
-        raise ValueError(f"winograd_conv3x3: x must be a (B, C, H, W) float tensor, got {x.dtype} {tuple(x.shape)}")
+    if x.ndim != 4 or x.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"winograd_conv3x3: x must be a (B, C, H, W) float32 or float64 tensor, "
+                         f"got {x.dtype} {tuple(x.shape)}")
+    if torch.is_grad_enabled() and (x.requires_grad or u.requires_grad
+                                    or (bias is not None and bias.requires_grad)):
+        raise RuntimeError("winograd_conv3x3 is inference only (no backward): call it under "
+                           "torch.no_grad() or torch.inference_mode(), or train the nn.Conv2d")
     if u.ndim != 3 or u.shape[0] != 36 or u.shape[1] != x.shape[1]:
         raise ValueError(f"winograd_conv3x3: u must be (36, C={x.shape[1]}, K) from winograd_weight, "
                          f"got {tuple(u.shape)}")
     if u.dtype != x.dtype or u.device != x.device:
         raise ValueError(f"winograd_conv3x3: u is {u.dtype} on {u.device}, x is {x.dtype} on {x.device}")
-    if bias is not None and tuple(bias.shape) != (u.shape[2],):
-        raise ValueError(f"winograd_conv3x3: bias must be ({u.shape[2]},), got {tuple(bias.shape)}")
+    if bias is not None and (tuple(bias.shape) != (u.shape[2],) or bias.dtype != x.dtype or bias.device != x.device):
+        raise ValueError(f"winograd_conv3x3: bias must be ({u.shape[2]},) {x.dtype} on {x.device}, "
+                         f"got {tuple(bias.shape)} {bias.dtype} on {bias.device}")
     if tile_rows < 1:
         raise ValueError(f"winograd_conv3x3: tile_rows must be >= 1, got {tile_rows}")
+    if x.dtype == torch.float32 and reduced_fp32_matmul(x.device):
+        warnings.warn("winograd_conv3x3: float32 matmul precision is reduced (torch.set_float32_matmul_precision "
+                      "or a backend's fp32_precision); the transformed products then lose far more than a direct "
+                      "convolution would: set torch.set_float32_matmul_precision('highest')", RuntimeWarning,
+                      stacklevel=2)
     return torch.ops.radarpc.winograd_conv3x3(x, u, bias, tile_rows, compiled)
 
 
@@ -167,6 +191,7 @@ def _winograd_conv3x3_op(x: torch.Tensor, u: torch.Tensor, bias: torch.Tensor | 
     x_nhwc = x.permute(0, 2, 3, 1)                                            # (B, H, W, C)
     out = x.new_empty(b, h, w, k)
     # every layer shape and block position is its own graph: more than Dynamo's default 8 a function
+    # (recompile_limit: torch >= 2.6)
     with torch._dynamo.config.patch(recompile_limit=4096, accumulated_recompile_limit=65536):
         for r0 in range(0, n_rows, tile_rows):
             r1 = min(n_rows, r0 + tile_rows)
@@ -179,17 +204,28 @@ def _winograd_conv3x3_op(x: torch.Tensor, u: torch.Tensor, bias: torch.Tensor | 
 
 @_winograd_conv3x3_op.register_fake
 def _(x, u, bias, tile_rows, compiled):
-    return x.new_empty(x.shape[0], u.shape[2], *x.shape[2:]).contiguous(memory_format=torch.channels_last)
+    return x.new_empty(x.shape[0], x.shape[2], x.shape[3], u.shape[2]).permute(0, 3, 1, 2)   # as the real one
 
 
 class WinogradConv2d(nn.Module):
-    """An inference-only stand-in for a stride-1, padding-1 3 x 3 ``nn.Conv2d`` (:func:`winograd_conv3x3`)."""
+    """An inference-only stand-in for a stride-1, padding-1 3 x 3 ``nn.Conv2d`` (:func:`winograd_conv3x3`).
+
+    Parameters
+    ----------
+    conv : nn.Conv2d
+        3 x 3, stride 1, padding 1, dilation 1, groups 1, zero padding (:func:`supports_winograd`);
+        its weight is transformed once (:func:`winograd_weight`) and kept with its bias as buffers.
+    tile_rows, compiled
+        As in :func:`winograd_conv3x3`.
+    """
 
     def __init__(self, conv: nn.Conv2d, tile_rows: int = 4, compiled: bool = True):
         super().__init__()
         if not supports_winograd(conv):
             raise ValueError(f"WinogradConv2d: needs a 3 x 3 Conv2d with stride 1, padding 1, dilation 1, "
                              f"groups 1 and zero padding, got {conv}")
+        if tile_rows < 1:
+            raise ValueError(f"WinogradConv2d: tile_rows must be >= 1, got {tile_rows}")
         self.in_channels, self.out_channels = conv.in_channels, conv.out_channels
         self.tile_rows, self.compiled = tile_rows, compiled
         self.register_buffer("u", winograd_weight(conv.weight))                   # (36, C, K)
@@ -203,7 +239,8 @@ class WinogradConv2d(nn.Module):
 
 
 def supports_winograd(conv: nn.Module) -> bool:
-    """Whether ``conv`` is a convolution :class:`WinogradConv2d` computes."""
+    """Whether ``conv`` is a plain ``nn.Conv2d`` (not a subclass, whose forward may differ) with a
+    3 x 3 kernel, stride 1, padding 1, dilation 1, groups 1 and zero padding."""
     return (type(conv) is nn.Conv2d and conv.kernel_size == (3, 3) and conv.stride == (1, 1)
             and conv.padding == (1, 1) and conv.dilation == (1, 1) and conv.groups == 1
             and conv.padding_mode == "zeros")
@@ -214,8 +251,21 @@ def winograd_for_inference(model: nn.Module, min_channels: int = 96, tile_rows: 
     """A copy of ``model`` (eval mode) whose 3 x 3 stride-1 convolutions with at least
     ``min_channels`` input and output channels are :class:`WinogradConv2d`.
 
-    Narrow layers stay direct: their transforms cost more than the multiplications they save.
-    Fold BatchNorm first (e.g. :func:`radarpc.models.fftradnet.fuse_for_inference`).
+    Parameters
+    ----------
+    model : nn.Module
+        Fold BatchNorm first (e.g. :func:`radarpc.models.fftradnet.fuse_for_inference`): a
+        convolution followed by BN would otherwise keep the BN as a separate pass.
+    min_channels : int
+        Narrower layers stay direct: the transforms' cost grows with ``C + K``, the products' saving
+        with ``C K`` (measured per layer in ``docs/results/detection.md``, "Winograd convolutions").
+    tile_rows, compiled
+        As in :func:`winograd_conv3x3`.
+
+    Returns
+    -------
+    nn.Module
+        The converted copy; ``model`` is unchanged.
     """
     m = copy.deepcopy(model).eval()
     for parent in list(m.modules()):
