@@ -7,8 +7,8 @@ of the output of a 3 x 3 correlation comes from the 6 x 6 input tile ``d`` aroun
 
 so each tile and channel pair costs 36 multiplications instead of 4 x 4 x 9 = 144, and the sum over
 input channels ``c`` is one matrix product per position of the 6 x 6 transformed tile (36 of them,
-batched). ``B^T``, ``G``
-and ``A^T`` below are the paper's matrices for the interpolation points 0, +-1, +-2 and infinity.
+batched). ``B^T``, ``G`` and ``A^T`` below are the paper's matrices for the interpolation points 0,
++-1, +-2 and infinity.
 The transforms add rounding: in float32 the result differs from a direct convolution by about 1e-5
 relative to the largest output, against about 1e-6 for the direct one (the tests bound it).
 
@@ -139,7 +139,7 @@ def winograd_conv3x3(x: torch.Tensor, u: torch.Tensor, bias: torch.Tensor | None
         transformed tiles in cache.
     compiled : bool
         Run the transforms as Inductor-compiled kernels (fast; compiles on the first call of each
-        shape) instead of eager torch operations (same result, slower).
+        shape, with a C++ compiler on CPUs) instead of eager torch operations (same result, slower).
 
     Returns
     -------
