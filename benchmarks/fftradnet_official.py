@@ -30,7 +30,12 @@ full RADIal size ``(1, 32, 512, 256)`` prints one JSON object with:
   ``bf16_compiled_frozen`` (``compiled_frozen`` under bf16 autocast, with ``--compile`` where
   ``bf16`` runs); ``winograd`` (``fused_cl_det`` with its 3 x 3 stride-1 layers of at least
   ``--winograd-min-channels`` channels as Winograd F(4x4, 3x3):
-  :func:`radarpc.models.winograd.winograd_for_inference`; its first pass compiles the transforms).
+  :func:`radarpc.models.winograd.winograd_for_inference`; its first pass compiles the transforms);
+  ``fourier_winograd`` (``winograd`` with the pre-encoder, stem and first ReLU computed per Doppler
+  frequency: :func:`radarpc.models.fourier_stem.fourier_stem_for_inference`).
+
+``THP_MEM_ALLOC_ENABLE`` (PyTorch's switch for 2 MB pages on large CPU allocations) is reported:
+it changes every path's time, since each pass allocates its large maps afresh.
 
 The random weights put every cell near probability 0.5, so the classification bias is shifted
 until ``--detections / 2`` to ``2 --detections`` cells lie above RADIal's 0.05 candidate
@@ -51,6 +56,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import os
 import statistics
 import sys
 import time
@@ -63,6 +69,7 @@ import torch
 from radarpc.machine import cpu_has_native_bf16, cpu_model
 from radarpc.models.batchnorm import randomise_batchnorm_
 from radarpc.models.fftradnet import fftradnet, fuse_for_inference, official_to_radarpc
+from radarpc.models.fourier_stem import fourier_stem_for_inference
 from radarpc.models.targets import decode_detections
 from radarpc.models.winograd import winograd_for_inference
 from radarpc.training.loop import autocast_context
@@ -232,6 +239,9 @@ def main(argv: list[str] | None = None) -> None:
     winograd = winograd_for_inference(fused_cl_det, min_channels=a.winograd_min_channels,
                                       tile_rows=a.winograd_tile_rows)
     methods["winograd"] = lambda: tuple(winograd.forward_channels(x_cl))
+    fourier_winograd = winograd_for_inference(fourier_stem_for_inference(fused_cl_det),
+                                              min_channels=a.winograd_min_channels, tile_rows=a.winograd_tile_rows)
+    methods["fourier_winograd"] = lambda: tuple(fourier_winograd.forward_channels(x_cl))
     skipped = {}
     if cpu_has_native_bf16():
         def run_bf16():
@@ -320,6 +330,7 @@ def main(argv: list[str] | None = None) -> None:
         load = f.read().split()[:3]
     print(json.dumps({
         "cpu": cpu_model(), "threads": a.threads, "torch": torch.__version__, "loadavg": load,
+        "THP_MEM_ALLOC_ENABLE": os.environ.get("THP_MEM_ALLOC_ENABLE"),
         "repeats": a.repeats, "torchvision": tv_note, "official_first_pass_s": round(calib_s, 3),
         "official_decoded_detections": decode_detections(ref_det).num_detections,
         "threshold_logit_margin": round(margin, 6),

@@ -230,6 +230,7 @@ class FPNBackbone(nn.Module):
         c = cfg.mimo_channels
         self.conv = conv3x3(c, c)
         self.bn = nn.BatchNorm2d(c)
+        self.act = nn.ReLU()                         # a module, so an inference copy can fuse it (fourier_stem)
         strides = (*cfg.range_strides, 2, 2)
         stages = []
         for n, planes, s in zip(cfg.blocks, cfg.channels, strides):
@@ -242,7 +243,7 @@ class FPNBackbone(nn.Module):
         self.block1, self.block2, self.block3, self.block4 = stages
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        x = F.relu(self.bn(self.conv(x)))            # (B, M, Nr, Nd)
+        x = self.act(self.bn(self.conv(x)))          # (B, M, Nr, Nd)
         x2 = self.block2(self.block1(x))             # (B, 4 c1, Nr / (s1 s2), Nd / 4)
         x3 = self.block3(x2)                         # (B, 4 c2, R2 / 2, Nd / 8)
         x4 = self.block4(x3)                         # (B, 4 c3 = A, R2 / 4, Nd / 16)
