@@ -26,7 +26,9 @@ processes hits them alike:
 * with ``--winograd``, ``fftradnet_winograd_det`` and ``<model>_winograd_det``: the ``_fused_cl_det``
   models with their wide 3 x 3 stride-1 layers as Winograd F(4x4, 3x3)
   (:func:`radarpc.models.winograd.winograd_for_inference`; the first pass compiles the transforms),
-  compared with ``fftradnet_winograd_det`` and ``fftradnet_fused_cl_det``.
+  compared with ``fftradnet_fourier_winograd_det`` (``fftradnet_winograd_det`` with the pre-encoder,
+  stem and first ReLU as :func:`radarpc.models.fourier_stem.fourier_stem_for_inference`),
+  ``fftradnet_winograd_det`` and ``fftradnet_fused_cl_det``.
 
 Weights are random (the speed does not depend on them). Prints one JSON object: per method the
 best and median seconds per frame, frames/s, and the frames/s ratio to each FFTRadNet method; the
@@ -78,6 +80,7 @@ from radarpc.dsp import SpectralPointCloud  # noqa: E402
 from radarpc.machine import cpu_has_native_bf16, cpu_model  # noqa: E402
 from radarpc.models import fftradnet as fft  # noqa: E402
 from radarpc.models import pillars  # noqa: E402
+from radarpc.models.fourier_stem import fourier_stem_for_inference  # noqa: E402
 from radarpc.models.winograd import winograd_for_inference  # noqa: E402
 from radarpc.sensors.radial import RADIAL, RADIAL_S  # noqa: E402
 from radarpc.sim.radial_writer import SimulatedRADIal  # noqa: E402
@@ -170,6 +173,9 @@ def main(args: argparse.Namespace) -> None:
     if args.winograd:
         methods["fftradnet_winograd_det"] = (lambda m: lambda i: m(cubes[i]))(winograd_for_inference(
             _detections_only(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last))))
+        methods["fftradnet_fourier_winograd_det"] = (lambda m: lambda i: m(cubes[i]))(winograd_for_inference(
+            fourier_stem_for_inference(
+                _detections_only(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last)))))
     points = {}
     parts = {}
     for name, (factory, enrich) in pillar_models.items():
@@ -212,7 +218,7 @@ def main(args: argparse.Namespace) -> None:
         if "_bf16" in name:          # against the FFTRadNet path of the same precision and heads
             refs = ("fftradnet_bf16_det",) if "_det" in name else ("fftradnet_bf16",)
         elif "_winograd" in name:
-            refs = ("fftradnet_winograd_det", "fftradnet_fused_cl_det")
+            refs = ("fftradnet_fourier_winograd_det", "fftradnet_winograd_det", "fftradnet_fused_cl_det")
         elif "_det" in name:
             refs = ("fftradnet_fused_cl_det",)
         else:

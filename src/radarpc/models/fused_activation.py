@@ -1,0 +1,89 @@
+"""Convolutions with their activation fused, for CPU inference.
+
+A convolution followed by an elementwise GELU or ReLU reads and writes the whole map twice; oneDNN
+can apply the activation to each output block while it is still in cache (a "post-op"), which is
+what Inductor does for ``torch.compile`` with freezing. :class:`ConvActivation` calls that oneDNN
+operator directly (``torch.ops.mkldnn._convolution_pointwise`` and its transposed sibling) on CPUs,
+for float32 inputs without autograd, and ``act(conv(x))`` everywhere else, so it stays correct on
+GPUs and in torch builds without the operator. :func:`fuse_activations_for_inference` puts it into a
+copy of a model wherever an ``nn.Sequential`` holds a convolution, any ``nn.Identity`` (a folded
+BatchNorm), then ``nn.GELU`` or ``nn.ReLU``: the pillar models' BEV backbone.
+"""
+from __future__ import annotations
+
+import copy
+
+import torch
+import torch.nn as nn
+
+__all__ = ["ConvActivation", "fuse_activations_for_inference"]
+
+
+def _onednn_pointwise_available() -> bool:
+    return (torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_convolution_pointwise")
+            and hasattr(torch.ops.mkldnn, "_convolution_transpose_pointwise"))
+
+
+class ConvActivation(nn.Module):
+    """``activation(conv(x))`` in one oneDNN pass where it can (module docstring).
+
+    Parameters
+    ----------
+    conv : nn.Conv2d or nn.ConvTranspose2d
+        Zero padding (``padding_mode="zeros"``), numeric padding.
+    activation : nn.GELU or nn.ReLU
+    """
+
+    def __init__(self, conv: nn.Conv2d | nn.ConvTranspose2d, activation: nn.GELU | nn.ReLU):
+        super().__init__()
+        if type(conv) not in (nn.Conv2d, nn.ConvTranspose2d) or conv.padding_mode != "zeros" \
+                or isinstance(conv.padding, str):
+            raise ValueError(f"ConvActivation: needs an nn.Conv2d or nn.ConvTranspose2d with numeric zero padding, "
+                             f"got {conv}")
+        if type(activation) not in (nn.GELU, nn.ReLU):
+            raise ValueError(f"ConvActivation: the activation must be nn.GELU or nn.ReLU, got {activation}")
+        self.conv, self.activation = conv, activation
+        # oneDNN's names: GELU's "none" is the exact (erf) one, "tanh" its approximation
+        self.attr = "gelu" if isinstance(activation, nn.GELU) else "relu"
+        self.algorithm = activation.approximate if isinstance(activation, nn.GELU) else None
+
+    def _fusable(self, x: torch.Tensor) -> bool:
+        return (x.device.type == "cpu" and x.dtype == torch.float32 and x.ndim == 4
+                and self.conv.weight.dtype == torch.float32
+                and not (torch.is_grad_enabled() and (x.requires_grad or self.conv.weight.requires_grad))
+                and _onednn_pointwise_available())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        c = self.conv
+        if not self._fusable(x):
+            return self.activation(c(x))
+        if isinstance(c, nn.Conv2d):
+            return torch.ops.mkldnn._convolution_pointwise(x, c.weight, c.bias, list(c.padding), list(c.stride),
+                                                           list(c.dilation), c.groups, self.attr, [], self.algorithm)
+        return torch.ops.mkldnn._convolution_transpose_pointwise(
+            x, c.weight, c.bias, list(c.padding), list(c.output_padding), list(c.stride), list(c.dilation),
+            c.groups, self.attr, [], self.algorithm)
+
+    def extra_repr(self) -> str:
+        return f"attr={self.attr!r}, algorithm={self.algorithm!r}"
+
+
+def fuse_activations_for_inference(model: nn.Module) -> nn.Module:
+    """A copy of ``model`` (eval mode) in which every ``nn.Sequential`` run of a plain
+    ``nn.Conv2d``/``nn.ConvTranspose2d``, any ``nn.Identity`` and an ``nn.GELU``/``nn.ReLU`` becomes a
+    :class:`ConvActivation` followed by identities. Fold BatchNorm first (the pillar models'
+    ``fuse_for_inference``): a BN between them stops the match. ``model`` is unchanged."""
+    m = copy.deepcopy(model).eval()
+    for seq in [mod for mod in m.modules() if isinstance(mod, nn.Sequential)]:
+        layers = list(seq)
+        for i, conv in enumerate(layers):
+            if type(conv) not in (nn.Conv2d, nn.ConvTranspose2d) or conv.padding_mode != "zeros" \
+                    or isinstance(conv.padding, str):
+                continue
+            j = i + 1
+            while j < len(layers) and type(layers[j]) is nn.Identity:
+                j += 1
+            if j < len(layers) and type(layers[j]) in (nn.GELU, nn.ReLU):
+                seq[i] = ConvActivation(conv, layers[j])
+                seq[j] = nn.Identity()
+    return m
