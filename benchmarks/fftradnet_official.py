@@ -32,7 +32,9 @@ full RADIal size ``(1, 32, 512, 256)`` prints one JSON object with:
   ``--winograd-min-channels`` channels as Winograd F(4x4, 3x3):
   :func:`radarpc.models.winograd.winograd_for_inference`; its first pass compiles the transforms);
   ``fourier_winograd`` (``winograd`` with the pre-encoder, stem and first ReLU computed per Doppler
-  frequency: :func:`radarpc.models.fourier_stem.fourier_stem_for_inference`).
+  frequency: :func:`radarpc.models.fourier_stem.fourier_stem_for_inference`); ``fast``
+  (:func:`radarpc.models.fast_inference.fast_inference`, detections only: ``fourier_winograd`` with
+  the detection head collapsed into one correlation and activations fused into convolutions).
 
 ``THP_MEM_ALLOC_ENABLE`` (PyTorch's switch for 2 MB pages on large CPU allocations) is reported:
 it changes every path's time, since each pass allocates its large maps afresh.
@@ -69,6 +71,7 @@ import torch
 from radarpc.machine import cpu_has_native_bf16, cpu_model
 from radarpc.models.batchnorm import randomise_batchnorm_
 from radarpc.models.fftradnet import fftradnet, fuse_for_inference, official_to_radarpc
+from radarpc.models.fast_inference import fast_inference
 from radarpc.models.fourier_stem import fourier_stem_for_inference
 from radarpc.models.targets import decode_detections
 from radarpc.models.winograd import winograd_for_inference
@@ -242,6 +245,8 @@ def main(argv: list[str] | None = None) -> None:
     fourier_winograd = winograd_for_inference(fourier_stem_for_inference(fused_cl_det),
                                               min_channels=a.winograd_min_channels, tile_rows=a.winograd_tile_rows)
     methods["fourier_winograd"] = lambda: tuple(fourier_winograd.forward_channels(x_cl))
+    fast = fast_inference(ours, detections_only=True, winograd_min_channels=a.winograd_min_channels)
+    methods["fast"] = lambda: tuple(fast.forward_channels(x_cl))
     skipped = {}
     if cpu_has_native_bf16():
         def run_bf16():

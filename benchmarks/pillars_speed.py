@@ -28,7 +28,11 @@ processes hits them alike:
   (:func:`radarpc.models.winograd.winograd_for_inference`; the first pass compiles the transforms),
   compared with ``fftradnet_fourier_winograd_det`` (``fftradnet_winograd_det`` with the pre-encoder,
   stem and first ReLU as :func:`radarpc.models.fourier_stem.fourier_stem_for_inference`),
-  ``fftradnet_winograd_det`` and ``fftradnet_fused_cl_det``.
+  ``fftradnet_winograd_det`` and ``fftradnet_fused_cl_det``; and ``fftradnet_fast_det`` and
+  ``<model>_fast_det``: :func:`radarpc.models.fast_inference.fast_inference` (detections only; the
+  Winograd rows with the detection head collapsed into one correlation, activations fused into the
+  convolutions, and FFTRadNet's pre-encoder and stem per Doppler frequency), compared with
+  ``fftradnet_fast_det``, ``fftradnet_fourier_winograd_det`` and ``fftradnet_winograd_det``.
 
 Weights are random (the speed does not depend on them). Prints one JSON object: per method the
 best and median seconds per frame, frames/s, and the frames/s ratio to each FFTRadNet method; the
@@ -80,6 +84,7 @@ from radarpc.dsp import SpectralPointCloud  # noqa: E402
 from radarpc.machine import cpu_has_native_bf16, cpu_model  # noqa: E402
 from radarpc.models import fftradnet as fft  # noqa: E402
 from radarpc.models import pillars  # noqa: E402
+from radarpc.models.fast_inference import fast_inference  # noqa: E402
 from radarpc.models.fourier_stem import fourier_stem_for_inference  # noqa: E402
 from radarpc.models.winograd import winograd_for_inference  # noqa: E402
 from radarpc.sensors.radial import RADIAL, RADIAL_S  # noqa: E402
@@ -176,6 +181,7 @@ def main(args: argparse.Namespace) -> None:
         methods["fftradnet_fourier_winograd_det"] = (lambda m: lambda i: m(cubes[i]))(winograd_for_inference(
             fourier_stem_for_inference(
                 _detections_only(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last)))))
+        methods["fftradnet_fast_det"] = (lambda m: lambda i: m(cubes[i]))(fast_inference(fftnet, detections_only=True))
     points = {}
     parts = {}
     for name, (factory, enrich) in pillar_models.items():
@@ -195,6 +201,7 @@ def main(args: argparse.Namespace) -> None:
             variants += [("_bf16", _bf16_autocast(fused_cl)), ("_bf16_det", _bf16_autocast(fused_cl_det))]
         if args.winograd:
             variants.append(("_winograd_det", winograd_for_inference(fused_cl_det)))
+            variants.append(("_fast_det", fast_inference(model, detections_only=True)))
         for suffix, m in variants:
             methods[name + suffix] = (lambda m, cl: lambda i: m(cl[i]))(m, cl)
             methods[name + suffix + "+points"] = (lambda m, spc: lambda i: m(spc(cubes[i])))(m, spc)
@@ -217,6 +224,8 @@ def main(args: argparse.Namespace) -> None:
             continue
         if "_bf16" in name:          # against the FFTRadNet path of the same precision and heads
             refs = ("fftradnet_bf16_det",) if "_det" in name else ("fftradnet_bf16",)
+        elif "_fast" in name:
+            refs = ("fftradnet_fast_det", "fftradnet_fourier_winograd_det", "fftradnet_winograd_det")
         elif "_winograd" in name:
             refs = ("fftradnet_fourier_winograd_det", "fftradnet_winograd_det", "fftradnet_fused_cl_det")
         elif "_det" in name:

@@ -6,7 +6,9 @@ import torch.nn.functional as F
 
 from radarpc.models import pillars
 from radarpc.models.batchnorm import randomise_batchnorm_
+from radarpc.models.fftradnet import fftradnet_tiny, fuse_for_inference
 from radarpc.models.fused_activation import ConvActivation, fuse_activations_for_inference
+from radarpc.models.winograd import WinogradConv2d, winograd_for_inference
 
 U32 = 2.0 ** -24
 # an elementwise activation evaluated in float32 to within this many units of roundoff of its value
@@ -75,7 +77,7 @@ def test_pillar_model_conversion():
     model = randomise_batchnorm_(pillars.pillars_tiny(), torch.Generator().manual_seed(3)).eval()
     fused = pillars.fuse_for_inference(model)
     fast = fuse_activations_for_inference(fused)
-    n_fused = sum(isinstance(m, ConvActivation) for m in fast.modules())
+    n_fused = sum(isinstance(m, ConvActivation) for m in fast.backbone.modules())
     n_gelu = sum(isinstance(m, nn.GELU) for m in fused.backbone.modules())
     left = [m for seq in fast.backbone.modules() if isinstance(seq, nn.Sequential) for m in seq if isinstance(m, nn.GELU)]
     assert n_fused == n_gelu > 0 and not left
@@ -94,3 +96,19 @@ def test_bad_layers_are_named():
         ConvActivation(nn.Conv2d(3, 4, 3, padding=1, padding_mode="circular"), nn.GELU())
     with pytest.raises(ValueError, match="must be nn.GELU or nn.ReLU"):
         ConvActivation(nn.Conv2d(3, 4, 3), nn.SiLU())
+
+
+def test_fftradnet_conversion_with_winograd_layers():
+    """Bottleneck, stem and decoder activations (attribute triples) fuse, into Winograd layers too."""
+    model = fuse_for_inference(randomise_batchnorm_(fftradnet_tiny(), torch.Generator().manual_seed(4)).eval())
+    wino = winograd_for_inference(model, min_channels=8, compiled=False)
+    fast = fuse_activations_for_inference(wino)
+    assert sum(isinstance(m, ConvActivation) for m in fast.modules()) >= 4
+    assert any(isinstance(m, WinogradConv2d) and m.relu for m in fast.modules())
+    assert not any(isinstance(m, WinogradConv2d) and m.relu for m in wino.modules())   # the original is unchanged
+    x = torch.randn(1, 32, 128, 64, generator=torch.Generator().manual_seed(5))
+    with torch.inference_mode():
+        ref, out = model.forward_channels(x), fast.forward_channels(x)
+    # as tests/models/test_winograd.py's tiny FFTRadNet: each layer within its bound, composed within 1e-3
+    assert float((out.detection - ref.detection).abs().max()) <= 1e-3 * float(ref.detection.abs().max())
+    assert float((out.freespace - ref.freespace).abs().max()) <= 1e-3 * float(ref.freespace.abs().max())

@@ -190,3 +190,12 @@ def test_reduced_float32_matmul_precision_is_warned():
             winograd_conv3x3(x, u, compiled=False)
     finally:
         torch.set_float32_matmul_precision(prev)
+
+
+def test_relu_in_the_output_transform():
+    """``relu=True`` is the ReLU of the same computation (ReLU is 1-Lipschitz: the bound holds)."""
+    g = torch.Generator().manual_seed(3)
+    x, weight, bias = torch.randn(2, 5, 9, 11, generator=g), torch.randn(7, 5, 3, 3, generator=g), torch.randn(7, generator=g)
+    y = winograd_conv3x3(x, winograd_weight(weight), bias, tile_rows=1, compiled=False, relu=True)
+    ref = F.conv2d(x.double(), weight.double(), bias.double(), padding=1).clamp_min(0)
+    assert (y >= 0).all() and ((y.double() - ref).abs() <= rounding_bound(x, weight, bias)).all()

@@ -212,11 +212,12 @@ class Bottleneck(nn.Module):
         self.bn2 = nn.BatchNorm2d(planes)
         self.conv3 = nn.Conv2d(planes, expansion * planes, kernel_size=1, bias=False)
         self.bn3 = nn.BatchNorm2d(expansion * planes)
+        self.act1, self.act2 = nn.ReLU(), nn.ReLU()     # modules, so an inference copy can fuse them
         self.downsample = downsample
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        out = F.relu(self.bn1(self.conv1(x)))
-        out = F.relu(self.bn2(self.conv2(out)))
+        out = self.act1(self.bn1(self.conv1(x)))
+        out = self.act2(self.bn2(self.conv2(out)))
         out = self.bn3(self.conv3(out))
         shortcut = x if self.downsample is None else self.downsample(x)
         return F.relu(shortcut + out)
@@ -230,7 +231,7 @@ class FPNBackbone(nn.Module):
         c = cfg.mimo_channels
         self.conv = conv3x3(c, c)
         self.bn = nn.BatchNorm2d(c)
-        self.act = nn.ReLU()                         # a module, so an inference copy can fuse it (fourier_stem)
+        self.act = nn.ReLU()                         # a module, so an inference copy can fuse it
         strides = (*cfg.range_strides, 2, 2)
         stages = []
         for n, planes, s in zip(cfg.blocks, cfg.channels, strides):

@@ -6,8 +6,8 @@ what Inductor does for ``torch.compile`` with freezing. :class:`ConvActivation` 
 operator directly (``torch.ops.mkldnn._convolution_pointwise`` and its transposed sibling) on CPUs,
 for float32 inputs without autograd, and ``act(conv(x))`` everywhere else, so it stays correct on
 GPUs and in torch builds without the operator. :func:`fuse_activations_for_inference` puts it into a
-copy of a model wherever an ``nn.Sequential`` holds a convolution, any ``nn.Identity`` (a folded
-BatchNorm), then ``nn.GELU`` or ``nn.ReLU``: the pillar models' BEV backbone.
+copy of a model wherever a convolution is followed by an activation module (the patterns it
+knows are in its docstring): the pillar models' BEV backbone, FFTRadNet's bottlenecks and decoder.
 """
 from __future__ import annotations
 
@@ -15,6 +15,8 @@ import copy
 
 import torch
 import torch.nn as nn
+
+from radarpc.models.winograd import WinogradConv2d
 
 __all__ = ["ConvActivation", "fuse_activations_for_inference"]
 
@@ -68,22 +70,48 @@ class ConvActivation(nn.Module):
         return f"attr={self.attr!r}, algorithm={self.algorithm!r}"
 
 
+def _fuse(conv: nn.Module, act: nn.Module) -> nn.Module | None:
+    """What replaces ``conv`` when ``act`` follows it, or None if the pair does not fuse."""
+    if type(act) not in (nn.GELU, nn.ReLU):
+        return None
+    if isinstance(conv, WinogradConv2d):
+        if type(act) is not nn.ReLU:
+            return None
+        conv.relu = True                      # applied in its output transform
+        return conv
+    if type(conv) in (nn.Conv2d, nn.ConvTranspose2d) and conv.padding_mode == "zeros" \
+            and not isinstance(conv.padding, str):
+        return ConvActivation(conv, act)
+    return None
+
+
 def fuse_activations_for_inference(model: nn.Module) -> nn.Module:
-    """A copy of ``model`` (eval mode) in which every ``nn.Sequential`` run of a plain
-    ``nn.Conv2d``/``nn.ConvTranspose2d``, any ``nn.Identity`` and an ``nn.GELU``/``nn.ReLU`` becomes a
-    :class:`ConvActivation` followed by identities. Fold BatchNorm first (the pillar models'
-    ``fuse_for_inference``): a BN between them stops the match. ``model`` is unchanged."""
+    """A copy of ``model`` (eval mode) with each activation module fused into the convolution before it.
+
+    Two patterns are fused: in an ``nn.Sequential``, a plain ``nn.Conv2d``/``nn.ConvTranspose2d``,
+    any ``nn.Identity`` (a folded BatchNorm), then ``nn.GELU``/``nn.ReLU`` (the pillar models'
+    backbone); and children named ``conv<i>``, ``bn<i>`` (an ``nn.Identity``) and ``act<i>`` of one
+    module, which the forward applies in that order (FFTRadNet's bottlenecks and stem, the decoder's
+    blocks). The convolution becomes a :class:`ConvActivation` (or, for a
+    :class:`~radarpc.models.winograd.WinogradConv2d` and a ReLU, applies it in its output transform)
+    and the activation an identity. Fold BatchNorm first (``fuse_for_inference``): a BN between
+    them stops the match. ``model`` is unchanged.
+    """
     m = copy.deepcopy(model).eval()
-    for seq in [mod for mod in m.modules() if isinstance(mod, nn.Sequential)]:
-        layers = list(seq)
-        for i, conv in enumerate(layers):
-            if type(conv) not in (nn.Conv2d, nn.ConvTranspose2d) or conv.padding_mode != "zeros" \
-                    or isinstance(conv.padding, str):
-                continue
-            j = i + 1
-            while j < len(layers) and type(layers[j]) is nn.Identity:
-                j += 1
-            if j < len(layers) and type(layers[j]) in (nn.GELU, nn.ReLU):
-                seq[i] = ConvActivation(conv, layers[j])
-                seq[j] = nn.Identity()
+    for mod in list(m.modules()):
+        if isinstance(mod, nn.Sequential):
+            layers = list(mod)
+            for i, conv in enumerate(layers):
+                j = i + 1
+                while j < len(layers) and type(layers[j]) is nn.Identity:
+                    j += 1
+                if j < len(layers) and (fused := _fuse(conv, layers[j])) is not None:
+                    mod[i], mod[j] = fused, nn.Identity()
+            continue
+        for suffix in ("", "1", "2", "3", "4"):
+            conv, bn, act = (getattr(mod, f"{n}{suffix}", None) for n in ("conv", "bn", "act"))
+            if isinstance(conv, nn.Module) and type(bn) is nn.Identity and act is not None \
+                    and (fused := _fuse(conv, act)) is not None:
+                setattr(mod, f"conv{suffix}", fused)
+                setattr(mod, f"act{suffix}", nn.Identity())
     return m

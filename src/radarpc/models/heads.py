@@ -55,10 +55,11 @@ class ConvBlock(nn.Module):
         self.bn1 = nn.BatchNorm2d(c_out)
         self.conv2 = conv3x3(c_out, c_out, bias=True)
         self.bn2 = nn.BatchNorm2d(c_out)
+        self.act1, self.act2 = nn.ReLU(), nn.ReLU()     # modules, so an inference copy can fuse them
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = F.relu(self.bn1(self.conv1(x)))
-        return F.relu(self.bn2(self.conv2(x)))
+        x = self.act1(self.bn1(self.conv1(x)))
+        return self.act2(self.bn2(self.conv2(x)))
 
 
 class DetectionHead(nn.Module):

@@ -101,9 +101,9 @@ def _input_transform(rows: torch.Tensor, pad_top: int, n_rows: int, n_cols: int)
     return v.reshape(36, -1, c)
 
 
-def _output_transform(m: torch.Tensor, bias: torch.Tensor | None, out: torch.Tensor) -> None:
-    """``Y = A^T M A`` (+ bias) of every tile, written into ``out`` ``(B, h, W, K)`` (the rows of
-    these tiles, the last tile row and column cropped to the image); ``m``: ``(36, T, K)``."""
+def _output_transform(m: torch.Tensor, bias: torch.Tensor | None, out: torch.Tensor, relu: bool = False) -> None:
+    """``Y = A^T M A`` (+ bias, then ReLU if ``relu``) of every tile, written into ``out`` ``(B, h, W, K)``
+    (the rows of these tiles, the last tile row and column cropped to the image); ``m``: ``(36, T, K)``."""
     b, h, w, k = out.shape
     n_rows = -(-h // TILE)
     n_cols = m.shape[1] // (b * n_rows)
@@ -112,7 +112,8 @@ def _output_transform(m: torch.Tensor, bias: torch.Tensor | None, out: torch.Ten
     y = torch.stack([torch.stack([_combine(AT[q], at_m[p]) for q in range(TILE)], dim=3)
                      for p in range(TILE)], dim=2)                                # (B, n_rows, 4, n_cols, 4, K)
     y = y.reshape(b, TILE * n_rows, TILE * n_cols, k)[:, :h, :w]
-    out.copy_(y if bias is None else y + bias)
+    y = y if bias is None else y + bias
+    out.copy_(y.clamp_min(0) if relu else y)
 
 
 @functools.cache
@@ -122,7 +123,7 @@ def _compiled_transforms():
 
 
 def winograd_conv3x3(x: torch.Tensor, u: torch.Tensor, bias: torch.Tensor | None = None, *,
-                     tile_rows: int = 4, compiled: bool = True) -> torch.Tensor:
+                     tile_rows: int = 4, compiled: bool = True, relu: bool = False) -> torch.Tensor:
     """A stride-1, zero-padded (1 pixel) 3 x 3 convolution, ``F.conv2d(x, weight, bias, padding=1)``.
 
     Parameters
@@ -140,6 +141,8 @@ def winograd_conv3x3(x: torch.Tensor, u: torch.Tensor, bias: torch.Tensor | None
     compiled : bool
         Run the transforms as Inductor-compiled kernels (fast; compiles on the first call of each
         shape, with a C++ compiler on CPUs) instead of eager torch operations (same result, slower).
+    relu : bool
+        Apply ReLU to the output in the output transform (saves a pass over the output).
 
     Returns
     -------
@@ -173,7 +176,7 @@ def winograd_conv3x3(x: torch.Tensor, u: torch.Tensor, bias: torch.Tensor | None
                       "or a backend's fp32_precision); the transformed products then lose far more than a direct "
                       "convolution would: set torch.set_float32_matmul_precision('highest')", RuntimeWarning,
                       stacklevel=2)
-    return torch.ops.radarpc.winograd_conv3x3(x, u, bias, tile_rows, compiled)
+    return torch.ops.radarpc.winograd_conv3x3(x, u, bias, tile_rows, compiled, relu)
 
 
 # An opaque operator to torch.compile: a model compiled around it (e.g. with Inductor's freezing)
@@ -181,7 +184,7 @@ def winograd_conv3x3(x: torch.Tensor, u: torch.Tensor, bias: torch.Tensor | None
 # which compiles for minutes into slower code.
 @torch.library.custom_op("radarpc::winograd_conv3x3", mutates_args=())
 def _winograd_conv3x3_op(x: torch.Tensor, u: torch.Tensor, bias: torch.Tensor | None, tile_rows: int,
-                         compiled: bool) -> torch.Tensor:
+                         compiled: bool, relu: bool) -> torch.Tensor:
     b, _, h, w = x.shape
     k = u.shape[2]
     n_rows, n_cols = -(-h // TILE), -(-w // TILE)
@@ -198,12 +201,12 @@ def _winograd_conv3x3_op(x: torch.Tensor, u: torch.Tensor, bias: torch.Tensor | 
             top, bottom = max(TILE * r0 - 1, 0), min(TILE * r1 + 1, h)        # input rows of these tiles
             v = input_transform(x_nhwc[:, top:bottom], int(r0 == 0), r1 - r0, n_cols)   # (36, T, C)
             m = torch.bmm(v, u)                                               # (36, T, K)
-            output_transform(m, bias, out[:, TILE * r0:min(TILE * r1, h)])
+            output_transform(m, bias, out[:, TILE * r0:min(TILE * r1, h)], relu)
     return out.permute(0, 3, 1, 2)                                            # (B, K, H, W), channels-last
 
 
 @_winograd_conv3x3_op.register_fake
-def _(x, u, bias, tile_rows, compiled):
+def _(x, u, bias, tile_rows, compiled, relu):
     return x.new_empty(x.shape[0], x.shape[2], x.shape[3], u.shape[2]).permute(0, 3, 1, 2)   # as the real one
 
 
@@ -228,14 +231,16 @@ class WinogradConv2d(nn.Module):
             raise ValueError(f"WinogradConv2d: tile_rows must be >= 1, got {tile_rows}")
         self.in_channels, self.out_channels = conv.in_channels, conv.out_channels
         self.tile_rows, self.compiled = tile_rows, compiled
+        self.relu = False            # set by radarpc.models.fused_activation to fuse a following ReLU
         self.register_buffer("u", winograd_weight(conv.weight))                   # (36, C, K)
         self.register_buffer("bias", None if conv.bias is None else conv.bias.detach().clone())
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return winograd_conv3x3(x, self.u, self.bias, tile_rows=self.tile_rows, compiled=self.compiled)
+        return winograd_conv3x3(x, self.u, self.bias, tile_rows=self.tile_rows, compiled=self.compiled,
+                                relu=self.relu)
 
     def extra_repr(self) -> str:
-        return f"{self.in_channels}, {self.out_channels}, F(4x4, 3x3), tile_rows={self.tile_rows}"
+        return f"{self.in_channels}, {self.out_channels}, F(4x4, 3x3), tile_rows={self.tile_rows}, relu={self.relu}"
 
 
 def supports_winograd(conv: nn.Module) -> bool:

@@ -1,0 +1,59 @@
+"""One call for a model's fastest exact CPU inference copy.
+
+Every step is an exact rewrite in real arithmetic (float32 results differ by rounding only; each
+module's tests bound it): BatchNorm folded into the convolutions, channels-last weights, FFTRadNet's
+pre-encoder, stem and first ReLU per Doppler frequency (:mod:`radarpc.models.fourier_stem`), the
+detection head's linear layers as one correlation (:mod:`radarpc.models.collapsed_head`), wide
+3 x 3 layers as Winograd F(4x4, 3x3) (:mod:`radarpc.models.winograd`), and activations fused into
+the convolutions before them (:mod:`radarpc.models.fused_activation`). What each gives is measured
+in ``docs/results/detection.md``.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+
+from radarpc.models import fftradnet as fft
+from radarpc.models import pillars
+from radarpc.models.collapsed_head import collapsed_head_for_inference
+from radarpc.models.fourier_stem import fourier_stem_for_inference
+from radarpc.models.fused_activation import fuse_activations_for_inference
+from radarpc.models.winograd import winograd_for_inference
+
+__all__ = ["fast_inference"]
+
+
+def fast_inference(model: nn.Module, *, detections_only: bool = False, winograd_min_channels: int = 96,
+                   compiled: bool = True) -> nn.Module:
+    """A copy of ``model`` for batch inference on CPUs (and correct anywhere); ``model`` is unchanged.
+
+    Parameters
+    ----------
+    model : FFTRadNet or PointPillars
+    detections_only : bool
+        Drop the freespace head (the copy's forward then returns no freespace map).
+    winograd_min_channels : int
+        As :func:`radarpc.models.winograd.winograd_for_inference`'s ``min_channels``.
+    compiled : bool
+        Inductor-compile the Winograd transforms and the other steps' small kernels (fast; the first
+        call of each shape compiles, with a C++ compiler on CPUs), or run them eagerly.
+
+    Returns
+    -------
+    nn.Module
+        In eval mode; inference only (the rewritten layers refuse autograd).
+    """
+    if isinstance(model, fft.FFTRadNet):
+        m = fft.fuse_for_inference(model)
+    elif isinstance(model, pillars.PointPillars):
+        m = pillars.fuse_for_inference(model)
+    else:
+        raise TypeError(f"fast_inference: expected an FFTRadNet or a PointPillars model, got {type(model).__name__}")
+    m = m.to(memory_format=torch.channels_last)
+    if detections_only:
+        m.freespace_head = None
+    if isinstance(m, fft.FFTRadNet):
+        m = fourier_stem_for_inference(m, compiled=compiled)
+    m = collapsed_head_for_inference(m, compiled=compiled)
+    m = winograd_for_inference(m, min_channels=winograd_min_channels, compiled=compiled)
+    return fuse_activations_for_inference(m)

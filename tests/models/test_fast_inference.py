@@ -1,0 +1,44 @@
+"""fast_inference: every exact rewrite at once, on the tiny models."""
+import pytest
+import torch
+import torch.nn as nn
+
+from radarpc.models.batchnorm import randomise_batchnorm_
+from radarpc.models.collapsed_head import CollapsedDetectionHead
+from radarpc.models.fast_inference import fast_inference
+from radarpc.models.fftradnet import fftradnet_tiny
+from radarpc.models.fourier_stem import FourierStem
+from radarpc.models.fused_activation import ConvActivation
+from radarpc.models.pillars import pillars_tiny
+
+
+def test_fftradnet():
+    model = randomise_batchnorm_(fftradnet_tiny(), torch.Generator().manual_seed(1)).eval()
+    fast = fast_inference(model, winograd_min_channels=8, compiled=False)
+    assert isinstance(fast.pre_encoder, FourierStem) and isinstance(fast.detection_head, CollapsedDetectionHead)
+    assert any(isinstance(m, ConvActivation) for m in fast.modules())
+    x = torch.randn(1, 32, 128, 64, generator=torch.Generator().manual_seed(2))
+    with torch.inference_mode():
+        ref, out = model.forward_channels(x), fast.forward_channels(x)
+        det_only = fast_inference(model, detections_only=True, compiled=False).forward_channels(x)
+    # each rewrite is bounded by its own tests; composed, as the other tiny-model tests, within 1e-3
+    assert float((out.detection - ref.detection).abs().max()) <= 1e-3 * float(ref.detection.abs().max())
+    assert float((out.freespace - ref.freespace).abs().max()) <= 1e-3 * float(ref.freespace.abs().max())
+    assert det_only.freespace is None
+    assert float((det_only.detection - ref.detection).abs().max()) <= 1e-3 * float(ref.detection.abs().max())
+
+
+def test_pillars(monkeypatch):
+    model = randomise_batchnorm_(pillars_tiny(), torch.Generator().manual_seed(3)).eval()
+    fast = fast_inference(model, winograd_min_channels=8, compiled=False)
+    assert isinstance(fast.detection_head, CollapsedDetectionHead)
+    canvas = torch.randn(1, model.cfg.pfn_channels, *model.cfg.grid, generator=torch.Generator().manual_seed(4))
+    with torch.inference_mode():
+        ref = model.detection_head(model.backbone(canvas))
+        out = fast.detection_head(fast.backbone(canvas))
+    assert float((out - ref).abs().max()) <= 1e-3 * float(ref.abs().max())
+
+
+def test_other_models_are_refused():
+    with pytest.raises(TypeError, match="expected an FFTRadNet or a PointPillars model, got Conv2d"):
+        fast_inference(nn.Conv2d(1, 1, 1))
