@@ -28,7 +28,7 @@ def test_fftradnet():
     assert float((det_only.detection - ref.detection).abs().max()) <= 1e-3 * float(ref.detection.abs().max())
 
 
-def test_pillars(monkeypatch):
+def test_pillars():
     model = randomise_batchnorm_(pillars_tiny(), torch.Generator().manual_seed(3)).eval()
     fast = fast_inference(model, winograd_min_channels=8, compiled=False)
     assert isinstance(fast.detection_head, CollapsedDetectionHead)
