@@ -258,6 +258,21 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     assert mi["parameters"] == doc["parameters"]
     assert "mirror image" in (out / "eval_test_mirror.md").read_text().splitlines()[0]
     assert (out / "eval_test.json").read_text() == fp32_doc                      # fp32 files untouched
+    # the fast inference copy (exact rewrites): its own files, the same parameters and about the same
+    # scores (rounding may move a detection across a threshold: one label of the split at most)
+    from radarpc.models.collapsed_head import CollapsedDetectionHead
+
+    models.clear()
+    assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--fast", "--device", "cpu"]) == 0
+    assert len(models) == 1 and isinstance(models[0].detection_head, CollapsedDetectionHead)
+    fa = json.loads((out / "eval_test_fast.json").read_text())
+    assert fa["fast"] is True and doc["fast"] is False and fa["parameters"] == doc["parameters"]
+    assert fa["metrics"]["n_frames"] == 4 and fa["fps_batch1"] > 0
+    assert abs(fa["metrics"]["fn_fixed"] - doc["metrics"]["fn_fixed"]) <= 1
+    assert "fast inference copy" in (out / "eval_test_fast.md").read_text().splitlines()[0]
+    assert (out / "eval_test.json").read_text() == fp32_doc
+    with pytest.raises(ValueError, match="float32 only"):
+        detection.evaluate_run(out, "test", fast=True, precision="bf16")
     # benchmarks/mirror_symmetry.py: the split as it is and mirror-averaged score as evaluate scored
     # them, and every frame mirrored is scored too
     script_mirror = Path(__file__).parents[2] / "benchmarks" / "mirror_symmetry.py"

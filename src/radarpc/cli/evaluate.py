@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
 
     evaluate_run(args.run, args.split, data=args.data, points=args.points, device=args.device,
                  show=args.show, fps_frames=args.fps_frames, precision=args.precision,
-                 mirror_average=args.mirror_average)
+                 mirror_average=args.mirror_average, fast=args.fast)
     return 0
 
 
@@ -58,4 +58,7 @@ def add_parser(sub) -> None:
     p.add_argument("--mirror-average", action="store_true",
                    help="point models: average each frame's output with its mirror image's (two forward "
                         "passes); writes eval_{split}_mirror.*")
+    p.add_argument("--fast", action="store_true",
+                   help="score and time the fast inference copy (radarpc.models.fast_inference: exact rewrites, "
+                        "fp32; the first passes compile kernels); writes eval_{split}_fast.*")
     p.set_defaults(func=run)

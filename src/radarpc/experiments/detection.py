@@ -163,13 +163,16 @@ class EvalResult:
     """Names the data when it is not the run's own (:func:`evaluate_run`), else empty."""
     mirror_average: bool = False
     """Scored with :class:`~radarpc.models.mirror.MirrorAveraged` (the frame and its mirror image)."""
+    fast: bool = False
+    """Scored and timed with :func:`~radarpc.models.fast_inference.fast_inference`'s copy of the model."""
 
     @property
     def stem(self) -> str:
         """The name of the written files: ``eval_{split}``, then ``_on_{scored_on}`` for data not
-        the run's own, ``_mirror`` when mirror-averaged and ``_{precision}`` unless fp32."""
+        the run's own, ``_mirror`` when mirror-averaged, ``_fast`` for the fast inference copy and
+        ``_{precision}`` unless fp32."""
         return (f"eval_{self.split}" + (f"_on_{self.scored_on}" if self.scored_on else "")
-                + ("_mirror" if self.mirror_average else "")
+                + ("_mirror" if self.mirror_average else "") + ("_fast" if self.fast else "")
                 + ("" if self.precision == "fp32" else f"_{self.precision}"))
 
 
@@ -226,7 +229,7 @@ def _fps(model: torch.nn.Module, batches: list[DetectionBatch], device: torch.de
 def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths | None = None,
                  points: DataPaths | None = None, device: str | None = None, show: int = 0,
                  fps_frames: int = 20, batch_size: int = 4, precision: str = "fp32", mirror_average: bool = False,
-                 progress: bool = True, log: Callable[[str], None] = print) -> list[EvalResult]:
+                 fast: bool = False, progress: bool = True, log: Callable[[str], None] = print) -> list[EvalResult]:
     """Score the best weights of every run in ``run`` on ``split`` (see the module docstring).
 
     ``data`` / ``points`` override the roots and stores stored with the run (a moved dataset, or
@@ -235,12 +238,16 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     (:func:`_scored_on` gives the names).
     ``precision`` is one of :data:`EVAL_PRECISIONS`. ``mirror_average`` scores a pillar model
     averaged over each frame and its mirror image (:class:`~radarpc.models.mirror.MirrorAveraged`;
-    two forward passes a frame) into ``eval_{split}[_on_...]_mirror.*``.
+    two forward passes a frame) into ``eval_{split}[_on_...]_mirror.*``. ``fast`` scores and times
+    :func:`~radarpc.models.fast_inference.fast_inference`'s copy of the model (exact rewrites; fp32
+    only; its first passes compile kernels, before the timing) into ``eval_{split}[...]_fast.*``.
     """
     from radarpc.viz import plot_detection_frame, plot_learning_curves
 
     if precision not in EVAL_PRECISIONS:
         raise ValueError(f"precision must be one of {EVAL_PRECISIONS}, got {precision!r}")
+    if fast and precision != "fp32":
+        raise ValueError(f"fast inference is float32 only (its rewrites lose more than bf16 allows), got {precision!r}")
     dev = torch.device(device) if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
     results = []
     for folder in run_folders(run):
@@ -250,6 +257,11 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
                 raise ValueError(f"{folder}: mirror averaging applies to point models; {stored.name!r} takes RD "
                                  f"cubes (mirroring a cube would need the array's geometry)")
         cfg, model, key = load_trained(folder, dev)
+        n_params = sum(p.numel() for p in model.parameters())
+        if fast:
+            from radarpc.models.fast_inference import fast_inference
+
+            model = fast_inference(model)
         roots = data or key["data"]
         stores = (points or key.get("points")) if cfg.input_kind == "points" else None
         ds = detection_dataset(cfg, roots, stores, split)
@@ -270,11 +282,10 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
             if len(frames) >= fps_frames:
                 break
         fps = _fps(model, frames, dev, precision=precision)
-        n_params = sum(p.numel() for p in model.parameters())
         res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision,
                          data=tuple(str(r) for r, _ in scored),
                          points=None if stores is None else tuple(str(p) for _, p in scored),
-                         scored_on=_scored_on(scored, own), mirror_average=mirror_average)
+                         scored_on=_scored_on(scored, own), mirror_average=mirror_average, fast=fast)
         _write_eval(folder, res, cfg.name)
         if (folder / LOG_CSV).is_file():
             plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
@@ -290,7 +301,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
         log(f"{folder}: {split} F1 {metrics['f1']:.4f} (AP {metrics['ap']:.4f}, AR {metrics['ar']:.4f}), "
             f"F1@0.2 {metrics['f1_fixed']:.4f}, freespace mIoU {miou if miou is not None else float('nan'):.4f}, "
             f"{n_params:,} parameters, {fps:.1f} frames/s at batch 1 on {dev}, {precision}"
-            + (", mirror-averaged" if mirror_average else ""))
+            + (", mirror-averaged" if mirror_average else "") + (", fast inference copy" if fast else ""))
         results.append(res)
     if len(results) > 1:
         rows = [{"run": k, **{m: (r.metrics.get(m) if r.metrics.get(m) is not None else math.nan)
@@ -386,14 +397,15 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
     doc = {"split": res.split, "data": list(res.data), "points": list(res.points) if res.points else None,
            "metrics": m, "parameters": res.parameters, "fps_batch1": res.fps,
            "device": res.device, "threads": res.threads, "precision": res.precision,
-           "mirror_average": res.mirror_average}
+           "mirror_average": res.mirror_average, "fast": res.fast}
     with atomic_write(folder / f"{res.stem}.json", "w") as f:
         json.dump(doc, f, indent=2)
     thr = ", ".join(f"{t:.1f}" for t in m["thresholds"])
     lines = [
         f"# {name}: {res.split} split ({m['n_frames']} frames)"
         + ("" if res.precision == "fp32" else f", {res.precision} autocast")
-        + (", averaged over each frame and its mirror image" if res.mirror_average else ""), "",
+        + (", averaged over each frame and its mirror image" if res.mirror_average else "")
+        + (", fast inference copy (radarpc.models.fast_inference)" if res.fast else ""), "",
         "| AP | AR | F1 | F1 @ 0.2 | range error (m) | azimuth error (deg) | freespace mIoU | parameters | frames/s (batch 1) |",
         "|---|---|---|---|---|---|---|---|---|",
         f"| {m['ap']:.4f} | {m['ar']:.4f} | {m['f1']:.4f} | {m['f1_fixed']:.4f} | {m['range_error_m']:.3f} | "
