@@ -134,3 +134,26 @@ def test_bad_input_is_named():
     head.conv1 = nn.Identity()
     with pytest.raises(ValueError, match="plain nn.Conv2d"):
         CollapsedDetectionHead(head)
+
+
+def test_built_on_the_weights_device_and_dtype():
+    head = fuse_for_inference(fftradnet_tiny()).detection_head
+    assert all(b.device.type == "meta" for b in CollapsedDetectionHead(head.to("meta")).buffers())
+    head64 = fuse_for_inference(fftradnet_tiny()).detection_head.double()
+    fast = CollapsedDetectionHead(head64, compiled=False)
+    x = torch.randn(1, head64.conv1.in_channels, 12, 12, dtype=torch.float64)
+    with torch.inference_mode():
+        assert fast(x).dtype == torch.float64
+        # float64 rounding (n 2^-53 with n ~ 10^3 terms) is ~1e-13 of the magnitudes: 1e-9 leaves room
+        assert torch.allclose(fast(x), head64(x), rtol=0, atol=1e-9 * float(head64(x).abs().max()))
+
+
+def test_reduced_float32_matmul_precision_is_warned():
+    _, fast = folded_head(6, 1, (5, 7), seed=1)
+    prev = torch.get_float32_matmul_precision()
+    try:
+        torch.set_float32_matmul_precision("medium")
+        with pytest.warns(RuntimeWarning, match="float32 matmul precision is reduced"), torch.inference_mode():
+            fast(torch.randn(1, 6, 13, 12))
+    finally:
+        torch.set_float32_matmul_precision(prev)

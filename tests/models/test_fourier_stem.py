@@ -195,3 +195,13 @@ def test_reduced_float32_matmul_precision_is_warned():
             layer(torch.randn(1, 4, 9, 16))
     finally:
         torch.set_float32_matmul_precision(prev)
+
+
+def test_built_on_the_weights_device():
+    """Every composed buffer is made where the weights are (the meta device here stands in for a GPU:
+    a tensor made on the CPU by mistake would meet a meta one and raise)."""
+    pre, stem = layers(4, 6, 5, 4, 2, seed=3)
+    layer = FourierStem(pre.to("meta"), stem.to("meta"), 16, compiled=False)
+    assert all(b.device.type == "meta" for b in layer.buffers())
+    with pytest.raises(ValueError, match="circular pad 16 exceeds n_doppler=8"):
+        FourierStem(*layers(4, 6, 5, 8, 4, seed=3), 8)

@@ -112,3 +112,26 @@ def test_fftradnet_conversion_with_winograd_layers():
     # as tests/models/test_winograd.py's tiny FFTRadNet: each layer within its bound, composed within 1e-3
     assert float((out.detection - ref.detection).abs().max()) <= 1e-3 * float(ref.detection.abs().max())
     assert float((out.freespace - ref.freespace).abs().max()) <= 1e-3 * float(ref.freespace.abs().max())
+
+
+def test_autocast_takes_the_unfused_path():
+    """Under autocast the layer runs as the unfused ones around it do (their dtype, not float32)."""
+    conv = nn.Conv2d(3, 4, 3, padding=1).eval()
+    layer = ConvActivation(conv, nn.GELU())
+    x = torch.randn(1, 3, 8, 8)
+    with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16):
+        assert layer(x).dtype == F.gelu(conv(x)).dtype == torch.bfloat16
+
+
+def test_only_known_modules_fuse_by_name():
+    """conv/bn/act children of a module whose forward may apply them in another order are left alone."""
+    class Other(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.conv, self.bn, self.act = nn.Conv2d(3, 3, 3, padding=1), nn.Identity(), nn.ReLU()
+
+        def forward(self, x):
+            return self.conv(self.act(x))
+
+    fast = fuse_activations_for_inference(Other())
+    assert type(fast.conv) is nn.Conv2d and type(fast.act) is nn.ReLU

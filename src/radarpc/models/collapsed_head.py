@@ -19,17 +19,22 @@ zero-pad them: the two differ in the 4 outer rows and columns of the output (one
 the first; the first layer's padding is the input's, which the composition keeps). Those are
 taken from the layers themselves, run on 9-row and ``9 S``-column strips along the edges. The
 result equals the head in real arithmetic; in float32 it differs by rounding only (the tests bound
-it). Inference only; :func:`collapsed_head_for_inference` puts it into a copy of a model.
+it). At azimuth stride ``S > 1`` the product still forms every tap for every input column, ``S``
+times the work the strided outputs need (the shipped models' heads have ``S = 1``). Inference
+only (the composed kernel is a buffer); :func:`collapsed_head_for_inference` puts it into a copy
+of a model.
 """
 from __future__ import annotations
 
 import copy
 import functools
+import warnings
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from radarpc.dsp.beamform import reduced_fp32_matmul
 from radarpc.models.batchnorm import fold_batchnorm
 from radarpc.models.heads import DetectionHead
 
@@ -58,13 +63,14 @@ def compose_convs(convs: list[nn.Conv2d]) -> tuple[torch.Tensor, torch.Tensor, i
     """
     first = convs[0]
     kernel = first.weight.detach().double()
-    bias = torch.zeros(first.out_channels, dtype=torch.float64) if first.bias is None else first.bias.detach().double()
+    f64 = dict(dtype=torch.float64, device=kernel.device)
+    bias = torch.zeros(first.out_channels, **f64) if first.bias is None else first.bias.detach().double()
     stride, pad_cols = first.stride[1], 1
     for conv in convs[1:]:
         w = conv.weight.detach().double()                                    # (K, M, 3, 3)
         # K_BA[o, c] = sum_m B[o, m] (*) K_A[m, c], B's column taps `stride` input columns apart
         kernel = F.conv_transpose2d(kernel.transpose(0, 1), w.transpose(0, 1), dilation=(1, stride)).transpose(0, 1)
-        b = torch.zeros(conv.out_channels, dtype=torch.float64) if conv.bias is None else conv.bias.detach().double()
+        b = torch.zeros(conv.out_channels, **f64) if conv.bias is None else conv.bias.detach().double()
         bias = b + torch.einsum("omij,m->o", w, bias)
         pad_cols += stride
         stride *= conv.stride[1]
@@ -114,7 +120,13 @@ class CollapsedDetectionHead(nn.Module):
                              "before converting layers, e.g. to Winograd)")
         if not all(isinstance(getattr(head, f"bn{i}"), nn.Identity) for i in range(1, 5)):
             raise ValueError("CollapsedDetectionHead: fold the head's BatchNorms first (fuse_for_inference)")
-        final = nn.Conv2d(head.clshead.in_channels, 1 + head.reghead.out_channels, 3, padding=1)
+        if not all(c.kernel_size == (3, 3) and c.padding == (1, 1) and c.stride[0] == 1 and c.dilation == (1, 1)
+                   and c.groups == 1 and c.padding_mode == "zeros" for c in convs):
+            raise ValueError("CollapsedDetectionHead: every layer must be 3 x 3 with padding 1, row stride 1, "
+                             "no dilation or groups (as DetectionHead builds them)")
+        w = head.clshead.weight
+        final = nn.Conv2d(head.clshead.in_channels, 1 + head.reghead.out_channels, 3, padding=1,
+                          device=w.device, dtype=w.dtype)
         with torch.no_grad():
             final.weight.copy_(torch.cat([head.clshead.weight, head.reghead.weight]))
             final.bias.copy_(torch.cat([head.clshead.bias, head.reghead.bias]))
@@ -153,6 +165,11 @@ class CollapsedDetectionHead(nn.Module):
         if torch.is_grad_enabled() and x.requires_grad:
             raise RuntimeError("CollapsedDetectionHead is inference only (no backward): call it under "
                                "torch.no_grad() or torch.inference_mode()")
+        if x.dtype == torch.float32 and reduced_fp32_matmul(x.device):
+            warnings.warn("CollapsedDetectionHead: float32 matmul precision is reduced (torch.set_float32_matmul_precision "
+                          "or a backend's fp32_precision); its product over the input channels then loses far more "
+                          "than the layers would: set torch.set_float32_matmul_precision('highest')", RuntimeWarning,
+                          stacklevel=2)
         cols = w // s
         n_u, n_v = self.kernel_size
         z = x.permute(0, 2, 3, 1).reshape(b * h * w, c) @ self.taps              # (B H W, U V K)

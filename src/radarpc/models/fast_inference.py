@@ -25,7 +25,10 @@ __all__ = ["fast_inference"]
 
 def fast_inference(model: nn.Module, *, detections_only: bool = False, winograd_min_channels: int = 96,
                    compiled: bool = True) -> nn.Module:
-    """A copy of ``model`` for batch inference on CPUs (and correct anywhere); ``model`` is unchanged.
+    """A copy of ``model`` for inference on CPUs; ``model`` is unchanged.
+
+    Device-agnostic by construction (the oneDNN fusions fall back to plain operators elsewhere), but
+    measured on CPUs only; on GPUs cuDNN already picks fast convolution algorithms itself.
 
     Parameters
     ----------

@@ -114,7 +114,8 @@ class FourierStem(nn.Module):
     Notes
     -----
     ``forward(x)``: ``x (B, C, R, N)`` float32 or float64, no autograd; returns
-    ``(B, K, R, N)`` in channels-last memory format, after the ReLU.
+    ``(B, K, R, N)`` in channels-last memory format, after the ReLU. The composed weights are
+    buffers: the layer is for inference, not for training.
     """
 
     def __init__(self, pre_encoder: MIMOPreEncoder, stem: nn.Conv2d, n_doppler: int, row_block: int = 64,
@@ -130,24 +131,27 @@ class FourierStem(nn.Module):
                              f"{pre_encoder.conv.out_channels} input channels, got {stem}")
         if n_doppler < 2 or row_block < 1:
             raise ValueError(f"FourierStem: n_doppler must be >= 2 and row_block >= 1, got {n_doppler}, {row_block}")
-        dtype = stem.weight.dtype
+        if pre_encoder.pad > n_doppler:
+            raise ValueError(f"FourierStem: the pre-encoder's circular pad {pre_encoder.pad} exceeds n_doppler={n_doppler}")
+        dtype, device = stem.weight.dtype, stem.weight.device
+        f64 = dict(dtype=torch.float64, device=device)
         p = pre_encoder.conv.weight.detach().double()[:, :, 0]              # (O, C, T)
         b1 = pre_encoder.conv.bias
-        b1 = torch.zeros(p.shape[0], dtype=torch.float64) if b1 is None else b1.detach().double()
+        b1 = torch.zeros(p.shape[0], **f64) if b1 is None else b1.detach().double()
         s = stem.weight.detach().double()                                    # (K, O, 3, 3)
-        b2 = torch.zeros(s.shape[0], dtype=torch.float64) if stem.bias is None else stem.bias.detach().double()
+        b2 = torch.zeros(s.shape[0], **f64) if stem.bias is None else stem.bias.detach().double()
         shifts = doppler_shifts(pre_encoder, n_doppler)
         n, n_freq, c_in, c_out = n_doppler, n_doppler // 2 + 1, p.shape[1], s.shape[0]
 
         def phases(offsets):                                                 # exp(2 pi i k offset / N), (F, len)
-            k = torch.arange(n_freq, dtype=torch.float64)[:, None]
-            return torch.exp(2j * math.pi * k * torch.tensor(offsets, dtype=torch.float64) / n)
+            k = torch.arange(n_freq, **f64)[:, None]
+            return torch.exp(2j * math.pi * k * torch.tensor(offsets, **f64) / n)
 
         p_k = torch.einsum("oct,ft->foc", p.to(torch.complex128), phases(shifts))          # (F, O, C)
         s_k = torch.einsum("poij,fj->fipo", s.to(torch.complex128), phases([-1, 0, 1]))    # (F, 3, K, O)
         q = torch.einsum("fipo,foc->ficp", s_k, p_k)                                         # (F, 3, C, K)
         # the complex product X Q as one real GEMM: rows (tap, re/im, c), columns (k, re/im) interleaved
-        w = torch.empty(n_freq, 3, 2, c_in, c_out, 2, dtype=torch.float64)
+        w = torch.empty(n_freq, 3, 2, c_in, c_out, 2, **f64)
         w[:, :, 0, :, :, 0], w[:, :, 0, :, :, 1] = q.real, q.imag
         w[:, :, 1, :, :, 0], w[:, :, 1, :, :, 1] = -q.imag, q.real
         self.register_buffer("w", w.reshape(n_freq, 6 * c_in, 2 * c_out).to(dtype))        # (F, 6C, 2K)

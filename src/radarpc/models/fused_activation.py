@@ -16,6 +16,8 @@ import copy
 import torch
 import torch.nn as nn
 
+from radarpc.models.fftradnet import Bottleneck, FPNBackbone
+from radarpc.models.heads import ConvBlock
 from radarpc.models.winograd import WinogradConv2d
 
 __all__ = ["ConvActivation", "fuse_activations_for_inference"]
@@ -50,7 +52,9 @@ class ConvActivation(nn.Module):
         self.algorithm = activation.approximate if isinstance(activation, nn.GELU) else None
 
     def _fusable(self, x: torch.Tensor) -> bool:
+        # under autocast the unfused layers run in the autocast dtype: so does this one then
         return (x.device.type == "cpu" and x.dtype == torch.float32 and x.ndim == 4
+                and not torch.is_autocast_enabled("cpu")
                 and self.conv.weight.dtype == torch.float32
                 and not (torch.is_grad_enabled() and (x.requires_grad or self.conv.weight.requires_grad))
                 and _onednn_pointwise_available())
@@ -68,6 +72,10 @@ class ConvActivation(nn.Module):
 
     def extra_repr(self) -> str:
         return f"attr={self.attr!r}, algorithm={self.algorithm!r}"
+
+
+# the modules whose forward applies ``act<i>(bn<i>(conv<i>(x)))``
+_TRIPLE_MODULES = (Bottleneck, FPNBackbone, ConvBlock)
 
 
 def _fuse(conv: nn.Module, act: nn.Module) -> nn.Module | None:
@@ -91,10 +99,10 @@ def fuse_activations_for_inference(model: nn.Module) -> nn.Module:
     Two patterns are fused: in an ``nn.Sequential``, a plain ``nn.Conv2d``/``nn.ConvTranspose2d``,
     any ``nn.Identity`` (a folded BatchNorm), then ``nn.GELU``/``nn.ReLU`` (the pillar models'
     backbone); and children named ``conv<i>``, ``bn<i>`` (an ``nn.Identity``) and ``act<i>`` of one
-    module, which the forward applies in that order (FFTRadNet's bottlenecks and stem, the decoder's
-    blocks). The convolution becomes a :class:`ConvActivation` (or, for a
-    :class:`~radarpc.models.winograd.WinogradConv2d` and a ReLU, applies it in its output transform)
-    and the activation an identity. Fold BatchNorm first (``fuse_for_inference``): a BN between
+    module whose forward applies them in that order (FFTRadNet's ``Bottleneck`` and ``FPNBackbone``
+    stem, the decoder's ``ConvBlock``; other classes are left alone). The convolution becomes a
+    :class:`ConvActivation` (or, for a :class:`~radarpc.models.winograd.WinogradConv2d` and a ReLU,
+    applies it in its output transform) and the activation an identity. Fold BatchNorm first (``fuse_for_inference``): a BN between
     them stops the match. ``model`` is unchanged.
     """
     m = copy.deepcopy(model).eval()
@@ -107,6 +115,8 @@ def fuse_activations_for_inference(model: nn.Module) -> nn.Module:
                     j += 1
                 if j < len(layers) and (fused := _fuse(conv, layers[j])) is not None:
                     mod[i], mod[j] = fused, nn.Identity()
+            continue
+        if not isinstance(mod, _TRIPLE_MODULES):      # their forwards apply conv<i>, bn<i>, act<i> in turn
             continue
         for suffix in ("", "1", "2", "3", "4"):
             conv, bn, act = (getattr(mod, f"{n}{suffix}", None) for n in ("conv", "bn", "act"))
