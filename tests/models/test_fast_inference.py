@@ -4,18 +4,20 @@ import torch
 import torch.nn as nn
 
 from radarpc.models.batchnorm import randomise_batchnorm_
-from radarpc.models.collapsed_head import CollapsedDetectionHead
+from radarpc.models.collapsed_head import CollapsedDetectionHead, collapse_mac_ratio
 from radarpc.models.fast_inference import fast_inference
 from radarpc.models.fftradnet import fftradnet_tiny
 from radarpc.models.fourier_stem import FourierStem
 from radarpc.models.fused_activation import ConvActivation
+from radarpc.models.heads import DetectionHead
 from radarpc.models.pillars import pillars_tiny
 
 
 def test_fftradnet():
     model = randomise_batchnorm_(fftradnet_tiny(), torch.Generator().manual_seed(1)).eval()
     fast = fast_inference(model, winograd_min_channels=8, compiled=False)
-    assert isinstance(fast.pre_encoder, FourierStem) and isinstance(fast.detection_head, CollapsedDetectionHead)
+    # the tiny head is thin: collapsing it would not save multiply-adds, so it stays as it is
+    assert isinstance(fast.pre_encoder, FourierStem) and isinstance(fast.detection_head, DetectionHead)
     assert any(isinstance(m, ConvActivation) for m in fast.modules())
     x = torch.randn(1, 32, 128, 64, generator=torch.Generator().manual_seed(2))
     with torch.inference_mode():
@@ -31,7 +33,7 @@ def test_fftradnet():
 def test_pillars():
     model = randomise_batchnorm_(pillars_tiny(), torch.Generator().manual_seed(3)).eval()
     fast = fast_inference(model, winograd_min_channels=8, compiled=False)
-    assert isinstance(fast.detection_head, CollapsedDetectionHead)
+    assert any(isinstance(m, ConvActivation) for m in fast.backbone.modules())
     canvas = torch.randn(1, model.cfg.pfn_channels, *model.cfg.grid, generator=torch.Generator().manual_seed(4))
     with torch.inference_mode():
         ref = model.detection_head(model.backbone(canvas))
@@ -42,3 +44,14 @@ def test_pillars():
 def test_other_models_are_refused():
     with pytest.raises(TypeError, match="expected an FFTRadNet or a PointPillars model, got Conv2d"):
         fast_inference(nn.Conv2d(1, 1, 1))
+
+
+def test_wide_heads_collapse_and_thin_ones_do_not():
+    """The rule against hand-counted multiply-adds per output cell: the layers 256 x 144 x 9 +
+    144 x 96 x 9 + 2 x 96 x 96 x 9 + 96 x 3 x 9 = 624,672; collapsed 256 x 3 x 11 x 11 = 92,928, and at
+    azimuth stride 2 (the first layer at stride 2) 2 x 256 x 3 x 11 x 19 = 321,024 against the same."""
+    assert collapse_mac_ratio(DetectionHead(256, 1, 2, (144, 96))) == pytest.approx(92928 / 624672)
+    assert collapse_mac_ratio(DetectionHead(256, 2, 2, (144, 96))) == pytest.approx(321024 / 624672)
+    model = randomise_batchnorm_(fftradnet_tiny(decoder_channels=(8, 256), detection_widths=(144, 96)),
+                                 torch.Generator().manual_seed(1)).eval()
+    assert isinstance(fast_inference(model, compiled=False).detection_head, CollapsedDetectionHead)

@@ -260,11 +260,11 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     assert (out / "eval_test.json").read_text() == fp32_doc                      # fp32 files untouched
     # the fast inference copy (exact rewrites): its own files, the same parameters and about the same
     # scores (rounding may move a detection across a threshold: one label of the split at most)
-    from radarpc.models.collapsed_head import CollapsedDetectionHead
+    from radarpc.models.fused_activation import ConvActivation
 
     models.clear()
     assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--fast", "--device", "cpu"]) == 0
-    assert len(models) == 1 and isinstance(models[0].detection_head, CollapsedDetectionHead)
+    assert len(models) == 1 and any(isinstance(m, ConvActivation) for m in models[0].modules())
     fa = json.loads((out / "eval_test_fast.json").read_text())
     assert fa["fast"] is True and doc["fast"] is False and fa["parameters"] == doc["parameters"]
     assert fa["metrics"]["n_frames"] == 4 and fa["fps_batch1"] > 0

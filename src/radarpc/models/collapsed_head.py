@@ -38,7 +38,7 @@ from radarpc.dsp.beamform import reduced_fp32_matmul
 from radarpc.models.batchnorm import fold_batchnorm
 from radarpc.models.heads import DetectionHead
 
-__all__ = ["compose_convs", "CollapsedDetectionHead", "collapsed_head_for_inference"]
+__all__ = ["compose_convs", "collapse_mac_ratio", "CollapsedDetectionHead", "collapsed_head_for_inference"]
 
 BORDER = 4                   # output rows / columns where the layers' zero padding differs from the composition
 
@@ -75,6 +75,26 @@ def compose_convs(convs: list[nn.Conv2d]) -> tuple[torch.Tensor, torch.Tensor, i
         pad_cols += stride
         stride *= conv.stride[1]
     return kernel.contiguous(), bias, len(convs), pad_cols, stride
+
+
+def collapse_mac_ratio(head: DetectionHead) -> float:
+    """Multiply-adds of the collapsed head over those of its layers, per output cell.
+
+    The layers: ``sum_l C_l K_l 9`` times the outputs layer ``l`` computes per output cell (``S``
+    over the azimuth stride so far); the collapsed head: ``C (1 + n_reg) U V`` for each of the ``S``
+    input columns of an output cell. Wide heads gain (the full size: 0.15); thin ones do not (the
+    ``-s`` models: about 1), and then the product and the strips only add overhead.
+    """
+    convs = [head.conv1, head.conv2, head.conv3, head.conv4]
+    total_stride = convs[0].stride[1] * convs[1].stride[1]
+    layered, stride = 0.0, 1
+    for conv in convs:
+        stride *= conv.stride[1]
+        layered += conv.in_channels * conv.out_channels * 9 * total_stride / stride
+    n_out = head.clshead.out_channels + head.reghead.out_channels
+    layered += head.clshead.in_channels * n_out * 9
+    n_u, n_v = 11, 1 + 2 * (1 + convs[0].stride[1] + 3 * total_stride)
+    return total_stride * head.conv1.in_channels * n_out * n_u * n_v / layered
 
 
 def _shifted_sum(z: torch.Tensor, bias: torch.Tensor, rows: int, cols: int, stride: int,

@@ -3,7 +3,8 @@
 Every step is an exact rewrite in real arithmetic (float32 results differ by rounding only; each
 module's tests bound it): BatchNorm folded into the convolutions, channels-last weights, FFTRadNet's
 pre-encoder, stem and first ReLU per Doppler frequency (:mod:`radarpc.models.fourier_stem`), the
-detection head's linear layers as one correlation (:mod:`radarpc.models.collapsed_head`), wide
+detection head's linear layers as one correlation where that at least halves the head's
+multiply-adds (:mod:`radarpc.models.collapsed_head`: the full-size heads, not the thin ``-s`` ones), wide
 3 x 3 layers as Winograd F(4x4, 3x3) (:mod:`radarpc.models.winograd`), and activations fused into
 the convolutions before them (:mod:`radarpc.models.fused_activation`). What each gives is measured
 in ``docs/results/detection.md``.
@@ -15,7 +16,7 @@ import torch.nn as nn
 
 from radarpc.models import fftradnet as fft
 from radarpc.models import pillars
-from radarpc.models.collapsed_head import collapsed_head_for_inference
+from radarpc.models.collapsed_head import collapse_mac_ratio, collapsed_head_for_inference
 from radarpc.models.fourier_stem import fourier_stem_for_inference
 from radarpc.models.fused_activation import fuse_activations_for_inference
 from radarpc.models.winograd import winograd_for_inference
@@ -57,6 +58,7 @@ def fast_inference(model: nn.Module, *, detections_only: bool = False, winograd_
         m.freespace_head = None
     if isinstance(m, fft.FFTRadNet):
         m = fourier_stem_for_inference(m, compiled=compiled)
-    m = collapsed_head_for_inference(m, compiled=compiled)
+    if collapse_mac_ratio(m.detection_head) <= 0.5:      # thin heads (the -s models) run faster as they are
+        m = collapsed_head_for_inference(m, compiled=compiled)
     m = winograd_for_inference(m, min_channels=winograd_min_channels, compiled=compiled)
     return fuse_activations_for_inference(m)
