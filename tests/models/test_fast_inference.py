@@ -6,8 +6,8 @@ import torch.nn as nn
 from radarpc.models.batchnorm import randomise_batchnorm_
 from radarpc.models.collapsed_head import CollapsedDetectionHead, collapse_mac_ratio
 from radarpc.models.fast_inference import fast_inference
-from radarpc.models.fftradnet import fftradnet_tiny
-from radarpc.models.fourier_stem import FourierStem
+from radarpc.models.fftradnet import fftradnet, fftradnet_s, fftradnet_tiny
+from radarpc.models.fourier_stem import FourierStem, stem_gmac
 from radarpc.models.fused_activation import ConvActivation
 from radarpc.models.heads import DetectionHead
 from radarpc.models.pillars import pillars_tiny
@@ -16,8 +16,9 @@ from radarpc.models.pillars import pillars_tiny
 def test_fftradnet():
     model = randomise_batchnorm_(fftradnet_tiny(), torch.Generator().manual_seed(1)).eval()
     fast = fast_inference(model, winograd_min_channels=8, compiled=False)
-    # the tiny head is thin: collapsing it would not save multiply-adds, so it stays as it is
-    assert isinstance(fast.pre_encoder, FourierStem) and isinstance(fast.detection_head, DetectionHead)
+    # the tiny model is small: the layers beat the Fourier stem, and collapsing its thin head would not
+    # save multiply-adds, so both stay as they are
+    assert not isinstance(fast.pre_encoder, FourierStem) and isinstance(fast.detection_head, DetectionHead)
     assert any(isinstance(m, ConvActivation) for m in fast.modules())
     x = torch.randn(1, 32, 128, 64, generator=torch.Generator().manual_seed(2))
     with torch.inference_mode():
@@ -55,3 +56,12 @@ def test_wide_heads_collapse_and_thin_ones_do_not():
     model = randomise_batchnorm_(fftradnet_tiny(decoder_channels=(8, 256), detection_widths=(144, 96)),
                                  torch.Generator().manual_seed(1)).eval()
     assert isinstance(fast_inference(model, compiled=False).detection_head, CollapsedDetectionHead)
+
+
+def test_full_size_fftradnet_takes_every_rewrite():
+    """Built, not run: the full model's stem and head are converted, the -s model's stem is not."""
+    assert stem_gmac(fftradnet()) == pytest.approx(512 * 256 * (192 * 32 * 12 + 192 * 192 * 9) / 1e9)
+    assert stem_gmac(fftradnet_s()) == pytest.approx(128 * 64 * (64 * 32 * 12 + 64 * 64 * 9) / 1e9)
+    fast = fast_inference(fftradnet().eval(), detections_only=True, compiled=False)
+    assert isinstance(fast.pre_encoder, FourierStem) and isinstance(fast.detection_head, CollapsedDetectionHead)
+    assert not isinstance(fast_inference(fftradnet_s().eval(), compiled=False).pre_encoder, FourierStem)

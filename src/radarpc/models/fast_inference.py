@@ -1,13 +1,14 @@
 """One call for a model's fastest exact CPU inference copy.
 
 Every step is an exact rewrite in real arithmetic (float32 results differ by rounding only; each
-module's tests bound it): BatchNorm folded into the convolutions, channels-last weights, FFTRadNet's
-pre-encoder, stem and first ReLU per Doppler frequency (:mod:`radarpc.models.fourier_stem`), the
-detection head's linear layers as one correlation where that at least halves the head's
-multiply-adds (:mod:`radarpc.models.collapsed_head`: the full-size heads, not the thin ``-s`` ones), wide
-3 x 3 layers as Winograd F(4x4, 3x3) (:mod:`radarpc.models.winograd`), and activations fused into
-the convolutions before them (:mod:`radarpc.models.fused_activation`). What each gives is measured
-in ``docs/results/detection.md``.
+module's tests bound it): BatchNorm folded into the convolutions, channels-last weights; FFTRadNet's
+pre-encoder, stem and first ReLU per Doppler frequency where those layers take at least 4 GMAC a
+frame (:mod:`radarpc.models.fourier_stem`: full RADIal cubes, not ``radial-s``); the detection
+head's linear layers as one correlation where that at least halves the head's multiply-adds
+(:mod:`radarpc.models.collapsed_head`: the full-size heads, not the thin ``-s`` ones); wide 3 x 3
+layers as Winograd F(4x4, 3x3) (:mod:`radarpc.models.winograd`); and activations fused into the
+convolutions before them (:mod:`radarpc.models.fused_activation`). What each gives is measured in
+``docs/results/detection.md``.
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ import torch.nn as nn
 from radarpc.models import fftradnet as fft
 from radarpc.models import pillars
 from radarpc.models.collapsed_head import collapse_mac_ratio, collapsed_head_for_inference
-from radarpc.models.fourier_stem import fourier_stem_for_inference
+from radarpc.models.fourier_stem import fourier_stem_for_inference, stem_gmac
 from radarpc.models.fused_activation import fuse_activations_for_inference
 from radarpc.models.winograd import winograd_for_inference
 
@@ -56,7 +57,7 @@ def fast_inference(model: nn.Module, *, detections_only: bool = False, winograd_
     m = m.to(memory_format=torch.channels_last)
     if detections_only:
         m.freespace_head = None
-    if isinstance(m, fft.FFTRadNet):
+    if isinstance(m, fft.FFTRadNet) and stem_gmac(m) >= 4:   # small maps: the layers are faster
         m = fourier_stem_for_inference(m, compiled=compiled)
     if collapse_mac_ratio(m.detection_head) <= 0.5:      # thin heads (the -s models) run faster as they are
         m = collapsed_head_for_inference(m, compiled=compiled)

@@ -44,7 +44,7 @@ import torch.nn.functional as F
 from radarpc.dsp.beamform import reduced_fp32_matmul
 from radarpc.models.fftradnet import FFTRadNet, MIMOPreEncoder, fuse_for_inference
 
-__all__ = ["doppler_shifts", "FourierStem", "fourier_stem_for_inference"]
+__all__ = ["doppler_shifts", "stem_gmac", "FourierStem", "fourier_stem_for_inference"]
 
 
 def doppler_shifts(pre_encoder: MIMOPreEncoder, n_doppler: int) -> list[int]:
@@ -214,6 +214,16 @@ class FourierStem(nn.Module):
                     y = torch.fft.irfft(torch.view_as_complex(y.view(-1, r1 - r0, k_out, 2)), n=n, dim=0)
                     epilogue(y, e0[i, r0:r1], e1[i, r0:r1], out[i, r0:r1])             # (rows, N, K)
         return out.permute(0, 3, 1, 2)                         # (B, K, R, N), channels-last
+
+
+def stem_gmac(model: FFTRadNet) -> float:
+    """GMAC a frame of ``model``'s pre-encoder and stem as layers, ``R N (O C T + K O 9)``: full
+    RADIal 53.5 (the Fourier stem computes it in 131 ms instead of 444 here), ``fftradnet-s`` 0.5
+    (there the transforms' and blocks' overheads make it slower than the layers, 29 ms against 27:
+    ``docs/results/detection.md``, "Exact rewrites")."""
+    cfg, conv = model.cfg, model.backbone.conv
+    o, c, _, t = model.pre_encoder.conv.weight.shape
+    return cfg.n_range * cfg.n_doppler * (o * c * t + conv.out_channels * o * 9) / 1e9
 
 
 def fourier_stem_for_inference(model: FFTRadNet, row_block: int = 64, compiled: bool = True) -> FFTRadNet:
