@@ -126,6 +126,8 @@ def test_bad_input_is_named():
         fast(torch.randn(1, 6, 8, 24))
     with pytest.raises(RuntimeError, match="inference only"):
         fast(torch.randn(1, 6, 13, 24, requires_grad=True))
+    with pytest.raises(ValueError, match="x is torch.float64 on cpu, the weights torch.float32"):
+        fast(torch.randn(1, 6, 13, 24, dtype=torch.float64))
     with pytest.raises(ValueError, match="fold the head's BatchNorms"):
         CollapsedDetectionHead(DetectionHead(6, 1, 2, (5, 7)))
     with pytest.raises(TypeError, match="not a DetectionHead"):

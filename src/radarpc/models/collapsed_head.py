@@ -182,6 +182,9 @@ class CollapsedDetectionHead(nn.Module):
         if x.ndim != 4 or x.shape[1] != c or w % s or h < edge or w < edge * s:
             raise ValueError(f"CollapsedDetectionHead: x must be (B, {c}, H >= {edge}, W) with W a multiple of "
                              f"{s} and >= {edge * s}, got {tuple(x.shape)}")
+        if x.dtype != self.taps.dtype or x.device != self.taps.device:
+            raise ValueError(f"CollapsedDetectionHead: x is {x.dtype} on {x.device}, the weights {self.taps.dtype} "
+                             f"on {self.taps.device}")
         if torch.is_grad_enabled() and x.requires_grad:
             raise RuntimeError("CollapsedDetectionHead is inference only (no backward): call it under "
                                "torch.no_grad() or torch.inference_mode()")
@@ -200,8 +203,8 @@ class CollapsedDetectionHead(nn.Module):
         # the outer rows and columns from the layers themselves, on strips (both edges in one batch)
         rows = self.layers(torch.cat([x[:, :, :edge], x[:, :, -edge:]]))           # (2B, 1 + n_reg, 9, W / S)
         out[:, :, :BORDER], out[:, :, -BORDER:] = rows[:b, :, :BORDER], rows[b:, :, -BORDER:]
-        cols = self.layers(torch.cat([x[..., :edge * s], x[..., -edge * s:]]))      # (2B, 1 + n_reg, H, 9)
-        out[..., :BORDER], out[..., -BORDER:] = cols[:b, ..., :BORDER], cols[b:, ..., -BORDER:]
+        sides = self.layers(torch.cat([x[..., :edge * s], x[..., -edge * s:]]))     # (2B, 1 + n_reg, H, 9)
+        out[..., :BORDER], out[..., -BORDER:] = sides[:b, ..., :BORDER], sides[b:, ..., -BORDER:]
         return out
 
 

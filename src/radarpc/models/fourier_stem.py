@@ -108,8 +108,9 @@ class FourierStem(nn.Module):
     row_block : int
         Range rows per inverse transform and epilogue pass (small blocks stay in cache).
     compiled : bool
-        Inductor-compile the gather of the GEMM's rows and the epilogue (fast; compiles on the
-        first call of each shape, with a C++ compiler on CPUs) instead of running them eagerly.
+        Inductor-compile the epilogue (ReLU, edge terms and the move to channels-last; fast,
+        compiles on the first call of each shape, with a C++ compiler on CPUs) instead of running
+        it eagerly.
 
     Notes
     -----
@@ -217,10 +218,9 @@ class FourierStem(nn.Module):
 
 
 def stem_gmac(model: FFTRadNet) -> float:
-    """GMAC a frame of ``model``'s pre-encoder and stem as layers, ``R N (O C T + K O 9)``: full
-    RADIal 53.5 (the Fourier stem computes it in 131 ms instead of 444 here), ``fftradnet-s`` 0.5
-    (there the transforms' and blocks' overheads make it slower than the layers, 29 ms against 27:
-    ``docs/results/detection.md``, "Exact rewrites")."""
+    """GMAC a frame of ``model``'s pre-encoder and stem as layers, ``R N (O C T + K O 9)``: 53.5 on
+    full RADIal cubes, where the Fourier stem is several times faster, 0.5 for ``fftradnet-s``,
+    where its transforms' overheads make it slower (``docs/results/detection.md``, "Exact rewrites")."""
     cfg, conv = model.cfg, model.backbone.conv
     o, c, _, t = model.pre_encoder.conv.weight.shape
     return cfg.n_range * cfg.n_doppler * (o * c * t + conv.out_channels * o * 9) / 1e9
