@@ -247,7 +247,8 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     if precision not in EVAL_PRECISIONS:
         raise ValueError(f"precision must be one of {EVAL_PRECISIONS}, got {precision!r}")
     if fast and precision != "fp32":
-        raise ValueError(f"fast inference is float32 only (its rewrites lose more than bf16 allows), got {precision!r}")
+        raise ValueError(f"fast inference is float32 only (the Winograd transforms and the products per frequency "
+                         f"need its precision), got {precision!r}")
     dev = torch.device(device) if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
     results = []
     for folder in run_folders(run):
