@@ -8,7 +8,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from radarpc.models.batchnorm import randomise_batchnorm_
-from radarpc.models.fftradnet import MIMOPreEncoder, fftradnet_tiny, fuse_for_inference
+from radarpc.models.fftradnet import MIMOPreEncoder, fftradnet_tiny
 from radarpc.models.fourier_stem import FourierStem, doppler_shifts, fourier_stem_for_inference
 from radarpc.models.winograd import WinogradConv2d, winograd_for_inference
 

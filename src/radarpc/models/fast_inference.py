@@ -30,7 +30,8 @@ def fast_inference(model: nn.Module, *, detections_only: bool = False, winograd_
     """A copy of ``model`` for inference on CPUs; ``model`` is unchanged.
 
     Device-agnostic by construction (the oneDNN fusions fall back to plain operators elsewhere), but
-    measured on CPUs only; on GPUs cuDNN already picks fast convolution algorithms itself.
+    measured on CPUs only; on GPUs cuDNN already picks fast convolution algorithms itself. Needs
+    torch >= 2.4 (the Winograd layer is a ``torch.library.custom_op``).
 
     Parameters
     ----------

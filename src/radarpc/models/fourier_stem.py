@@ -31,7 +31,6 @@ batched GEMM); :func:`fourier_stem_for_inference` puts it into a copy of a model
 """
 from __future__ import annotations
 
-import copy
 import functools
 import math
 
@@ -43,6 +42,7 @@ import torch.nn.functional as F
 
 from radarpc.dsp.beamform import reduced_fp32_matmul
 from radarpc.models.fftradnet import FFTRadNet, MIMOPreEncoder, fuse_for_inference
+from radarpc.models.winograd import many_graphs
 
 __all__ = ["doppler_shifts", "stem_gmac", "FourierStem", "fourier_stem_for_inference"]
 
@@ -206,7 +206,7 @@ class FourierStem(nn.Module):
         padded = _padded_spectra(x)                                                   # (F, B, R + 2, 2, C)
         e0, e1 = self._edges(x)
         out = x.new_empty(b, r, n, k_out)
-        with torch._dynamo.config.patch(recompile_limit=4096, accumulated_recompile_limit=65536):
+        with many_graphs():
             for i in range(b):
                 for r0 in range(0, r, self.row_block):
                     r1 = min(r, r0 + self.row_block)

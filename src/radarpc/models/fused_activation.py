@@ -23,6 +23,13 @@ from radarpc.models.winograd import WinogradConv2d
 __all__ = ["ConvActivation", "fuse_activations_for_inference"]
 
 
+def _cpu_autocast() -> bool:
+    try:
+        return torch.is_autocast_enabled("cpu")
+    except TypeError:                      # torch < 2.4 takes no device type
+        return torch.is_autocast_cpu_enabled()
+
+
 def _onednn_pointwise_available() -> bool:
     return (torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_convolution_pointwise")
             and hasattr(torch.ops.mkldnn, "_convolution_transpose_pointwise"))
@@ -54,7 +61,7 @@ class ConvActivation(nn.Module):
     def _fusable(self, x: torch.Tensor) -> bool:
         # under autocast the unfused layers run in the autocast dtype: so does this one then
         return (x.device.type == "cpu" and x.dtype == torch.float32 and x.ndim == 4
-                and not torch.is_autocast_enabled("cpu")
+                and not _cpu_autocast()
                 and self.conv.weight.dtype == torch.float32
                 and not (torch.is_grad_enabled() and (x.requires_grad or self.conv.weight.requires_grad))
                 and _onednn_pointwise_available())

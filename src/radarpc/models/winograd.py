@@ -116,6 +116,15 @@ def _output_transform(m: torch.Tensor, bias: torch.Tensor | None, out: torch.Ten
     out.copy_(y.clamp_min(0) if relu else y)
 
 
+def many_graphs():
+    """A context in which Dynamo keeps many graphs of one function (every layer shape and block
+    position is its own, more than its default 8); the setting's name changed in torch 2.6."""
+    cfg = torch._dynamo.config
+    if hasattr(cfg, "recompile_limit"):
+        return cfg.patch(recompile_limit=4096, accumulated_recompile_limit=65536)
+    return cfg.patch(cache_size_limit=4096, accumulated_cache_size_limit=65536)
+
+
 @functools.cache
 def _compiled_transforms():
     # static shapes: one graph per layer shape and block position (first, middle, last)
@@ -193,9 +202,7 @@ def _winograd_conv3x3_op(x: torch.Tensor, u: torch.Tensor, bias: torch.Tensor | 
         x = x.contiguous(memory_format=torch.channels_last)
     x_nhwc = x.permute(0, 2, 3, 1)                                            # (B, H, W, C)
     out = x.new_empty(b, h, w, k)
-    # every layer shape and block position is its own graph: more than Dynamo's default 8 a function
-    # (recompile_limit: torch >= 2.6)
-    with torch._dynamo.config.patch(recompile_limit=4096, accumulated_recompile_limit=65536):
+    with many_graphs():
         for r0 in range(0, n_rows, tile_rows):
             r1 = min(n_rows, r0 + tile_rows)
             top, bottom = max(TILE * r0 - 1, 0), min(TILE * r1 + 1, h)        # input rows of these tiles
