@@ -28,15 +28,14 @@ from __future__ import annotations
 
 import copy
 import functools
-import warnings
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from radarpc.dsp.beamform import reduced_fp32_matmul
 from radarpc.models.batchnorm import fold_batchnorm
 from radarpc.models.heads import DetectionHead
+from radarpc.models.winograd import warn_if_reduced_fp32
 
 __all__ = ["compose_convs", "collapse_mac_ratio", "CollapsedDetectionHead", "collapsed_head_for_inference"]
 
@@ -62,19 +61,30 @@ def compose_convs(convs: list[nn.Conv2d]) -> tuple[torch.Tensor, torch.Tensor, i
         azimuth strides: ``out = F.conv2d(x, kernel, bias, stride=(1, stride), padding=(pad_rows, pad_cols))``.
     """
     first = convs[0]
+    pad_cols, stride = _column_reach([c.stride[1] for c in convs])
     kernel = first.weight.detach().double()
     f64 = dict(dtype=torch.float64, device=kernel.device)
     bias = torch.zeros(first.out_channels, **f64) if first.bias is None else first.bias.detach().double()
-    stride, pad_cols = first.stride[1], 1
+    dilation = first.stride[1]
     for conv in convs[1:]:
         w = conv.weight.detach().double()                                    # (K, M, 3, 3)
         # K_BA[o, c] = sum_m B[o, m] (*) K_A[m, c], B's column taps `stride` input columns apart
-        kernel = F.conv_transpose2d(kernel.transpose(0, 1), w.transpose(0, 1), dilation=(1, stride)).transpose(0, 1)
+        kernel = F.conv_transpose2d(kernel.transpose(0, 1), w.transpose(0, 1), dilation=(1, dilation)).transpose(0, 1)
         b = torch.zeros(conv.out_channels, **f64) if conv.bias is None else conv.bias.detach().double()
         bias = b + torch.einsum("omij,m->o", w, bias)
-        pad_cols += stride
-        stride *= conv.stride[1]
+        dilation *= conv.stride[1]
     return kernel.contiguous(), bias, len(convs), pad_cols, stride
+
+
+def _column_reach(strides: list[int]) -> tuple[int, int]:
+    """``(P, S)`` of 3 x 3 layers with these azimuth strides in turn: the composed kernel reaches
+    ``P`` input columns to each side (each layer one column of its own input, the strides before it
+    apart), and strides ``S`` (their product)."""
+    reach, stride = 0, 1
+    for s in strides:
+        reach += stride
+        stride *= s
+    return reach, stride
 
 
 def collapse_mac_ratio(head: DetectionHead) -> float:
@@ -86,14 +96,14 @@ def collapse_mac_ratio(head: DetectionHead) -> float:
     ``-s`` models: about 1), and then the product and the strips only add overhead.
     """
     convs = [head.conv1, head.conv2, head.conv3, head.conv4]
-    total_stride = convs[0].stride[1] * convs[1].stride[1]
+    pad_cols, total_stride = _column_reach([c.stride[1] for c in convs] + [1])
     layered, stride = 0.0, 1
     for conv in convs:
         stride *= conv.stride[1]
         layered += conv.in_channels * conv.out_channels * 9 * total_stride / stride
     n_out = head.clshead.out_channels + head.reghead.out_channels
     layered += head.clshead.in_channels * n_out * 9
-    n_u, n_v = 11, 1 + 2 * (1 + convs[0].stride[1] + 3 * total_stride)
+    n_u, n_v = 1 + 2 * (len(convs) + 1), 1 + 2 * pad_cols
     return total_stride * head.conv1.in_channels * n_out * n_u * n_v / layered
 
 
@@ -188,11 +198,7 @@ class CollapsedDetectionHead(nn.Module):
         if torch.is_grad_enabled() and x.requires_grad:
             raise RuntimeError("CollapsedDetectionHead is inference only (no backward): call it under "
                                "torch.no_grad() or torch.inference_mode()")
-        if x.dtype == torch.float32 and reduced_fp32_matmul(x.device):
-            warnings.warn("CollapsedDetectionHead: float32 matmul precision is reduced (torch.set_float32_matmul_precision "
-                          "or a backend's fp32_precision); its product over the input channels then loses far more "
-                          "than the layers would: set torch.set_float32_matmul_precision('highest')", RuntimeWarning,
-                          stacklevel=2)
+        warn_if_reduced_fp32(x, "CollapsedDetectionHead", "its products over the input channels")
         cols = w // s
         n_u, n_v = self.kernel_size
         z = x.permute(0, 2, 3, 1).reshape(b * h * w, c) @ self.taps              # (B H W, U V K)

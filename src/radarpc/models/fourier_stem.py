@@ -34,15 +34,12 @@ from __future__ import annotations
 import functools
 import math
 
-import warnings
-
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from radarpc.dsp.beamform import reduced_fp32_matmul
 from radarpc.models.fftradnet import FFTRadNet, MIMOPreEncoder, fuse_for_inference
-from radarpc.models.winograd import many_graphs
+from radarpc.models.winograd import many_graphs, supports_winograd, warn_if_reduced_fp32
 
 __all__ = ["doppler_shifts", "stem_gmac", "FourierStem", "fourier_stem_for_inference"]
 
@@ -125,9 +122,7 @@ class FourierStem(nn.Module):
         if not isinstance(pre_encoder, MIMOPreEncoder) or not isinstance(pre_encoder.bn, nn.Identity):
             raise ValueError("FourierStem: needs a MIMOPreEncoder with its BatchNorm folded "
                              "(radarpc.models.fftradnet.fuse_for_inference)")
-        if (type(stem) is not nn.Conv2d or stem.kernel_size != (3, 3) or stem.stride != (1, 1)
-                or stem.padding != (1, 1) or stem.dilation != (1, 1) or stem.groups != 1
-                or stem.padding_mode != "zeros" or stem.in_channels != pre_encoder.conv.out_channels):
+        if not supports_winograd(stem) or stem.in_channels != pre_encoder.conv.out_channels:   # a plain 3 x 3 conv
             raise ValueError(f"FourierStem: the stem must be a 3 x 3, stride-1, padding-1 Conv2d with "
                              f"{pre_encoder.conv.out_channels} input channels, got {stem}")
         if n_doppler < 2 or row_block < 1:
@@ -191,10 +186,7 @@ class FourierStem(nn.Module):
         if torch.is_grad_enabled() and x.requires_grad:
             raise RuntimeError("FourierStem is inference only (no backward): call it under torch.no_grad() "
                                "or torch.inference_mode()")
-        if x.dtype == torch.float32 and reduced_fp32_matmul(x.device):
-            warnings.warn("FourierStem: float32 matmul precision is reduced (torch.set_float32_matmul_precision or a "
-                          "backend's fp32_precision); the products per frequency then lose far more than the direct "
-                          "layers would: set torch.set_float32_matmul_precision('highest')", RuntimeWarning, stacklevel=2)
+        warn_if_reduced_fp32(x, "FourierStem", "the products per frequency")
         b, _, r, n = x.shape
         k_out = self.out_channels
         epilogue = _compiled_epilogue() if self.compiled else _epilogue

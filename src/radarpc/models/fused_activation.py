@@ -12,6 +12,7 @@ knows are in its docstring): the pillar models' BEV backbone, FFTRadNet's bottle
 from __future__ import annotations
 
 import copy
+import functools
 
 import torch
 import torch.nn as nn
@@ -30,6 +31,7 @@ def _cpu_autocast() -> bool:
         return torch.is_autocast_cpu_enabled()
 
 
+@functools.cache
 def _onednn_pointwise_available() -> bool:
     return (torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_convolution_pointwise")
             and hasattr(torch.ops.mkldnn, "_convolution_transpose_pointwise"))

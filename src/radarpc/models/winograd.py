@@ -116,6 +116,16 @@ def _output_transform(m: torch.Tensor, bias: torch.Tensor | None, out: torch.Ten
     out.copy_(y.clamp_min(0) if relu else y)
 
 
+def warn_if_reduced_fp32(x: torch.Tensor, who: str, what: str) -> None:
+    """Warn (naming ``who`` and what loses precision, ``what``) when ``x`` is float32 and float32
+    matmuls on its device run at reduced precision (TF32, or bf16 through oneDNN): the inference
+    rewrites' products then lose far more than the layers they replace."""
+    if x.dtype == torch.float32 and reduced_fp32_matmul(x.device):
+        warnings.warn(f"{who}: float32 matmul precision is reduced (torch.set_float32_matmul_precision or a backend's "
+                      f"fp32_precision); {what} then lose far more than the direct layers would: set "
+                      f"torch.set_float32_matmul_precision('highest')", RuntimeWarning, stacklevel=3)
+
+
 def many_graphs():
     """A context in which Dynamo keeps many graphs of one function (every layer shape and block
     position is its own, more than its default 8); the setting's name changed in torch 2.6."""
@@ -180,11 +190,7 @@ def winograd_conv3x3(x: torch.Tensor, u: torch.Tensor, bias: torch.Tensor | None
                          f"got {tuple(bias.shape)} {bias.dtype} on {bias.device}")
     if tile_rows < 1:
         raise ValueError(f"winograd_conv3x3: tile_rows must be >= 1, got {tile_rows}")
-    if x.dtype == torch.float32 and reduced_fp32_matmul(x.device):
-        warnings.warn("winograd_conv3x3: float32 matmul precision is reduced (torch.set_float32_matmul_precision "
-                      "or a backend's fp32_precision); the transformed products then lose far more than a direct "
-                      "convolution would: set torch.set_float32_matmul_precision('highest')", RuntimeWarning,
-                      stacklevel=2)
+    warn_if_reduced_fp32(x, "winograd_conv3x3", "the transformed products")
     return torch.ops.radarpc.winograd_conv3x3(x, u, bias, tile_rows, compiled, relu)
 
 
