@@ -1,4 +1,5 @@
-"""Training-time augmentation of point frames: the mirror about the radar's boresight.
+"""Training-time augmentation of point frames: the mirror about the radar's boresight, and a
+rotation about the radar's vertical axis.
 
 A frame mirrored about the boresight (azimuth ``a -> -a``, lateral ``y -> -y``) is the frame a
 radar with the mirrored array would see of the mirrored scene: range, Doppler, elevation and
@@ -20,22 +21,49 @@ OpenPCDet's random world flip. What it changes, per :class:`~radarpc.data.point_
 
 :class:`MirroredFrames` applies it to each training frame with a given probability, decided by
 ``(seed, epoch, index)`` alone, so that a resumed run sees the same frames as an uninterrupted one.
+
+A frame rotated by ``delta`` about the vertical axis (azimuth ``a -> a + delta``) is the frame a
+radar mounted ``delta`` off the car's axis would see: the polar form of OpenPCDet's random world
+rotation, kept to a few degrees because traffic, roads and the ego motion fix a direction. What it
+changes (:func:`rotate_frame`):
+
+* points: ``azimuth_deg`` shifted, ``(x, y)`` rotated. Range, elevation, amplitude and Doppler stay:
+  the radial velocities are those of the same scene seen from a yawed mount (static clutter then
+  reads ``-v cos(a - delta)`` instead of ``-v cos a``, at most ``v sin|a| sin|delta|`` apart). The
+  ``sector`` descriptor, maxima of the angle spectrum over fixed azimuth sectors, would need the
+  spectrum itself to rotate; it is left as measured, and :class:`~radarpc.training.radial.ExperimentConfig`
+  refuses rotation for a model that reads it;
+* labels: ``radar_A_deg`` shifted, ``radar_X_m, radar_Y_m`` rotated, ``laser_X_m, laser_Y_m`` moved
+  with them (the LiDAR frame is the radar frame translated); range, Doppler, power and the camera
+  box stay;
+* freespace ``(256, 224)``: shifted by whole columns of the target (0.4 deg each,
+  :data:`FREESPACE_COLUMN_DEG`), so angles are multiples of a column; the columns it uncovers at
+  the edge repeat the edge column (at most ``max_deg / 0.4`` of them, at +-44.8 deg).
+
+:class:`RotatedFrames` draws an angle uniformly from the multiples of a column within
+``+-max_deg`` for each training frame, by ``(seed, epoch, index, stream)`` like the mirror.
 """
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import torch
 
 from radarpc.data.point_dataset import PointCloudDataset, PointFrame
-from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS
+from radarpc.data.radial_format import (FREESPACE_CROP, FREESPACE_FOV_DEG, FREESPACE_OUT, FREESPACE_SHAPE,
+                                        LABEL_TENSOR_COLUMNS)
 from radarpc.dsp.pointcloud import SpectralPointCloudConfig
 from radarpc.points import mirror_points
 
-__all__ = ["mirror_frame", "mirror_sectors", "MirroredFrames"]
+__all__ = ["mirror_frame", "mirror_sectors", "MirroredFrames", "rotate_frame", "RotatedFrames", "FREESPACE_COLUMN_DEG"]
 
 _NEGATED_LABEL_COLUMNS = [LABEL_TENSOR_COLUMNS.index(c) for c in ("radar_A_deg", "radar_Y_m", "laser_Y_m")]
+_COL = {c: LABEL_TENSOR_COLUMNS.index(c) for c in LABEL_TENSOR_COLUMNS}
+
+FREESPACE_COLUMN_DEG: float = FREESPACE_FOV_DEG / FREESPACE_SHAPE[1] * FREESPACE_CROP[1] / FREESPACE_OUT[1]
+"""Azimuth step of the ``(256, 224)`` freespace target: two 0.2-deg PNG columns, 0.4 deg."""
 
 
 def mirror_frame(frame: PointFrame, sectors: tuple[int, int] | None = None) -> PointFrame:
@@ -138,3 +166,108 @@ class MirroredFrames(torch.utils.data.Dataset):
     def __repr__(self) -> str:
         return (f"MirroredFrames({self.frames!r}, probability={self.probability}, seed={self.seed}"
                 + (f", stream={self.stream})" if self.stream else ")"))
+
+
+def rotate_frame(frame: PointFrame, angle_deg: float) -> PointFrame:
+    """``frame`` rotated by ``angle_deg`` about the radar's vertical axis, azimuth growing to the
+    left (module docstring): its points, labels and freespace.
+
+    Parameters
+    ----------
+    frame : PointFrame
+    angle_deg : float
+        A multiple of :data:`FREESPACE_COLUMN_DEG` (0.4 deg), so that the freespace target moves by
+        whole columns.
+
+    Returns
+    -------
+    PointFrame
+        New tensors; ``frame`` is not modified. The points' ``sector`` descriptor is the measured one.
+
+    Raises
+    ------
+    ValueError
+        ``angle_deg`` is not a multiple of a freespace column.
+    """
+    k = round(angle_deg / FREESPACE_COLUMN_DEG)
+    if not np.isfinite(angle_deg) or abs(angle_deg - k * FREESPACE_COLUMN_DEG) > 1e-9:
+        raise ValueError(f"rotation angle must be a multiple of the freespace column, {FREESPACE_COLUMN_DEG} deg, "
+                         f"got {angle_deg}")
+    delta = math.radians(k * FREESPACE_COLUMN_DEG)
+    c, s = math.cos(delta), math.sin(delta)
+
+    def rotate(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        # (x forward, y left): x' = r cos(a + delta), y' = r sin(a + delta)
+        x64, y64 = x.double(), y.double()
+        return (c * x64 - s * y64).to(x.dtype), (s * x64 + c * y64).to(y.dtype)
+
+    p = frame.points
+    px, py = rotate(p.x, p.y)
+    points = dataclasses.replace(p, azimuth_deg=(p.azimuth_deg.double() + k * FREESPACE_COLUMN_DEG).to(p.azimuth_deg.dtype),
+                                 x=px, y=py)
+
+    labels = frame.labels.clone()                                                   # (n, 14)
+    rx, ry = labels[:, _COL["radar_X_m"]], labels[:, _COL["radar_Y_m"]]
+    lx = labels[:, _COL["laser_X_m"]] - rx                                         # LiDAR frame offset
+    ly = labels[:, _COL["laser_Y_m"]] - ry
+    rx, ry = rotate(rx, ry)
+    labels[:, _COL["radar_X_m"]], labels[:, _COL["radar_Y_m"]] = rx, ry
+    labels[:, _COL["laser_X_m"]], labels[:, _COL["laser_Y_m"]] = rx + lx, ry + ly
+    labels[:, _COL["radar_A_deg"]] = (labels[:, _COL["radar_A_deg"]].double() + k * FREESPACE_COLUMN_DEG).to(labels.dtype)
+
+    width = frame.freespace.shape[-1]
+    source = (torch.arange(width, device=frame.freespace.device) - k).clamp(0, width - 1)   # new[j] = old[j - k]
+    return dataclasses.replace(frame, points=points, labels=labels, freespace=frame.freespace[..., source])
+
+
+class RotatedFrames(torch.utils.data.Dataset):
+    """A dataset of point frames (a :class:`~radarpc.data.point_dataset.PointCloudDataset`, or a
+    wrapper of one) whose items are rotated at random (:func:`rotate_frame`).
+
+    Item ``i`` of epoch ``e`` is rotated by ``k`` freespace columns (0.4 deg each), ``k`` drawn
+    uniformly from the integers with ``|k| 0.4 <= max_deg`` by a generator seeded with
+    ``(seed, e, i, stream, 1)``, so its draws are independent of :class:`MirroredFrames`' under the
+    same seed. :meth:`set_epoch` reaches a wrapped dataset too.
+
+    Parameters
+    ----------
+    frames : Dataset of PointFrame
+    max_deg : float >= 0
+    seed : int
+    stream : int >= 0
+        Independent draws for several datasets under one seed (their position in a concatenation).
+    """
+
+    def __init__(self, frames, max_deg: float, seed: int, stream: int = 0) -> None:
+        if not (np.isfinite(max_deg) and max_deg >= 0):
+            raise ValueError(f"rotation max_deg must be a finite angle >= 0, got {max_deg}")
+        if stream < 0:
+            raise ValueError(f"stream must be >= 0, got {stream}")
+        self.frames = frames
+        self.max_deg = float(max_deg)
+        self.max_columns = int(math.floor(self.max_deg / FREESPACE_COLUMN_DEG + 1e-9))
+        self.seed = int(seed)
+        self.stream = int(stream)
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        """Draw the rotations of epoch ``epoch`` from now on."""
+        self.epoch = int(epoch)
+        if hasattr(self.frames, "set_epoch"):
+            self.frames.set_epoch(epoch)
+
+    def angle_deg(self, i: int) -> float:
+        """The rotation of item ``i`` in the current epoch (deg)."""
+        rng = np.random.default_rng([self.seed, self.epoch, int(i) % len(self), self.stream, 1])
+        return float(rng.integers(-self.max_columns, self.max_columns, endpoint=True)) * FREESPACE_COLUMN_DEG
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, i: int) -> PointFrame:
+        frame = self.frames[i]
+        angle = self.angle_deg(i)
+        return rotate_frame(frame, angle) if angle != 0.0 else frame
+
+    def __repr__(self) -> str:
+        return f"RotatedFrames({self.frames!r}, max_deg={self.max_deg}, seed={self.seed}, stream={self.stream})"

@@ -13,6 +13,7 @@ RADIal's metrics (:mod:`radarpc.eval.detection`).
 """
 from __future__ import annotations
 
+import math
 import os
 import warnings
 from dataclasses import dataclass, field
@@ -22,7 +23,7 @@ from typing import Iterable, Sequence
 import torch
 from torch import nn
 
-from radarpc.data.augment import MirroredFrames
+from radarpc.data.augment import MirroredFrames, RotatedFrames
 from radarpc.data.point_dataset import PointCloudDataset, PointFrameBatch, collate_point_frames
 from radarpc.data.radial import RADIal
 from radarpc.eval.detection import DetectionMetrics, FreespaceMetrics
@@ -68,6 +69,11 @@ class ExperimentConfig:
         Share of training frames mirrored about the boresight (:mod:`radarpc.data.augment`), drawn
         per frame and epoch; point inputs only (mirroring an RD cube would need the array's
         geometry). 0 (default) trains on the frames as they are.
+    rotation_max_deg : float >= 0
+        Training frames rotated about the radar's vertical axis by an angle drawn per frame and
+        epoch from the multiples of 0.4 deg within +-``rotation_max_deg``
+        (:class:`~radarpc.data.augment.RotatedFrames`); point inputs only, and not with the
+        ``sector`` feature, which would need the angle spectrum itself rotated. 0 (default): none.
     targets, loss, train :
         RADIal's encoding, the loss weights and the optimisation.
     """
@@ -78,6 +84,7 @@ class ExperimentConfig:
     difficult: bool = True
     statistics_frames: int = 256
     mirror_probability: float = 0.0
+    rotation_max_deg: float = 0.0
     targets: TargetConfig = field(default_factory=TargetConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
@@ -92,6 +99,15 @@ class ExperimentConfig:
         if self.mirror_probability > 0 and self.fftradnet is not None:
             raise ValueError(f"experiment {self.name!r}: mirror_probability applies to point inputs only "
                              f"(mirroring an RD cube would need the array's geometry); set it to 0")
+        if not (math.isfinite(self.rotation_max_deg) and self.rotation_max_deg >= 0):
+            raise ValueError(f"rotation_max_deg must be a finite angle >= 0, got {self.rotation_max_deg}")
+        if self.rotation_max_deg > 0 and self.fftradnet is not None:
+            raise ValueError(f"experiment {self.name!r}: rotation_max_deg applies to point inputs only "
+                             f"(rotating an RD cube would need the array's geometry); set it to 0")
+        if self.rotation_max_deg > 0 and "sector" in self.pillars.features:
+            raise ValueError(f"experiment {self.name!r}: rotation_max_deg cannot rotate the 'sector' feature "
+                             f"(maxima of the angle spectrum over fixed sectors); drop the feature or set "
+                             f"rotation_max_deg to 0")
 
     @property
     def input_kind(self) -> str:
@@ -199,7 +215,7 @@ def _root_dataset(cfg: ExperimentConfig, data: Path, points: Path | None, split:
 
 def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths | None = None,
                       split: str = "train", *,
-                      mirror_seed: int | None = None):
+                      augment_seed: int | None = None):
     """The dataset of ``split`` for ``cfg``'s input: RD cubes of ``data``, or the point store
     ``points`` joined with ``data``'s labels.
 
@@ -212,9 +228,10 @@ def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths 
     points : path-like or sequence of path-like, optional
         The point store of each root (pillar models); ignored by FFTRadNet.
     split : {"train", "val", "test", "all"}
-    mirror_seed : int, optional
-        Mirror ``cfg.mirror_probability`` of the items at random (:class:`MirroredFrames`), drawn
-        from this seed (and the root's position, so roots draw independently).
+    augment_seed : int, optional
+        Mirror ``cfg.mirror_probability`` of the items (:class:`MirroredFrames`) and rotate them by up
+        to ``cfg.rotation_max_deg`` (:class:`RotatedFrames`) at random, drawn from this seed (and the
+        root's position, so roots draw independently). None: the frames as they are.
 
     Raises
     ------
@@ -231,8 +248,10 @@ def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths 
                              f"enrichments {list(ds.store.metadata.enrich)}, {parts[0].store.path} has "
                              f"{list(parts[0].store.metadata.enrich)}")
         parts.append(ds)
-    if mirror_seed is not None and cfg.mirror_probability > 0:
-        parts = [MirroredFrames(ds, cfg.mirror_probability, mirror_seed, stream=k) for k, ds in enumerate(parts)]
+    if augment_seed is not None and cfg.mirror_probability > 0:
+        parts = [MirroredFrames(ds, cfg.mirror_probability, augment_seed, stream=k) for k, ds in enumerate(parts)]
+    if augment_seed is not None and cfg.rotation_max_deg > 0:
+        parts = [RotatedFrames(ds, cfg.rotation_max_deg, augment_seed, stream=k) for k, ds in enumerate(parts)]
     return parts[0] if len(parts) == 1 else ConcatFrames(parts)
 
 
@@ -240,7 +259,7 @@ def point_datasets(ds) -> list[PointCloudDataset]:
     """The point datasets inside ``ds`` (a dataset of :func:`detection_dataset`), in order; [] for RD cubes."""
     if isinstance(ds, PointCloudDataset):
         return [ds]
-    if isinstance(ds, MirroredFrames):
+    if isinstance(ds, (MirroredFrames, RotatedFrames)):
         return point_datasets(ds.frames)
     if isinstance(ds, ConcatFrames):
         return [p for d in ds.datasets for p in point_datasets(d)]
@@ -319,7 +338,7 @@ class RadialDetectionTask:
     def __init__(self, cfg: ExperimentConfig, data: DataPaths, points: DataPaths | None = None,
                  splits: tuple[str, str] = ("train", "val"), *, preload: bool = True) -> None:
         self.cfg = cfg
-        self.train_set = detection_dataset(cfg, data, points, splits[0], mirror_seed=cfg.train.seed)
+        self.train_set = detection_dataset(cfg, data, points, splits[0], augment_seed=cfg.train.seed)
         self.val_set = detection_dataset(cfg, data, points, splits[1])
         self.preloaded_bytes = preload_point_frames([self.train_set, self.val_set]) if preload else 0
 
