@@ -1,5 +1,5 @@
-"""The boresight mirror of point frames: what it changes, against independent computations, and
-the per-(seed, epoch, item) draws of MirroredFrames."""
+"""The boresight mirror and the rotation of point frames: what they change, against independent
+computations, and the per-(seed, epoch, item) draws of MirroredFrames and RotatedFrames."""
 from __future__ import annotations
 
 import dataclasses
@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from radarpc.data.augment import MirroredFrames, mirror_frame
+from radarpc.data.augment import FREESPACE_COLUMN_DEG, MirroredFrames, RotatedFrames, mirror_frame, rotate_frame
 from radarpc.data.point_dataset import PointCloudDataset
 from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS
 from radarpc.dsp.beamform import sector_pool
 from radarpc.models.fftradnet import fftradnet_tiny
+from radarpc.models.pillars import pillars_tiny
 from radarpc.models.targets import TargetConfig, encode_targets
 from radarpc.pipelines.pointclouds import convert_dataset
 from radarpc.sensors.radial import TINY
@@ -156,3 +157,127 @@ def test_an_asymmetric_azimuth_table_is_refused(frames, tmp_path):
                                                    "(61 azimuths, -58.000 .. 62.000 deg)")):
         MirroredFrames(shifted, 0.5, seed=0)
     MirroredFrames(frames, 0.5, seed=0)                                      # the simulator's table passes
+
+
+# ---------------------------------------------------------------------------------------------
+# rotation about the vertical axis
+# ---------------------------------------------------------------------------------------------
+
+EPS32 = 2.0 ** -24                                                   # float32 unit roundoff
+
+
+@pytest.mark.parametrize("k", [3, -5])
+def test_rotation_turns_positions_and_keeps_the_rest(frames, k):
+    # independent computation: the rotated points and labels keep their distance from the radar
+    # and their polar angle grows by delta (atan2 of the rotated x, y); each value is one float64
+    # computation rounded to float32, so a few unit roundoffs bound every difference
+    delta = k * FREESPACE_COLUMN_DEG
+    seen_points = seen_labels = 0
+    for f in (frames[i] for i in range(len(frames))):
+        g = rotate_frame(f, delta)
+        p, q = f.points, g.points
+        assert torch.allclose(q.azimuth_deg.double(), p.azimuth_deg.double() + delta,
+                              rtol=0, atol=2 * EPS32 * (p.azimuth_deg.abs().max().item() + abs(delta)))
+        rho_p, rho_q = torch.hypot(p.x.double(), p.y.double()), torch.hypot(q.x.double(), q.y.double())
+        assert torch.allclose(rho_q, rho_p, rtol=4 * EPS32, atol=0)
+        far = rho_p > 1e-3
+        turned = torch.atan2(q.y.double(), q.x.double()) - torch.atan2(p.y.double(), p.x.double())
+        turned = torch.remainder(turned[far] + np.pi, 2 * np.pi) - np.pi
+        assert torch.allclose(turned, torch.full_like(turned, np.deg2rad(delta)), rtol=0, atol=8 * EPS32)
+        for name in ("range_m", "elevation_deg", "velocity_mps", "amplitude", "snr", "z", "range_bin",
+                     "doppler_bin", "doppler_full", "offset", "sector", "is_neighbour"):
+            assert torch.equal(getattr(q, name), getattr(p, name)), name
+        # labels: the box point (R sin A, R cos A) and the radar X, Y turn by delta, the LiDAR
+        # point keeps its offset from the radar point, everything else stays
+        L, M = f.labels.double(), g.labels.double()
+        assert torch.allclose(M[:, COL["radar_A_deg"]], L[:, COL["radar_A_deg"]] + delta, rtol=0, atol=2 * EPS32 * 100)
+        xy = lambda T, a, b: (T[:, COL[a]], T[:, COL[b]])
+        for x_col, y_col in (("radar_X_m", "radar_Y_m"), ("laser_X_m", "laser_Y_m")):
+            (x0, y0), (x1, y1) = xy(L, x_col, y_col), xy(M, x_col, y_col)
+            if x_col == "radar_X_m":
+                assert torch.allclose(torch.hypot(x1, y1), torch.hypot(x0, y0), rtol=4 * EPS32, atol=0)
+                assert torch.allclose(torch.atan2(y1, x1) - torch.atan2(y0, x0),
+                                      torch.full_like(x0, np.deg2rad(delta)), rtol=0, atol=8 * EPS32)
+        off0 = torch.stack(xy(L, "laser_X_m", "laser_Y_m"), 1) - torch.stack(xy(L, "radar_X_m", "radar_Y_m"), 1)
+        off1 = torch.stack(xy(M, "laser_X_m", "laser_Y_m"), 1) - torch.stack(xy(M, "radar_X_m", "radar_Y_m"), 1)
+        assert torch.allclose(off1, off0, rtol=0, atol=16 * EPS32 * 110)        # |coordinates| < 110 m
+        kept = [c for c in COL if c not in ("radar_A_deg", "radar_X_m", "radar_Y_m", "laser_X_m", "laser_Y_m")]
+        assert all(torch.equal(g.labels[:, COL[c]], f.labels[:, COL[c]]) for c in kept)
+        # freespace: column j of the rotated map is column j - k of the original, the uncovered
+        # edge columns repeat the edge
+        w = f.freespace.shape[-1]
+        for j in range(w):
+            assert torch.equal(g.freespace[:, j], f.freespace[:, min(max(j - k, 0), w - 1)]), j
+        back = rotate_frame(g, -delta)
+        assert torch.allclose(back.labels, f.labels, rtol=8 * EPS32, atol=8 * EPS32 * 110)
+        seen_points += int(far.sum())
+        seen_labels += len(f.labels)
+    assert seen_points > 0 and seen_labels > 0                                  # the checks ran on data
+
+
+def test_rotated_labels_encode_to_the_shifted_target_map(frames):
+    # a rotation by two target columns (2 x 0.8 deg = 4 freespace columns) moves each label's
+    # probability patch two cells towards larger azimuth and keeps its offsets: the sign of the
+    # labels' azimuth agrees with the map's column order, as the freespace shift assumes
+    cfg = TargetConfig()
+    g = torch.Generator().manual_seed(2)
+    labels = torch.zeros(6, len(LABEL_TENSOR_COLUMNS))
+    labels[:, COL["radar_R_m"]] = 5 + 90 * torch.rand(6, generator=g)
+    cell = torch.randint(8, 200, (6,), generator=g)                       # well inside the 224 columns
+    labels[:, COL["radar_A_deg"]] = (cell - 112 + 0.1 + 0.8 * torch.rand(6, generator=g)) * cfg.azimuth_cell_deg
+    frame = dataclasses.replace(frames[0], labels=labels)
+    n = round(2 * cfg.azimuth_cell_deg / FREESPACE_COLUMN_DEG)
+    a = encode_targets(labels, cfg)
+    b = encode_targets(rotate_frame(frame, n * FREESPACE_COLUMN_DEG).labels, cfg)
+    assert a[0].sum() == 6 * 9 and torch.equal(b[0][:, 2:], a[0][:, :-2]) and b[0][:, :2].sum() == 0
+    # the offsets differ by the rounding of the shifted azimuth (|A| < 90 deg) over reg_std
+    tol = 4 * EPS32 * 90 / min(cfg.reg_std)
+    assert torch.allclose(b[1:, :, 2:], a[1:, :, :-2], rtol=0, atol=tol)
+
+
+def test_rotation_draws_depend_on_seed_epoch_item_and_stream(frames):
+    aug = RotatedFrames(frames, 2.0, seed=7)
+    assert aug.max_columns == 5
+    draws = []
+    for epoch in range(300):
+        aug.set_epoch(epoch)
+        draws.append([aug.angle_deg(i) for i in range(len(frames))])
+    cols = np.rint(np.array(draws) / FREESPACE_COLUMN_DEG).astype(int)
+    counts = np.bincount(cols.ravel() + 5, minlength=11)
+    n = cols.size                                                              # 11 equally likely values
+    assert counts.size == 11 and np.all(np.abs(counts - n / 11) < 5 * np.sqrt(n / 11 * (10 / 11)))
+    # the documented generator: numpy's seeded by (seed, epoch, item, stream, 1)
+    assert cols[3].tolist() == [int(np.random.default_rng([7, 3, i, 0, 1]).integers(-5, 5, endpoint=True))
+                                for i in range(len(frames))]
+    # another stream agrees with stream 0 about as often as independent draws do (1 in 11)
+    one = RotatedFrames(frames, 2.0, seed=7, stream=1)
+    agree = []
+    for epoch in range(300):
+        one.set_epoch(epoch)
+        agree += [one.angle_deg(i) == draws[epoch][i] for i in range(len(frames))]
+    assert abs(np.mean(agree) - 1 / 11) < 5 * np.sqrt((1 / 11) * (10 / 11) / len(agree))
+    assert RotatedFrames(frames, 0.39, seed=7).max_columns == 0
+    assert RotatedFrames(frames, 0.4, seed=7).max_columns == 1
+    # items are rotated as drawn; the epoch reaches a wrapped mirror too
+    both = RotatedFrames(MirroredFrames(frames, 0.5, seed=7), 2.0, seed=7)
+    both.set_epoch(4)
+    assert both.frames.epoch == 4
+    for i in range(len(frames)):
+        want = rotate_frame(both.frames[i], both.angle_deg(i))
+        got = both[i]
+        assert torch.equal(got.points.azimuth_deg, want.points.azimuth_deg) and torch.equal(got.labels, want.labels)
+
+
+def test_rotation_bad_input(frames):
+    with pytest.raises(ValueError, match="multiple of the freespace column, 0.4 deg, got 0.3"):
+        rotate_frame(frames[0], 0.3)
+    with pytest.raises(ValueError, match="rotation max_deg must be a finite angle >= 0, got -1.0"):
+        RotatedFrames(frames, -1.0, seed=0)
+    with pytest.raises(ValueError, match="stream must be >= 0, got -2"):
+        RotatedFrames(frames, 1.0, seed=0, stream=-2)
+    with pytest.raises(ValueError, match="rotation_max_deg applies to point inputs only"):
+        ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, rotation_max_deg=2.0)
+    with pytest.raises(ValueError, match="rotation_max_deg must be a finite angle >= 0, got nan"):
+        ExperimentConfig(name="x", pillars=pillars_tiny().cfg, rotation_max_deg=float("nan"))
+    with pytest.raises(ValueError, match="cannot rotate the 'sector' feature"):
+        ExperimentConfig(name="x", pillars=pillars_tiny(features=("r", "a", "sector")).cfg, rotation_max_deg=2.0)

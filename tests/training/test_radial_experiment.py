@@ -152,12 +152,13 @@ class _Kill(Exception):
     """Raised from ``on_step`` to stop a run where a kill would."""
 
 
-def test_mirrored_run_resumes_to_the_same_weights(root, store, tmp_path):
-    # the mirrors are drawn in the loader's worker processes from (seed, epoch, item): a run killed
-    # in its second epoch and resumed ends with the weights of an uninterrupted one, and the
-    # mirrors reach the model (the weights differ from an unmirrored run)
+def test_augmented_run_resumes_to_the_same_weights(root, store, tmp_path):
+    # the mirrors and rotations are drawn in the loader's worker processes from (seed, epoch,
+    # item): a run killed in its second epoch and resumed ends with the weights of an uninterrupted
+    # one, and each augmentation reaches the model (the weights differ without it)
     train = dataclasses.replace(TINY_TRAIN, epochs=2, batch_size=4, num_workers=2)
-    cfg = ExperimentConfig(name="sp-mirror", pillars=pillars_tiny().cfg, mirror_probability=0.5, train=train)
+    cfg = ExperimentConfig(name="sp-aug", pillars=pillars_tiny().cfg, mirror_probability=0.5, rotation_max_deg=2.0,
+                           train=train)
 
     def run(c: ExperimentConfig, out: Path, **kw):
         return fit(RadialDetectionTask(c, root, store, splits=("all", "test")), c.train, out, {"name": c.name},
@@ -171,10 +172,13 @@ def test_mirrored_run_resumes_to_the_same_weights(root, store, tmp_path):
     with pytest.raises(_Kill):
         run(cfg, tmp_path / "cut", on_step=stop)
     run(cfg, tmp_path / "cut")
-    run(dataclasses.replace(cfg, mirror_probability=0.0), tmp_path / "plain")
-    full, cut, plain = (load_state(tmp_path / d / LAST_CHECKPOINT).model for d in ("full", "cut", "plain"))
+    run(dataclasses.replace(cfg, rotation_max_deg=0.0), tmp_path / "mirror")
+    run(dataclasses.replace(cfg, mirror_probability=0.0, rotation_max_deg=0.0), tmp_path / "plain")
+    full, cut, mirror, plain = (load_state(tmp_path / d / LAST_CHECKPOINT).model
+                                for d in ("full", "cut", "mirror", "plain"))
     assert all(torch.equal(full[k], cut[k]) for k in full)
-    assert not all(torch.equal(full[k], plain[k]) for k in full)
+    assert not all(torch.equal(full[k], mirror[k]) for k in full)
+    assert not all(torch.equal(mirror[k], plain[k]) for k in full)
 
 
 def test_each_of_several_runs_draws_its_mirrors_from_its_seed(root, store, tmp_path, monkeypatch):

@@ -190,7 +190,7 @@ def data_pairs(data: DataPaths, points: DataPaths | None = None) -> list[tuple[P
 
 class ConcatFrames(torch.utils.data.ConcatDataset):
     """The frames of several roots, one after another (``torch.utils.data.ConcatDataset``) that
-    passes :meth:`set_epoch` on to the datasets that draw per epoch (mirroring)."""
+    passes :meth:`set_epoch` on to the datasets that draw per epoch (mirroring, rotation)."""
 
     def set_epoch(self, epoch: int) -> None:
         for ds in self.datasets:
