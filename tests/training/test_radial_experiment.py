@@ -244,6 +244,43 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     assert (out / "eval_test.json").read_text() == fp32_doc                      # fp32 files untouched
     with pytest.raises(SystemExit):
         main(["evaluate", str(out), "--precision", "fp16"])
+    # RADIal's easy mode, on a copy of the root whose labels.csv marks the vehicles beyond 50 m and
+    # every vehicle of the first test frame Difficult: those labels out, that frame out, the
+    # others in; counted here from the edited rows
+    import csv
+    import shutil
+
+    from radarpc.data.radial import RADIal
+
+    hard = tmp_path / "hard"
+    shutil.copytree(root, hard)
+    test = RADIal(root, split="test")
+    first = test.frame_ids[0]
+    with open(root / "labels.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    for r in rows:
+        if float(r["radar_R_m"]) > 50 or int(r["numSample"]) == first:
+            r["Difficult"] = "1" if int(r["Difficult"]) >= 0 else r["Difficult"]
+    with open(hard / "labels.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    tested = [r for r in rows if int(r["numSample"]) in set(test.frame_ids) and int(r["Difficult"]) >= 0
+              and 5 <= float(r["radar_R_m"]) <= 100]
+    assert sum(r["Difficult"] == "1" for r in tested) > 0
+    hard_store = tmp_path / "hard.parquet"                       # a store names the root it was made from
+    convert_dataset(hard, hard_store, density=0.057, enrich=("sector32",), progress=False)
+    assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--data", str(hard), "--points",
+                 str(hard_store), "--easy"]) == 0
+    easy = json.loads((out / "eval_test_on_hard_easy.json").read_text())
+    assert easy["easy"] is True and doc["easy"] is False
+    assert easy["metrics"]["n_labels"] == sum(r["Difficult"] == "0" for r in tested) < len(tested)
+    assert easy["metrics"]["n_frames"] == 3
+    assert "RADIal's easy mode" in (out / "eval_test_on_hard_easy.md").read_text().splitlines()[0]
+    assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--data", str(hard), "--points",
+                 str(hard_store)]) == 0                                   # without --easy: every label
+    every = json.loads((out / "eval_test_on_hard.json").read_text())
+    assert every["metrics"]["n_labels"] == len(tested) and every["metrics"]["n_frames"] == 4
     # averaged over each frame and its mirror image: its own files, scored through MirrorAveraged
     from radarpc.models.mirror import MirrorAveraged
 

@@ -165,13 +165,16 @@ class EvalResult:
     """Scored with :class:`~radarpc.models.mirror.MirrorAveraged` (the frame and its mirror image)."""
     fast: bool = False
     """Scored and timed with :func:`~radarpc.models.fast_inference.fast_inference`'s copy of the model."""
+    easy: bool = False
+    """Scored in RADIal's easy mode: ``Difficult`` labels dropped (:func:`evaluate_run`)."""
 
     @property
     def stem(self) -> str:
         """The name of the written files: ``eval_{split}``, then ``_on_{scored_on}`` for data not
-        the run's own, ``_mirror`` when mirror-averaged, ``_fast`` for the fast inference copy and
-        ``_{precision}`` unless fp32."""
+        the run's own, ``_easy`` in RADIal's easy mode, ``_mirror`` when mirror-averaged, ``_fast``
+        for the fast inference copy and ``_{precision}`` unless fp32."""
         return (f"eval_{self.split}" + (f"_on_{self.scored_on}" if self.scored_on else "")
+                + ("_easy" if self.easy else "")
                 + ("_mirror" if self.mirror_average else "") + ("_fast" if self.fast else "")
                 + ("" if self.precision == "fp32" else f"_{self.precision}"))
 
@@ -229,7 +232,8 @@ def _fps(model: torch.nn.Module, batches: list[DetectionBatch], device: torch.de
 def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths | None = None,
                  points: DataPaths | None = None, device: str | None = None, show: int = 0,
                  fps_frames: int = 20, batch_size: int = 4, precision: str = "fp32", mirror_average: bool = False,
-                 fast: bool = False, progress: bool = True, log: Callable[[str], None] = print) -> list[EvalResult]:
+                 fast: bool = False, easy: bool = False, progress: bool = True,
+                 log: Callable[[str], None] = print) -> list[EvalResult]:
     """Score the best weights of every run in ``run`` on ``split`` (see the module docstring).
 
     ``data`` / ``points`` override the roots and stores stored with the run (a moved dataset, or
@@ -241,6 +245,11 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     two forward passes a frame) into ``eval_{split}[_on_...]_mirror.*``. ``fast`` scores and times
     :func:`~radarpc.models.fast_inference.fast_inference`'s copy of the model (exact rewrites; fp32
     only; its first passes compile kernels, before the timing) into ``eval_{split}[...]_fast.*``.
+    ``easy`` scores RADIal's easy mode, what its ``2-Test.py`` and ``3-Evaluation.py`` score unless
+    given ``--difficult``: label rows with ``Difficult == 1`` dropped, and the frames all of whose
+    vehicles are difficult (:class:`~radarpc.data.radial.RADIal` with ``difficult=False``), into
+    ``eval_{split}[...]_easy.*``. Frames without vehicles stay in (RADIal's loader drops them with
+    its easy rows), so their false alarms still count. Without it every label is scored.
     """
     from radarpc.viz import plot_detection_frame, plot_learning_curves
 
@@ -265,7 +274,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
             model = fast_inference(model)
         roots = data or key["data"]
         stores = (points or key.get("points")) if cfg.input_kind == "points" else None
-        ds = detection_dataset(cfg, roots, stores, split)
+        ds = detection_dataset(dataclasses.replace(cfg, difficult=False) if easy else cfg, roots, stores, split)
         if mirror_average:
             model = MirrorAveraged(model, cfg.targets, sectors=mirror_sectors_of(ds))
         scored = _resolved(data_pairs(roots, stores))
@@ -286,7 +295,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
         res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision,
                          data=tuple(str(r) for r, _ in scored),
                          points=None if stores is None else tuple(str(p) for _, p in scored),
-                         scored_on=_scored_on(scored, own), mirror_average=mirror_average, fast=fast)
+                         scored_on=_scored_on(scored, own), mirror_average=mirror_average, fast=fast, easy=easy)
         _write_eval(folder, res, cfg.name)
         if (folder / LOG_CSV).is_file():
             plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
@@ -398,13 +407,14 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
     doc = {"split": res.split, "data": list(res.data), "points": list(res.points) if res.points else None,
            "metrics": m, "parameters": res.parameters, "fps_batch1": res.fps,
            "device": res.device, "threads": res.threads, "precision": res.precision,
-           "mirror_average": res.mirror_average, "fast": res.fast}
+           "mirror_average": res.mirror_average, "fast": res.fast, "easy": res.easy}
     with atomic_write(folder / f"{res.stem}.json", "w") as f:
         json.dump(doc, f, indent=2)
     thr = ", ".join(f"{t:.1f}" for t in m["thresholds"])
     lines = [
         f"# {name}: {res.split} split ({m['n_frames']} frames)"
         + ("" if res.precision == "fp32" else f", {res.precision} autocast")
+        + (", RADIal's easy mode (Difficult labels dropped)" if res.easy else "")
         + (", averaged over each frame and its mirror image" if res.mirror_average else "")
         + (", fast inference copy (radarpc.models.fast_inference)" if res.fast else ""), "",
         "| AP | AR | F1 | F1 @ 0.2 | range error (m) | azimuth error (deg) | freespace mIoU | parameters | frames/s (batch 1) |",

@@ -62,7 +62,8 @@ class ExperimentConfig:
         Exactly one is set: FFTRadNet reads RD cubes (``--data`` a RADIal root, or a sparse-RD
         root for the sparse-RD baseline); the pillar models read a point store (``--points``).
     difficult : bool
-        Train and validate with RADIal's ``Difficult`` labels (RADIal's own evaluation keeps them).
+        Train and validate with RADIal's ``Difficult`` labels, as RADIal's ``1-Train.py`` does
+        (its ``3-Evaluation.py`` drops them unless given ``--difficult``: ``radarpc evaluate --easy``).
     statistics_frames : int
         Training frames (evenly spaced) whose cubes give FFTRadNet's input normalisation.
     mirror_probability : float in [0, 1]
