@@ -271,14 +271,14 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     hard_store = tmp_path / "hard.parquet"                       # a store names the root it was made from
     convert_dataset(hard, hard_store, density=0.057, enrich=("sector32",), progress=False)
     assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--data", str(hard), "--points",
-                 str(hard_store), "--easy"]) == 0
+                 str(hard_store), "--no-difficult"]) == 0
     easy = json.loads((out / "eval_test_on_hard_easy.json").read_text())
     assert easy["easy"] is True and doc["easy"] is False
     assert easy["metrics"]["n_labels"] == sum(r["Difficult"] == "0" for r in tested) < len(tested)
     assert easy["metrics"]["n_frames"] == 3
     assert "RADIal's easy mode" in (out / "eval_test_on_hard_easy.md").read_text().splitlines()[0]
     assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--data", str(hard), "--points",
-                 str(hard_store)]) == 0                                   # without --easy: every label
+                 str(hard_store)]) == 0                                   # without it: every label
     every = json.loads((out / "eval_test_on_hard.json").read_text())
     assert every["metrics"]["n_labels"] == len(tested) and every["metrics"]["n_frames"] == 4
     # averaged over each frame and its mirror image: its own files, scored through MirrorAveraged
@@ -518,6 +518,11 @@ def test_classical_row_cli(root, store, tmp_path):
                  "--config", str(tmp_path / "c.yaml")]) == 0
     doc = json.loads((out / "eval_test.json").read_text())
     assert doc["metrics"]["ar"] == 0.0 and load_yaml(ClassicalConfig, out / "classical.yaml").min_points == 10**6
+    # RADIal's easy mode: its own files, flagged (this root has no Difficult label, so the same count)
+    assert main(["baseline", "detect", str(store), "--data", str(root), "--split", "test", "--out", str(out),
+                 "--no-difficult"]) == 0
+    easy = json.loads((out / "eval_test_easy.json").read_text())
+    assert easy["easy"] is True and doc["easy"] is False and easy["metrics"]["n_labels"] == want["n_labels"]
 
 
 def test_shown_frames_spread_over_the_split():

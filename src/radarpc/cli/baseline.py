@@ -83,6 +83,7 @@ def add_parser(sub) -> None:
     d.add_argument("--split", default="test", choices=("train", "val", "test", "all"), help="split (default test)")
     d.add_argument("--out", required=True, help="folder for eval_{split}.md/.json, classical.yaml and figures")
     d.add_argument("--config", default=None, help="a classical.yaml with other settings")
-    d.add_argument("--no-difficult", action="store_true", help="leave out RADIal's 'Difficult' labels")
+    d.add_argument("--no-difficult", action="store_true",
+                   help="leave out RADIal's 'Difficult' labels: its easy mode; writes eval_{split}_easy.*")
     d.add_argument("--show", type=int, default=0, metavar="K", help="draw K frames spread evenly over the split")
     d.set_defaults(func=run_detect)

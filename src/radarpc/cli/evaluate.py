@@ -24,7 +24,7 @@ autocast, fast on GPUs and on CPUs with native bf16 (AVX512-BF16, AMX), and writ
 ``eval_{split}_bf16.*`` beside the fp32 files: compare the two before trusting bf16 for a model.
 ``--mirror-average`` scores a point model averaged over each frame and its mirror image about the
 boresight (``radarpc.models.mirror``; twice the forward passes) into ``eval_{split}_mirror.*``.
-``--easy`` scores RADIal's easy mode, what its ``3-Evaluation.py`` scores without ``--difficult``:
+``--no-difficult`` scores RADIal's easy mode, what its ``3-Evaluation.py`` scores without ``--difficult``:
 labels marked ``Difficult`` dropped, and the frames all of whose vehicles are (frames without
 vehicles stay, so their false alarms count), into ``eval_{split}_easy.*``. Runs train and are
 scored by default with every label (``difficult: true`` in the config, as RADIal's ``1-Train.py``).
@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
 
     evaluate_run(args.run, args.split, data=args.data, points=args.points, device=args.device,
                  show=args.show, fps_frames=args.fps_frames, precision=args.precision,
-                 mirror_average=args.mirror_average, fast=args.fast, easy=args.easy)
+                 mirror_average=args.mirror_average, fast=args.fast, easy=args.no_difficult)
     return 0
 
 
@@ -65,7 +65,7 @@ def add_parser(sub) -> None:
     p.add_argument("--fast", action="store_true",
                    help="score and time the fast inference copy (radarpc.models.fast_inference: exact rewrites, "
                         "fp32; the first passes compile kernels); writes eval_{split}_fast.*")
-    p.add_argument("--easy", action="store_true",
-                   help="RADIal's easy mode (3-Evaluation.py without --difficult): Difficult labels dropped; "
+    p.add_argument("--no-difficult", action="store_true",
+                   help="leave out RADIal's 'Difficult' labels: its easy mode (3-Evaluation.py without --difficult); "
                         "writes eval_{split}_easy.*")
     p.set_defaults(func=run)

@@ -361,8 +361,8 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
                        split: str = "test", *, cfg: ClassicalConfig = ClassicalConfig(), difficult: bool = True,
                        show: int = 0, fps_frames: int = 20, log: Callable[[str], None] = print) -> EvalResult:
     """Score the classical detector (:mod:`radarpc.models.classical`) on ``split`` of a point store
-    with the learned models' metrics; writes ``out/eval_{split}.json`` / ``.md`` (as
-    :func:`evaluate_run`, with 0 parameters and the detector's batch-1 frames/s, point extraction
+    with the learned models' metrics; writes ``out/eval_{split}.json`` / ``.md`` (``eval_{split}_easy.*``
+    without the ``Difficult`` labels; as :func:`evaluate_run`, with 0 parameters and the detector's batch-1 frames/s, point extraction
     excluded), ``out/classical.yaml`` and, with ``show``, figures of ``show`` frames spread over the
     split (:func:`_shown`)."""
     from radarpc.viz import plot_detection_frame
@@ -386,7 +386,8 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
             classical_detect(b.inputs, cfg)
         rates.append(len(frames) / max(time.perf_counter() - t0, 1e-12))
     res = EvalResult(out, split, metrics, 0, float(statistics.median(rates)) if frames else math.nan, "cpu",
-                     torch.get_num_threads(), data=(str(Path(data).resolve()),), points=(str(Path(points).resolve()),))
+                     torch.get_num_threads(), data=(str(Path(data).resolve()),), points=(str(Path(points).resolve()),),
+                     easy=not difficult)
     _write_eval(out, res, "classical (CFAR points, Doppler gating, BEV clusters)")
     for k, b in _shown(ds, show, collate):
         rows = classical_detect(b.inputs, cfg).rows()

@@ -63,7 +63,7 @@ class ExperimentConfig:
         root for the sparse-RD baseline); the pillar models read a point store (``--points``).
     difficult : bool
         Train and validate with RADIal's ``Difficult`` labels, as RADIal's ``1-Train.py`` does
-        (its ``3-Evaluation.py`` drops them unless given ``--difficult``: ``radarpc evaluate --easy``).
+        (its ``3-Evaluation.py`` drops them unless given ``--difficult``: ``radarpc evaluate --no-difficult``).
     statistics_frames : int
         Training frames (evenly spaced) whose cubes give FFTRadNet's input normalisation.
     mirror_probability : float in [0, 1]
