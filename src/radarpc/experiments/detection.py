@@ -249,7 +249,8 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     given ``--difficult``: label rows with ``Difficult == 1`` dropped, and the frames all of whose
     vehicles are difficult (:class:`~radarpc.data.radial.RADIal` with ``difficult=False``), into
     ``eval_{split}[...]_easy.*``. Frames without vehicles stay in (RADIal's loader drops them with
-    its easy rows), so their false alarms still count. Without it every label is scored.
+    its easy rows), so their false alarms still count. Without it every label is scored, unless the
+    run's config has ``difficult: false``.
     """
     from radarpc.viz import plot_detection_frame, plot_learning_curves
 
@@ -274,7 +275,8 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
             model = fast_inference(model)
         roots = data or key["data"]
         stores = (points or key.get("points")) if cfg.input_kind == "points" else None
-        ds = detection_dataset(dataclasses.replace(cfg, difficult=False) if easy else cfg, roots, stores, split)
+        run_easy = easy or not cfg.difficult                # a run trained without them is scored so too
+        ds = detection_dataset(dataclasses.replace(cfg, difficult=False) if run_easy else cfg, roots, stores, split)
         if mirror_average:
             model = MirrorAveraged(model, cfg.targets, sectors=mirror_sectors_of(ds))
         scored = _resolved(data_pairs(roots, stores))
@@ -295,7 +297,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
         res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision,
                          data=tuple(str(r) for r, _ in scored),
                          points=None if stores is None else tuple(str(p) for _, p in scored),
-                         scored_on=_scored_on(scored, own), mirror_average=mirror_average, fast=fast, easy=easy)
+                         scored_on=_scored_on(scored, own), mirror_average=mirror_average, fast=fast, easy=run_easy)
         _write_eval(folder, res, cfg.name)
         if (folder / LOG_CSV).is_file():
             plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
