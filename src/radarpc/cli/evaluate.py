@@ -27,7 +27,8 @@ boresight (``radarpc.models.mirror``; twice the forward passes) into ``eval_{spl
 ``--no-difficult`` scores RADIal's easy mode, what its ``3-Evaluation.py`` scores without ``--difficult``:
 labels marked ``Difficult`` dropped, and the frames all of whose vehicles are (frames without
 vehicles stay, so their false alarms count), into ``eval_{split}_easy.*``. Runs train and are
-scored by default with every label (``difficult: true`` in the config, as RADIal's ``1-Train.py``).
+scored by default with every label (``difficult: true`` in the config, as RADIal's ``1-Train.py``);
+a run trained with ``difficult: false`` is scored in easy mode.
 """
 from __future__ import annotations
 
