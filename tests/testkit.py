@@ -5,9 +5,11 @@ Importable from any test as ``testkit`` (``pythonpath = ["tests"]`` in pyproject
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import textwrap
 
+import pytest
 import torch
 
 from radarpc.points import PointCloudBatch
@@ -79,3 +81,16 @@ def make_cloud(frames: list[list[tuple[float, float]]], *, sector: int | None = 
         sector=None if sector is None else torch.rand(n, sector, generator=g) * 1e4,
         rd_patch=None if patch is None else torch.rand(n, patch, generator=g) * 1e8,
         tau=torch.ones(len(frames)), density=torch.full((len(frames),), 0.057))
+
+
+@contextlib.contextmanager
+def warns_reduced_fp32_matmul():
+    """Run the block under ``float32_matmul_precision("medium")`` (TF32 / bf16 GEMMs) and expect
+    the inference rewrites' warning that their rounding bounds no longer hold; restores the setting."""
+    prev = torch.get_float32_matmul_precision()
+    try:
+        torch.set_float32_matmul_precision("medium")
+        with pytest.warns(RuntimeWarning, match="float32 matmul precision is reduced"):
+            yield
+    finally:
+        torch.set_float32_matmul_precision(prev)

@@ -12,6 +12,7 @@ from radarpc.models.collapsed_head import CollapsedDetectionHead, collapsed_head
 from radarpc.models.fftradnet import fftradnet_tiny, fuse_for_inference
 from radarpc.models.heads import DetectionHead
 from radarpc.models.pillars import pillars_tiny
+from testkit import warns_reduced_fp32_matmul
 
 U32 = 2.0 ** -24
 
@@ -152,10 +153,5 @@ def test_built_on_the_weights_device_and_dtype():
 
 def test_reduced_float32_matmul_precision_is_warned():
     _, fast = folded_head(6, 1, (5, 7), seed=1)
-    prev = torch.get_float32_matmul_precision()
-    try:
-        torch.set_float32_matmul_precision("medium")
-        with pytest.warns(RuntimeWarning, match="float32 matmul precision is reduced"), torch.inference_mode():
-            fast(torch.randn(1, 6, 13, 12))
-    finally:
-        torch.set_float32_matmul_precision(prev)
+    with warns_reduced_fp32_matmul(), torch.inference_mode():
+        fast(torch.randn(1, 6, 13, 12))

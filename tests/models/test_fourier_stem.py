@@ -11,6 +11,7 @@ from radarpc.models.batchnorm import randomise_batchnorm_
 from radarpc.models.fftradnet import MIMOPreEncoder, fftradnet_tiny
 from radarpc.models.fourier_stem import FourierStem, doppler_shifts, fourier_stem_for_inference
 from radarpc.models.winograd import WinogradConv2d, winograd_for_inference
+from testkit import warns_reduced_fp32_matmul
 
 UNIT_ROUNDOFF = {torch.float32: 2.0 ** -24, torch.float64: 2.0 ** -53}
 
@@ -188,13 +189,8 @@ def test_bad_input_is_named():
 def test_reduced_float32_matmul_precision_is_warned():
     pre, stem = layers(4, 6, 5, 4, 2, seed=3)
     layer = FourierStem(pre, stem, 16, compiled=False)
-    prev = torch.get_float32_matmul_precision()
-    try:
-        torch.set_float32_matmul_precision("medium")
-        with pytest.warns(RuntimeWarning, match="float32 matmul precision is reduced"), torch.inference_mode():
-            layer(torch.randn(1, 4, 9, 16))
-    finally:
-        torch.set_float32_matmul_precision(prev)
+    with warns_reduced_fp32_matmul(), torch.inference_mode():
+        layer(torch.randn(1, 4, 9, 16))
 
 
 def test_built_on_the_weights_device():

@@ -9,6 +9,7 @@ from radarpc.models.batchnorm import randomise_batchnorm_
 from radarpc.models.fftradnet import fftradnet_tiny, fuse_for_inference
 from radarpc.models.winograd import (AT, BT, G, WinogradConv2d, supports_winograd, winograd_conv3x3,
                                      winograd_for_inference, winograd_weight)
+from testkit import warns_reduced_fp32_matmul
 
 U32 = 2.0 ** -24          # float32 unit roundoff
 
@@ -183,13 +184,8 @@ def test_autograd_is_refused():
 def test_reduced_float32_matmul_precision_is_warned():
     u = winograd_weight(torch.randn(4, 3, 3, 3))
     x = torch.randn(1, 3, 8, 8)
-    prev = torch.get_float32_matmul_precision()
-    try:
-        torch.set_float32_matmul_precision("medium")
-        with pytest.warns(RuntimeWarning, match="float32 matmul precision is reduced"):
-            winograd_conv3x3(x, u, compiled=False)
-    finally:
-        torch.set_float32_matmul_precision(prev)
+    with warns_reduced_fp32_matmul():
+        winograd_conv3x3(x, u, compiled=False)
 
 
 def test_relu_in_the_output_transform():
