@@ -281,6 +281,19 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
                  str(hard_store)]) == 0                                   # without it: every label
     every = json.loads((out / "eval_test_on_hard.json").read_text())
     assert every["metrics"]["n_labels"] == len(tested) and every["metrics"]["n_frames"] == 4
+    # a run trained with difficult: false (its stored config says so) is scored in easy mode unless
+    # told --difficult
+    easy_run = tmp_path / "easy_run"
+    shutil.copytree(out, easy_run, ignore=shutil.ignore_patterns("eval_*", "figures"))
+    key = json.loads((easy_run / "run.json").read_text())
+    key["experiment"]["difficult"] = False
+    (easy_run / "run.json").write_text(json.dumps(key))
+    for flag, stem, n_labels in (([], "eval_test_on_hard_easy", easy["metrics"]["n_labels"]),
+                                 (["--difficult"], "eval_test_on_hard", len(tested))):
+        assert main(["evaluate", str(easy_run), "--split", "test", "--fps-frames", "1", "--data", str(hard),
+                     "--points", str(hard_store), *flag]) == 0
+        got = json.loads((easy_run / f"{stem}.json").read_text())
+        assert got["easy"] is (not flag) and got["metrics"]["n_labels"] == n_labels
     # averaged over each frame and its mirror image: its own files, scored through MirrorAveraged
     from radarpc.models.mirror import MirrorAveraged
 

@@ -28,7 +28,8 @@ boresight (``radarpc.models.mirror``; twice the forward passes) into ``eval_{spl
 labels marked ``Difficult`` dropped, and the frames all of whose vehicles are (frames without
 vehicles stay, so their false alarms count), into ``eval_{split}_easy.*``. Runs train and are
 scored by default with every label (``difficult: true`` in the config, as RADIal's ``1-Train.py``);
-a run trained with ``difficult: false`` is scored in easy mode.
+a run trained with ``difficult: false`` is scored in easy mode unless given ``--difficult``, which
+scores every label (into ``eval_{split}.*``).
 """
 from __future__ import annotations
 
@@ -42,7 +43,8 @@ def run(args: argparse.Namespace) -> int:
 
     evaluate_run(args.run, args.split, data=args.data, points=args.points, device=args.device,
                  show=args.show, fps_frames=args.fps_frames, precision=args.precision,
-                 mirror_average=args.mirror_average, fast=args.fast, easy=args.no_difficult)
+                 mirror_average=args.mirror_average, fast=args.fast,
+                 easy=None if args.difficult is None else not args.difficult)
     return 0
 
 
@@ -66,7 +68,8 @@ def add_parser(sub) -> None:
     p.add_argument("--fast", action="store_true",
                    help="score and time the fast inference copy (radarpc.models.fast_inference: exact rewrites, "
                         "fp32; the first passes compile kernels); writes eval_{split}_fast.*")
-    p.add_argument("--no-difficult", action="store_true",
-                   help="leave out RADIal's 'Difficult' labels: its easy mode (3-Evaluation.py without --difficult); "
-                        "writes eval_{split}_easy.*")
+    p.add_argument("--difficult", action=argparse.BooleanOptionalAction, default=None,
+                   help="--no-difficult leaves out RADIal's 'Difficult' labels: its easy mode (3-Evaluation.py "
+                        "without --difficult), into eval_{split}_easy.*; --difficult scores every label. Default: "
+                        "as the run was trained (its config's 'difficult')")
     p.set_defaults(func=run)

@@ -232,7 +232,7 @@ def _fps(model: torch.nn.Module, batches: list[DetectionBatch], device: torch.de
 def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths | None = None,
                  points: DataPaths | None = None, device: str | None = None, show: int = 0,
                  fps_frames: int = 20, batch_size: int = 4, precision: str = "fp32", mirror_average: bool = False,
-                 fast: bool = False, easy: bool = False, progress: bool = True,
+                 fast: bool = False, easy: bool | None = None, progress: bool = True,
                  log: Callable[[str], None] = print) -> list[EvalResult]:
     """Score the best weights of every run in ``run`` on ``split`` (see the module docstring).
 
@@ -249,8 +249,9 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     given ``--difficult``: label rows with ``Difficult == 1`` dropped, and the frames all of whose
     vehicles are difficult (:class:`~radarpc.data.radial.RADIal` with ``difficult=False``), into
     ``eval_{split}[...]_easy.*``. Frames without vehicles stay in (RADIal's loader drops them with
-    its easy rows), so their false alarms still count. Without it every label is scored, unless the
-    run's config has ``difficult: false``.
+    its easy rows), so their false alarms still count. ``easy=False`` scores every label. ``None``
+    (the default) follows the run's config: every label, or easy mode for a run trained with
+    ``difficult: false``.
     """
     from radarpc.viz import plot_detection_frame, plot_learning_curves
 
@@ -275,8 +276,8 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
             model = fast_inference(model)
         roots = data or key["data"]
         stores = (points or key.get("points")) if cfg.input_kind == "points" else None
-        run_easy = easy or not cfg.difficult                # a run trained without them is scored so too
-        ds = detection_dataset(dataclasses.replace(cfg, difficult=False) if run_easy else cfg, roots, stores, split)
+        run_easy = (not cfg.difficult) if easy is None else easy   # by default as the run was trained
+        ds = detection_dataset(dataclasses.replace(cfg, difficult=not run_easy), roots, stores, split)
         if mirror_average:
             model = MirrorAveraged(model, cfg.targets, sectors=mirror_sectors_of(ds))
         scored = _resolved(data_pairs(roots, stores))
