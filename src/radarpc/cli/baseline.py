@@ -39,7 +39,7 @@ def run_detect(args: argparse.Namespace) -> int:
     from radarpc.models.classical import ClassicalConfig
 
     cfg = load_yaml(ClassicalConfig, args.config) if args.config else ClassicalConfig()
-    evaluate_classical(args.points, args.data, args.out, args.split, cfg=cfg, difficult=not args.no_difficult,
+    evaluate_classical(args.points, args.data, args.out, args.split, cfg=cfg, difficult=args.difficult,
                        show=args.show)
     return 0
 
@@ -83,7 +83,8 @@ def add_parser(sub) -> None:
     d.add_argument("--split", default="test", choices=("train", "val", "test", "all"), help="split (default test)")
     d.add_argument("--out", required=True, help="folder for eval_{split}.md/.json, classical.yaml and figures")
     d.add_argument("--config", default=None, help="a classical.yaml with other settings")
-    d.add_argument("--no-difficult", action="store_true",
-                   help="leave out RADIal's 'Difficult' labels: its easy mode; writes eval_{split}_easy.*")
+    d.add_argument("--difficult", action=argparse.BooleanOptionalAction, default=True,
+                   help="score every label (default), or --no-difficult: leave out RADIal's 'Difficult' labels, "
+                        "its easy mode; writes eval_{split}_easy.*")
     d.add_argument("--show", type=int, default=0, metavar="K", help="draw K frames spread evenly over the split")
     d.set_defaults(func=run_detect)

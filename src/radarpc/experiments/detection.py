@@ -364,9 +364,9 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
                        split: str = "test", *, cfg: ClassicalConfig = ClassicalConfig(), difficult: bool = True,
                        show: int = 0, fps_frames: int = 20, log: Callable[[str], None] = print) -> EvalResult:
     """Score the classical detector (:mod:`radarpc.models.classical`) on ``split`` of a point store
-    with the learned models' metrics; writes ``out/eval_{split}.json`` / ``.md`` (``eval_{split}_easy.*``
-    without the ``Difficult`` labels; as :func:`evaluate_run`, with 0 parameters and the detector's batch-1 frames/s, point extraction
-    excluded), ``out/classical.yaml`` and, with ``show``, figures of ``show`` frames spread over the
+    with the learned models' metrics; writes ``out/eval_{split}.json`` / ``.md``
+    (``eval_{split}_easy.*`` without the ``Difficult`` labels; as :func:`evaluate_run`, with 0
+    parameters and the detector's batch-1 frames/s, point extraction excluded), ``out/classical.yaml`` and, with ``show``, figures of ``show`` frames spread over the
     split (:func:`_shown`)."""
     from radarpc.viz import plot_detection_frame
 
