@@ -198,6 +198,35 @@ def test_each_of_several_runs_draws_its_mirrors_from_its_seed(root, store, tmp_p
     assert seen == [(5, 5), (6, 6)]
 
 
+def _with_difficult_labels(root: Path, tmp_path: Path) -> tuple[Path, Path, list[dict]]:
+    """A copy of ``root`` whose labels.csv marks the vehicles beyond 50 m and every vehicle of the
+    first test frame Difficult (RADIal's easy mode then drops those labels and that frame), its
+    point store, and the edited label rows of the test split inside the 5-100 m gate."""
+    import csv
+
+    from radarpc.data.radial import RADIal
+
+    hard = tmp_path / "hard"
+    shutil.copytree(root, hard)
+    test = RADIal(root, split="test")
+    first = test.frame_ids[0]
+    with open(root / "labels.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    for r in rows:
+        if float(r["radar_R_m"]) > 50 or int(r["numSample"]) == first:
+            r["Difficult"] = "1" if int(r["Difficult"]) >= 0 else r["Difficult"]
+    with open(hard / "labels.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    tested = [r for r in rows if int(r["numSample"]) in set(test.frame_ids) and int(r["Difficult"]) >= 0
+              and 5 <= float(r["radar_R_m"]) <= 100]
+    assert sum(r["Difficult"] == "1" for r in tested) > 0
+    hard_store = tmp_path / "hard.parquet"                       # a store names the root it was made from
+    convert_dataset(hard, hard_store, density=0.057, enrich=("sector32",), progress=False)
+    return hard, hard_store, tested
+
+
 def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     cfg = ExperimentConfig(name="sp-tiny", pillars=pillars_tiny().cfg,
                            train=dataclasses.replace(TINY_TRAIN, epochs=1, batch_size=2, eval_batch_size=2))
@@ -244,32 +273,8 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     assert (out / "eval_test.json").read_text() == fp32_doc                      # fp32 files untouched
     with pytest.raises(SystemExit):
         main(["evaluate", str(out), "--precision", "fp16"])
-    # RADIal's easy mode, on a copy of the root whose labels.csv marks the vehicles beyond 50 m and
-    # every vehicle of the first test frame Difficult: those labels out, that frame out, the
-    # others in; counted here from the edited rows
-    import csv
-    import shutil
-
-    from radarpc.data.radial import RADIal
-
-    hard = tmp_path / "hard"
-    shutil.copytree(root, hard)
-    test = RADIal(root, split="test")
-    first = test.frame_ids[0]
-    with open(root / "labels.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    for r in rows:
-        if float(r["radar_R_m"]) > 50 or int(r["numSample"]) == first:
-            r["Difficult"] = "1" if int(r["Difficult"]) >= 0 else r["Difficult"]
-    with open(hard / "labels.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    tested = [r for r in rows if int(r["numSample"]) in set(test.frame_ids) and int(r["Difficult"]) >= 0
-              and 5 <= float(r["radar_R_m"]) <= 100]
-    assert sum(r["Difficult"] == "1" for r in tested) > 0
-    hard_store = tmp_path / "hard.parquet"                       # a store names the root it was made from
-    convert_dataset(hard, hard_store, density=0.057, enrich=("sector32",), progress=False)
+    # RADIal's easy mode, on a copy of the root with Difficult labels (_with_difficult_labels)
+    hard, hard_store, tested = _with_difficult_labels(root, tmp_path)
     assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--data", str(hard), "--points",
                  str(hard_store), "--no-difficult"]) == 0
     easy = json.loads((out / "eval_test_on_hard_easy.json").read_text())
@@ -531,11 +536,18 @@ def test_classical_row_cli(root, store, tmp_path):
                  "--config", str(tmp_path / "c.yaml")]) == 0
     doc = json.loads((out / "eval_test.json").read_text())
     assert doc["metrics"]["ar"] == 0.0 and load_yaml(ClassicalConfig, out / "classical.yaml").min_points == 10**6
-    # RADIal's easy mode: its own files, flagged (this root has no Difficult label, so the same count)
-    assert main(["baseline", "detect", str(store), "--data", str(root), "--split", "test", "--out", str(out),
-                 "--no-difficult"]) == 0
-    easy = json.loads((out / "eval_test_easy.json").read_text())
-    assert easy["easy"] is True and doc["easy"] is False and easy["metrics"]["n_labels"] == want["n_labels"]
+    # RADIal's easy mode on a root with Difficult labels: its own files, flagged, those labels and
+    # the all-difficult frame left out; --difficult (the default) scores every label
+    hard, hard_store, tested = _with_difficult_labels(root, tmp_path)
+    for flag, stem in ((["--no-difficult"], "eval_test_easy"), (["--difficult"], "eval_test")):
+        assert main(["baseline", "detect", str(hard_store), "--data", str(hard), "--split", "test",
+                     "--out", str(tmp_path / "hard_out"), *flag]) == 0
+    easy = json.loads((tmp_path / "hard_out" / "eval_test_easy.json").read_text())
+    every = json.loads((tmp_path / "hard_out" / "eval_test.json").read_text())
+    assert easy["easy"] is True and every["easy"] is False and doc["easy"] is False
+    assert easy["metrics"]["n_labels"] == sum(r["Difficult"] == "0" for r in tested) < len(tested)
+    assert every["metrics"]["n_labels"] == len(tested)
+    assert easy["metrics"]["n_frames"] == every["metrics"]["n_frames"] - 1
 
 
 def test_shown_frames_spread_over_the_split():

@@ -366,8 +366,9 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
     """Score the classical detector (:mod:`radarpc.models.classical`) on ``split`` of a point store
     with the learned models' metrics; writes ``out/eval_{split}.json`` / ``.md``
     (``eval_{split}_easy.*`` without the ``Difficult`` labels; as :func:`evaluate_run`, with 0
-    parameters and the detector's batch-1 frames/s, point extraction excluded), ``out/classical.yaml`` and, with ``show``, figures of ``show`` frames spread over the
-    split (:func:`_shown`)."""
+    parameters and the detector's batch-1 frames/s, point extraction excluded),
+    ``out/classical.yaml`` and, with ``show``, figures of ``show`` frames spread over the split
+    (:func:`_shown`)."""
     from radarpc.viz import plot_detection_frame
 
     out = Path(out)
