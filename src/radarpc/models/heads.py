@@ -11,7 +11,7 @@ Layout and conventions (those of valeoai/RADIal ``FFTRadNet/model/FFTRadNet.py``
 * Detection output ``(B, 1 + n_reg, 128, 224)``: channel 0 is the vehicle **probability**
   (a sigmoid is applied, as the official head does, so the official focal loss and decoding see the
   same numbers); channels 1.. are the normalised range and azimuth offsets (see
-  :mod:`radarpc.models.targets`).
+  :mod:`radarpc.models.targets`). It is float32 under autocast too (float64 stays float64).
 * Freespace output ``(B, 1, 256, 224)``: **logits** (the official code trains them with
   ``BCEWithLogitsLoss`` and thresholds ``sigmoid >= 0.5``); rows are range cells of
   ``2 x 0.201171875 = 0.4023 m`` (rows 0..123 are the scored 0-50 m).
@@ -60,6 +60,11 @@ class ConvBlock(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         x = self.act1(self.bn1(self.conv1(x)))
         return self.act2(self.bn2(self.conv2(x)))
+
+
+def _at_least_float32(x: torch.Tensor) -> torch.Tensor:
+    """``x`` in float32 if it is a narrower float (bf16, fp16 under autocast), else unchanged."""
+    return x.to(torch.promote_types(x.dtype, torch.float32))
 
 
 class DetectionHead(nn.Module):
@@ -121,7 +126,10 @@ class DetectionHead(nn.Module):
         x = self.bn2(self.conv2(x))                                   # (B, w2, 128, 224)
         x = self.bn3(self.conv3(x))
         x = self.bn4(self.conv4(x))
-        return torch.cat([torch.sigmoid(self.clshead(x)), self.reghead(x)], dim=1)   # (B, 1 + n_reg, 128, 224)
+        # float32 under autocast: a bf16 probability rounds p > 1 - 2^-9 to 1, where the sigmoid's
+        # gradient p (1 - p) vanishes; compiled bf16 training also took wrong gradients through it
+        logit, offsets = _at_least_float32(self.clshead(x)), _at_least_float32(self.reghead(x))
+        return torch.cat([torch.sigmoid(logit), offsets], dim=1)     # (B, 1 + n_reg, 128, 224)
 
 
 class FreespaceHead(nn.Module):
