@@ -22,6 +22,9 @@ owns everything else:
 * **weight averaging** -- with ``ema_decay`` > 0 the loop keeps an exponential moving average of
   the weights and buffers, updated after every optimizer step (see :func:`ema_decay_at`); it is
   what validation scores and what ``best.safetensors`` holds, and checkpoints carry it;
+* **compilation** -- with ``compile`` the training forward and backward run through
+  ``torch.compile`` (Inductor); the first steps pay the compilation, validation and checkpoints
+  use the plain module, whose parameters the compiled one shares;
 * **selection** -- after each epoch ``Task.evaluate`` scores the validation set; the best
   ``select_metric`` gives ``best.safetensors`` (weights and the resolved config);
 * **logs** -- ``log.csv`` (one row per epoch, rewritten whole from the history), TensorBoard
@@ -84,6 +87,7 @@ class TrainConfig:
     checkpoint_every: int = 50               # steps between mid-epoch checkpoints
     select_metric: str = "f1"                # validation metric of the best checkpoint (higher is better)
     ema_decay: float = 0.0                   # weight averaging: 0 = off, else its decay (e.g. 0.999)
+    compile: bool = False                    # torch.compile the training model (Inductor)
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "eval_batch_size", "checkpoint_every"):
@@ -367,6 +371,8 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, env: DistEnv, d
     if env.world_size > 1:
         net = nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None)
+    if cfg.compile:
+        net = torch.compile(net)        # DDP first: Dynamo then splits the graph at DDP's gradient buckets
 
     def checkpoint() -> None:
         if env.rank == 0:
