@@ -2,8 +2,8 @@
 precisions' detections (the script itself runs on a trained tiny run in
 tests/training/test_radial_experiment.py), ``fftradnet_official.py``'s MAC count and
 ``operating_points.py``'s F1 allowance, ``box_offsets.py``'s failing axis,
-``detection_ceiling.py``'s placement of boxes from points, ``vehicle_glint.py``'s beamformer and
-``vml_first_call.py`` (run whole)."""
+``detection_ceiling.py``'s placement of boxes from points, ``vehicle_glint.py``'s beamformer,
+``training_gradients.py``'s gradient comparison and ``vml_first_call.py`` (run whole)."""
 import importlib.util
 import json
 import subprocess
@@ -289,3 +289,20 @@ def test_vml_first_call_script():
     assert all(c["processes"] == 2 and 0 <= c["inaccurate"] <= 2 for c in cases.values())
     assert cases["sqrt{'MKL_NUM_THREADS': '1'}"]["torch_threads"] == [1]
     assert cases["boxes{}"]["inaccurate"] == 0 and cases["boxes{}"]["max_rel_error"] == 0.0
+
+
+def test_training_gradients_compares_weight_tensors_only():
+    training_gradients = _script("training_gradients")
+    ref = {"conv.weight": torch.tensor([[3.0, 4.0]]), "conv.bias": torch.tensor([1.0]),
+           "other.weight": torch.tensor([[1.0, 0.0]]), "frozen.weight": torch.zeros(1, 2)}
+    g = {"conv.weight": torch.tensor([[6.0, 8.0]]),      # twice the reference: cosine 1, error 1
+         "conv.bias": torch.tensor([-5.0]),             # 1-D: left out
+         "other.weight": torch.tensor([[0.0, 1.0]]),    # orthogonal: cosine 0, error sqrt(2)
+         "frozen.weight": torch.ones(1, 2)}             # zero reference: left out
+    out = training_gradients.compare(g, ref)
+    assert out["weights_compared"] == 2
+    assert out["median_relative_error"] == pytest.approx((1 + 2 ** 0.5) / 2)
+    assert [r["parameter"] for r in out["lowest_cosines"]] == ["other.weight", "conv.weight"]
+    low, high = out["lowest_cosines"]
+    assert low["cosine"] == pytest.approx(0.0, abs=1e-7) and low["relative_error"] == pytest.approx(2 ** 0.5)
+    assert high["cosine"] == pytest.approx(1.0) and high["norm_ratio"] == pytest.approx(2.0)
