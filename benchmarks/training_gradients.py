@@ -53,18 +53,6 @@ def autocast(mode: str, device: torch.device):
     return contextlib.nullcontext()
 
 
-def gradients(task: RadialDetectionTask, model: torch.nn.Module, mode: str, batch, device: torch.device
-              ) -> tuple[float, dict[str, torch.Tensor]]:
-    """The loss of ``batch`` and the gradient of every parameter, in ``mode``, from ``model``'s weights."""
-    m = copy.deepcopy(model)
-    net = torch.compile(m) if mode.startswith("compiled") else m
-    with autocast(mode, device):
-        loss, _ = task.loss(net, batch)
-    loss.backward()
-    return float(loss.detach()), {k: p.grad.detach().float().clone() for k, p in m.named_parameters()
-                                  if p.grad is not None}
-
-
 def compare(g: dict[str, torch.Tensor], ref: dict[str, torch.Tensor]) -> dict:
     """Median relative error and the lowest cosines of ``g`` against ``ref`` over weight tensors."""
     rows = []
@@ -83,23 +71,28 @@ def compare(g: dict[str, torch.Tensor], ref: dict[str, torch.Tensor]) -> dict:
                                for c, e, q, k in rows[:5]]}
 
 
-def train_losses(task: RadialDetectionTask, model: torch.nn.Module, mode: str, batches: list,
-                 lr: float, device: torch.device) -> dict:
-    """Train a copy of ``model`` one step per batch in ``mode``; mean loss per window of steps."""
+def run_mode(task: RadialDetectionTask, model: torch.nn.Module, mode: str, batches: list, lr: float,
+             device: torch.device) -> tuple[float, dict[str, torch.Tensor], list[float], float]:
+    """Train a copy of ``model`` one step per batch in ``mode`` (AdamW at a constant ``lr``).
+
+    Returns the first batch's loss and every parameter's gradient there (from ``model``'s
+    weights), the loss of every step, and the wall time of all steps.
+    """
     m = copy.deepcopy(model)
     net = torch.compile(m) if mode.startswith("compiled") else m
     opt = torch.optim.AdamW(m.parameters(), lr=lr, weight_decay=0.01)
-    losses, t0 = [], time.perf_counter()
+    losses, first_grads, t0 = [], {}, time.perf_counter()
     for batch in batches:
         with autocast(mode, device):
             loss, _ = task.loss(net, batch)
         opt.zero_grad(set_to_none=True)
         loss.backward()
+        if not losses:
+            first_grads = {k: p.grad.detach().float().clone() for k, p in m.named_parameters()
+                           if p.grad is not None}
         opt.step()
         losses.append(float(loss.detach()))
-    wall = time.perf_counter() - t0
-    means = [statistics.fmean(losses[i:i + WINDOW]) for i in range(0, len(losses), WINDOW)]
-    return {"steps": len(losses), "wall_s": wall, "window": WINDOW, "mean_loss_per_window": means}
+    return losses[0], first_grads, losses, time.perf_counter() - t0
 
 
 def main() -> None:
@@ -131,24 +124,24 @@ def main() -> None:
         items = [task.train_set[order[(step * bs + i) % n]] for i in range(bs)]
         return task.to_device(task.collate(items), device)
 
-    first = batch(0)
+    batches = [batch(s) for s in range(max(args.steps, 1))]
     result = {"config": args.config, "data": args.data, "batch_size": bs, "device": str(device),
               "cpu": cpu_model(), "threads": args.threads, "torch": torch.__version__,
               "python": platform.python_version(), "modes": {}}
     modes = [m for m in MODES if m in args.modes]          # the eager_fp32 reference first
     ref = None
     for mode in modes:
-        loss, g = gradients(task, model, mode, first, device)
+        loss, g, losses, wall = run_mode(task, model, mode, batches, args.lr, device)
         row = {"loss": loss}
         if mode == "eager_fp32":
             ref = g
         elif ref is not None:
             row |= compare(g, ref)
+        if args.steps:
+            row["training"] = {"steps": len(losses), "wall_s": wall, "window": WINDOW,
+                               "mean_loss_per_window": [statistics.fmean(losses[i:i + WINDOW])
+                                                        for i in range(0, len(losses), WINDOW)]}
         result["modes"][mode] = row
-    if args.steps:
-        batches = [batch(s) for s in range(args.steps)]
-        for mode in modes:
-            result["modes"][mode]["training"] = train_losses(task, model, mode, batches, args.lr, device)
     print(json.dumps(result, indent=1))
 
 
