@@ -1,5 +1,5 @@
-"""The boresight mirror and the rotation of point frames: what they change, against independent
-computations, and the per-(seed, epoch, item) draws of MirroredFrames and RotatedFrames."""
+"""The boresight mirror and the rotation of point frames, and the superposition of RD frames: what
+they change, against independent computations, and their per-(seed, epoch, item) draws."""
 from __future__ import annotations
 
 import dataclasses
@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from radarpc.data.augment import FREESPACE_COLUMN_DEG, MirroredFrames, RotatedFrames, mirror_frame, rotate_frame
+from radarpc.data.augment import (FREESPACE_COLUMN_DEG, MirroredFrames, RotatedFrames, SuperposedFrames, mirror_frame,
+                                  rotate_frame, superpose_frames)
 from radarpc.data.point_dataset import PointCloudDataset
 from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS
 from radarpc.dsp.beamform import sector_pool
@@ -281,3 +282,95 @@ def test_rotation_bad_input(frames):
         ExperimentConfig(name="x", pillars=pillars_tiny().cfg, rotation_max_deg=float("nan"))
     with pytest.raises(ValueError, match="cannot rotate the 'sector' feature"):
         ExperimentConfig(name="x", pillars=pillars_tiny(features=("r", "a", "sector")).cfg, rotation_max_deg=2.0)
+
+
+# ---- superposition of RD frames ------------------------------------------------------------------
+def _scene(idx):
+    from radarpc.sim.rd import Scatterers
+    t = lambda x: torch.tensor([x[i] for i in idx], dtype=torch.float64)  # noqa: E731
+    return Scatterers(range_m=t([3.37, 10.05, 17.61, 5.2, 22.9]), azimuth_deg=t([10.0, -25.0, 40.0, 0.0, -55.0]),
+                      elevation_deg=t([0.0, 5.0, -3.0, 2.0, 12.0]), velocity_mps=t([2.3, -7.7, 15.0, 0.4, 27.1]),
+                      rcs_m2=t([1.0, 10.0, 0.5, 3.0, 20.0]))
+
+
+def test_superposed_cubes_are_the_cube_of_both_scenes():
+    # the exact ADC-domain synthesis (noise off) of the union of two scenes against the sum of
+    # each scene's cube; complex128 throughout, so only rounding separates them
+    from radarpc.sim.adc import synthesize_rd_exact
+    a, b, both = (synthesize_rd_exact(TINY, _scene(idx)) for idx in ([0, 1, 2], [3, 4], [0, 1, 2, 3, 4]))
+    lab_a, lab_b = torch.ones(3, 14), 2 * torch.ones(2, 14)
+    fs_a = torch.tensor([[True, True, False], [False, True, True]])
+    fs_b = torch.tensor([[True, False, False], [True, True, False]])
+    rd, lab, fs = superpose_frames((a, lab_a, fs_a), (b, lab_b, fs_b))
+    assert float((rd - both).abs().max()) <= 1e-9 * float(both.abs().max())
+    assert float((a - both).abs().max()) > 1e-2 * float(both.abs().max())       # each scene alone is not both
+    assert torch.equal(lab, torch.cat([lab_a, lab_b]))
+    assert fs.tolist() == [[True, False, False], [False, True, False]]         # free where both are free
+
+
+@pytest.fixture(scope="module")
+def cube_frames(tmp_path_factory):
+    from radarpc.data.radial import RADIal
+    root = write_radial_dataset(tmp_path_factory.mktemp("sim") / "root", TINY, 3, 2, seed=3, progress=False,
+                                scenes=scene_mix("city"))
+    return RADIal(root, split="all")
+
+
+def test_superposed_frames_draw_partners_by_seed_epoch_and_item(cube_frames):
+    n = len(cube_frames)
+    aug = SuperposedFrames(cube_frames, 0.5, seed=7)
+    draws = []
+    for epoch in range(300):
+        aug.set_epoch(epoch)
+        partners = [aug.partner(i) for i in range(n)]
+        assert all(j is None or (0 <= j < n and j != i) for i, j in enumerate(partners))
+        draws.append(partners)
+    share = np.mean([j is not None for row in draws for j in row])
+    assert abs(share - 0.5) < 5 * np.sqrt(0.25 / (300 * n))                      # 5 binomial sigmas
+    # every other frame is a partner: over 300 epochs frame 0 meets each of the n - 1 others
+    assert {row[0] for row in draws if row[0] is not None} == set(range(1, n))
+    again = SuperposedFrames(cube_frames, 0.5, seed=7)
+    again.set_epoch(4)
+    assert [again.partner(i) for i in range(n)] == draws[4]
+    assert all(SuperposedFrames(cube_frames, 1.0, seed=7).partner(i) is not None for i in range(n))
+    assert all(SuperposedFrames(cube_frames, 0.0, seed=7).partner(i) is None for i in range(n))
+    other = SuperposedFrames(cube_frames, 0.5, seed=7, stream=1)
+    other.set_epoch(4)
+    assert [other.partner(i) for i in range(n)] != draws[4] or n < 3
+
+
+def test_superposed_items_sum_the_partner_frame(cube_frames):
+    aug = SuperposedFrames(cube_frames, 0.5, seed=2)
+    seen = 0
+    for epoch in range(3):
+        aug.set_epoch(epoch)
+        for i in range(len(cube_frames)):
+            rd, lab, fs = aug[i]
+            rd_i, lab_i, fs_i = cube_frames[i]
+            j = aug.partner(i)
+            if j is None:
+                assert torch.equal(rd, rd_i) and torch.equal(lab, lab_i) and torch.equal(fs, fs_i)
+                continue
+            seen += 1
+            rd_j, lab_j, fs_j = cube_frames[j]
+            assert torch.equal(rd, rd_i + rd_j)
+            assert torch.equal(lab, torch.cat([lab_i, lab_j])) and torch.equal(fs, fs_i & fs_j)
+    assert seen > 0
+
+
+def test_superposition_bad_input(cube_frames):
+    with pytest.raises(ValueError, match=r"superposition probability must be in \[0, 1\], got 2"):
+        SuperposedFrames(cube_frames, 2.0, seed=0)
+    with pytest.raises(ValueError, match="at least 2 frames"):
+        SuperposedFrames(torch.utils.data.Subset(cube_frames, [0]), 0.5, seed=0)
+    rd, lab, fs = cube_frames[0]
+    with pytest.raises(ValueError, match="only complex RD cubes of one shape superpose"):
+        superpose_frames((rd, lab, fs), (rd[:-1], lab, fs))
+    with pytest.raises(ValueError, match="only complex RD cubes"):
+        superpose_frames((rd, lab, fs), (rd.real, lab, fs))
+    with pytest.raises(ValueError, match="frames of different targets"):
+        superpose_frames((rd, lab, fs), (rd, lab, fs[:-1]))
+    with pytest.raises(ValueError, match="RD cubes only"):
+        ExperimentConfig(name="x", pillars=pillars_tiny().cfg, superpose_probability=0.5)
+    with pytest.raises(ValueError, match=r"superpose_probability must be in \[0, 1\]"):
+        ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, superpose_probability=-0.5)

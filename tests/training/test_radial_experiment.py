@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from radarpc.cli import main
+from radarpc.data.augment import SuperposedFrames
 from radarpc.config import load_yaml, save_yaml, to_dict
 from radarpc.models.fftradnet import FFTRadNet, fftradnet, fftradnet_s, fftradnet_tiny
 from radarpc.models.pillars import (PointPillars, pillars_tiny, polar_pointpillars, polar_pointpillars_s,
@@ -179,6 +180,35 @@ def test_augmented_run_resumes_to_the_same_weights(root, store, tmp_path):
     assert all(torch.equal(full[k], cut[k]) for k in full)
     assert not all(torch.equal(full[k], mirror[k]) for k in full)
     assert not all(torch.equal(mirror[k], plain[k]) for k in full)
+
+
+def test_superposed_fftradnet_run_resumes_and_normalises_by_the_recorded_frames(root, store, tmp_path):
+    # superposition draws its partners in the loader's workers from (seed, epoch, item): a run
+    # killed in its second epoch and resumed ends with the uninterrupted run's weights, the
+    # superposed frames reach the model, and the input statistics are those of recorded frames
+    train = dataclasses.replace(TINY_TRAIN, epochs=2, batch_size=4, num_workers=2)
+    cfg = ExperimentConfig(name="fft-sup", fftradnet=fftradnet_tiny().cfg, superpose_probability=0.5, train=train)
+
+    def run(c: ExperimentConfig, out: Path, **kw):
+        return fit(RadialDetectionTask(c, root, splits=("all", "test")), c.train, out, {"name": c.name},
+                   progress=False, log=lambda s: None, **kw)
+
+    def stop(step):
+        if step == 5:                                                   # 3 steps an epoch: in epoch 1
+            raise _Kill
+
+    run(cfg, tmp_path / "full")
+    with pytest.raises(_Kill):
+        run(cfg, tmp_path / "cut", on_step=stop)
+    run(cfg, tmp_path / "cut")
+    run(dataclasses.replace(cfg, superpose_probability=0.0), tmp_path / "plain")
+    full, cut, plain = (load_state(tmp_path / d / LAST_CHECKPOINT).model for d in ("full", "cut", "plain"))
+    assert all(torch.equal(full[k], cut[k]) for k in full)
+    assert not all(torch.equal(full[k], plain[k]) for k in full)
+    for k in ("input_mean", "input_std"):
+        assert torch.equal(full[k], plain[k])
+    task = RadialDetectionTask(dataclasses.replace(cfg, superpose_probability=1.0), root, splits=("all", "all"))
+    assert isinstance(task.train_set, SuperposedFrames) and not isinstance(task.val_set, SuperposedFrames)
 
 
 def test_each_of_several_runs_draws_its_mirrors_from_its_seed(root, store, tmp_path, monkeypatch):

@@ -23,7 +23,7 @@ from typing import Iterable, Sequence
 import torch
 from torch import nn
 
-from radarpc.data.augment import MirroredFrames, RotatedFrames
+from radarpc.data.augment import MirroredFrames, RotatedFrames, SuperposedFrames
 from radarpc.data.point_dataset import PointCloudDataset, PointFrameBatch, collate_point_frames
 from radarpc.data.radial import RADIal
 from radarpc.eval.detection import DetectionMetrics, FreespaceMetrics
@@ -75,6 +75,11 @@ class ExperimentConfig:
         epoch from the multiples of 0.4 deg within +-``rotation_max_deg``
         (:class:`~radarpc.data.augment.RotatedFrames`); point inputs only, and not with the
         ``sector`` feature, which would need the angle spectrum itself rotated. 0 (default): none.
+    superpose_probability : float in [0, 1]
+        Share of training frames whose RD cube is summed with another training frame's, their
+        labels joined and freespace intersected (:class:`~radarpc.data.augment.SuperposedFrames`):
+        the radar's view of both scenes at once, twice the vehicles a forward pass. RD inputs
+        only (a point cloud of two scenes is not the union of their CFAR points). 0 (default): none.
     targets, loss, train :
         RADIal's encoding, the loss weights and the optimisation.
     """
@@ -86,6 +91,7 @@ class ExperimentConfig:
     statistics_frames: int = 256
     mirror_probability: float = 0.0
     rotation_max_deg: float = 0.0
+    superpose_probability: float = 0.0
     targets: TargetConfig = field(default_factory=TargetConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
@@ -109,6 +115,11 @@ class ExperimentConfig:
             raise ValueError(f"experiment {self.name!r}: rotation_max_deg cannot rotate the 'sector' feature "
                              f"(maxima of the angle spectrum over fixed sectors); drop the feature or set "
                              f"rotation_max_deg to 0")
+        if not 0.0 <= self.superpose_probability <= 1.0:
+            raise ValueError(f"superpose_probability must be in [0, 1], got {self.superpose_probability}")
+        if self.superpose_probability > 0 and self.pillars is not None:
+            raise ValueError(f"experiment {self.name!r}: superpose_probability applies to RD cubes only "
+                             f"(a point cloud of two scenes is not the union of their CFAR points); set it to 0")
 
     @property
     def input_kind(self) -> str:
@@ -230,8 +241,9 @@ def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths 
         The point store of each root (pillar models); ignored by FFTRadNet.
     split : {"train", "val", "test", "all"}
     augment_seed : int, optional
-        Mirror ``cfg.mirror_probability`` of the items (:class:`MirroredFrames`) and rotate them by up
-        to ``cfg.rotation_max_deg`` (:class:`RotatedFrames`) at random, drawn from this seed (and the
+        Mirror ``cfg.mirror_probability`` of the items (:class:`MirroredFrames`), rotate them by up
+        to ``cfg.rotation_max_deg`` (:class:`RotatedFrames`) and superpose ``cfg.superpose_probability``
+        of the RD items (:class:`SuperposedFrames`) at random, drawn from this seed (and the
         root's position, so roots draw independently). None: the frames as they are.
 
     Raises
@@ -253,6 +265,8 @@ def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths 
         parts = [MirroredFrames(ds, cfg.mirror_probability, augment_seed, stream=k) for k, ds in enumerate(parts)]
     if augment_seed is not None and cfg.rotation_max_deg > 0:
         parts = [RotatedFrames(ds, cfg.rotation_max_deg, augment_seed, stream=k) for k, ds in enumerate(parts)]
+    if augment_seed is not None and cfg.superpose_probability > 0:
+        parts = [SuperposedFrames(ds, cfg.superpose_probability, augment_seed, stream=k) for k, ds in enumerate(parts)]
     return parts[0] if len(parts) == 1 else ConcatFrames(parts)
 
 
@@ -339,6 +353,7 @@ class RadialDetectionTask:
     def __init__(self, cfg: ExperimentConfig, data: DataPaths, points: DataPaths | None = None,
                  splits: tuple[str, str] = ("train", "val"), *, preload: bool = True) -> None:
         self.cfg = cfg
+        self.data, self.train_split = data, splits[0]
         self.train_set = detection_dataset(cfg, data, points, splits[0], augment_seed=cfg.train.seed)
         self.val_set = detection_dataset(cfg, data, points, splits[1])
         self.preloaded_bytes = preload_point_frames([self.train_set, self.val_set]) if preload else 0
@@ -347,10 +362,11 @@ class RadialDetectionTask:
     def build_model(self) -> nn.Module:
         model = build_model(self.cfg)
         if isinstance(model, FFTRadNet):
-            n = len(self.train_set)
+            recorded = detection_dataset(self.cfg, self.data, None, self.train_split)   # not superposed
+            n = len(recorded)
             k = min(self.cfg.statistics_frames, n)
             picks = sorted({round(i * (n - 1) / max(k - 1, 1)) for i in range(k)})
-            mean, std = input_statistics(self.train_set[i][0] for i in picks)
+            mean, std = input_statistics(recorded[i][0] for i in picks)
             model.set_input_statistics(mean, std)
         return model
 
