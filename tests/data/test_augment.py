@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import shutil
 
 import numpy as np
 import pytest
@@ -358,7 +359,7 @@ def test_superposed_items_sum_the_partner_frame(cube_frames):
     assert seen > 0
 
 
-def test_superposition_bad_input(cube_frames):
+def test_superposition_bad_input(cube_frames, tmp_path):
     with pytest.raises(ValueError, match=r"superposition probability must be in \[0, 1\], got 2"):
         SuperposedFrames(cube_frames, 2.0, seed=0)
     with pytest.raises(ValueError, match="at least 2 frames"):
@@ -372,5 +373,13 @@ def test_superposition_bad_input(cube_frames):
         superpose_frames((rd, lab, fs), (rd, lab, fs[:-1]))
     with pytest.raises(ValueError, match="RD cubes only"):
         ExperimentConfig(name="x", pillars=pillars_tiny().cfg, superpose_probability=0.5)
+    # a sparse-RD root (its manifest sparse_rd.json): sparse cubes do not superpose
+    from radarpc.training.radial import detection_dataset
+    sparse = tmp_path / "sparse"
+    shutil.copytree(cube_frames.root, sparse)
+    (sparse / "sparse_rd.json").write_text("{}")
+    cfg = ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, superpose_probability=0.5)
+    with pytest.raises(ValueError, match=f"{re.escape(str(sparse))} is a sparse-RD root"):
+        detection_dataset(cfg, sparse, split="all", augment_seed=0)
     with pytest.raises(ValueError, match=r"superpose_probability must be in \[0, 1\]"):
         ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, superpose_probability=-0.5)

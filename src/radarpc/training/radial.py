@@ -250,11 +250,15 @@ def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths 
     ------
     ValueError
         Roots and stores do not pair up (:func:`data_pairs`), a root's cubes do not fit the model,
+        superposition asked of a sparse-RD root,
         a pillar model without stores, or stores of different point features (enrichments).
     """
     pairs = data_pairs(data, points if cfg.input_kind == "points" else None)
     parts = []
     for k, (root, store) in enumerate(pairs):
+        if augment_seed is not None and cfg.superpose_probability > 0 and (Path(root) / "sparse_rd.json").exists():
+            raise ValueError(f"{root} is a sparse-RD root: the sum of two sparse cubes is not the sparse RD of "
+                             f"both scenes (its mask is a CFAR decision); set superpose_probability to 0")
         ds = _root_dataset(cfg, root, store, split)
         if parts and cfg.input_kind == "points" and ds.store.metadata.enrich != parts[0].store.metadata.enrich:
             raise ValueError(f"point stores of different features cannot train one model: {store} has the "
