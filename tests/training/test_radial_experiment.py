@@ -153,6 +153,19 @@ class _Kill(Exception):
     """Raised from ``on_step`` to stop a run where a kill would."""
 
 
+def _train_killed_and_resumed(run, cfg: ExperimentConfig, tmp_path: Path) -> None:
+    """``run(cfg, out, **kw)`` into ``full`` uninterrupted, and into ``cut`` killed at step 5 (3
+    steps an epoch: in epoch 1), then resumed."""
+    def stop(step):
+        if step == 5:
+            raise _Kill
+
+    run(cfg, tmp_path / "full")
+    with pytest.raises(_Kill):
+        run(cfg, tmp_path / "cut", on_step=stop)
+    run(cfg, tmp_path / "cut")
+
+
 def test_augmented_run_resumes_to_the_same_weights(root, store, tmp_path):
     # the mirrors and rotations are drawn in the loader's worker processes from (seed, epoch,
     # item): a run killed in its second epoch and resumed ends with the weights of an uninterrupted
@@ -165,14 +178,7 @@ def test_augmented_run_resumes_to_the_same_weights(root, store, tmp_path):
         return fit(RadialDetectionTask(c, root, store, splits=("all", "test")), c.train, out, {"name": c.name},
                    progress=False, log=lambda s: None, **kw)
 
-    def stop(step):
-        if step == 5:                                                   # 3 steps an epoch: in epoch 1
-            raise _Kill
-
-    run(cfg, tmp_path / "full")
-    with pytest.raises(_Kill):
-        run(cfg, tmp_path / "cut", on_step=stop)
-    run(cfg, tmp_path / "cut")
+    _train_killed_and_resumed(run, cfg, tmp_path)
     run(dataclasses.replace(cfg, rotation_max_deg=0.0), tmp_path / "mirror")
     run(dataclasses.replace(cfg, mirror_probability=0.0, rotation_max_deg=0.0), tmp_path / "plain")
     full, cut, mirror, plain = (load_state(tmp_path / d / LAST_CHECKPOINT).model
@@ -193,14 +199,7 @@ def test_superposed_fftradnet_run_resumes_and_normalises_by_the_recorded_frames(
         return fit(RadialDetectionTask(c, root, splits=("all", "test")), c.train, out, {"name": c.name},
                    progress=False, log=lambda s: None, **kw)
 
-    def stop(step):
-        if step == 5:                                                   # 3 steps an epoch: in epoch 1
-            raise _Kill
-
-    run(cfg, tmp_path / "full")
-    with pytest.raises(_Kill):
-        run(cfg, tmp_path / "cut", on_step=stop)
-    run(cfg, tmp_path / "cut")
+    _train_killed_and_resumed(run, cfg, tmp_path)
     run(dataclasses.replace(cfg, superpose_probability=0.0), tmp_path / "plain")
     full, cut, plain = (load_state(tmp_path / d / LAST_CHECKPOINT).model for d in ("full", "cut", "plain"))
     assert all(torch.equal(full[k], cut[k]) for k in full)

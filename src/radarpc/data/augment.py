@@ -126,7 +126,30 @@ def mirror_sectors(frames: PointCloudDataset) -> tuple[int, int] | None:
     return sectors
 
 
-class MirroredFrames(torch.utils.data.Dataset):
+class _DrawnPerEpoch(torch.utils.data.Dataset):
+    """The draw bookkeeping the augmenting wrappers share: the wrapped ``frames``, the ``seed``,
+    the ``stream`` (independent draws for several datasets under one seed, their position in a
+    concatenation) and the epoch, which :meth:`set_epoch` sets here and in a wrapped dataset."""
+
+    def __init__(self, frames, seed: int, stream: int) -> None:
+        if stream < 0:
+            raise ValueError(f"stream must be >= 0, got {stream}")
+        self.frames = frames
+        self.seed = int(seed)
+        self.stream = int(stream)
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        """Draw the items of epoch ``epoch`` from now on."""
+        self.epoch = int(epoch)
+        if hasattr(self.frames, "set_epoch"):
+            self.frames.set_epoch(epoch)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+
+class MirroredFrames(_DrawnPerEpoch):
     """A :class:`~radarpc.data.point_dataset.PointCloudDataset` whose items are mirrored at random.
 
     Item ``i`` of epoch ``e`` is mirrored (:func:`mirror_frame`) when a uniform draw seeded by
@@ -147,27 +170,15 @@ class MirroredFrames(torch.utils.data.Dataset):
     def __init__(self, frames: PointCloudDataset, probability: float, seed: int, stream: int = 0) -> None:
         if not 0.0 <= probability <= 1.0:
             raise ValueError(f"mirror probability must be in [0, 1], got {probability}")
-        self.frames = frames
+        super().__init__(frames, seed, stream)
         self.probability = float(probability)
-        self.seed = int(seed)
-        if stream < 0:
-            raise ValueError(f"stream must be >= 0, got {stream}")
-        self.stream = int(stream)
-        self.epoch = 0
         self._sectors = mirror_sectors(frames)
-
-    def set_epoch(self, epoch: int) -> None:
-        """Draw the mirrors of epoch ``epoch`` from now on."""
-        self.epoch = int(epoch)
 
     def is_mirrored(self, i: int) -> bool:
         """Whether item ``i`` is mirrored in the current epoch."""
         key = [self.seed, self.epoch, int(i) % len(self)] + ([self.stream] if self.stream else [])
         u = np.random.default_rng(key).random()
         return bool(u < self.probability)
-
-    def __len__(self) -> int:
-        return len(self.frames)
 
     def __getitem__(self, i: int) -> PointFrame:
         frame = self.frames[i]
@@ -230,7 +241,7 @@ def rotate_frame(frame: PointFrame, angle_deg: float) -> PointFrame:
     return dataclasses.replace(frame, points=points, labels=labels, freespace=frame.freespace[..., source])
 
 
-class RotatedFrames(torch.utils.data.Dataset):
+class RotatedFrames(_DrawnPerEpoch):
     """A dataset of point frames (a :class:`~radarpc.data.point_dataset.PointCloudDataset`, or a
     wrapper of one) whose items are rotated at random (:func:`rotate_frame`).
 
@@ -251,28 +262,14 @@ class RotatedFrames(torch.utils.data.Dataset):
     def __init__(self, frames, max_deg: float, seed: int, stream: int = 0) -> None:
         if not (np.isfinite(max_deg) and max_deg >= 0):
             raise ValueError(f"rotation max_deg must be a finite angle >= 0, got {max_deg}")
-        if stream < 0:
-            raise ValueError(f"stream must be >= 0, got {stream}")
-        self.frames = frames
+        super().__init__(frames, seed, stream)
         self.max_deg = float(max_deg)
         self.max_columns = int(math.floor(self.max_deg / FREESPACE_COLUMN_DEG + 1e-9))
-        self.seed = int(seed)
-        self.stream = int(stream)
-        self.epoch = 0
-
-    def set_epoch(self, epoch: int) -> None:
-        """Draw the rotations of epoch ``epoch`` from now on."""
-        self.epoch = int(epoch)
-        if hasattr(self.frames, "set_epoch"):
-            self.frames.set_epoch(epoch)
 
     def angle_deg(self, i: int) -> float:
         """The rotation of item ``i`` in the current epoch (deg)."""
         rng = np.random.default_rng([self.seed, self.epoch, int(i) % len(self), self.stream, 1])
         return float(rng.integers(-self.max_columns, self.max_columns, endpoint=True)) * FREESPACE_COLUMN_DEG
-
-    def __len__(self) -> int:
-        return len(self.frames)
 
     def __getitem__(self, i: int) -> PointFrame:
         frame = self.frames[i]
@@ -311,7 +308,7 @@ def superpose_frames(a: CubeFrame, b: CubeFrame) -> CubeFrame:
     return rd_a + rd_b, torch.cat([lab_a, lab_b]), fs_a & fs_b
 
 
-class SuperposedFrames(torch.utils.data.Dataset):
+class SuperposedFrames(_DrawnPerEpoch):
     """A dataset of RD frames (:class:`~radarpc.data.radial.RadialFrames`) some of whose items are
     superposed with another of its frames (:func:`superpose_frames`).
 
@@ -333,21 +330,10 @@ class SuperposedFrames(torch.utils.data.Dataset):
     def __init__(self, frames, probability: float, seed: int, stream: int = 0) -> None:
         if not 0.0 <= probability <= 1.0:
             raise ValueError(f"superposition probability must be in [0, 1], got {probability}")
-        if stream < 0:
-            raise ValueError(f"stream must be >= 0, got {stream}")
         if len(frames) < 2:
             raise ValueError(f"superposition needs at least 2 frames to pair, {frames!r} has {len(frames)}")
-        self.frames = frames
+        super().__init__(frames, seed, stream)
         self.probability = float(probability)
-        self.seed = int(seed)
-        self.stream = int(stream)
-        self.epoch = 0
-
-    def set_epoch(self, epoch: int) -> None:
-        """Draw the superpositions of epoch ``epoch`` from now on."""
-        self.epoch = int(epoch)
-        if hasattr(self.frames, "set_epoch"):
-            self.frames.set_epoch(epoch)
 
     def partner(self, i: int) -> int | None:
         """The item superposed on item ``i`` in the current epoch, or None."""
@@ -358,9 +344,6 @@ class SuperposedFrames(torch.utils.data.Dataset):
             return None
         j = int(rng.integers(n - 1))
         return j + (j >= i)                  # any item but i itself
-
-    def __len__(self) -> int:
-        return len(self.frames)
 
     def __getitem__(self, i: int) -> CubeFrame:
         frame = self.frames[i]
