@@ -337,7 +337,7 @@ def test_superposed_frames_draw_partners_by_seed_epoch_and_item(cube_frames):
     assert all(SuperposedFrames(cube_frames, 0.0, seed=7).partner(i) is None for i in range(n))
     other = SuperposedFrames(cube_frames, 0.5, seed=7, stream=1)
     other.set_epoch(4)
-    assert [other.partner(i) for i in range(n)] != draws[4] or n < 3
+    assert [other.partner(i) for i in range(n)] != draws[4]                      # another stream's draws
 
 
 def test_superposed_items_sum_the_partner_frame(cube_frames):

@@ -38,7 +38,7 @@ from radarpc.training.loop import TrainConfig
 
 __all__ = ["ExperimentConfig", "DetectionBatch", "build_model", "RadialDetectionTask", "collate_cubes", "collate_points",
            "collate_detection", "detection_dataset", "data_pairs", "ConcatFrames", "DataPaths",
-           "evaluate_model", "point_datasets", "preload_point_frames", "preload_budget_bytes", "DECODE_THRESHOLD", "MAX_CANDIDATES"]
+           "evaluate_model", "point_datasets", "recorded_datasets", "preload_point_frames", "preload_budget_bytes", "DECODE_THRESHOLD", "MAX_CANDIDATES"]
 
 DataPaths = str | os.PathLike | Sequence[str | os.PathLike]
 """One path, or several in order (dataset roots, or their point stores)."""
@@ -274,15 +274,17 @@ def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths 
     return parts[0] if len(parts) == 1 else ConcatFrames(parts)
 
 
+def recorded_datasets(ds) -> list:
+    """The datasets of recorded frames inside ``ds`` (a dataset of :func:`detection_dataset`), in
+    root order, without the augmentation wrappers (mirror, rotation, superposition)."""
+    while isinstance(ds, (MirroredFrames, RotatedFrames, SuperposedFrames)):
+        ds = ds.frames
+    return [r for d in ds.datasets for r in recorded_datasets(d)] if isinstance(ds, ConcatFrames) else [ds]
+
+
 def point_datasets(ds) -> list[PointCloudDataset]:
     """The point datasets inside ``ds`` (a dataset of :func:`detection_dataset`), in order; [] for RD cubes."""
-    if isinstance(ds, PointCloudDataset):
-        return [ds]
-    if isinstance(ds, (MirroredFrames, RotatedFrames)):
-        return point_datasets(ds.frames)
-    if isinstance(ds, ConcatFrames):
-        return [p for d in ds.datasets for p in point_datasets(d)]
-    return []
+    return [d for d in recorded_datasets(ds) if isinstance(d, PointCloudDataset)]
 
 
 def preload_budget_bytes() -> int:
@@ -357,7 +359,6 @@ class RadialDetectionTask:
     def __init__(self, cfg: ExperimentConfig, data: DataPaths, points: DataPaths | None = None,
                  splits: tuple[str, str] = ("train", "val"), *, preload: bool = True) -> None:
         self.cfg = cfg
-        self.data, self.train_split = data, splits[0]
         self.train_set = detection_dataset(cfg, data, points, splits[0], augment_seed=cfg.train.seed)
         self.val_set = detection_dataset(cfg, data, points, splits[1])
         self.preloaded_bytes = preload_point_frames([self.train_set, self.val_set]) if preload else 0
@@ -366,7 +367,8 @@ class RadialDetectionTask:
     def build_model(self) -> nn.Module:
         model = build_model(self.cfg)
         if isinstance(model, FFTRadNet):
-            recorded = detection_dataset(self.cfg, self.data, None, self.train_split)   # not superposed
+            parts = recorded_datasets(self.train_set)         # never superposed: what inference sees
+            recorded = parts[0] if len(parts) == 1 else torch.utils.data.ConcatDataset(parts)
             n = len(recorded)
             k = min(self.cfg.statistics_frames, n)
             picks = sorted({round(i * (n - 1) / max(k - 1, 1)) for i in range(k)})
