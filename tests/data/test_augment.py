@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import re
-import shutil
 
 import numpy as np
 import pytest
@@ -373,11 +372,11 @@ def test_superposition_bad_input(cube_frames, tmp_path):
         superpose_frames((rd, lab, fs), (rd, lab, fs[:-1]))
     with pytest.raises(ValueError, match="RD cubes only"):
         ExperimentConfig(name="x", pillars=pillars_tiny().cfg, superpose_probability=0.5)
-    # a sparse-RD root (its manifest sparse_rd.json): sparse cubes do not superpose
+    # a sparse-RD root (radarpc pointcloud --sparse-rd-out): sparse cubes do not superpose
+    from radarpc.pipelines.sparse_rd import write_sparse_rd
     from radarpc.training.radial import detection_dataset
     sparse = tmp_path / "sparse"
-    shutil.copytree(cube_frames.root, sparse)
-    (sparse / "sparse_rd.json").write_text("{}")
+    write_sparse_rd(cube_frames.root, sparse, tau=4.0, progress=False)
     cfg = ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, superpose_probability=0.5)
     with pytest.raises(ValueError, match=f"{re.escape(str(sparse))} is a sparse-RD root"):
         detection_dataset(cfg, sparse, split="all", augment_seed=0)

@@ -39,6 +39,7 @@ __all__ = [
     "FREESPACE_FOV_DEG",
     "FREESPACE_CROP",
     "FREESPACE_OUT",
+    "SPARSE_RD_MANIFEST",
     "OFFICIAL_SPLITS",
     "FFT_SUFFIXES",
     "fft_path",
@@ -80,6 +81,10 @@ FREESPACE_CROP: tuple[int, int] = (512, 448)
 """RADIal's reader centre-crops the PNG to 512 x 448 (+-89.6 deg) ..."""
 FREESPACE_OUT: tuple[int, int] = (256, 224)
 """... and resizes it (nearest) to 256 x 224."""
+
+SPARSE_RD_MANIFEST: str = "sparse_rd.json"
+"""In the top folder of a sparse-RD root (``radarpc pointcloud --sparse-rd-out``): its settings,
+tau and per-frame records. Its presence marks the cubes as masked to a CFAR-detected set."""
 
 OFFICIAL_SPLITS: dict[str, tuple[str, ...]] = {
     "val": ("RECORD@2020-11-22_12.49.56", "RECORD@2020-11-22_12.11.49",

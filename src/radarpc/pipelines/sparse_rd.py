@@ -26,8 +26,8 @@ import numpy as np
 import torch
 
 from radarpc import __version__
-from radarpc.data.radial_format import (LABEL_COLUMNS, freespace_path, save_calibration, save_fft_npz,
-                                        stored_fft_path)
+from radarpc.data.radial_format import (LABEL_COLUMNS, SPARSE_RD_MANIFEST, freespace_path, save_calibration,
+                                        save_fft_npz, stored_fft_path)
 from radarpc.distributed import DistEnv, rank_device
 from radarpc.dsp.sparse_rd import sparse_rd, sparse_rd_mask
 from radarpc.io import DataFileError, atomic_write
@@ -180,7 +180,7 @@ def write_sparse_rd(
 def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSettings, root: Path | None,
                   dev: torch.device, cal_src: Any, cal_id: str | None, lock: OutputLock, *, batch_size: int,
                   calibrated_tau: float | None, resume: bool, overwrite: bool, progress: bool) -> SparseRDResult:
-    info_path = out_root / "sparse_rd.json"
+    info_path = out_root / SPARSE_RD_MANIFEST
     if out_root.is_dir() and not info_path.exists() and any(not is_temp_name(p.name) for p in out_root.iterdir()):
         raise FileExistsError(f"{out_root} is not empty and is not a sparse-RD root (no sparse_rd.json): "
                               f"refusing to write masked cubes into it; choose a new or empty folder")

@@ -26,6 +26,7 @@ from torch import nn
 from radarpc.data.augment import MirroredFrames, RotatedFrames, SuperposedFrames
 from radarpc.data.point_dataset import PointCloudDataset, PointFrameBatch, collate_point_frames
 from radarpc.data.radial import RADIal
+from radarpc.data.radial_format import SPARSE_RD_MANIFEST
 from radarpc.eval.detection import DetectionMetrics, FreespaceMetrics
 from radarpc.machine import physical_memory_bytes
 from radarpc.models.fftradnet import FFTRadNet, FFTRadNetConfig, input_statistics
@@ -256,7 +257,7 @@ def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths 
     pairs = data_pairs(data, points if cfg.input_kind == "points" else None)
     parts = []
     for k, (root, store) in enumerate(pairs):
-        if augment_seed is not None and cfg.superpose_probability > 0 and (Path(root) / "sparse_rd.json").exists():
+        if augment_seed is not None and cfg.superpose_probability > 0 and (Path(root) / SPARSE_RD_MANIFEST).exists():
             raise ValueError(f"{root} is a sparse-RD root: the sum of two sparse cubes is not the sparse RD of "
                              f"both scenes (its mask is a CFAR decision); set superpose_probability to 0")
         ds = _root_dataset(cfg, root, store, split)
