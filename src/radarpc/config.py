@@ -27,7 +27,7 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
-__all__ = ["to_dict", "from_dict", "save_yaml", "load_yaml"]
+__all__ = ["to_dict", "from_dict", "save_yaml", "load_yaml", "load_yaml_mapping"]
 
 C = TypeVar("C")
 
@@ -112,8 +112,16 @@ def save_yaml(cfg: Any, path: str | os.PathLike) -> Path:
     return path
 
 
-def load_yaml(cls: type[C], path: str | os.PathLike) -> C:
-    """Read a config of type ``cls`` from a YAML file (safe loading; errors name the file)."""
+def load_yaml_mapping(path: str | os.PathLike) -> dict:
+    """The mapping a YAML config file holds (safe loading; an empty file is ``{}``).
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    ValueError
+        Not valid YAML, or not a mapping at its top; the message names the file.
+    """
     import yaml
 
     path = Path(path)
@@ -125,4 +133,13 @@ def load_yaml(cls: type[C], path: str | os.PathLike) -> C:
         d = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise ValueError(f"{path}: not valid YAML ({e})") from None
-    return from_dict(cls, d if d is not None else {}, where=str(path))
+    if d is None:
+        return {}
+    if not isinstance(d, dict):
+        raise ValueError(f"{path}: expected a mapping of config fields, got {type(d).__name__}")
+    return d
+
+
+def load_yaml(cls: type[C], path: str | os.PathLike) -> C:
+    """Read a config of type ``cls`` from a YAML file (safe loading; errors name the file)."""
+    return from_dict(cls, load_yaml_mapping(path), where=str(path))

@@ -639,7 +639,7 @@ def plot_detection_frame(batch, detections, probability: torch.Tensor | None, ou
 
     Parameters
     ----------
-    batch : radarpc.training.radial.DetectionBatch
+    batch : radarpc.experiments.radial_detection.task.DetectionBatch
         A batch of one frame (on the CPU).
     detections : radarpc.models.targets.Detections
         Its decoded detections (one frame).

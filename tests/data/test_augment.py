@@ -14,14 +14,13 @@ from radarpc.data.augment import (FREESPACE_COLUMN_DEG, MirroredFrames, RotatedF
 from radarpc.data.point_dataset import PointCloudDataset
 from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS
 from radarpc.dsp.beamform import sector_pool
-from radarpc.models.fftradnet import fftradnet_tiny
-from radarpc.models.pillars import pillars_tiny
 from radarpc.models.targets import TargetConfig, encode_targets
 from radarpc.pipelines.pointclouds import convert_dataset
 from radarpc.sensors.radial import TINY
 from radarpc.sim.radial_writer import write_radial_dataset
 from radarpc.sim.scenes import scene_mix
-from radarpc.training.radial import ExperimentConfig
+from radarpc.experiments.radial_detection.config import ExperimentConfig
+from radarpc.models import ModelSpec
 
 COL = {c: k for k, c in enumerate(LABEL_TENSOR_COLUMNS)}
 LATERAL = ("radar_A_deg", "radar_Y_m", "laser_Y_m")
@@ -142,9 +141,9 @@ def test_bad_input(frames):
     with pytest.raises(ValueError, match="4-wide sector descriptor"):
         mirror_frame(frames[0], (2, 1))
     with pytest.raises(ValueError, match="point inputs only"):
-        ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, mirror_probability=0.5)
+        ExperimentConfig(name="x", model=ModelSpec("fftradnet-tiny"), mirror_probability=0.5)
     with pytest.raises(ValueError, match=r"mirror_probability must be in \[0, 1\]"):
-        ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, mirror_probability=-0.1)
+        ExperimentConfig(name="x", model=ModelSpec("fftradnet-tiny"), mirror_probability=-0.1)
 
 
 def test_an_asymmetric_azimuth_table_is_refused(frames, tmp_path):
@@ -277,11 +276,11 @@ def test_rotation_bad_input(frames):
     with pytest.raises(ValueError, match="stream must be >= 0, got -2"):
         RotatedFrames(frames, 1.0, seed=0, stream=-2)
     with pytest.raises(ValueError, match="rotation_max_deg applies to point inputs only"):
-        ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, rotation_max_deg=2.0)
+        ExperimentConfig(name="x", model=ModelSpec("fftradnet-tiny"), rotation_max_deg=2.0)
     with pytest.raises(ValueError, match="rotation_max_deg must be a finite angle >= 0, got nan"):
-        ExperimentConfig(name="x", pillars=pillars_tiny().cfg, rotation_max_deg=float("nan"))
+        ExperimentConfig(name="x", model=ModelSpec("pillars-tiny"), rotation_max_deg=float("nan"))
     with pytest.raises(ValueError, match="cannot rotate the 'sector' feature"):
-        ExperimentConfig(name="x", pillars=pillars_tiny(features=("r", "a", "sector")).cfg, rotation_max_deg=2.0)
+        ExperimentConfig(name="x", model=ModelSpec("pillars-tiny", {"features": ["r", "a", "sector"]}), rotation_max_deg=2.0)
 
 
 # ---- superposition of RD frames ------------------------------------------------------------------
@@ -371,14 +370,14 @@ def test_superposition_bad_input(cube_frames, tmp_path):
     with pytest.raises(ValueError, match="frames of different targets"):
         superpose_frames((rd, lab, fs), (rd, lab, fs[:-1]))
     with pytest.raises(ValueError, match="RD cubes only"):
-        ExperimentConfig(name="x", pillars=pillars_tiny().cfg, superpose_probability=0.5)
+        ExperimentConfig(name="x", model=ModelSpec("pillars-tiny"), superpose_probability=0.5)
     # a sparse-RD root (radarpc pointcloud --sparse-rd-out): sparse cubes do not superpose
     from radarpc.pipelines.sparse_rd import write_sparse_rd
-    from radarpc.training.radial import detection_dataset
+    from radarpc.experiments.radial_detection.task import detection_dataset
     sparse = tmp_path / "sparse"
     write_sparse_rd(cube_frames.root, sparse, tau=4.0, progress=False)
-    cfg = ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, superpose_probability=0.5)
+    cfg = ExperimentConfig(name="x", model=ModelSpec("fftradnet-tiny"), superpose_probability=0.5)
     with pytest.raises(ValueError, match=f"{re.escape(str(sparse))} is a sparse-RD root"):
         detection_dataset(cfg, sparse, split="all", augment_seed=0)
     with pytest.raises(ValueError, match=r"superpose_probability must be in \[0, 1\]"):
-        ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, superpose_probability=-0.5)
+        ExperimentConfig(name="x", model=ModelSpec("fftradnet-tiny"), superpose_probability=-0.5)

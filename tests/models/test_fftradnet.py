@@ -9,11 +9,15 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from radarpc.models.batchnorm import randomise_batchnorm_
+from radarpc.models.fast.batchnorm import randomise_batchnorm_
+from radarpc.config import from_dict, to_dict
+from radarpc.experiments.radial_detection.official import (load_official_checkpoint, official_to_radarpc,
+                                                           radarpc_to_official)
+from radarpc.models import ModelSpec
+from radarpc.models.fast.batchnorm import fuse_for_inference
 from radarpc.models.fftradnet import (FFTRadNetConfig, StridedConv1x1, cube_to_channels, fftradnet, fftradnet_s,
-                                      fftradnet_tiny, fuse_for_inference, input_statistics, load_fftradnet,
-                                      load_official_checkpoint, official_to_radarpc, radarpc_to_official,
-                                      save_fftradnet)
+                                      fftradnet_tiny, input_statistics)
+from radarpc.training.checkpoint import load_weights, save_weights
 
 
 def _cube(b: int, cfg: FFTRadNetConfig, seed: int = 0) -> torch.Tensor:
@@ -209,19 +213,22 @@ def test_pickle_only_checkpoint_is_refused(tmp_path, tiny):
 
 
 # ---- radarpc weights ------------------------------------------------------------------------------
-def test_safetensors_round_trip(tmp_path, tiny):
+def test_weights_and_spec_rebuild_the_model(tmp_path, tiny):
+    """radarpc's one weights format (safetensors, radarpc.training.checkpoint) with the model's
+    registry spec beside it rebuilds the same network: statistics buffers included."""
     tiny.set_input_statistics(torch.full((32,), 0.5), torch.full((32,), 2.0))
-    path = save_fftradnet(tiny, tmp_path / "w.safetensors")
-    back = load_fftradnet(path).eval()
+    spec = ModelSpec.matching("fftradnet-tiny", tiny.cfg)
+    path = save_weights(tmp_path / "w.safetensors", tiny.state_dict(), {"model": to_dict(spec)})
+    state, info = load_weights(path)
+    back = from_dict(ModelSpec, info["model"]).build()
+    back.load_state_dict(state)
+    back.eval()
     assert back.cfg == tiny.cfg
     for k, v in tiny.state_dict().items():
         assert torch.equal(back.state_dict()[k], v), k
     rd = _cube(1, tiny.cfg, seed=3)
     with torch.no_grad():
         assert torch.equal(back(rd).detection, tiny(rd).detection)
-    (tmp_path / "x.safetensors").write_bytes(b"\x08\x00\x00\x00\x00\x00\x00\x00{}      ")
-    with pytest.raises(ValueError, match="no FFTRadNet config"):
-        load_fftradnet(tmp_path / "x.safetensors")
     tiny.set_input_statistics(torch.zeros(32), torch.ones(32))
 
 

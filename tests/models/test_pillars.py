@@ -8,10 +8,14 @@ import torch
 import torch.nn.functional as F
 
 from radarpc.config import from_dict, to_dict
-from radarpc.models.batchnorm import randomise_batchnorm_
+from radarpc.models.fast.batchnorm import randomise_batchnorm_
 from radarpc.models.heads import HeadOutput
-from radarpc.models.pillars import (PILLARS_MODELS, POINT_FEATURES, PillarsConfig, PillarVFE, PointPillarScatter,
-                                    fuse_for_inference, pillar_coords, pillars_tiny, point_features)
+from radarpc.models import MODELS, build_model
+from radarpc.models.fast.batchnorm import fuse_for_inference
+from radarpc.models.pillars import (POINT_FEATURES, PillarsConfig, PillarVFE, PointPillarScatter, PointPillars,
+                                    pillar_coords, pillars_tiny, point_features)
+
+PILLARS_VARIANTS = sorted(n for n in MODELS if isinstance(build_model(n, device="meta"), PointPillars))
 from testkit import make_cloud
 
 
@@ -132,7 +136,7 @@ def test_runs_stored_before_the_freespace_flag_keep_the_official_order():
     stored = {k: v for k, v in to_dict(PillarsConfig()).items() if k != "freespace_upsample_logits"}
     assert from_dict(PillarsConfig, stored).freespace_upsample_logits is False
     with torch.device("meta"):
-        assert all(PILLARS_MODELS[name]().cfg.freespace_upsample_logits for name in PILLARS_MODELS)
+        assert all(MODELS[name]().cfg.freespace_upsample_logits for name in PILLARS_VARIANTS)
 
 
 @pytest.mark.parametrize("field, value", [("freespace", 1), ("freespace_upsample_logits", "yes")])
@@ -141,10 +145,10 @@ def test_config_flags_must_be_booleans(field, value):
         PillarsConfig(**{field: value})
 
 
-@pytest.mark.parametrize("name", sorted(PILLARS_MODELS))
+@pytest.mark.parametrize("name", PILLARS_VARIANTS)
 def test_output_shapes_of_every_variant(name):
     with torch.device("meta"):                          # full sizes without allocating or computing
-        model = PILLARS_MODELS[name]()
+        model = MODELS[name]()
         cfg = model.cfg
         x = model.backbone(torch.empty(2, cfg.pfn_channels, *cfg.grid))
         assert x.shape == (2, cfg.out_channels, 128, 224)
@@ -156,7 +160,7 @@ def test_output_shapes_of_every_variant(name):
 def test_full_size_parameter_counts_match_the_seed(name, seed_params):
     # the seed's Table 3: PointPillars and SpectralPillars both 2.4M (with the detection and freespace heads)
     with torch.device("meta"):
-        model = PILLARS_MODELS[name]()
+        model = MODELS[name]()
     n = sum(p.numel() for p in model.parameters())
     assert abs(n - seed_params) <= 0.05 * seed_params, n
 

@@ -35,7 +35,7 @@ __all__ = ["add_parser", "run_oscfar", "run_detect"]
 
 def run_detect(args: argparse.Namespace) -> int:
     from radarpc.config import load_yaml
-    from radarpc.experiments.detection import evaluate_classical
+    from radarpc.experiments.radial_detection.evaluation import evaluate_classical
     from radarpc.models.classical import ClassicalConfig
 
     cfg = load_yaml(ClassicalConfig, args.config) if args.config else ClassicalConfig()

@@ -39,7 +39,7 @@ __all__ = ["add_parser", "run"]
 
 
 def run(args: argparse.Namespace) -> int:
-    from radarpc.experiments.detection import evaluate_run
+    from radarpc.experiments.radial_detection.evaluation import evaluate_run
 
     evaluate_run(args.run, args.split, data=args.data, points=args.points, device=args.device,
                  show=args.show, fps_frames=args.fps_frames, precision=args.precision,
@@ -66,7 +66,7 @@ def add_parser(sub) -> None:
                    help="point models: average each frame's output with its mirror image's (two forward "
                         "passes); writes eval_{split}_mirror.*")
     p.add_argument("--fast", action="store_true",
-                   help="score and time the fast inference copy (radarpc.models.fast_inference: exact rewrites, "
+                   help="score and time the fast inference copy (radarpc.models.fast: exact rewrites, "
                         "fp32; the first passes compile kernels); writes eval_{split}_fast.*")
     p.add_argument("--difficult", action=argparse.BooleanOptionalAction, default=None,
                    help="--no-difficult leaves out RADIal's 'Difficult' labels: its easy mode (3-Evaluation.py "

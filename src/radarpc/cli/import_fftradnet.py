@@ -25,17 +25,18 @@ __all__ = ["add_parser", "run"]
 
 
 def run(args: argparse.Namespace) -> int:
-    from radarpc.experiments.detection import load_experiment
-    from radarpc.experiments.official import import_official_fftradnet
+    from radarpc.experiments.radial_detection.config import load_experiment
+    from radarpc.experiments.radial_detection.official import import_official_fftradnet
     from radarpc.io import DataFileError
     from radarpc.models.fftradnet import FFTRadNetConfig
 
     base = FFTRadNetConfig()
     if args.geometry is not None:
         like = load_experiment(args.geometry)
-        if like.fftradnet is None:
-            raise DataFileError(args.geometry, "expected an FFTRadNet experiment config (an 'fftradnet' section)")
-        base = like.fftradnet
+        if not isinstance(like.model.config, FFTRadNetConfig):
+            raise DataFileError(args.geometry, f"expected an FFTRadNet experiment config, got model "
+                                               f"{like.model.variant!r}")
+        base = like.model.config
     out = import_official_fftradnet(args.checkpoint, args.official_config, args.data, args.out, base=base,
                                     overwrite=args.overwrite)
     print(f"{out}: official FFTRadNet weights of {args.checkpoint}; score them with `radarpc evaluate {out} --split test`")

@@ -33,16 +33,15 @@ __all__ = ["add_parser", "run"]
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
-
     from radarpc.distributed import dist_env
-    from radarpc.experiments.detection import load_experiment, train_runs
+    from radarpc.experiments.radial_detection.config import load_experiment, with_train
+    from radarpc.experiments.radial_detection.train import train_runs
 
     cfg = load_experiment(args.config)
     changes = {k: v for k, v in (("epochs", args.epochs), ("batch_size", args.batch_size),
                                  ("num_workers", args.num_workers), ("seed", args.seed)) if v is not None}
     if changes:
-        cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **changes))
+        cfg = with_train(cfg, **changes)
     rank0 = dist_env().rank == 0
     results = train_runs(cfg, args.data, args.out, points=args.points, runs=args.runs, device=args.device,
                          overwrite=args.overwrite, progress=not args.no_progress,

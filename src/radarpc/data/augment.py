@@ -31,7 +31,7 @@ changes (:func:`rotate_frame`):
   the radial velocities are those of the same scene seen from a yawed mount (static clutter then
   reads ``-v cos(a - delta)`` instead of ``-v cos a``, at most ``v sin|a| sin|delta|`` apart). The
   ``sector`` descriptor, maxima of the angle spectrum over fixed azimuth sectors, would need the
-  spectrum itself to rotate; it is left as measured, and :class:`~radarpc.training.radial.ExperimentConfig`
+  spectrum itself to rotate; it is left as measured, and :class:`~radarpc.experiments.radial_detection.config.ExperimentConfig`
   refuses rotation for a model that reads it;
 * labels: ``radar_A_deg`` shifted, ``radar_X_m, radar_Y_m`` rotated, ``laser_X_m, laser_Y_m`` moved
   with them (the LiDAR frame is the radar frame translated); range, Doppler, power and the camera

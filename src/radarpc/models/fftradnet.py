@@ -14,37 +14,27 @@ and sparse-RD baselines. Read top-down:
    (channels become azimuth columns), then upsampled in range and fused;
 5. the common heads of :mod:`radarpc.models.heads`.
 
-Sizes are those of a :class:`FFTRadNetConfig`; the variants are plain factory functions in
-:data:`FFTRADNET_VARIANTS`. Official state dicts load with :func:`load_official_checkpoint`;
-radarpc's own weights are safetensors (:func:`save_fftradnet`, :func:`load_fftradnet`).
+Sizes are those of a :class:`FFTRadNetConfig`; the variants are plain factory functions, listed
+with every other model in :data:`radarpc.models.MODELS`. Official checkpoints are converted by
+:mod:`radarpc.experiments.radial_detection.official`; inference rewrites are in
+:mod:`radarpc.models.fast`.
 """
 from __future__ import annotations
 
-import copy
-import json
-import os
-import pickle
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from radarpc.io import atomic_write
-from radarpc.models.batchnorm import fold_batchnorm
 from radarpc.models.heads import (DETECTION_SHAPE, FREESPACE_SHAPE, ConvBlock, DetectionHead, FreespaceHead,
                                   HeadOutput, conv3x3)
-from radarpc.config import from_dict, to_dict
 from radarpc.sensors.radial import RADIAL, RADIAL_S, DDMARadarConfig
 
 __all__ = [
     "FFTRadNetConfig", "FFTRadNet", "MIMOPreEncoder", "Bottleneck", "FPNBackbone", "RangeAngleDecoder",
-    "fftradnet", "fftradnet_s", "fftradnet_tiny", "FFTRADNET_VARIANTS",
-    "cube_to_channels", "input_statistics",
-    "official_to_radarpc", "radarpc_to_official", "load_official_checkpoint",
-    "save_fftradnet", "load_fftradnet", "fuse_for_inference",
+    "fftradnet", "fftradnet_s", "fftradnet_tiny", "cube_to_channels", "input_statistics",
 ]
 
 
@@ -106,8 +96,8 @@ class FFTRadNetConfig:
     @classmethod
     def for_sensor(cls, sensor: DDMARadarConfig, **fields) -> "FFTRadNetConfig":
         """A config whose input sizes are those of ``sensor``'s cubes."""
-        return cls(n_range=sensor.n_range, n_doppler=sensor.n_doppler, n_rx=sensor.n_rx, n_tx=sensor.n_tx,
-                   slot_width=sensor.slot_width, **fields)
+        return cls(**{"n_range": sensor.n_range, "n_doppler": sensor.n_doppler, "n_rx": sensor.n_rx,
+                      "n_tx": sensor.n_tx, "slot_width": sensor.slot_width, **fields})
 
 
 # ---- input --------------------------------------------------------------------------------------
@@ -292,6 +282,8 @@ class FFTRadNet(nn.Module):
     :meth:`set_input_statistics`) travel with the weights.
     """
 
+    input_kind = "rd"                       # forward takes complex RD cubes (B, Nr, Nd, Nrx)
+
     def __init__(self, cfg: FFTRadNetConfig):
         super().__init__()
         self.cfg = cfg
@@ -362,157 +354,3 @@ def fftradnet_tiny(**fields) -> FFTRadNet:
     return FFTRadNet(FFTRadNetConfig.for_sensor(RADIAL_S, **(d | fields)))
 
 
-FFTRADNET_VARIANTS = {"fftradnet": fftradnet, "fftradnet-s": fftradnet_s, "fftradnet-tiny": fftradnet_tiny}
-
-
-# ---- official state dicts -----------------------------------------------------------------------
-# (official prefix, radarpc prefix); the first match rewrites a key, the rest of it is unchanged
-_OFFICIAL_PREFIXES = (
-    ("FPN.pre_enc.", "pre_encoder."),
-    ("FPN.", "backbone."),
-    ("RA_decoder.", "decoder."),
-    ("detection_header.", "detection_head."),
-    ("freespace.0.", "freespace_head.block1."),
-    ("freespace.1.", "freespace_head.block2."),
-    ("freespace.2.", "freespace_head.out."),
-)
-_OURS_ONLY = ("input_mean", "input_std")
-
-
-def _rename(key: str, pairs: Iterable[tuple[str, str]]) -> str | None:
-    for a, b in pairs:
-        if key.startswith(a):
-            return b + key[len(a):]
-    return None
-
-
-def official_to_radarpc(state: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """An official FFTRadNet state dict (keys ``FPN.*``, ``RA_decoder.*``, ``detection_header.*``,
-    ``freespace.*``; a ``module.`` prefix of ``DataParallel`` is dropped) in radarpc's key names."""
-    out = {}
-    for k, v in state.items():
-        k = k.removeprefix("module.")
-        new = _rename(k, _OFFICIAL_PREFIXES)
-        if new is None:
-            raise KeyError(f"{k!r} is not a key of the official FFTRadNet (expected one starting with "
-                           f"{', '.join(a for a, _ in _OFFICIAL_PREFIXES)})")
-        out[new] = v
-    return out
-
-
-def radarpc_to_official(state: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """Inverse of :func:`official_to_radarpc` (the normalisation buffers, which the official model
-    keeps in its JSON config, are left out)."""
-    back = [(b, a) for a, b in _OFFICIAL_PREFIXES]
-    back.sort(key=lambda p: -len(p[0]))       # "freespace_head.block1." before any shorter prefix
-    out = {}
-    for k, v in state.items():
-        if k in _OURS_ONLY:
-            continue
-        new = _rename(k, back)
-        if new is None:
-            raise KeyError(f"{k!r} is not a key of radarpc's FFTRadNet")
-        out[new] = v
-    return out
-
-
-def _numpy_scalar_globals() -> list:
-    """What unpickling numeric NumPy scalars needs: the official training script stores its metric
-    history (``np.float64``) beside the weights. Data constructors only (no callables of the file's
-    choosing); the scalar constructor under its NumPy 1 and 2 module names."""
-    import numpy as np
-
-    core = getattr(np, "_core", None) or np.core
-    names = ("Float64DType", "Float32DType", "Float16DType", "Int64DType", "Int32DType", "BoolDType")
-    dtypes = [getattr(np.dtypes, n) for n in names if hasattr(getattr(np, "dtypes", None), n)]
-    scalar = core.multiarray.scalar
-    return [scalar, (scalar, "numpy.core.multiarray.scalar"), (scalar, "numpy._core.multiarray.scalar"), np.dtype,
-            *dtypes]
-
-
-def load_official_checkpoint(path: str | os.PathLike) -> dict[str, torch.Tensor]:
-    """The network weights of an official FFTRadNet ``.pth`` checkpoint, in radarpc's key names.
-
-    Accepts a bare state dict and the training script's ``{"net_state_dict": ..., "optimizer": ...}``
-    layout. The file is read with ``torch.load(weights_only=True)``: tensors, plain containers and
-    numeric NumPy scalars (the script's metric history) only. A checkpoint that needs full
-    unpickling (arbitrary Python objects) is refused, since unpickling runs code the file chooses.
-
-    Load into a model with ``model.load_state_dict(sd, strict=False)`` (the statistics buffers are
-    not in the file; set them with :meth:`FFTRadNet.set_input_statistics`), or use
-    ``model.load_state_dict(sd | {"input_mean": ..., "input_std": ...})``.
-    """
-    path = Path(path)
-    try:
-        with torch.serialization.safe_globals(_numpy_scalar_globals()):
-            obj = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as e:
-        raise ValueError(
-            f"{path}: refusing to load: the checkpoint holds Python objects that only full unpickling can "
-            f"rebuild, which can run arbitrary code. radarpc reads checkpoints with torch.load(weights_only=True). "
-            f"If you trust the file, re-save its weights alone in a separate Python session: "
-            f"torch.save(torch.load(path, weights_only=False)['net_state_dict'], 'weights.pth'). ({e})") from None
-    except (RuntimeError, EOFError, OSError) as e:
-        if isinstance(e, FileNotFoundError):
-            raise
-        raise ValueError(f"{path}: not a readable torch checkpoint ({e})") from None
-    if isinstance(obj, Mapping) and "net_state_dict" in obj:
-        obj = obj["net_state_dict"]
-    if not isinstance(obj, Mapping) or not obj or not all(isinstance(v, torch.Tensor) for v in obj.values()):
-        raise ValueError(f"{path}: expected a state dict (name -> tensor) or a dict with 'net_state_dict', "
-                         f"got {type(obj).__name__} with keys {list(obj)[:5] if isinstance(obj, Mapping) else '-'}")
-    return official_to_radarpc(obj)
-
-
-# ---- radarpc weights ----------------------------------------------------------------------------
-def save_fftradnet(model: FFTRadNet, path: str | os.PathLike) -> Path:
-    """Weights, BN statistics and input statistics as safetensors, the config in its metadata."""
-    from safetensors.torch import save
-
-    state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    data = save(state, metadata={"model": "FFTRadNet", "config": json.dumps(to_dict(model.cfg))})
-    path = Path(path)
-    with atomic_write(path, "wb") as f:
-        f.write(data)
-    return path
-
-
-def load_fftradnet(path: str | os.PathLike, device: torch.device | str = "cpu") -> FFTRadNet:
-    """The model :func:`save_fftradnet` wrote, rebuilt from the config in the file's metadata."""
-    from safetensors import safe_open
-    from safetensors.torch import load_file
-
-    path = Path(path)
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            meta = f.metadata() or {}
-    except Exception as e:   # safetensors raises its own error types for a bad header
-        raise ValueError(f"{path}: not a safetensors file ({e})") from None
-    if meta.get("model") != "FFTRadNet" or "config" not in meta:
-        raise ValueError(f"{path}: safetensors metadata has no FFTRadNet config (model={meta.get('model')!r})")
-    model = FFTRadNet(from_dict(FFTRadNetConfig, json.loads(meta["config"]), where=f"{path}: config"))
-    model.load_state_dict(load_file(str(path), device="cpu"))
-    return model.to(device)
-
-
-# ---- fast inference -----------------------------------------------------------------------------
-def fuse_for_inference(model: FFTRadNet) -> FFTRadNet:
-    """A copy of ``model`` in eval mode with every BatchNorm folded into the conv before it.
-
-    Exact in real arithmetic (eval-mode BN is a per-channel affine map); in fp32 the outputs differ
-    by rounding only. The pre-encoder's BN follows a crop, which commutes with a per-channel map.
-    """
-    m = copy.deepcopy(model).eval()
-    with torch.no_grad():
-        for mod in m.modules():
-            for conv_name, bn_name in (("conv", "bn"), ("conv1", "bn1"), ("conv2", "bn2"), ("conv3", "bn3"),
-                                       ("conv4", "bn4")):
-                conv, bn = getattr(mod, conv_name, None), getattr(mod, bn_name, None)
-                if isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d):
-                    fold_batchnorm(conv, bn)
-                    setattr(mod, bn_name, nn.Identity())
-            if isinstance(mod, nn.Sequential) and len(mod) == 2 and isinstance(mod[0], nn.Conv2d) \
-                    and isinstance(mod[1], nn.BatchNorm2d):                 # bottleneck shortcuts
-                fold_batchnorm(mod[0], mod[1])
-                mod[1] = nn.Identity()
-    return m

@@ -41,21 +41,18 @@ Pillarisation is vectorised (no Python loop over points or pillars) and device-a
 outside the grid are dropped, and a pillar keeps all its points (OpenPCDet caps them at 32 to pad
 a dense tensor; the max over an offset-indexed scatter needs no cap).
 
-Size variants are plain factory functions (:data:`PILLARS_MODELS`): :func:`polar_pointpillars`
+Size variants are plain factory functions (listed in :data:`radarpc.models.MODELS`): :func:`polar_pointpillars`
 and :func:`spectralpillars` (full size), their ``_s`` variants for ``radial-s``, and
 :func:`pillars_tiny` for tests.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-import copy
-from typing import Callable
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from radarpc.models.batchnorm import fold_batchnorm
 from radarpc.models.heads import DETECTION_SHAPE, FREESPACE_SHAPE, DetectionHead, FreespaceHead, HeadOutput
 from radarpc.points import PointCloudBatch, offset2batch
 
@@ -74,8 +71,6 @@ __all__ = [
     "polar_pointpillars_s",
     "spectralpillars_s",
     "pillars_tiny",
-    "PILLARS_MODELS",
-    "fuse_for_inference",
 ]
 
 POINT_FEATURES: tuple[str, ...] = ("r", "a", "e", "d", "Ae", "pillar_offset", "sector", "rd_patch", "neighbour")
@@ -199,6 +194,8 @@ class PointPillars(nn.Module):
     ``(B, 3, 128, 224)`` (probability, range and azimuth offsets) and ``freespace``
     ``(B, 1, 256, 224)`` logits (None without the freespace head).
     """
+
+    input_kind = "points"                   # forward takes a PointCloudBatch
 
     def __init__(self, cfg: PillarsConfig):
         super().__init__()
@@ -420,50 +417,3 @@ def pillars_tiny(**overrides) -> PointPillars:
     return PointPillars(PillarsConfig(**{**_SMALL, "pfn_channels": 8, "layer_nums": (0, 1, 1),
                                          "num_filters": (8, 8, 8), "num_upsample_filters": (8, 4, 4),
                                          "detection_widths": (8, 8), "freespace_widths": (8, 8), **overrides}))
-
-
-PILLARS_MODELS: dict[str, Callable[..., PointPillars]] = {
-    "pointpillars": polar_pointpillars,
-    "spectralpillars": spectralpillars,
-    "pointpillars-s": polar_pointpillars_s,
-    "spectralpillars-s": spectralpillars_s,
-    "pillars-tiny": pillars_tiny,
-}
-"""Size variants by name (config and CLI choices)."""
-
-
-# ----------------------------------------------------------------------------------------------
-# Inference
-# ----------------------------------------------------------------------------------------------
-
-def fuse_for_inference(model: PointPillars) -> PointPillars:
-    """A copy of ``model`` in eval mode with every BatchNorm folded into the linear map before it.
-
-    Eval-mode BN is a per-channel affine map, so the fold is exact in real arithmetic (fp32 outputs
-    differ by rounding only): the point encoder becomes one ``Linear`` with bias
-    (``W' = diag(g / s) W diag(1 / s_in)``), every conv and transposed conv of the backbone and
-    heads gets ``w' = w g / s``, ``b' = (b - mu) g / s + beta`` with ``s = sqrt(var + eps)``.
-    """
-    m = copy.deepcopy(model).eval()
-    with torch.no_grad():
-        vfe = m.vfe
-        s_in = torch.sqrt(vfe.input_norm.running_var + vfe.input_norm.eps)            # (F,)
-        w = vfe.linear.weight / s_in                                                  # (C, F)
-        b = -(w @ vfe.input_norm.running_mean)                                        # (C,)
-        g = vfe.norm.weight / torch.sqrt(vfe.norm.running_var + vfe.norm.eps)         # (C,)
-        fused = nn.Linear(w.shape[1], w.shape[0], bias=True).to(w)
-        fused.weight.copy_(w * g[:, None])
-        fused.bias.copy_((b - vfe.norm.running_mean) * g + vfe.norm.bias)
-        vfe.linear, vfe.input_norm, vfe.norm = fused, nn.Identity(), nn.Identity()
-        for mod in m.modules():
-            if isinstance(mod, nn.Sequential):                                    # backbone: conv, BN, GELU
-                for i in range(len(mod) - 1):
-                    if isinstance(mod[i], (nn.Conv2d, nn.ConvTranspose2d)) and isinstance(mod[i + 1], nn.BatchNorm2d):
-                        fold_batchnorm(mod[i], mod[i + 1])
-                        mod[i + 1] = nn.Identity()
-            for k in range(1, 5):                                                 # heads: conv{k}, bn{k}
-                conv, bn = getattr(mod, f"conv{k}", None), getattr(mod, f"bn{k}", None)
-                if isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d):
-                    fold_batchnorm(conv, bn)
-                    setattr(mod, f"bn{k}", nn.Identity())
-    return m

@@ -6,10 +6,11 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from radarpc.models import collapsed_head
-from radarpc.models.batchnorm import randomise_batchnorm_
-from radarpc.models.collapsed_head import CollapsedDetectionHead, collapsed_head_for_inference, compose_convs
-from radarpc.models.fftradnet import fftradnet_tiny, fuse_for_inference
+from radarpc.models.fast import collapsed_head
+from radarpc.models.fast.batchnorm import randomise_batchnorm_
+from radarpc.models.fast.collapsed_head import CollapsedDetectionHead, collapsed_head_for_inference, compose_convs
+from radarpc.models.fast.batchnorm import fuse_for_inference
+from radarpc.models.fftradnet import fftradnet_tiny
 from radarpc.models.heads import DetectionHead
 from radarpc.models.pillars import pillars_tiny
 from testkit import warns_reduced_fp32_matmul

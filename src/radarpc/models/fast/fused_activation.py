@@ -19,7 +19,7 @@ import torch.nn as nn
 
 from radarpc.models.fftradnet import Bottleneck, FPNBackbone
 from radarpc.models.heads import ConvBlock
-from radarpc.models.winograd import WinogradConv2d
+from radarpc.models.fast.winograd import WinogradConv2d
 
 __all__ = ["ConvActivation", "fuse_activations_for_inference"]
 
@@ -110,7 +110,7 @@ def fuse_activations_for_inference(model: nn.Module) -> nn.Module:
     backbone); and children named ``conv<i>``, ``bn<i>`` (an ``nn.Identity``) and ``act<i>`` of one
     module whose forward applies them in that order (FFTRadNet's ``Bottleneck`` and ``FPNBackbone``
     stem, the decoder's ``ConvBlock``; other classes are left alone). The convolution becomes a
-    :class:`ConvActivation` (or, for a :class:`~radarpc.models.winograd.WinogradConv2d` and a ReLU,
+    :class:`ConvActivation` (or, for a :class:`~radarpc.models.fast.winograd.WinogradConv2d` and a ReLU,
     applies it in its output transform) and the activation an identity. Fold BatchNorm first (``fuse_for_inference``): a BN between
     them stops the match. ``model`` is unchanged.
     """

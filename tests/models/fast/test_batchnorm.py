@@ -3,7 +3,7 @@ import pytest
 import torch
 from torch import nn
 
-from radarpc.models.batchnorm import fold_batchnorm, randomise_batchnorm_
+from radarpc.models.fast.batchnorm import fold_batchnorm, randomise_batchnorm_
 
 
 @pytest.mark.parametrize("conv", [nn.Conv2d(3, 5, 3, padding=1), nn.Conv2d(3, 5, 1, bias=False),

@@ -33,9 +33,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from radarpc.models.batchnorm import fold_batchnorm
+from radarpc.models.fast.batchnorm import fold_batchnorm
 from radarpc.models.heads import DetectionHead
-from radarpc.models.winograd import warn_if_reduced_fp32
+from radarpc.models.fast.winograd import warn_if_reduced_fp32
 
 __all__ = ["compose_convs", "collapse_mac_ratio", "CollapsedDetectionHead", "collapsed_head_for_inference"]
 

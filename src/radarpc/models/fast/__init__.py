@@ -3,11 +3,11 @@
 Every step is an exact rewrite in real arithmetic (float32 results differ by rounding only; each
 module's tests bound it): BatchNorm folded into the convolutions, channels-last weights; FFTRadNet's
 pre-encoder, stem and first ReLU per Doppler frequency where those layers take at least 4 GMAC a
-frame (:mod:`radarpc.models.fourier_stem`: full RADIal cubes, not ``radial-s``); the detection
+frame (:mod:`radarpc.models.fast.fourier_stem`: full RADIal cubes, not ``radial-s``); the detection
 head's linear layers as one correlation where that at least halves the head's multiply-adds
-(:mod:`radarpc.models.collapsed_head`: the full-size heads, not the thin ``-s`` ones); wide 3 x 3
-layers as Winograd F(4x4, 3x3) (:mod:`radarpc.models.winograd`); and activations fused into the
-convolutions before them (:mod:`radarpc.models.fused_activation`). What each gives is measured in
+(:mod:`radarpc.models.fast.collapsed_head`: the full-size heads, not the thin ``-s`` ones); wide 3 x 3
+layers as Winograd F(4x4, 3x3) (:mod:`radarpc.models.fast.winograd`); and activations fused into the
+convolutions before them (:mod:`radarpc.models.fast.fused_activation`). What each gives is measured in
 ``docs/results/detection.md``.
 """
 from __future__ import annotations
@@ -15,12 +15,12 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from radarpc.models import fftradnet as fft
-from radarpc.models import pillars
-from radarpc.models.collapsed_head import collapse_mac_ratio, collapsed_head_for_inference
-from radarpc.models.fourier_stem import fourier_stem_for_inference, stem_gmac
-from radarpc.models.fused_activation import fuse_activations_for_inference
-from radarpc.models.winograd import winograd_for_inference
+from radarpc.models.fftradnet import FFTRadNet
+from radarpc.models.fast.batchnorm import fuse_for_inference
+from radarpc.models.fast.collapsed_head import collapse_mac_ratio, collapsed_head_for_inference
+from radarpc.models.fast.fourier_stem import fourier_stem_for_inference, stem_gmac
+from radarpc.models.fast.fused_activation import fuse_activations_for_inference
+from radarpc.models.fast.winograd import winograd_for_inference
 
 __all__ = ["fast_inference"]
 
@@ -39,7 +39,7 @@ def fast_inference(model: nn.Module, *, detections_only: bool = False, winograd_
     detections_only : bool
         Drop the freespace head (the copy's forward then returns no freespace map).
     winograd_min_channels : int
-        As :func:`radarpc.models.winograd.winograd_for_inference`'s ``min_channels``.
+        As :func:`radarpc.models.fast.winograd.winograd_for_inference`'s ``min_channels``.
     compiled : bool
         Inductor-compile the Winograd transforms and the other steps' small kernels (fast; the first
         call of each shape compiles, with a C++ compiler on CPUs), or run them eagerly.
@@ -49,16 +49,10 @@ def fast_inference(model: nn.Module, *, detections_only: bool = False, winograd_
     nn.Module
         In eval mode; inference only (the rewritten layers refuse autograd).
     """
-    if isinstance(model, fft.FFTRadNet):
-        m = fft.fuse_for_inference(model)
-    elif isinstance(model, pillars.PointPillars):
-        m = pillars.fuse_for_inference(model)
-    else:
-        raise TypeError(f"fast_inference: expected an FFTRadNet or a PointPillars model, got {type(model).__name__}")
-    m = m.to(memory_format=torch.channels_last)
+    m = fuse_for_inference(model).to(memory_format=torch.channels_last)
     if detections_only:
         m.freespace_head = None
-    if isinstance(m, fft.FFTRadNet) and stem_gmac(m) >= 4:   # small maps: the layers are faster
+    if isinstance(m, FFTRadNet) and stem_gmac(m) >= 4:   # small maps: the layers are faster
         m = fourier_stem_for_inference(m, compiled=compiled)
     if collapse_mac_ratio(m.detection_head) <= 0.5:      # thin heads (the -s models) run faster as they are
         m = collapsed_head_for_inference(m, compiled=compiled)

@@ -3,12 +3,12 @@ import pytest
 import torch
 import torch.nn as nn
 
-from radarpc.models.batchnorm import randomise_batchnorm_
-from radarpc.models.collapsed_head import CollapsedDetectionHead, collapse_mac_ratio
-from radarpc.models.fast_inference import fast_inference
+from radarpc.models.fast.batchnorm import randomise_batchnorm_
+from radarpc.models.fast.collapsed_head import CollapsedDetectionHead, collapse_mac_ratio
+from radarpc.models.fast import fast_inference
 from radarpc.models.fftradnet import fftradnet, fftradnet_s, fftradnet_tiny
-from radarpc.models.fourier_stem import FourierStem, stem_gmac
-from radarpc.models.fused_activation import ConvActivation
+from radarpc.models.fast.fourier_stem import FourierStem, stem_gmac
+from radarpc.models.fast.fused_activation import ConvActivation
 from radarpc.models.heads import DetectionHead
 from radarpc.models.pillars import pillars_tiny
 

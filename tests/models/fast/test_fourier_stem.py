@@ -7,10 +7,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from radarpc.models.batchnorm import randomise_batchnorm_
+from radarpc.models.fast.batchnorm import randomise_batchnorm_
 from radarpc.models.fftradnet import MIMOPreEncoder, fftradnet_tiny
-from radarpc.models.fourier_stem import FourierStem, doppler_shifts, fourier_stem_for_inference
-from radarpc.models.winograd import WinogradConv2d, winograd_for_inference
+from radarpc.models.fast.fourier_stem import FourierStem, doppler_shifts, fourier_stem_for_inference
+from radarpc.models.fast.winograd import WinogradConv2d, winograd_for_inference
 from testkit import warns_reduced_fp32_matmul
 
 UNIT_ROUNDOFF = {torch.float32: 2.0 ** -24, torch.float64: 2.0 ** -53}

@@ -11,15 +11,17 @@ import torch
 
 from radarpc.cli import main
 from radarpc.config import load_yaml, save_yaml
-from radarpc.experiments.detection import load_trained
-from radarpc.experiments.official import import_official_fftradnet, read_official_config
+from radarpc.experiments.radial_detection.evaluation import load_trained
+from radarpc.experiments.radial_detection.official import (import_official_fftradnet, official_to_radarpc,
+                                                           radarpc_to_official, read_official_config)
 from radarpc.io import DataFileError
-from radarpc.models.fftradnet import FFTRadNet, fftradnet_tiny, official_to_radarpc, radarpc_to_official
+from radarpc.models import ModelSpec
+from radarpc.models.fftradnet import FFTRadNet, fftradnet_tiny
 from radarpc.runs import RunMismatchError
 from radarpc.sensors.radial import RADIAL_S
 from radarpc.sim.radial_writer import write_radial_dataset
 from radarpc.sim.scenes import scene_mix
-from radarpc.training.radial import ExperimentConfig
+from radarpc.experiments.radial_detection.config import ExperimentConfig
 
 TINY = fftradnet_tiny().cfg           # radial-s cubes; the official config sets blocks, channels, MIMO, heads
 N_CHANNELS = 2 * TINY.n_rx
@@ -62,7 +64,7 @@ def test_the_imported_run_is_the_official_model_with_its_statistics(root, tmp_pa
     official = _official_checkpoint(ckpt)
     out = import_official_fftradnet(ckpt, conf, root, tmp_path / "run", base=TINY)
     cfg, model, key = load_trained(out)
-    assert cfg.fftradnet == TINY and cfg.name == "FFTRadNet_tiny"
+    assert cfg.model.config == TINY and cfg.name == "FFTRadNet_tiny"
     assert load_yaml(ExperimentConfig, out / "config.yaml") == cfg
     assert key["data"] == str(root.resolve())
     assert key["imported"]["checkpoint_sha256"] == hashlib.sha256(ckpt.read_bytes()).hexdigest()
@@ -91,7 +93,7 @@ def test_the_imported_run_is_the_official_model_with_its_statistics(root, tmp_pa
 def test_import_then_evaluate_from_the_command_line(root, tmp_path, capsys):
     ckpt, conf = tmp_path / "fft.pth", _official_config(tmp_path / "config.json")
     _official_checkpoint(ckpt)
-    save_yaml(ExperimentConfig(name="tiny-geometry", fftradnet=TINY), tmp_path / "tiny.yaml")
+    save_yaml(ExperimentConfig(name="tiny-geometry", model=ModelSpec.matching("fftradnet", TINY)), tmp_path / "tiny.yaml")
     out = tmp_path / "run"
     args = ["import-fftradnet", str(ckpt), "--official-config", str(conf), "--data", str(root), "--out", str(out)]
     assert main(args) == 2                       # RADIal's geometry by default: these weights do not fit

@@ -4,10 +4,11 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from radarpc.models import winograd
-from radarpc.models.batchnorm import randomise_batchnorm_
-from radarpc.models.fftradnet import fftradnet_tiny, fuse_for_inference
-from radarpc.models.winograd import (AT, BT, G, WinogradConv2d, supports_winograd, winograd_conv3x3,
+from radarpc.models.fast import winograd
+from radarpc.models.fast.batchnorm import randomise_batchnorm_
+from radarpc.models.fast.batchnorm import fuse_for_inference
+from radarpc.models.fftradnet import fftradnet_tiny
+from radarpc.models.fast.winograd import (AT, BT, G, WinogradConv2d, supports_winograd, winograd_conv3x3,
                                      winograd_for_inference, winograd_weight)
 from testkit import warns_reduced_fp32_matmul
 

@@ -5,10 +5,11 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from radarpc.models import pillars
-from radarpc.models.batchnorm import randomise_batchnorm_
-from radarpc.models.fftradnet import fftradnet_tiny, fuse_for_inference
-from radarpc.models.fused_activation import ConvActivation, fuse_activations_for_inference
-from radarpc.models.winograd import WinogradConv2d, winograd_for_inference
+from radarpc.models.fast.batchnorm import randomise_batchnorm_
+from radarpc.models.fast.batchnorm import fuse_for_inference
+from radarpc.models.fftradnet import fftradnet_tiny
+from radarpc.models.fast.fused_activation import ConvActivation, fuse_activations_for_inference
+from radarpc.models.fast.winograd import WinogradConv2d, winograd_for_inference
 
 U32 = 2.0 ** -24
 # an elementwise activation evaluated in float32 to within this many units of roundoff of its value
@@ -75,7 +76,7 @@ def test_autograd_takes_the_unfused_path():
 
 def test_pillar_model_conversion():
     model = randomise_batchnorm_(pillars.pillars_tiny(), torch.Generator().manual_seed(3)).eval()
-    fused = pillars.fuse_for_inference(model)
+    fused = fuse_for_inference(model)
     fast = fuse_activations_for_inference(fused)
     n_fused = sum(isinstance(m, ConvActivation) for m in fast.backbone.modules())
     n_gelu = sum(isinstance(m, nn.GELU) for m in fused.backbone.modules())

@@ -1,22 +1,16 @@
-"""RADIal detection and freespace: the experiment config, its datasets and the task the loop trains.
+"""RADIal detection and freespace: the datasets of an experiment and the task the loop trains.
 
-One :class:`ExperimentConfig` describes a run: exactly one model section (``fftradnet`` on RD
-cubes, dense or a sparse-RD root, or ``pillars`` on a point store), the RADIal targets, the
-loss weights and the :class:`~radarpc.training.loop.TrainConfig`. It is stored whole with the run
-(``run.json``, ``config.yaml`` and inside every weights file) and is all :func:`build_model`
-needs to rebuild the model.
-
-:class:`RadialDetectionTask` gives the loop its datasets (:class:`~radarpc.data.radial.RADIal`
-for cubes, :class:`~radarpc.data.point_dataset.PointCloudDataset` for points), a collate that
-encodes the target maps in the loader's workers, the weighted RADIal loss, and validation by
-RADIal's metrics (:mod:`radarpc.eval.detection`).
+:class:`RadialDetectionTask` gives the loop (:mod:`radarpc.training.loop`) its datasets
+(:class:`~radarpc.data.radial.RADIal` for cubes, :class:`~radarpc.data.point_dataset.PointCloudDataset`
+for points), a collate that encodes the target maps in the loader's workers, the weighted RADIal
+loss, and validation by RADIal's metrics (:mod:`radarpc.eval.detection`). What it trains is an
+:class:`~radarpc.experiments.radial_detection.config.ExperimentConfig`.
 """
 from __future__ import annotations
 
-import math
 import os
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -29,15 +23,14 @@ from radarpc.data.radial import RADIal
 from radarpc.data.radial_format import SPARSE_RD_MANIFEST
 from radarpc.eval.detection import DetectionMetrics, FreespaceMetrics
 from radarpc.machine import physical_memory_bytes
-from radarpc.models.fftradnet import FFTRadNet, FFTRadNetConfig, input_statistics
+from radarpc.experiments.radial_detection.config import ExperimentConfig
+from radarpc.models.fftradnet import FFTRadNet, input_statistics
 from radarpc.models.heads import HeadOutput
-from radarpc.models.losses import LossConfig, detection_loss
-from radarpc.models.pillars import PillarsConfig, PointPillars
+from radarpc.models.losses import detection_loss
 from radarpc.models.targets import TargetConfig, decode_detections, encode_batch
 from radarpc.points import PointCloudBatch
-from radarpc.training.loop import TrainConfig
 
-__all__ = ["ExperimentConfig", "DetectionBatch", "build_model", "RadialDetectionTask", "collate_cubes", "collate_points",
+__all__ = ["DetectionBatch", "RadialDetectionTask", "collate_cubes", "collate_points",
            "collate_detection", "detection_dataset", "data_pairs", "ConcatFrames", "DataPaths",
            "evaluate_model", "point_datasets", "recorded_datasets", "preload_point_frames", "preload_budget_bytes", "DECODE_THRESHOLD", "MAX_CANDIDATES"]
 
@@ -49,83 +42,6 @@ DECODE_THRESHOLD = 0.05
 MAX_CANDIDATES = 512
 """At most this many of the most probable cells per frame enter NMS during validation: an
 untrained model puts most of the 28,672 cells above 0.05, and greedy NMS is sequential."""
-
-
-@dataclass(frozen=True)
-class ExperimentConfig:
-    """A detection experiment: one model section, targets, loss and training settings.
-
-    Attributes
-    ----------
-    name : str
-        Shown in logs and reports.
-    fftradnet, pillars : FFTRadNetConfig or PillarsConfig
-        Exactly one is set: FFTRadNet reads RD cubes (``--data`` a RADIal root, or a sparse-RD
-        root for the sparse-RD baseline); the pillar models read a point store (``--points``).
-    difficult : bool
-        Train and validate with RADIal's ``Difficult`` labels, as RADIal's ``1-Train.py`` does
-        (its ``3-Evaluation.py`` drops them unless given ``--difficult``: ``radarpc evaluate --no-difficult``).
-    statistics_frames : int
-        Training frames (evenly spaced) whose cubes give FFTRadNet's input normalisation.
-    mirror_probability : float in [0, 1]
-        Share of training frames mirrored about the boresight (:mod:`radarpc.data.augment`), drawn
-        per frame and epoch; point inputs only (mirroring an RD cube would need the array's
-        geometry). 0 (default) trains on the frames as they are.
-    rotation_max_deg : float >= 0
-        Training frames rotated about the radar's vertical axis by an angle drawn per frame and
-        epoch from the multiples of 0.4 deg within +-``rotation_max_deg``
-        (:class:`~radarpc.data.augment.RotatedFrames`); point inputs only, and not with the
-        ``sector`` feature, which would need the angle spectrum itself rotated. 0 (default): none.
-    superpose_probability : float in [0, 1]
-        Share of training frames whose RD cube is summed with another training frame's, their
-        labels joined and freespace intersected (:class:`~radarpc.data.augment.SuperposedFrames`):
-        the radar's view of both scenes at once, twice the vehicles a forward pass. RD inputs
-        only (a point cloud of two scenes is not the union of their CFAR points). 0 (default): none.
-    targets, loss, train :
-        RADIal's encoding, the loss weights and the optimisation.
-    """
-
-    name: str
-    fftradnet: FFTRadNetConfig | None = None
-    pillars: PillarsConfig | None = None
-    difficult: bool = True
-    statistics_frames: int = 256
-    mirror_probability: float = 0.0
-    rotation_max_deg: float = 0.0
-    superpose_probability: float = 0.0
-    targets: TargetConfig = field(default_factory=TargetConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-    train: TrainConfig = field(default_factory=TrainConfig)
-
-    def __post_init__(self) -> None:
-        if (self.fftradnet is None) == (self.pillars is None):
-            raise ValueError(f"experiment {self.name!r}: set exactly one of 'fftradnet' and 'pillars'")
-        if self.statistics_frames < 1:
-            raise ValueError(f"statistics_frames must be >= 1, got {self.statistics_frames}")
-        if not 0.0 <= self.mirror_probability <= 1.0:
-            raise ValueError(f"mirror_probability must be in [0, 1], got {self.mirror_probability}")
-        if self.mirror_probability > 0 and self.fftradnet is not None:
-            raise ValueError(f"experiment {self.name!r}: mirror_probability applies to point inputs only "
-                             f"(mirroring an RD cube would need the array's geometry); set it to 0")
-        if not (math.isfinite(self.rotation_max_deg) and self.rotation_max_deg >= 0):
-            raise ValueError(f"rotation_max_deg must be a finite angle >= 0, got {self.rotation_max_deg}")
-        if self.rotation_max_deg > 0 and self.fftradnet is not None:
-            raise ValueError(f"experiment {self.name!r}: rotation_max_deg applies to point inputs only "
-                             f"(rotating an RD cube would need the array's geometry); set it to 0")
-        if self.rotation_max_deg > 0 and "sector" in self.pillars.features:
-            raise ValueError(f"experiment {self.name!r}: rotation_max_deg cannot rotate the 'sector' feature "
-                             f"(maxima of the angle spectrum over fixed sectors); drop the feature or set "
-                             f"rotation_max_deg to 0")
-        if not 0.0 <= self.superpose_probability <= 1.0:
-            raise ValueError(f"superpose_probability must be in [0, 1], got {self.superpose_probability}")
-        if self.superpose_probability > 0 and self.pillars is not None:
-            raise ValueError(f"experiment {self.name!r}: superpose_probability applies to RD cubes only "
-                             f"(a point cloud of two scenes is not the union of their CFAR points); set it to 0")
-
-    @property
-    def input_kind(self) -> str:
-        """``"rd"`` (cubes) or ``"points"``."""
-        return "rd" if self.fftradnet is not None else "points"
 
 
 @dataclass
@@ -214,7 +130,7 @@ class ConcatFrames(torch.utils.data.ConcatDataset):
 def _root_dataset(cfg: ExperimentConfig, data: Path, points: Path | None, split: str):
     if cfg.input_kind == "rd":
         ds = RADIal(data, split=split, difficult=cfg.difficult)
-        fc = cfg.fftradnet
+        fc = cfg.model.config
         if ds.sensor.rd_shape != (fc.n_range, fc.n_doppler, fc.n_rx):
             raise ValueError(f"{data}: cubes of sensor {ds.sensor.name!r} are {ds.sensor.rd_shape}, the "
                              f"model takes ({fc.n_range}, {fc.n_doppler}, {fc.n_rx}); pick the config of "
@@ -330,11 +246,6 @@ def preload_point_frames(datasets: Iterable, budget_bytes: int | None = None) ->
     return sum(p.preload() for p in found)
 
 
-def build_model(cfg: ExperimentConfig) -> nn.Module:
-    """The model of ``cfg`` (fresh weights)."""
-    return FFTRadNet(cfg.fftradnet) if cfg.fftradnet is not None else PointPillars(cfg.pillars)
-
-
 class RadialDetectionTask:
     """The loop's :class:`~radarpc.training.loop.Task` for RADIal detection + freespace.
 
@@ -366,7 +277,7 @@ class RadialDetectionTask:
 
     # ---- the Task protocol --------------------------------------------------------------------
     def build_model(self) -> nn.Module:
-        model = build_model(self.cfg)
+        model = self.cfg.build_model()
         if isinstance(model, FFTRadNet):
             parts = recorded_datasets(self.train_set)         # never superposed: what inference sees
             recorded = parts[0] if len(parts) == 1 else torch.utils.data.ConcatDataset(parts)

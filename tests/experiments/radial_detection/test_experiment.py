@@ -15,21 +15,22 @@ import torch
 from radarpc.cli import main
 from radarpc.data.augment import SuperposedFrames
 from radarpc.config import load_yaml, save_yaml, to_dict
-from radarpc.models.fftradnet import FFTRadNet, fftradnet, fftradnet_s, fftradnet_tiny
-from radarpc.models.pillars import (PointPillars, pillars_tiny, polar_pointpillars, polar_pointpillars_s,
-                                    spectralpillars, spectralpillars_s)
+from radarpc.models.fftradnet import fftradnet, fftradnet_s
+from radarpc.models.pillars import (pillars_tiny, polar_pointpillars, polar_pointpillars_s, spectralpillars,
+                                    spectralpillars_s)
 from radarpc.pipelines.pointclouds import convert_dataset
 from radarpc.sensors.radial import RADIAL_S
 from radarpc.sim.radial_writer import write_radial_dataset
 from radarpc.sim.scenes import scene_mix
 from radarpc.training.checkpoint import load_state, load_weights, save_weights
 from radarpc.training.loop import BEST_WEIGHTS, LAST_CHECKPOINT, TrainConfig, fit
-import radarpc.training.radial as radial
-from radarpc.training.radial import (ExperimentConfig, RadialDetectionTask, build_model, preload_budget_bytes,
-                                     preload_point_frames)
+import radarpc.experiments.radial_detection.task as radial
+from radarpc.experiments.radial_detection.config import ExperimentConfig, experiment_from_dict, load_experiment
+from radarpc.experiments.radial_detection.task import RadialDetectionTask, preload_budget_bytes, preload_point_frames
+from radarpc.models import MODELS, ModelSpec
 from testkit import same_cloud
 
-CONFIGS = Path(__file__).parents[2] / "configs"
+CONFIGS = Path(__file__).parents[3] / "configs"
 FACTORIES = {"fftradnet": fftradnet, "fftradnet-s": fftradnet_s, "pointpillars": polar_pointpillars,
              "pointpillars-s": polar_pointpillars_s, "spectralpillars": spectralpillars,
              "spectralpillars-s": spectralpillars_s}
@@ -37,23 +38,53 @@ FACTORIES = {"fftradnet": fftradnet, "fftradnet-s": fftradnet_s, "pointpillars":
 
 @pytest.mark.parametrize("name", sorted(FACTORIES))
 def test_shipped_config_matches_its_factory(name):
-    cfg = load_yaml(ExperimentConfig, CONFIGS / f"{name}.yaml")
-    assert cfg.name == name
+    cfg = load_experiment(CONFIGS / f"{name}.yaml")
+    assert cfg.name == name and cfg.model.variant == name and MODELS[name] is FACTORIES[name]
     want = FACTORIES[name]().cfg
-    assert (cfg.fftradnet or cfg.pillars) == want
-    with torch.device("meta"):
-        n = sum(p.numel() for p in build_model(cfg).parameters())
+    assert cfg.model.config == want
+    n = sum(p.numel() for p in cfg.model.build(device="meta").parameters())
     if name == "fftradnet":
         assert n == 3_789_940                                    # the official model's count
     elif name in ("pointpillars", "spectralpillars"):
         assert abs(n - 2.4e6) <= 0.05 * 2.4e6                    # the seed's ~2.4M
 
 
-def test_experiment_config_needs_one_model():
-    with pytest.raises(ValueError, match="exactly one of 'fftradnet' and 'pillars'"):
+def test_experiment_config_names_one_registered_model():
+    with pytest.raises(TypeError, match="model"):
         ExperimentConfig(name="x")
-    with pytest.raises(ValueError, match="exactly one"):
-        ExperimentConfig(name="x", fftradnet=fftradnet_tiny().cfg, pillars=pillars_tiny().cfg)
+    with pytest.raises(ValueError, match="unknown model variant 'resnet50'; known: fftradnet, "):
+        experiment_from_dict({"name": "x", "model": {"variant": "resnet50"}}, where="x.yaml")
+    with pytest.raises(ValueError, match=r"x.yaml: .*model 'pillars-tiny': .*'n_pillars'"):
+        experiment_from_dict({"name": "x", "model": {"variant": "pillars-tiny", "overrides": {"n_pillars": 3}}},
+                             where="x.yaml")
+    with pytest.raises(ValueError, match="model.overrides must be a mapping"):
+        ModelSpec("pillars-tiny", [1, 2])
+
+
+def test_overrides_change_the_model_built():
+    spec = ModelSpec("pillars-tiny", {"pfn_channels": 12, "features": ["r", "a", "e"]})
+    assert spec.config == pillars_tiny(pfn_channels=12, features=("r", "a", "e")).cfg
+    assert spec.build().vfe.linear.out_features == 12 and spec.input_kind == "points"
+    assert ModelSpec("fftradnet-tiny").input_kind == "rd"
+    assert ModelSpec.matching("pillars-tiny", spec.config) == ModelSpec("pillars-tiny", {"pfn_channels": 12,
+                                                                                       "features": ["r", "a", "e"]})
+
+
+@pytest.mark.parametrize("name", ["fftradnet-s", "spectralpillars-s"])
+def test_config_written_before_the_registry_reads_as_its_variant(name, tmp_path):
+    """A YAML (or run key) with the whole model config in a 'fftradnet:' / 'pillars:' section, as
+    radarpc wrote them before the model registry, is read into the same resolved config."""
+    family = "fftradnet" if name.startswith("fftradnet") else "pillars"
+    old = {"name": name, "fftradnet": None, "pillars": None, "difficult": False,
+           family: to_dict(FACTORIES[name](**({"pfn_channels": 48} if family == "pillars" else {})).cfg)}
+    cfg = experiment_from_dict(old)
+    assert cfg.model.variant == name and not cfg.difficult
+    assert cfg.model.overrides == ({"pfn_channels": 48} if family == "pillars" else {})
+    renamed = experiment_from_dict(dict(old, name="mine"))            # not a variant's name: the full-size one
+    assert renamed.model.variant == ("fftradnet" if family == "fftradnet" else "pointpillars")
+    assert renamed.model.config == cfg.model.config
+    with pytest.raises(ValueError, match="exactly one of 'fftradnet' and 'pillars'"):
+        experiment_from_dict({"name": "x", "fftradnet": None, "pillars": None})
 
 
 def _city_root(tmp_path_factory, name: str, frames_per_sequence: int, seed: int) -> Path:
@@ -100,18 +131,18 @@ def _learned(history: list[dict]) -> None:
 
 
 def test_tiny_spectralpillars_overfits(root, store, tmp_path):
-    cfg = ExperimentConfig(name="sp-tiny", pillars=pillars_tiny(features=("r", "a", "e", "d", "Ae", "pillar_offset",
-                                                                         "sector")).cfg, train=TINY_TRAIN)
+    cfg = ExperimentConfig(name="sp-tiny", model=ModelSpec("pillars-tiny", {"features": ["r", "a", "e", "d", "Ae",
+                                                                        "pillar_offset", "sector"]}), train=TINY_TRAIN)
     _learned(_overfit(cfg, root, store, tmp_path))
 
 
 def test_tiny_fftradnet_overfits(root, store, tmp_path):
-    cfg = ExperimentConfig(name="fft-tiny", fftradnet=fftradnet_tiny().cfg, train=TINY_TRAIN)
+    cfg = ExperimentConfig(name="fft-tiny", model=ModelSpec("fftradnet-tiny"), train=TINY_TRAIN)
     _learned(_overfit(cfg, root, None, tmp_path))
 
 
 def test_training_preloads_the_point_frames_that_fit(root, store, monkeypatch):
-    cfg = ExperimentConfig(name="sp-pre", pillars=pillars_tiny().cfg, mirror_probability=0.5, train=TINY_TRAIN)
+    cfg = ExperimentConfig(name="sp-pre", model=ModelSpec("pillars-tiny"), mirror_probability=0.5, train=TINY_TRAIN)
     held = RadialDetectionTask(cfg, root, store)              # train frames behind the mirroring wrapper
     plain = RadialDetectionTask(cfg, root, store, preload=False)
     assert plain.preloaded_bytes == 0 and held.preloaded_bytes > 0
@@ -138,7 +169,7 @@ def test_training_preloads_the_point_frames_that_fit(root, store, monkeypatch):
 
 def test_training_data_benchmark_runs(root, store, tmp_path):
     # the 4 training frames of the root in 2 batches
-    cfg = ExperimentConfig(name="sp-pre", pillars=pillars_tiny().cfg, train=dataclasses.replace(TINY_TRAIN, batch_size=2))
+    cfg = ExperimentConfig(name="sp-pre", model=ModelSpec("pillars-tiny"), train=dataclasses.replace(TINY_TRAIN, batch_size=2))
     save_yaml(cfg, tmp_path / "sp.yaml")
     script = Path(__file__).parents[2] / "benchmarks" / "training_data.py"
     res = subprocess.run([sys.executable, str(script), str(tmp_path / "sp.yaml"), "--data", str(root), "--points",
@@ -171,7 +202,7 @@ def test_augmented_run_resumes_to_the_same_weights(root, store, tmp_path):
     # item): a run killed in its second epoch and resumed ends with the weights of an uninterrupted
     # one, and each augmentation reaches the model (the weights differ without it)
     train = dataclasses.replace(TINY_TRAIN, epochs=2, batch_size=4, num_workers=2)
-    cfg = ExperimentConfig(name="sp-aug", pillars=pillars_tiny().cfg, mirror_probability=0.5, rotation_max_deg=2.0,
+    cfg = ExperimentConfig(name="sp-aug", model=ModelSpec("pillars-tiny"), mirror_probability=0.5, rotation_max_deg=2.0,
                            train=train)
 
     def run(c: ExperimentConfig, out: Path, **kw):
@@ -193,7 +224,7 @@ def test_superposed_fftradnet_run_resumes_and_normalises_by_the_recorded_frames(
     # killed in its second epoch and resumed ends with the uninterrupted run's weights, the
     # superposed frames reach the model, and the input statistics are those of recorded frames
     train = dataclasses.replace(TINY_TRAIN, epochs=2, batch_size=4, num_workers=2)
-    cfg = ExperimentConfig(name="fft-sup", fftradnet=fftradnet_tiny().cfg, superpose_probability=0.5, train=train)
+    cfg = ExperimentConfig(name="fft-sup", model=ModelSpec("fftradnet-tiny"), superpose_probability=0.5, train=train)
 
     def run(c: ExperimentConfig, out: Path, **kw):
         return fit(RadialDetectionTask(c, root, splits=("all", "test")), c.train, out, {"name": c.name},
@@ -211,7 +242,7 @@ def test_superposed_fftradnet_run_resumes_and_normalises_by_the_recorded_frames(
 
 
 def test_each_of_several_runs_draws_its_mirrors_from_its_seed(root, store, tmp_path, monkeypatch):
-    import radarpc.experiments.detection as detection
+    import radarpc.experiments.radial_detection.train as detection
 
     seen = []
 
@@ -221,7 +252,7 @@ def test_each_of_several_runs_draws_its_mirrors_from_its_seed(root, store, tmp_p
 
     fitted = detection.fit
     monkeypatch.setattr(detection, "fit", spy)
-    cfg = ExperimentConfig(name="sp-mirror", pillars=pillars_tiny().cfg, mirror_probability=0.5,
+    cfg = ExperimentConfig(name="sp-mirror", model=ModelSpec("pillars-tiny"), mirror_probability=0.5,
                            train=dataclasses.replace(TINY_TRAIN, epochs=1, batch_size=4, seed=5))
     detection.train_runs(cfg, root, tmp_path / "runs", points=store, runs=2, progress=False, log=lambda s: None)
     assert seen == [(5, 5), (6, 6)]
@@ -257,7 +288,7 @@ def _with_difficult_labels(root: Path, tmp_path: Path) -> tuple[Path, Path, list
 
 
 def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
-    cfg = ExperimentConfig(name="sp-tiny", pillars=pillars_tiny().cfg,
+    cfg = ExperimentConfig(name="sp-tiny", model=ModelSpec("pillars-tiny"),
                            train=dataclasses.replace(TINY_TRAIN, epochs=1, batch_size=2, eval_batch_size=2))
     save_yaml(cfg, tmp_path / "sp.yaml")
     out = tmp_path / "run"
@@ -282,7 +313,7 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     assert (out / "figures" / "eval_test_labels.png").stat().st_size > 1000
     assert (out / "figures" / "learning_curve.png").stat().st_size > 1000
     # the same weights under bf16 autocast: their own files beside the fp32 ones, scored in bf16
-    import radarpc.experiments.detection as detection
+    import radarpc.experiments.radial_detection.evaluation as detection
 
     seen = []
 
@@ -348,7 +379,7 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     assert (out / "eval_test.json").read_text() == fp32_doc                      # fp32 files untouched
     # the fast inference copy (exact rewrites): its own files, the same parameters and about the same
     # scores (rounding may move a detection across a threshold: one label of the split at most)
-    from radarpc.models.fused_activation import ConvActivation
+    from radarpc.models.fast.fused_activation import ConvActivation
 
     models.clear()
     assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--fast", "--device", "cpu"]) == 0
@@ -375,7 +406,7 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     cubes = tmp_path / "cubes"
     shutil.copytree(out, cubes)
     key = json.loads((cubes / "run.json").read_text())
-    key["experiment"] = to_dict(ExperimentConfig(name="fft-tiny", fftradnet=fftradnet_tiny().cfg, train=TINY_TRAIN))
+    key["experiment"] = to_dict(ExperimentConfig(name="fft-tiny", model=ModelSpec("fftradnet-tiny"), train=TINY_TRAIN))
     (cubes / "run.json").write_text(json.dumps(key))
     assert main(["evaluate", str(cubes), "--mirror-average"]) == 2
     err = capsys.readouterr().err
@@ -413,9 +444,9 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     assert by_t["0.05"]["fp32"] > 0
     # the fp32 counts against the run's first 3 test frames decoded here (as one batch, as the
     # script does: the same arithmetic, so no score can land on the other side of a threshold)
-    from radarpc.experiments.detection import load_trained
+    from radarpc.experiments.radial_detection.evaluation import load_trained
     from radarpc.models.targets import decode_detections
-    from radarpc.training.radial import collate_detection, detection_dataset
+    from radarpc.experiments.radial_detection.task import collate_detection, detection_dataset
     e_cfg, e_model, e_key = load_trained(eager, "cpu")
     e_ds = detection_dataset(e_cfg, e_key["data"], e_key.get("points"), "test")
     with torch.inference_mode():
@@ -474,10 +505,10 @@ def store2(root2, tmp_path_factory):
 def test_several_roots_train_and_evaluate_as_one(root, store, root2, store2, tmp_path, capsys):
     from radarpc.data.augment import MirroredFrames
     from radarpc.data.point_dataset import PointCloudDataset
-    from radarpc.experiments.detection import run_key
-    from radarpc.training.radial import ConcatFrames, detection_dataset
+    from radarpc.experiments.radial_detection.train import run_key
+    from radarpc.experiments.radial_detection.task import ConcatFrames, detection_dataset
 
-    cfg = ExperimentConfig(name="sp-tiny", pillars=pillars_tiny().cfg,
+    cfg = ExperimentConfig(name="sp-tiny", model=ModelSpec("pillars-tiny"),
                            train=dataclasses.replace(TINY_TRAIN, epochs=1, batch_size=2, eval_batch_size=2))
     # the frames of both roots, one after another, each root with its own split
     both = detection_dataset(cfg, [root, root2], [store, store2], "test")
@@ -580,7 +611,7 @@ def test_classical_row_cli(root, store, tmp_path):
 
 
 def test_shown_frames_spread_over_the_split():
-    from radarpc.experiments.detection import _shown
+    from radarpc.experiments.radial_detection.evaluation import _shown
 
     items = list(range(10))
     picks = lambda k: [i for i, _ in _shown(items, k, lambda batch: batch)]   # noqa: E731

@@ -38,8 +38,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from radarpc.models.fftradnet import FFTRadNet, MIMOPreEncoder, fuse_for_inference
-from radarpc.models.winograd import many_graphs, supports_winograd, warn_if_reduced_fp32
+from radarpc.models.fast.batchnorm import fuse_fftradnet
+from radarpc.models.fftradnet import FFTRadNet, MIMOPreEncoder
+from radarpc.models.fast.winograd import many_graphs, supports_winograd, warn_if_reduced_fp32
 
 __all__ = ["doppler_shifts", "stem_gmac", "FourierStem", "fourier_stem_for_inference"]
 
@@ -96,7 +97,7 @@ class FourierStem(nn.Module):
     Parameters
     ----------
     pre_encoder : MIMOPreEncoder
-        With its BatchNorm folded into the conv (:func:`radarpc.models.fftradnet.fuse_for_inference`).
+        With its BatchNorm folded into the conv (:func:`radarpc.models.fast.batchnorm.fuse_fftradnet`).
     stem : nn.Conv2d
         The backbone's 3 x 3, stride-1, padding-1 convolution, BN folded, ``pre_encoder``'s output
         channels in.
@@ -121,7 +122,7 @@ class FourierStem(nn.Module):
         super().__init__()
         if not isinstance(pre_encoder, MIMOPreEncoder) or not isinstance(pre_encoder.bn, nn.Identity):
             raise ValueError("FourierStem: needs a MIMOPreEncoder with its BatchNorm folded "
-                             "(radarpc.models.fftradnet.fuse_for_inference)")
+                             "(radarpc.models.fast.batchnorm.fuse_fftradnet)")
         if not supports_winograd(stem) or stem.in_channels != pre_encoder.conv.out_channels:   # a plain 3 x 3 conv
             raise ValueError(f"FourierStem: the stem must be a 3 x 3, stride-1, padding-1 Conv2d with "
                              f"{pre_encoder.conv.out_channels} input channels, got {stem}")
@@ -222,10 +223,10 @@ def fourier_stem_for_inference(model: FFTRadNet, row_block: int = 64, compiled: 
     """A copy of ``model`` (BN folded, eval mode) whose pre-encoder, stem and first ReLU are one
     :class:`FourierStem` (``pre_encoder`` holds it; the backbone's ``conv`` and ``act`` become
     identities). ``model`` is unchanged. Compose with
-    :func:`radarpc.models.winograd.winograd_for_inference` for the other 3 x 3 layers."""
+    :func:`radarpc.models.fast.winograd.winograd_for_inference` for the other 3 x 3 layers."""
     if not isinstance(model, FFTRadNet):
         raise TypeError(f"fourier_stem_for_inference: expected an FFTRadNet, got {type(model).__name__}")
-    m = fuse_for_inference(model)
+    m = fuse_fftradnet(model)
     if not isinstance(m.backbone.conv, nn.Conv2d) or isinstance(m.pre_encoder, FourierStem):
         raise ValueError("fourier_stem_for_inference: the model's stem is already converted")
     m.pre_encoder = FourierStem(m.pre_encoder, m.backbone.conv, m.cfg.n_doppler, row_block, compiled)

@@ -244,7 +244,7 @@ class WinogradConv2d(nn.Module):
             raise ValueError(f"WinogradConv2d: tile_rows must be >= 1, got {tile_rows}")
         self.in_channels, self.out_channels = conv.in_channels, conv.out_channels
         self.tile_rows, self.compiled = tile_rows, compiled
-        self.relu = False            # set by radarpc.models.fused_activation to fuse a following ReLU
+        self.relu = False            # set by radarpc.models.fast.fused_activation to fuse a following ReLU
         self.register_buffer("u", winograd_weight(conv.weight))                   # (36, C, K)
         self.register_buffer("bias", None if conv.bias is None else conv.bias.detach().clone())
 
@@ -272,7 +272,7 @@ def winograd_for_inference(model: nn.Module, min_channels: int = 96, tile_rows: 
     Parameters
     ----------
     model : nn.Module
-        Fold BatchNorm first (e.g. :func:`radarpc.models.fftradnet.fuse_for_inference`): a
+        Fold BatchNorm first (e.g. :func:`radarpc.models.fast.batchnorm.fuse_for_inference`): a
         convolution followed by BN would otherwise keep the BN as a separate pass.
     min_channels : int
         Narrower layers stay direct: the transforms' cost grows with ``C + K``, the products' saving

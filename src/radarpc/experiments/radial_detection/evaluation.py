@@ -1,18 +1,11 @@
-"""Detection experiments: train runs of one config (``--runs N`` seeds), evaluate a run folder.
+"""Evaluate a detection run: its best weights scored on a split with RADIal's metrics.
 
-A run folder (:func:`train_runs` with one run) holds ``run.json`` (the key: the resolved
-:class:`~radarpc.training.radial.ExperimentConfig` and the data it was trained on),
-``config.yaml`` (the same config, readable and reusable), the checkpoints, ``best.safetensors``
-and ``log.csv``. With ``runs = N > 1`` the folder holds ``run0 .. run{N-1}`` (seeds
-``train.seed + k``) and ``summary.json`` / ``summary.md`` with the mean and standard deviation of
-the best validation metrics.
-
-:func:`evaluate_run` scores a run's best weights on a split with RADIal's metrics and writes
-``eval_{split}.json`` and ``eval_{split}.md`` into the run folder (for a multi-run folder: every
-run, then the mean and standard deviation), with the parameter count and the batch-1 inference
-frames/s on the evaluation device, and optionally BEV figures. ``precision="bf16"`` scores the
-same weights under bf16 autocast (fast where the CPU multiplies bf16 natively, or on a GPU) and
-writes ``eval_{split}_bf16.json`` / ``.md`` beside the fp32 files, so the two can be compared.
+:func:`evaluate_run` writes ``eval_{split}.json`` and ``eval_{split}.md`` into the run folder (for
+a multi-run folder: every run, then the mean and standard deviation), with the parameter count and
+the batch-1 inference frames/s on the evaluation device, and optionally BEV figures.
+``precision="bf16"`` scores the same weights under bf16 autocast (fast where the CPU multiplies
+bf16 natively, or on a GPU) and writes ``eval_{split}_bf16.json`` / ``.md`` beside the fp32 files,
+so the two can be compared. :func:`evaluate_classical` scores the classical detector the same way.
 """
 from __future__ import annotations
 
@@ -30,117 +23,27 @@ from typing import Callable
 import torch
 from torch.utils.data import DataLoader
 
-from radarpc.config import from_dict, load_yaml, save_yaml, to_dict
-from radarpc.io import DataFileError, atomic_write
-from radarpc.runs import read_json
-from radarpc.training.checkpoint import load_weights
-from radarpc.training.loop import BEST_WEIGHTS, LOG_CSV, FitResult, autocast_context, fit
+from radarpc.config import save_yaml
+from radarpc.data.augment import mirror_sectors
 from radarpc.data.point_dataset import PointCloudDataset
 from radarpc.eval.detection import FIXED_THRESHOLD, NEAR_MISS_M, DetectionMetrics
-from radarpc.data.augment import mirror_sectors
+from radarpc.experiments.radial_detection.config import ExperimentConfig, experiment_from_dict
+from radarpc.experiments.radial_detection.task import (DataPaths, DetectionBatch, collate_detection, collate_points,
+                                                       data_pairs, detection_dataset, evaluate_model, point_datasets)
+from radarpc.experiments.radial_detection.train import SUMMARY_METRICS, run_folders, write_summary
+from radarpc.io import DataFileError, atomic_write
 from radarpc.models.classical import ClassicalConfig, classical_detect
 from radarpc.models.mirror import MirrorAveraged
 from radarpc.models.targets import Detections, TargetConfig, decode_detections
-from radarpc.training.radial import (DetectionBatch, ExperimentConfig, RadialDetectionTask, collate_points,
-                                     build_model, collate_detection, data_pairs, detection_dataset,
-                                     evaluate_model, point_datasets, DataPaths)
+from radarpc.runs import read_json
+from radarpc.training.checkpoint import load_weights
+from radarpc.training.loop import BEST_WEIGHTS, LOG_CSV, autocast_context
 
-__all__ = ["load_experiment", "run_key", "train_runs", "load_trained", "EvalResult", "evaluate_run",
-           "evaluate_classical", "mirror_sectors_of", "run_folders", "CONFIG_YAML", "EVAL_PRECISIONS",
-           "SUMMARY_METRICS"]
+__all__ = ["load_trained", "EvalResult", "evaluate_run", "evaluate_classical", "mirror_sectors_of",
+           "EVAL_PRECISIONS"]
 
 EVAL_PRECISIONS = ("fp32", "bf16")
 """Precisions :func:`evaluate_run` scores in (bf16: autocast; the weights stay fp32)."""
-
-CONFIG_YAML = "config.yaml"
-"""The resolved config a run folder keeps beside its key (``run.json``)."""
-
-SUMMARY_METRICS = ("f1", "ap", "ar", "f1_fixed", "range_error_m", "azimuth_error_deg", "freespace_miou")
-"""Metrics summarised over runs (mean and standard deviation)."""
-
-
-def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
-    """Read an experiment YAML (safe loading; unknown keys and bad values name the file)."""
-    return load_yaml(ExperimentConfig, path)
-
-
-def run_key(cfg: ExperimentConfig, data: DataPaths, points: DataPaths | None = None) -> dict:
-    """What identifies a run: the whole config and the absolute paths of its data.
-
-    One root (and store) is stored as a path, as runs always stored it; several as lists in the
-    order given (:func:`~radarpc.training.radial.data_pairs`).
-    """
-    pairs = data_pairs(data, points)
-    roots = [str(r.resolve()) for r, _ in pairs]
-    stores = None if points is None else [str(p.resolve()) for _, p in pairs]
-    if len(pairs) == 1:
-        return {"experiment": to_dict(cfg), "data": roots[0], "points": stores[0] if stores else None}
-    return {"experiment": to_dict(cfg), "data": roots, "points": stores}
-
-
-def _seeded(cfg: ExperimentConfig, k: int) -> ExperimentConfig:
-    return dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, seed=cfg.train.seed + k))
-
-
-def run_folders(out: str | os.PathLike) -> list[Path]:
-    """The run folders of ``out``: itself when it holds a run, else its ``run*`` sub-folders."""
-    out = Path(out)
-    if (out / "run.json").is_file():
-        return [out]
-    runs = sorted((p for p in out.glob("run*") if (p / "run.json").is_file()),
-                  key=lambda p: int(p.name[3:]) if p.name[3:].isdigit() else -1)
-    if not runs:
-        raise FileNotFoundError(f"{out}: no training run here (no run.json, no run*/run.json)")
-    return runs
-
-
-def train_runs(cfg: ExperimentConfig, data: DataPaths, out: str | os.PathLike, *,
-               points: DataPaths | None = None, runs: int = 1, device: str | None = None,
-               overwrite: bool = False, progress: bool = True,
-               log: Callable[[str], None] = print) -> list[FitResult]:
-    """Train ``runs`` seeds of ``cfg`` into ``out`` (see the module docstring); resumable.
-
-    ``data`` is a RADIal root or several, ``points`` their point stores (pillar models), one per
-    root: the training and validation frames of every root are used together.
-    """
-    if runs < 1:
-        raise ValueError(f"runs must be >= 1, got {runs}")
-    out = Path(out)
-    results = []
-    for k in range(runs):
-        run_cfg = _seeded(cfg, k)
-        folder = out if runs == 1 else out / f"run{k}"
-        task = RadialDetectionTask(run_cfg, data, points)      # the run's seed also draws its mirrors
-        if task.preloaded_bytes:
-            log(f"{folder}: point frames preloaded in memory, {task.preloaded_bytes / 2**30:.2f} GiB")
-        res = fit(task, run_cfg.train, folder, run_key(run_cfg, data, points), device=device,
-                  overwrite=overwrite, progress=progress, log=log, extra_outputs=(CONFIG_YAML,))
-        if not (folder / CONFIG_YAML).is_file():
-            save_yaml(run_cfg, folder / CONFIG_YAML)
-        results.append(res)
-    if runs > 1:
-        rows = [{"run": k, "best_epoch": r.best_epoch,
-                 **{m: r.history[r.best_epoch].get(f"val_{m}", math.nan) for m in SUMMARY_METRICS}}
-                for k, r in enumerate(results)]
-        _write_summary(out / "summary", rows, f"{cfg.name}: best validation epoch of {runs} runs")
-    return results
-
-
-def _mean_std(rows: list[dict], key: str) -> tuple[float, float]:
-    v = [float(r[key]) for r in rows if key in r and not math.isnan(float(r[key]))]
-    if not v:
-        return math.nan, math.nan
-    return statistics.fmean(v), (statistics.stdev(v) if len(v) > 1 else 0.0)
-
-
-def _write_summary(stem: Path, rows: list[dict], title: str) -> None:
-    summary = {m: dict(zip(("mean", "std"), _mean_std(rows, m))) for m in SUMMARY_METRICS}
-    with atomic_write(stem.with_suffix(".json"), "w") as f:
-        json.dump({"runs": rows, "summary": summary}, f, indent=2)
-    lines = [f"# {title}", "", "| metric | mean | std |", "|---|---|---|"]
-    lines += [f"| {m} | {s['mean']:.4f} | {s['std']:.4f} |" for m, s in summary.items()]
-    with atomic_write(stem.with_suffix(".md"), "w") as f:
-        f.write("\n".join(lines) + "\n")
 
 
 @dataclass
@@ -164,7 +67,7 @@ class EvalResult:
     mirror_average: bool = False
     """Scored with :class:`~radarpc.models.mirror.MirrorAveraged` (the frame and its mirror image)."""
     fast: bool = False
-    """Scored and timed with :func:`~radarpc.models.fast_inference.fast_inference`'s copy of the model."""
+    """Scored and timed with :func:`~radarpc.models.fast.fast_inference`'s copy of the model."""
     easy: bool = False
     """Scored in RADIal's easy mode: ``Difficult`` labels dropped (:func:`evaluate_run`)."""
 
@@ -183,7 +86,7 @@ def _load_run(folder: Path) -> tuple[ExperimentConfig, dict]:
     key = read_json(folder / "run.json")
     if not isinstance(key, dict) or "experiment" not in key:
         raise DataFileError(folder / "run.json", "not a radarpc training run key (no 'experiment')")
-    return from_dict(ExperimentConfig, key["experiment"], where=str(folder / "run.json")), key
+    return experiment_from_dict(key["experiment"], where=str(folder / "run.json")), key
 
 
 def load_trained(folder: str | os.PathLike, device: torch.device | str = "cpu"
@@ -204,7 +107,7 @@ def load_trained(folder: str | os.PathLike, device: torch.device | str = "cpu"
     if not best.is_file():
         raise FileNotFoundError(f"{folder}: no {BEST_WEIGHTS} yet (the run has not finished an epoch)")
     state, _ = load_weights(best)
-    model = build_model(cfg)
+    model = cfg.build_model()
     model.load_state_dict(state)
     return cfg, model.to(device).eval(), key
 
@@ -243,7 +146,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     ``precision`` is one of :data:`EVAL_PRECISIONS`. ``mirror_average`` scores a pillar model
     averaged over each frame and its mirror image (:class:`~radarpc.models.mirror.MirrorAveraged`;
     two forward passes a frame) into ``eval_{split}[_on_...]_mirror.*``. ``fast`` scores and times
-    :func:`~radarpc.models.fast_inference.fast_inference`'s copy of the model (exact rewrites; fp32
+    :func:`~radarpc.models.fast.fast_inference`'s copy of the model (exact rewrites; fp32
     only; its first passes compile kernels, before the timing) into ``eval_{split}[...]_fast.*``.
     ``easy`` scores RADIal's easy mode, what its ``2-Test.py`` and ``3-Evaluation.py`` score unless
     given ``--difficult``: label rows with ``Difficult == 1`` dropped, and the frames all of whose
@@ -271,7 +174,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
         cfg, model, key = load_trained(folder, dev)
         n_params = sum(p.numel() for p in model.parameters())
         if fast:
-            from radarpc.models.fast_inference import fast_inference
+            from radarpc.models.fast import fast_inference
 
             model = fast_inference(model)
         roots = data or key["data"]
@@ -319,7 +222,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     if len(results) > 1:
         rows = [{"run": k, **{m: (r.metrics.get(m) if r.metrics.get(m) is not None else math.nan)
                               for m in SUMMARY_METRICS}} for k, r in enumerate(results)]
-        _write_summary(Path(run) / f"{results[0].stem}_summary", rows,
+        write_summary(Path(run) / f"{results[0].stem}_summary", rows,
                        f"{split}: {len(results)} runs" + ("" if precision == "fp32" else f", {precision}")
                        + (", mirror-averaged" if mirror_average else ""))
     return results
@@ -421,7 +324,7 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
         + ("" if res.precision == "fp32" else f", {res.precision} autocast")
         + (", RADIal's easy mode (Difficult labels dropped)" if res.easy else "")
         + (", averaged over each frame and its mirror image" if res.mirror_average else "")
-        + (", fast inference copy (radarpc.models.fast_inference)" if res.fast else ""), "",
+        + (", fast inference copy (radarpc.models.fast)" if res.fast else ""), "",
         "| AP | AR | F1 | F1 @ 0.2 | range error (m) | azimuth error (deg) | freespace mIoU | parameters | frames/s (batch 1) |",
         "|---|---|---|---|---|---|---|---|---|",
         f"| {m['ap']:.4f} | {m['ar']:.4f} | {m['f1']:.4f} | {m['f1_fixed']:.4f} | {m['range_error_m']:.3f} | "

@@ -8,13 +8,13 @@ JSON config (``FFTRadNet/config/config_FFTRadNet_192_56.json``): the network siz
 to them. :func:`import_official_fftradnet` joins the two into a run folder like one
 ``radarpc train`` writes:
 
-* ``run.json`` -- the key: the resolved :class:`~radarpc.training.radial.ExperimentConfig`, the
+* ``run.json`` -- the key: the resolved :class:`~radarpc.experiments.radial_detection.config.ExperimentConfig`, the
   RADIal root(s) to score by default, and under ``imported`` the two files' paths and SHA-256;
 * ``config.yaml`` -- the same config;
 * ``best.safetensors`` -- the weights in radarpc's key names, with the input statistics.
 
 The checkpoint is read with ``torch.load(weights_only=True)``
-(:func:`~radarpc.models.fftradnet.load_official_checkpoint`); the bare state dict and the
+(:func:`load_official_checkpoint`); the bare state dict and the
 training script's ``{"net_state_dict": ...}`` layout both load. A rerun with the same files
 rewrites the folder; other files in a folder that holds a run are refused unless ``overwrite``,
 which also deletes the evaluations of the weights it replaces.
@@ -25,21 +25,128 @@ import dataclasses
 import hashlib
 import json
 import os
+import pickle
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import torch
 
 from radarpc.config import save_yaml
-from radarpc.experiments.detection import CONFIG_YAML, run_key
+from radarpc.experiments.radial_detection.config import ExperimentConfig
+from radarpc.experiments.radial_detection.task import DataPaths
+from radarpc.experiments.radial_detection.train import CONFIG_YAML, run_key
 from radarpc.io import DataFileError
-from radarpc.models.fftradnet import FFTRadNet, FFTRadNetConfig, load_official_checkpoint
+from radarpc.models import ModelSpec
+from radarpc.models.fftradnet import FFTRadNetConfig
 from radarpc.models.targets import TargetConfig
 from radarpc.runs import RunFolder
 from radarpc.training.checkpoint import save_weights
 from radarpc.training.loop import BEST_WEIGHTS
-from radarpc.training.radial import DataPaths, ExperimentConfig
 
-__all__ = ["OfficialConfig", "read_official_config", "official_experiment", "import_official_fftradnet"]
+__all__ = ["OfficialConfig", "read_official_config", "official_experiment", "import_official_fftradnet",
+           "official_to_radarpc", "radarpc_to_official", "load_official_checkpoint"]
+
+
+# ---- official state dicts -------------------------------------------------------------------------
+# (official prefix, radarpc prefix); the first match rewrites a key, the rest of it is unchanged
+_OFFICIAL_PREFIXES = (
+    ("FPN.pre_enc.", "pre_encoder."),
+    ("FPN.", "backbone."),
+    ("RA_decoder.", "decoder."),
+    ("detection_header.", "detection_head."),
+    ("freespace.0.", "freespace_head.block1."),
+    ("freespace.1.", "freespace_head.block2."),
+    ("freespace.2.", "freespace_head.out."),
+)
+_OURS_ONLY = ("input_mean", "input_std")
+
+
+def _rename(key: str, pairs: Iterable[tuple[str, str]]) -> str | None:
+    for a, b in pairs:
+        if key.startswith(a):
+            return b + key[len(a):]
+    return None
+
+
+def official_to_radarpc(state: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """An official FFTRadNet state dict (keys ``FPN.*``, ``RA_decoder.*``, ``detection_header.*``,
+    ``freespace.*``; a ``module.`` prefix of ``DataParallel`` is dropped) in radarpc's key names."""
+    out = {}
+    for k, v in state.items():
+        k = k.removeprefix("module.")
+        new = _rename(k, _OFFICIAL_PREFIXES)
+        if new is None:
+            raise KeyError(f"{k!r} is not a key of the official FFTRadNet (expected one starting with "
+                           f"{', '.join(a for a, _ in _OFFICIAL_PREFIXES)})")
+        out[new] = v
+    return out
+
+
+def radarpc_to_official(state: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Inverse of :func:`official_to_radarpc` (the normalisation buffers, which the official model
+    keeps in its JSON config, are left out)."""
+    back = [(b, a) for a, b in _OFFICIAL_PREFIXES]
+    back.sort(key=lambda p: -len(p[0]))       # "freespace_head.block1." before any shorter prefix
+    out = {}
+    for k, v in state.items():
+        if k in _OURS_ONLY:
+            continue
+        new = _rename(k, back)
+        if new is None:
+            raise KeyError(f"{k!r} is not a key of radarpc's FFTRadNet")
+        out[new] = v
+    return out
+
+
+def _numpy_scalar_globals() -> list:
+    """What unpickling numeric NumPy scalars needs: the official training script stores its metric
+    history (``np.float64``) beside the weights. Data constructors only (no callables of the file's
+    choosing); the scalar constructor under its NumPy 1 and 2 module names."""
+    import numpy as np
+
+    core = getattr(np, "_core", None) or np.core
+    names = ("Float64DType", "Float32DType", "Float16DType", "Int64DType", "Int32DType", "BoolDType")
+    dtypes = [getattr(np.dtypes, n) for n in names if hasattr(getattr(np, "dtypes", None), n)]
+    scalar = core.multiarray.scalar
+    return [scalar, (scalar, "numpy.core.multiarray.scalar"), (scalar, "numpy._core.multiarray.scalar"), np.dtype,
+            *dtypes]
+
+
+def load_official_checkpoint(path: str | os.PathLike) -> dict[str, torch.Tensor]:
+    """The network weights of an official FFTRadNet ``.pth`` checkpoint, in radarpc's key names.
+
+    Accepts a bare state dict and the training script's ``{"net_state_dict": ..., "optimizer": ...}``
+    layout. The file is read with ``torch.load(weights_only=True)``: tensors, plain containers and
+    numeric NumPy scalars (the script's metric history) only. A checkpoint that needs full
+    unpickling (arbitrary Python objects) is refused, since unpickling runs code the file chooses.
+
+    Load into a model with ``model.load_state_dict(sd, strict=False)`` (the statistics buffers are
+    not in the file; set them with :meth:`FFTRadNet.set_input_statistics`), or use
+    ``model.load_state_dict(sd | {"input_mean": ..., "input_std": ...})``.
+    """
+    path = Path(path)
+    try:
+        with torch.serialization.safe_globals(_numpy_scalar_globals()):
+            obj = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        raise ValueError(
+            f"{path}: refusing to load: the checkpoint holds Python objects that only full unpickling can "
+            f"rebuild, which can run arbitrary code. radarpc reads checkpoints with torch.load(weights_only=True). "
+            f"If you trust the file, re-save its weights alone in a separate Python session: "
+            f"torch.save(torch.load(path, weights_only=False)['net_state_dict'], 'weights.pth'). ({e})") from None
+    except (RuntimeError, EOFError, OSError) as e:
+        if isinstance(e, FileNotFoundError):
+            raise
+        raise ValueError(f"{path}: not a readable torch checkpoint ({e})") from None
+    if isinstance(obj, Mapping) and "net_state_dict" in obj:
+        obj = obj["net_state_dict"]
+    if not isinstance(obj, Mapping) or not obj or not all(isinstance(v, torch.Tensor) for v in obj.values()):
+        raise ValueError(f"{path}: expected a state dict (name -> tensor) or a dict with 'net_state_dict', "
+                         f"got {type(obj).__name__} with keys {list(obj)[:5] if isinstance(obj, Mapping) else '-'}")
+    return official_to_radarpc(obj)
+
+
+# ---- official configs -----------------------------------------------------------------------------
 
 
 @dataclasses.dataclass(frozen=True)
@@ -159,7 +266,7 @@ def official_experiment(official: OfficialConfig, base: FFTRadNetConfig = FFTRad
         raise ValueError(f"{official.name}: {len(official.input_mean)} input statistics, but the model takes "
                          f"{2 * net.n_rx} channels (real and imaginary parts of {net.n_rx} receivers)")
     targets = TargetConfig(reg_mean=official.reg_mean, reg_std=official.reg_std)
-    return ExperimentConfig(name=official.name, fftradnet=net, targets=targets)
+    return ExperimentConfig(name=official.name, model=ModelSpec.matching("fftradnet", net), targets=targets)
 
 
 def _sha256(path: Path) -> str:
@@ -214,7 +321,7 @@ def import_official_fftradnet(checkpoint: str | os.PathLike, official_config: st
     # the official model keeps its input statistics in the JSON config, radarpc in the weights
     state = load_official_checkpoint(checkpoint) | {"input_mean": torch.tensor(official.input_mean),
                                                     "input_std": torch.tensor(official.input_std)}
-    model = FFTRadNet(cfg.fftradnet)
+    model = cfg.build_model()
     try:
         model.load_state_dict(state)
     except RuntimeError as e:     # keys missing or left over, or a tensor of another shape
