@@ -32,6 +32,7 @@ def test_help_choices_match_the_library():
     # the parsers use torch-free copies of the library's choice lists
     from radarpc.cli import options
     from radarpc.distributed import DEFAULT_WAIT_S
+    from radarpc.models import MODELS
     from radarpc.dsp.beamform import BEAMFORMING_MODES
     from radarpc.dsp.ddma import ENVELOPES
     from radarpc.dsp.pointcloud import CFAR_PRESETS
@@ -46,6 +47,7 @@ def test_help_choices_match_the_library():
     assert options.ENVELOPES == ENVELOPES
     assert options.COLOR_BY == COLOR_BY
     assert options.DEFAULT_WAIT_S == DEFAULT_WAIT_S
+    assert options.MODEL_NAMES == tuple(MODELS)
 
 
 def test_every_help_is_plain_text_with_defaults():

@@ -7,6 +7,7 @@ The list below is explicit: adding a command means importing its module and list
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from radarpc import __version__
@@ -18,9 +19,9 @@ RESUMABLE_COMMANDS = ("simulate", "pointcloud", "demo", "baseline", "export", "t
 
 def _command_modules():
     # Imported lazily so that `radarpc --help` stays fast and one broken stage cannot hide the others.
-    from radarpc.cli import (baseline, demo, evaluate, evaluate_points, export, import_fftradnet, info, pointcloud,
-                             show, simulate, train)
-    return [simulate, info, pointcloud, show, demo, baseline, evaluate_points, export, train, evaluate,
+    from radarpc.cli import (baseline, demo, evaluate, evaluate_points, export, import_fftradnet, info, models,
+                             pointcloud, show, simulate, train)
+    return [simulate, info, pointcloud, show, demo, baseline, evaluate_points, export, models, train, evaluate,
             import_fftradnet]
 
 
@@ -61,6 +62,11 @@ def main(argv: list[str] | None = None) -> int:
         # Bad input is reported as one clear line, not a traceback.
         print(f"radarpc {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader went away (`radarpc info ROOT | head`): stop quietly, as Unix tools do; stdout
+        # points at /dev/null so that Python's flush at exit does not raise again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except KeyboardInterrupt:
         # The long commands write atomically and resume: say so instead of a traceback.
         hint = ("; finished work is kept, run the same command again to resume"

@@ -7,7 +7,7 @@ these copies are checked against them by ``tests/cli/test_help.py``.
 from __future__ import annotations
 
 __all__ = ["RADIAL_SENSOR_NAMES", "SCENE_KINDS", "CFAR_PRESET_NAMES", "BEAMFORMING_MODES", "ENVELOPES",
-           "COLOR_BY", "DEFAULT_WAIT_S", "plain_text"]
+           "COLOR_BY", "DEFAULT_WAIT_S", "MODEL_NAMES", "plain_text"]
 
 RADIAL_SENSOR_NAMES = ("radial", "radial-s", "tiny")       # radarpc.sensors.radial.RADIAL_SENSORS
 SCENE_KINDS = ("hallway", "lab", "classroom", "large_room", "outdoor")   # radarpc.sim.indoor.SCENE_KINDS
@@ -16,6 +16,8 @@ BEAMFORMING_MODES = ("auto", "exact", "screened", "subspace")        # radarpc.d
 ENVELOPES = ("replicas", "all-slots")                      # radarpc.dsp.ddma.ENVELOPES
 COLOR_BY = ("velocity", "amplitude")                       # radarpc.viz.COLOR_BY
 DEFAULT_WAIT_S = 7200.0                                    # radarpc.distributed.DEFAULT_WAIT_S
+MODEL_NAMES = ("fftradnet", "fftradnet-s", "fftradnet-tiny", "pointpillars", "spectralpillars",
+               "pointpillars-s", "spectralpillars-s", "pillars-tiny")   # radarpc.models.MODELS
 
 
 def plain_text(text: str | None) -> str | None:

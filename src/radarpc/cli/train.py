@@ -29,15 +29,24 @@ from __future__ import annotations
 
 import argparse
 
+from radarpc.cli.options import MODEL_NAMES
+
 __all__ = ["add_parser", "run"]
 
 
 def run(args: argparse.Namespace) -> int:
+    import dataclasses
+
     from radarpc.distributed import dist_env
     from radarpc.experiments.radial_detection.config import load_experiment, with_train
     from radarpc.experiments.radial_detection.train import train_runs
 
     cfg = load_experiment(args.config)
+    if args.model is not None and args.model != cfg.model.variant:
+        from radarpc.models import ModelSpec
+
+        # the config's overrides belong to its own variant; another variant starts from its own sizes
+        cfg = dataclasses.replace(cfg, model=ModelSpec(args.model))
     changes = {k: v for k, v in (("epochs", args.epochs), ("batch_size", args.batch_size),
                                  ("num_workers", args.num_workers), ("seed", args.seed)) if v is not None}
     if changes:
@@ -61,6 +70,9 @@ def add_parser(sub) -> None:
     p.add_argument("--points", default=None, nargs="+", metavar="FILE",
                    help="point store made from each --data root, in the same order (pillar models)")
     p.add_argument("--out", required=True, help="run folder")
+    p.add_argument("--model", default=None, choices=MODEL_NAMES,
+                   help="train this variant of the model registry instead of the config's model.variant "
+                        "(without its overrides; see `radarpc models`)")
     p.add_argument("--runs", type=int, default=1, help="train this many seeds (train.seed, +1, ...) and summarise")
     p.add_argument("--device", default=None, help="torch device (default: this rank's GPU, else the CPU)")
     p.add_argument("--epochs", type=int, default=None, help="override train.epochs")
