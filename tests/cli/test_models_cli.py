@@ -23,3 +23,19 @@ def test_train_model_choice_is_a_registry_name(capsys):
     with pytest.raises(SystemExit):
         main(["train", "cfg.yaml", "--data", "x", "--out", "y", "--model", "resnet50"])
     assert "invalid choice: 'resnet50'" in capsys.readouterr().err
+
+
+def test_a_closed_pipe_ends_quietly():
+    """``radarpc models | head -1``: no BrokenPipeError traceback, the conventional exit 141."""
+    import subprocess
+    import sys
+
+    # unbuffered: the header line arrives at once, the rows only after the models are built
+    with subprocess.Popen([sys.executable, "-u", "-m", "radarpc", "models"], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, bufsize=0) as p:
+        p.stdout.read(10)
+        p.stdout.close()                             # the reader goes away before the table is written
+        err = p.stderr.read().decode()
+        code = p.wait(timeout=120)
+    assert code == 141
+    assert "Traceback" not in err and "BrokenPipeError" not in err
