@@ -49,6 +49,15 @@ def test_shipped_config_matches_its_factory(name):
         assert abs(n - 2.4e6) <= 0.05 * 2.4e6                    # the seed's ~2.4M
 
 
+@pytest.mark.parametrize("path", sorted((CONFIGS / "detection").glob("*.yaml")), ids=lambda p: p.name)
+def test_results_configs_load_and_name_a_registered_model(path):
+    """The configs behind docs/results rows: each loads and names a registry variant whose
+    overrides build (on the meta device)."""
+    cfg = load_experiment(path)
+    assert cfg.name == path.stem and cfg.model.variant in MODELS
+    cfg.model.build(device="meta")
+
+
 def test_experiment_config_names_one_registered_model():
     with pytest.raises(TypeError, match="model"):
         ExperimentConfig(name="x")
