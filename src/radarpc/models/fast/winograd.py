@@ -276,7 +276,7 @@ def winograd_for_inference(model: nn.Module, min_channels: int = 96, tile_rows: 
         convolution followed by BN would otherwise keep the BN as a separate pass.
     min_channels : int
         Narrower layers stay direct: the transforms' cost grows with ``C + K``, the products' saving
-        with ``C K`` (measured per layer in ``docs/results/detection.md``, "Winograd convolutions").
+        with ``C K`` (measured per layer in ``docs/notebook/2026-12-04-detection.md``, "Winograd convolutions").
     tile_rows, compiled
         As in :func:`winograd_conv3x3`.
 
