@@ -36,12 +36,13 @@ __all__ = ["add_parser", "run"]
 
 def run(args: argparse.Namespace) -> int:
     import dataclasses
+    import sys
 
     from radarpc.distributed import dist_env
     from radarpc.experiments.radial_detection.config import load_experiment, with_train
     from radarpc.experiments.radial_detection.train import train_runs
 
-    cfg = load_experiment(args.config)
+    cfg = load_experiment(args.config, notice=lambda s: print(s, file=sys.stderr))
     if args.model is not None and args.model != cfg.model.variant:
         from radarpc.models import ModelSpec
 

@@ -22,18 +22,29 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import typing
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 from torch import nn
 
 from radarpc.config import from_dict, load_yaml_mapping, to_dict
+from radarpc.eval.detection import DetectionReport
 from radarpc.models import MODELS, ModelSpec
 from radarpc.models.losses import LossConfig
 from radarpc.models.targets import TargetConfig
 from radarpc.training.loop import TrainConfig
 
-__all__ = ["ExperimentConfig", "experiment_from_dict", "load_experiment", "canonical_key", "with_train"]
+__all__ = ["ExperimentConfig", "experiment_from_dict", "load_experiment", "canonical_key", "with_train",
+           "validation_metrics", "REQUIRED_SECTIONS"]
+
+
+def validation_metrics(freespace: bool) -> tuple[str, ...]:
+    """The metrics validation reports (``train.select_metric`` is one of them): the scalar
+    scores of RADIal's detection report, and the freespace mIoU of a model with a freespace head."""
+    hints = typing.get_type_hints(DetectionReport)
+    scores = tuple(f.name for f in dataclasses.fields(DetectionReport) if hints[f.name] is float)
+    return scores + (("freespace_miou",) if freespace else ())
 
 
 @dataclass(frozen=True)
@@ -86,6 +97,10 @@ class ExperimentConfig:
         if not isinstance(self.model, ModelSpec):
             raise ValueError(f"experiment {self.name!r}: model must be a ModelSpec (variant and overrides), "
                              f"got {type(self.model).__name__}")
+        known = validation_metrics(bool(getattr(self.model.config, "freespace", False)))
+        if self.train.select_metric not in known:
+            raise ValueError(f"train.select_metric {self.train.select_metric!r} is not a validation metric of this "
+                             f"experiment; one of {', '.join(known)}")
         if self.statistics_frames < 1:
             raise ValueError(f"statistics_frames must be >= 1, got {self.statistics_frames}")
         if not 0.0 <= self.mirror_probability <= 1.0:
@@ -163,9 +178,38 @@ def experiment_from_dict(d: Any, *, where: str = "experiment") -> ExperimentConf
     return from_dict(ExperimentConfig, d, where=where)
 
 
-def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
-    """Read an experiment YAML (safe loading; unknown keys and bad values name the file)."""
-    return experiment_from_dict(load_yaml_mapping(path), where=str(path))
+REQUIRED_SECTIONS = ("name", "model", "train")
+"""Keys an experiment YAML must give: what it is called, what it trains and for how long."""
+
+
+def load_experiment(path: str | os.PathLike, *, notice: Callable[[str], None] | None = None) -> ExperimentConfig:
+    """Read an experiment YAML (strict safe loading: :func:`radarpc.config.load_yaml_mapping`;
+    unknown keys, values of the wrong type and bad values name the file and the field).
+
+    Parameters
+    ----------
+    path : path-like
+    notice : callable, optional
+        Told, in one line, which sections the file leaves out and so take their defaults.
+
+    Raises
+    ------
+    ValueError
+        The file is not a valid experiment config, or lacks one of :data:`REQUIRED_SECTIONS`.
+    """
+    d = load_yaml_mapping(path)
+    missing = [k for k in REQUIRED_SECTIONS
+               if k not in d and not (k == "model" and ("fftradnet" in d or "pillars" in d))]
+    if missing:
+        raise ValueError(f"{path}: no {', '.join(repr(k) for k in missing)} (an experiment config names its "
+                         f"{', '.join(REQUIRED_SECTIONS)}; see configs/)")
+    cfg = experiment_from_dict(d, where=str(path))
+    # the sections that change what a run learns; the scalar switches' defaults are all "off"
+    left_out = [k for k in ("difficult", "targets", "loss") if k not in d]
+    if notice is not None and left_out:
+        notice(f"{path}: {', '.join(left_out)} not given, so the defaults apply"
+               + (" (difficult: true, every label trains and scores)" if "difficult" in left_out else ""))
+    return cfg
 
 
 def canonical_key(stored: dict) -> dict:
