@@ -212,16 +212,23 @@ def load_experiment(path: str | os.PathLike, *, notice: Callable[[str], None] | 
     return cfg
 
 
-def canonical_key(stored: dict) -> dict:
+def canonical_key(stored: dict, *, num_workers: int | None = None) -> dict:
     """A stored run key read through the config types: fields added since it was written take
     their defaults and a pre-registry model section its registry form, so that it compares equal
-    to the key the same run has today."""
+    to the key the same run has today.
+
+    ``num_workers`` replaces the stored ``train.num_workers``: loader processes do not change what a
+    run computes (each item is a function of its index and the epoch), so a run may resume with
+    another count.
+    """
     if not isinstance(stored, dict) or not isinstance(stored.get("experiment"), dict):
         return stored
     try:
         cfg = experiment_from_dict(stored["experiment"], where="run.json: experiment")
     except ValueError:
         return stored                        # not readable: compared raw, and refused as different
+    if num_workers is not None:
+        cfg = with_train(cfg, num_workers=num_workers)
     return {**stored, "experiment": to_dict(cfg)}
 
 

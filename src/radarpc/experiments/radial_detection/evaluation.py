@@ -27,7 +27,7 @@ from radarpc.config import save_yaml
 from radarpc.data.augment import mirror_sectors
 from radarpc.data.point_dataset import PointCloudDataset
 from radarpc.eval.detection import FIXED_THRESHOLD, NEAR_MISS_M, DetectionMetrics
-from radarpc.experiments.radial_detection.config import ExperimentConfig, experiment_from_dict
+from radarpc.experiments.radial_detection.config import ExperimentConfig, canonical_key, experiment_from_dict
 from radarpc.experiments.radial_detection.task import (DataPaths, DetectionBatch, collate_detection, collate_points,
                                                        data_pairs, detection_dataset, evaluate_model, point_datasets)
 from radarpc.experiments.radial_detection.train import SUMMARY_METRICS, run_folders, write_summary
@@ -35,8 +35,9 @@ from radarpc.io import DataFileError, atomic_write
 from radarpc.models.classical import ClassicalConfig, classical_detect
 from radarpc.models.mirror import MirrorAveraged
 from radarpc.models.targets import Detections, TargetConfig, decode_detections
-from radarpc.runs import read_json
-from radarpc.training.checkpoint import load_weights
+from radarpc.machine import check_device
+from radarpc.runs import check_writable, locked_output, read_json, remove_temp_files
+from radarpc.training.checkpoint import load_model_state, load_weights
 from radarpc.training.loop import BEST_WEIGHTS, LOG_CSV, autocast_context
 
 __all__ = ["load_trained", "EvalResult", "evaluate_run", "evaluate_classical", "mirror_sectors_of",
@@ -97,19 +98,34 @@ def load_trained(folder: str | os.PathLike, device: torch.device | str = "cpu"
     Raises
     ------
     DataFileError
-        ``run.json`` is missing or is not a training run's.
+        ``run.json`` is missing or is not a training run's; ``best.safetensors`` is not a weights
+        file, was written under another run key (copied in from another run), holds non-finite
+        values, or does not fit the model of the run's config.
     FileNotFoundError
         The run has no best weights yet.
     """
     folder = Path(folder)
     cfg, key = _load_run(folder)
     best = folder / BEST_WEIGHTS
+    if best.is_dir():
+        raise DataFileError(best, "is a folder; expected the run's best weights (a safetensors file)")
     if not best.is_file():
         raise FileNotFoundError(f"{folder}: no {BEST_WEIGHTS} yet (the run has not finished an epoch)")
-    state, _ = load_weights(best)
+    state, info = load_weights(best)
+    if "run" in info and _comparable(info["run"]) != _comparable(key):
+        raise DataFileError(best, f"these weights were trained under another run key than {folder / 'run.json'} "
+                                  f"(another run's weights copied in?); evaluate them in their own run folder")
     model = cfg.build_model()
-    model.load_state_dict(state)
+    load_model_state(model, state, best, f"model {cfg.model.variant!r} of {folder / 'run.json'}")
     return cfg, model.to(device).eval(), key
+
+
+def _comparable(key: object) -> object:
+    """A run key as two copies of one run compare it: read through the config types, without
+    the software record."""
+    if not isinstance(key, dict):
+        return key
+    return {k: v for k, v in canonical_key(key, num_workers=0).items() if k != "software"}
 
 
 def _fps(model: torch.nn.Module, batches: list[DetectionBatch], device: torch.device, repeats: int = 3,
@@ -156,69 +172,25 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     (the default) follows the run's config: every label, or easy mode for a run trained with
     ``difficult: false``.
     """
-    from radarpc.viz import plot_detection_frame, plot_learning_curves
-
     if precision not in EVAL_PRECISIONS:
         raise ValueError(f"precision must be one of {EVAL_PRECISIONS}, got {precision!r}")
     if fast and precision != "fp32":
         raise ValueError(f"fast inference is float32 only (the Winograd transforms and the products per frequency "
                          f"need its precision), got {precision!r}")
-    dev = torch.device(device) if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    for name, value, low in (("fps_frames", fps_frames, 1), ("batch_size", batch_size, 1), ("show", show, 0)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ValueError(f"{name.replace('_', '-')} must be an integer >= {low}, got {value!r}")
+    dev = check_device(device, "--device") if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    folders = run_folders(run)
+    for folder in folders:
+        # before the evaluation, not after it: its outputs go into the run folder
+        check_writable(folder, "run folder")
     results = []
-    for folder in run_folders(run):
-        if mirror_average:
-            stored, _ = _load_run(folder)
-            if stored.input_kind != "points":
-                raise ValueError(f"{folder}: mirror averaging applies to point models; {stored.name!r} takes RD "
-                                 f"cubes (mirroring a cube would need the array's geometry)")
-        cfg, model, key = load_trained(folder, dev)
-        n_params = sum(p.numel() for p in model.parameters())
-        if fast:
-            from radarpc.models.fast import fast_inference
-
-            model = fast_inference(model)
-        roots = data or key["data"]
-        stores = (points or key.get("points")) if cfg.input_kind == "points" else None
-        run_easy = (not cfg.difficult) if easy is None else easy   # by default as the run was trained
-        ds = detection_dataset(dataclasses.replace(cfg, difficult=not run_easy), roots, stores, split)
-        if mirror_average:
-            model = MirrorAveraged(model, cfg.targets, sectors=mirror_sectors_of(ds))
-        scored = _resolved(data_pairs(roots, stores))
-        own = _resolved(data_pairs(key["data"], key.get("points") if stores is not None else None))
-        collate = functools.partial(collate_detection, cfg=cfg)
-        loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate)
-        with torch.inference_mode(), autocast_context(precision, dev):
-            report, miou = evaluate_model(model, loader, dev, cfg.targets, max_candidates=None)
-        metrics = report.to_dict()
-        metrics["freespace_miou"] = miou
-        single = DataLoader(ds, batch_size=1, shuffle=False, collate_fn=collate)
-        frames = []
-        for b in single:
-            frames.append(b.to(dev))
-            if len(frames) >= fps_frames:
-                break
-        fps = _fps(model, frames, dev, precision=precision)
-        res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision,
-                         data=tuple(str(r) for r, _ in scored),
-                         points=None if stores is None else tuple(str(p) for _, p in scored),
-                         scored_on=_scored_on(scored, own), mirror_average=mirror_average, fast=fast, easy=run_easy)
-        _write_eval(folder, res, cfg.name)
-        if (folder / LOG_CSV).is_file():
-            plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
-        if show:
-            with torch.inference_mode(), autocast_context(precision, dev):
-                for k, b in _shown(ds, show, collate):
-                    b = b.to(dev)
-                    out = model(b.inputs)
-                    dets = decode_detections(out.detection.float(), cfg.targets, threshold=FIXED_THRESHOLD)
-                    plot_detection_frame(b.to(torch.device("cpu")), dets.to("cpu"), out.detection[0, 0].float().cpu(),
-                                         folder / "figures" / f"{res.stem}_{k}.png",
-                                         title=f"{cfg.name} {split} item {k} ({len(b.labels)} labels)")
-        log(f"{folder}: {split} F1 {metrics['f1']:.4f} (AP {metrics['ap']:.4f}, AR {metrics['ar']:.4f}), "
-            f"F1@0.2 {metrics['f1_fixed']:.4f}, freespace mIoU {miou if miou is not None else float('nan'):.4f}, "
-            f"{n_params:,} parameters, {fps:.1f} frames/s at batch 1 on {dev}, {precision}"
-            + (", mirror-averaged" if mirror_average else "") + (", fast inference copy" if fast else ""))
-        results.append(res)
+    for folder in folders:
+        with locked_output(folder, "run folder"):       # not while the run trains or another evaluation writes
+            remove_temp_files(folder, recursive=False)  # what a killed evaluation left half-written
+            results.append(_evaluate_folder(folder, split, data, points, dev, show, fps_frames, batch_size,
+                                            precision, mirror_average, fast, easy, log))
     if len(results) > 1:
         rows = [{"run": k, **{m: (r.metrics.get(m) if r.metrics.get(m) is not None else math.nan)
                               for m in SUMMARY_METRICS}} for k, r in enumerate(results)]
@@ -226,6 +198,69 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
                        f"{split}: {len(results)} runs" + ("" if precision == "fp32" else f", {precision}")
                        + (", mirror-averaged" if mirror_average else ""))
     return results
+
+
+def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, show: int, fps_frames: int,
+                     batch_size: int, precision: str, mirror_average: bool, fast: bool, easy: bool | None,
+                     log: Callable[[str], None]) -> EvalResult:
+    """:func:`evaluate_run` for one run folder (its lock held)."""
+    from radarpc.viz import plot_detection_frame, plot_learning_curves
+
+    if mirror_average:
+        stored, _ = _load_run(folder)
+        if stored.input_kind != "points":
+            raise ValueError(f"{folder}: mirror averaging applies to point models; {stored.name!r} takes RD "
+                             f"cubes (mirroring a cube would need the array's geometry)")
+    cfg, model, key = load_trained(folder, dev)
+    if points is not None and cfg.input_kind != "points":
+        raise ValueError(f"{folder}: model {cfg.model.variant!r} reads RD cubes, not point stores; drop --points")
+    n_params = sum(p.numel() for p in model.parameters())
+    if fast:
+        from radarpc.models.fast import fast_inference
+
+        model = fast_inference(model)
+    roots = data or key["data"]
+    stores = (points or key.get("points")) if cfg.input_kind == "points" else None
+    run_easy = (not cfg.difficult) if easy is None else easy   # by default as the run was trained
+    ds = detection_dataset(dataclasses.replace(cfg, difficult=not run_easy), roots, stores, split)
+    if mirror_average:
+        model = MirrorAveraged(model, cfg.targets, sectors=mirror_sectors_of(ds))
+    scored = _resolved(data_pairs(roots, stores))
+    own = _resolved(data_pairs(key["data"], key.get("points") if stores is not None else None))
+    collate = functools.partial(collate_detection, cfg=cfg)
+    loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate)
+    with torch.inference_mode(), autocast_context(precision, dev):
+        report, miou = evaluate_model(model, loader, dev, cfg.targets, max_candidates=None)
+    metrics = report.to_dict()
+    metrics["freespace_miou"] = miou
+    single = DataLoader(ds, batch_size=1, shuffle=False, collate_fn=collate)
+    frames = []
+    for b in single:
+        frames.append(b.to(dev))
+        if len(frames) >= fps_frames:
+            break
+    fps = _fps(model, frames, dev, precision=precision)
+    res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision,
+                     data=tuple(str(r) for r, _ in scored),
+                     points=None if stores is None else tuple(str(p) for _, p in scored),
+                     scored_on=_scored_on(scored, own), mirror_average=mirror_average, fast=fast, easy=run_easy)
+    _write_eval(folder, res, cfg.name)
+    if (folder / LOG_CSV).is_file():
+        plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
+    if show:
+        with torch.inference_mode(), autocast_context(precision, dev):
+            for k, b in _shown(ds, show, collate):
+                b = b.to(dev)
+                out = model(b.inputs)
+                dets = decode_detections(out.detection.float(), cfg.targets, threshold=FIXED_THRESHOLD)
+                plot_detection_frame(b.to(torch.device("cpu")), dets.to("cpu"), out.detection[0, 0].float().cpu(),
+                                     folder / "figures" / f"{res.stem}_{k}.png",
+                                     title=f"{cfg.name} {split} item {k} ({len(b.labels)} labels)")
+    log(f"{folder}: {split} F1 {metrics['f1']:.4f} (AP {metrics['ap']:.4f}, AR {metrics['ar']:.4f}), "
+        f"F1@0.2 {metrics['f1_fixed']:.4f}, freespace mIoU {miou if miou is not None else float('nan'):.4f}, "
+        f"{n_params:,} parameters, {fps:.1f} frames/s at batch 1 on {dev}, {precision}"
+        + (", mirror-averaged" if mirror_average else "") + (", fast inference copy" if fast else ""))
+    return res
 
 
 def mirror_sectors_of(ds) -> tuple[int, int] | None:

@@ -22,6 +22,7 @@ from radarpc.data.point_dataset import PointCloudDataset, PointFrameBatch, colla
 from radarpc.data.radial import RADIal
 from radarpc.data.radial_format import SPARSE_RD_MANIFEST
 from radarpc.eval.detection import DetectionMetrics, FreespaceMetrics
+from radarpc.io import DataFileError
 from radarpc.machine import physical_memory_bytes
 from radarpc.experiments.radial_detection.config import ExperimentConfig
 from radarpc.models.fftradnet import FFTRadNet, input_statistics
@@ -32,7 +33,7 @@ from radarpc.points import PointCloudBatch
 
 __all__ = ["DetectionBatch", "RadialDetectionTask", "collate_cubes", "collate_points",
            "collate_detection", "detection_dataset", "data_pairs", "ConcatFrames", "DataPaths",
-           "evaluate_model", "point_datasets", "recorded_datasets", "preload_point_frames", "preload_budget_bytes", "DECODE_THRESHOLD", "MAX_CANDIDATES"]
+           "evaluate_model", "check_root", "point_datasets", "recorded_datasets", "preload_point_frames", "preload_budget_bytes", "DECODE_THRESHOLD", "MAX_CANDIDATES"]
 
 DataPaths = str | os.PathLike | Sequence[str | os.PathLike]
 """One path, or several in order (dataset roots, or their point stores)."""
@@ -100,7 +101,8 @@ def data_pairs(data: DataPaths, points: DataPaths | None = None) -> list[tuple[P
     Raises
     ------
     ValueError
-        No root, or a number of stores that is not the number of roots.
+        No root, a root or store given twice (its frames would count twice), or a number of stores
+        that is not the number of roots.
     """
     def paths(given: DataPaths) -> list[Path]:
         return [Path(given)] if isinstance(given, (str, os.PathLike)) else [Path(g) for g in given]
@@ -108,9 +110,16 @@ def data_pairs(data: DataPaths, points: DataPaths | None = None) -> list[tuple[P
     roots = paths(data)
     if not roots:
         raise ValueError("no dataset root given (--data ROOT [ROOT ...])")
-    if points is None:
+    stores = None if points is None else paths(points)
+    for what, given in (("dataset root", roots), ("point store", stores or [])):
+        seen: dict[Path, Path] = {}
+        for p in given:
+            same = seen.setdefault(p.resolve(), p)
+            if same is not p:
+                raise ValueError(f"{p}: the same {what} is given twice ({same} and {p}); its frames would count "
+                                 f"twice")
+    if stores is None:
         return [(r, None) for r in roots]
-    stores = paths(points)
     if len(stores) != len(roots):
         raise ValueError(f"{len(roots)} dataset roots ({', '.join(map(str, roots))}) but {len(stores)} point "
                          f"stores ({', '.join(map(str, stores))}): give one store per root, in the same order")
@@ -127,7 +136,18 @@ class ConcatFrames(torch.utils.data.ConcatDataset):
                 ds.set_epoch(epoch)
 
 
+def check_root(root: Path) -> None:
+    """Refuse, naming it, a dataset root that is missing, a file or an empty folder."""
+    if not root.exists():
+        raise DataFileError(root, "dataset root does not exist")
+    if not root.is_dir():
+        raise DataFileError(root, "is a file; expected a RADIal-layout root folder (labels.csv, radar_FFT/, ...)")
+    if not any(root.iterdir()):
+        raise DataFileError(root, "is an empty folder; expected a RADIal-layout root (labels.csv, radar_FFT/, ...)")
+
+
 def _root_dataset(cfg: ExperimentConfig, data: Path, points: Path | None, split: str):
+    check_root(data)
     if cfg.input_kind == "rd":
         ds = RADIal(data, split=split, difficult=cfg.difficult)
         fc = cfg.model.config
@@ -170,6 +190,9 @@ def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths 
         superposition asked of a sparse-RD root,
         a pillar model without stores, or stores of different point features (enrichments).
     """
+    if cfg.input_kind == "rd" and points is not None:
+        raise ValueError(f"experiment {cfg.name!r}: model {cfg.model.variant!r} reads RD cubes, not point stores; "
+                         f"drop --points (give a sparse-RD root as --data for the sparse-RD baseline)")
     pairs = data_pairs(data, points if cfg.input_kind == "points" else None)
     parts = []
     for k, (root, store) in enumerate(pairs):

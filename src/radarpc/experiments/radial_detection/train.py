@@ -9,6 +9,7 @@ deviation of the best validation metrics. The loop is :func:`radarpc.training.lo
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -78,7 +79,7 @@ def train_runs(cfg: ExperimentConfig, data: DataPaths, out: str | os.PathLike, *
             log(f"{folder}: point frames preloaded in memory, {task.preloaded_bytes / 2**30:.2f} GiB")
         res = fit(task, run_cfg.train, folder, run_key(run_cfg, data, points), device=device,
                   overwrite=overwrite, progress=progress, log=log, extra_outputs=(CONFIG_YAML,),
-                  canonical_key=canonical_key)
+                  canonical_key=functools.partial(canonical_key, num_workers=run_cfg.train.num_workers))
         if not (folder / CONFIG_YAML).is_file():
             save_yaml(run_cfg, folder / CONFIG_YAML)
         results.append(res)
