@@ -31,6 +31,7 @@ from torch import nn
 from radarpc.config import from_dict, load_yaml_mapping, to_dict
 from radarpc.eval.detection import DetectionReport
 from radarpc.models import MODELS, ModelSpec
+from radarpc.models.heads import DETECTION_SHAPE
 from radarpc.models.losses import LossConfig
 from radarpc.models.targets import TargetConfig
 from radarpc.training.loop import TrainConfig
@@ -101,6 +102,9 @@ class ExperimentConfig:
         if self.train.select_metric not in known:
             raise ValueError(f"train.select_metric {self.train.select_metric!r} is not a validation metric of this "
                              f"experiment; one of {', '.join(known)}")
+        if (self.targets.n_range, self.targets.n_azimuth) != DETECTION_SHAPE:
+            raise ValueError(f"targets: n_range x n_azimuth = {self.targets.n_range} x {self.targets.n_azimuth}, but "
+                             f"the models' detection map is {DETECTION_SHAPE[0]} x {DETECTION_SHAPE[1]}")
         if self.statistics_frames < 1:
             raise ValueError(f"statistics_frames must be >= 1, got {self.statistics_frames}")
         if not 0.0 <= self.mirror_probability <= 1.0:
