@@ -55,6 +55,7 @@ __all__ = [
     "SPLIT_CHOICES",
     "SIMULATED_META_KEYS",
     "LabelTable",
+    "label_problems",
     "SimulatedMeta",
     "FileProblem",
     "CheckReport",
@@ -191,6 +192,30 @@ class LabelTable:
         for j, c in enumerate(LABEL_TENSOR_COLUMNS):
             out[:, j] = self.column(c)[rows]
         return out
+
+
+def label_problems(labels: LabelTable, max_range_m: float | None = None) -> list[str]:
+    """What in ``labels`` no radar could have measured, one line per bad value (empty: none).
+
+    A vehicle row must have a range ``radar_R_m`` in [0, ``max_range_m``] (the sensor's
+    unambiguous range; without it, any range >= 0), an azimuth ``radar_A_deg`` within +-90 deg (in
+    front of the array) and ``Difficult`` 0 or 1. A frame's empty marker row (-1 in the position
+    columns) is left alone.
+    """
+    out = []
+    r = labels.column("radar_R_m")
+    a = labels.column("radar_A_deg")
+    vehicle = labels.has_vehicle
+    for k in np.flatnonzero(vehicle).tolist():
+        where = f"row {k + 1} (numSample {int(labels.num_sample[k])})"
+        if not 0.0 <= r[k] <= (math.inf if max_range_m is None else max_range_m):
+            span = "" if max_range_m is None else f" .. {max_range_m:.1f}"
+            out.append(f"{where}: radar_R_m {r[k]:g} is outside 0{span} m")
+        if not -90.0 <= a[k] <= 90.0:
+            out.append(f"{where}: radar_A_deg {a[k]:g} is outside -90 .. 90 deg")
+        if int(labels.difficult[k]) not in (0, 1):
+            out.append(f"{where}: Difficult {int(labels.difficult[k])} is neither 0 nor 1")
+    return out
 
 
 def _parse_number(text: str, column: str, path: Path, line: int, integer: bool) -> float | int:
@@ -958,6 +983,8 @@ def check_root(root: str | os.PathLike, sensor: DDMARadarConfig | None = None, *
     except DataFileError as e:
         report.add(e)
         return report
+    for problem in label_problems(labels, None if sensor is None else sensor.max_range_m):
+        report.add(DataFileError(labels.path, problem))
     ids = np.unique(labels.num_sample).tolist()
     report.n_frames = len(ids)
     if meta is not None and meta.n_sequences is not None and meta.frames_per_sequence is not None:
