@@ -68,3 +68,27 @@ def test_not_a_root(root_and_store, tmp_path):
     _, store = root_and_store
     with pytest.raises(ValueError, match="is not a RADIal root"):
         write_radial_pcl(store, tmp_path, progress=False)
+
+
+def test_a_store_of_another_root_is_refused(root_and_store, tmp_path, capsys):
+    """`export A.parquet --radial-pcl --root B` once wrote A's clouds into B; now it is refused,
+    whether B is another dataset or A was moved away (its frames are not B's)."""
+    from radarpc.cli import main
+
+    root, store = root_and_store
+    other = write_radial_dataset(tmp_path / "other", TINY, 2, 2, 6, progress=False, camera=False, laser=False)
+    with pytest.raises(ValueError, match=r"was made from .*, not from .*other \(another dataset, or a copy of it\)"):
+        write_radial_pcl(store, other, progress=False)
+    assert not (other / "radar_PCL").exists()
+    # a store whose recorded root no longer exists (moved): the frames tell the roots apart
+    a = write_radial_dataset(tmp_path / "a", TINY, 2, 2, 7, progress=False, camera=False, laser=False)
+    convert_dataset(a, tmp_path / "a.parquet", density=0.1, split="all", progress=False)
+    a.rename(tmp_path / "a_moved")
+    small = write_radial_dataset(tmp_path / "small", TINY, 1, 1, 8, progress=False, camera=False, laser=False)
+    code = main(["export", str(tmp_path / "a.parquet"), "--radial-pcl", "--root", str(small)])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err
+    assert "holds 3 frames that" in err and "does not list (e.g. numSample 1): it was made from another root" in err
+    assert not list(small.glob("radar_PCL/*.npy"))
+    # the moved root itself still takes its own store
+    assert write_radial_pcl(tmp_path / "a.parquet", tmp_path / "a_moved", progress=False).n_frames == 4

@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from radarpc.data.point_dataset import check_store_root
+from radarpc.data.radial import read_labels
 from radarpc.data.pointstore import PointStore
 from radarpc.data.radial_format import RADAR_PCL_ROWS, radar_pcl_path
 from radarpc.io import save_npy_atomic
@@ -85,7 +87,8 @@ def write_radial_pcl(store: str | os.PathLike | PointStore, root: str | os.PathL
     radarpc.io.DataFileError
         ``store`` is missing or not a point store.
     ValueError
-        ``root`` is not a RADIal root (no ``labels.csv``).
+        ``root`` is not a RADIal root (no ``labels.csv``), or the store was made from another root
+        (:func:`~radarpc.data.point_dataset.check_store_root`), or holds frames ``root`` does not list.
     radarpc.runs.OutputBusyError
         Another process writes ``root``.
     """
@@ -96,6 +99,13 @@ def write_radial_pcl(store: str | os.PathLike | PointStore, root: str | os.PathL
     if not (root / "labels.csv").is_file():
         raise ValueError(f"{root} is not a RADIal root (no labels.csv): radar_PCL/ goes into the root "
                          f"the store {store.path} was made from")
+    check_store_root(store, root)
+    # a root that was moved passes the path check: its frames must still be the store's
+    listed = set(read_labels(root / "labels.csv").num_sample.tolist())
+    foreign = [int(f) for f in store.frames if int(f) not in listed]
+    if foreign:
+        raise ValueError(f"the point store {store.path} holds {len(foreign)} frames that {root}/labels.csv does not "
+                         f"list (e.g. numSample {foreign[0]}): it was made from another root")
     n_points = 0
     with locked_output(root, "dataset root"):
         for i in tqdm(range(len(store)), desc="radar_PCL", unit="frame", disable=not progress):
