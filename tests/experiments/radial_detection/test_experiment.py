@@ -18,6 +18,7 @@ from radarpc.config import load_yaml, save_yaml, to_dict
 from radarpc.models.fftradnet import fftradnet, fftradnet_s
 from radarpc.models.pillars import (pillars_tiny, polar_pointpillars, polar_pointpillars_s, spectralpillars,
                                     spectralpillars_s)
+from radarpc.data.point_dataset import PointCloudDataset
 from radarpc.pipelines.pointclouds import convert_dataset
 from radarpc.sensors.radial import RADIAL_S
 from radarpc.sim.radial_writer import write_radial_dataset
@@ -296,6 +297,24 @@ def _with_difficult_labels(root: Path, tmp_path: Path) -> tuple[Path, Path, list
     return hard, hard_store, tested
 
 
+def _check_detections_file(path, metrics, root, frames):
+    """The per-frame detections file against the metrics computed from the same detections: every
+    detection at or above a threshold is a true or a false positive there."""
+    import csv
+
+    from radarpc.experiments.radial_detection.evaluation import DETECTION_COLUMNS
+
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    assert tuple(rows[0]) == DETECTION_COLUMNS
+    rows = rows[1:]
+    assert {r[0] for r in rows} <= {root.name} and {int(r[1]) for r in rows} <= set(frames)
+    scores = [float(r[2]) for r in rows]
+    assert all(0.05 <= s <= 1.0 for s in scores)
+    for t, tp, fp in zip(metrics["thresholds"], metrics["tp"], metrics["fp"]):
+        assert sum(s >= t for s in scores) == tp + fp, t
+
+
 def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     cfg = ExperimentConfig(name="sp-tiny", model=ModelSpec("pillars-tiny"),
                            train=dataclasses.replace(TINY_TRAIN, epochs=1, batch_size=2, eval_batch_size=2))
@@ -318,9 +337,14 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     md = (out / "eval_test.md").read_text()
     assert "| AP | AR | F1 |" in md
     assert f"of the {doc['metrics']['fn_fixed']} labels missed, {doc['metrics']['fn_near_fixed']} have" in md
-    assert (out / "figures" / "eval_test_0.png").stat().st_size > 1000
+    first = PointCloudDataset(store, root, split="test").frame_ids[0]       # figures named by RADIal frame
+    assert (out / "figures" / f"eval_test_frame{first:06d}.png").stat().st_size > 1000
     assert (out / "figures" / "eval_test_labels.png").stat().st_size > 1000
     assert (out / "figures" / "learning_curve.png").stat().st_size > 1000
+    _check_detections_file(out / "eval_test_detections.csv", doc["metrics"], root,
+                           PointCloudDataset(store, root, split="test").frame_ids)
+    low, high = doc["fps_batch1_range"]
+    assert low <= doc["fps_batch1"] <= high and doc["fps_sweeps"] == 5
     # the same weights under bf16 autocast: their own files beside the fp32 ones, scored in bf16
     import radarpc.experiments.radial_detection.evaluation as detection
 
@@ -597,7 +621,8 @@ def test_classical_row_cli(root, store, tmp_path):
     for k in ("ap", "ar", "f1", "f1_fixed"):
         assert doc["metrics"][k] == pytest.approx(want[k], abs=1e-12, nan_ok=True)
     assert load_yaml(ClassicalConfig, out / "classical.yaml") == ClassicalConfig()
-    assert (out / "figures" / "eval_test_0.png").stat().st_size > 1000
+    assert (out / "figures" / f"eval_test_frame{ds.frame_ids[0]:06d}.png").stat().st_size > 1000
+    _check_detections_file(out / "eval_test_detections.csv", doc["metrics"], root, ds.frame_ids)
     assert (out / "figures" / "eval_test_labels.png").stat().st_size > 1000
     # settings from a file: clusters of a million points never form, so nothing is detected
     save_yaml(ClassicalConfig(min_points=10**6), tmp_path / "c.yaml")

@@ -9,8 +9,10 @@ so the two can be compared. :func:`evaluate_classical` scores the classical dete
 """
 from __future__ import annotations
 
+import csv
 import dataclasses
 import functools
+import io
 import json
 import math
 import os
@@ -28,8 +30,8 @@ from radarpc.data.augment import mirror_sectors
 from radarpc.data.point_dataset import PointCloudDataset
 from radarpc.eval.detection import FIXED_THRESHOLD, NEAR_MISS_M, DetectionMetrics
 from radarpc.experiments.radial_detection.config import ExperimentConfig, canonical_key, experiment_from_dict
-from radarpc.experiments.radial_detection.task import (DataPaths, DetectionBatch, collate_detection, collate_points,
-                                                       data_pairs, detection_dataset, evaluate_model, point_datasets)
+from radarpc.experiments.radial_detection.task import (DataPaths, DetectionBatch, collate_detection, collate_points, data_pairs,
+                                                       detection_dataset, evaluate_model, item_frames, point_datasets)
 from radarpc.experiments.radial_detection.train import SUMMARY_METRICS, run_folders, write_summary
 from radarpc.io import DataFileError, atomic_write
 from radarpc.models.classical import ClassicalConfig, classical_detect
@@ -55,7 +57,7 @@ class EvalResult:
     split: str
     metrics: dict
     parameters: int
-    fps: float
+    fps: Rate
     device: str
     threads: int
     precision: str = "fp32"
@@ -128,24 +130,42 @@ def _comparable(key: object) -> object:
     return {k: v for k, v in canonical_key(key, num_workers=0).items() if k != "software"}
 
 
-def _fps(model: torch.nn.Module, batches: list[DetectionBatch], device: torch.device, repeats: int = 3,
-         precision: str = "fp32") -> float:
-    """Batch-1 forward passes per second (after one warm-up pass), median of ``repeats`` sweeps."""
-    if not batches:
-        return math.nan
+@dataclass(frozen=True)
+class Rate:
+    """Batch-1 frames/s measured in ``repeats`` timed sweeps over the same frames, after warm-up."""
+
+    median: float
+    low: float
+    high: float
+    repeats: int
+
+    def text(self) -> str:
+        """``"12.3 frames/s (11.9-12.8 over 5 sweeps)"``, three significant digits (0.047 stays 0.047)."""
+        if math.isnan(self.median):
+            return "n/a frames/s (no frames)"
+        return f"{self.median:.3g} frames/s ({self.low:.3g}-{self.high:.3g} over {self.repeats} sweeps)"
+
+
+def _fps(run_frame: Callable[[object], object], frames: list, device: torch.device, repeats: int = 5,
+         warmup: int = 2) -> Rate:
+    """Batch-1 frames/s of ``run_frame`` over ``frames``: ``warmup`` untimed passes over the first
+    frame (first-call compilation and allocation), then ``repeats`` timed sweeps over all of them
+    (their median, lowest and highest rate: the spread says how steady the machine was)."""
+    if not frames:
+        return Rate(math.nan, math.nan, math.nan, 0)
     rates = []
-    with torch.inference_mode(), autocast_context(precision, device):
-        model(batches[0].inputs)
-        for _ in range(repeats):
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            t0 = time.perf_counter()
-            for b in batches:
-                model(b.inputs)
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            rates.append(len(batches) / (time.perf_counter() - t0))
-    return float(statistics.median(rates))
+    for _ in range(warmup):
+        run_frame(frames[0])
+    for _ in range(repeats):
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        t0 = time.perf_counter()
+        for b in frames:
+            run_frame(b)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        rates.append(len(frames) / max(time.perf_counter() - t0, 1e-12))
+    return Rate(float(statistics.median(rates)), min(rates), max(rates), repeats)
 
 
 def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths | None = None,
@@ -229,38 +249,74 @@ def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, 
     own = _resolved(data_pairs(key["data"], key.get("points") if stores is not None else None))
     collate = functools.partial(collate_detection, cfg=cfg)
     loader = DataLoader(ds, batch_size=batch_size, shuffle=False, collate_fn=collate)
+    found: list[Detections] = []
     with torch.inference_mode(), autocast_context(precision, dev):
-        report, miou = evaluate_model(model, loader, dev, cfg.targets, max_candidates=None)
+        report, miou = evaluate_model(model, loader, dev, cfg.targets, max_candidates=None,
+                                      on_detections=found.append)
     metrics = report.to_dict()
     metrics["freespace_miou"] = miou
+    if metrics["n_labels"] == 0:
+        log(f"{folder}: warning: the {split} split of {', '.join(str(r) for r, _ in scored)} holds no labels "
+            f"(in this mode): recall and F1 mean nothing here")
     single = DataLoader(ds, batch_size=1, shuffle=False, collate_fn=collate)
     frames = []
     for b in single:
         frames.append(b.to(dev))
         if len(frames) >= fps_frames:
             break
-    fps = _fps(model, frames, dev, precision=precision)
+    with torch.inference_mode(), autocast_context(precision, dev):
+        fps = _fps(lambda b: model(b.inputs), frames, dev)
     res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision,
                      data=tuple(str(r) for r, _ in scored),
                      points=None if stores is None else tuple(str(p) for _, p in scored),
                      scored_on=_scored_on(scored, own), mirror_average=mirror_average, fast=fast, easy=run_easy)
     _write_eval(folder, res, cfg.name)
+    _write_detections(folder / f"{res.stem}_detections.csv", item_frames(ds), found)
     if (folder / LOG_CSV).is_file():
         plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
     if show:
         with torch.inference_mode(), autocast_context(precision, dev):
+            names = _frame_names(item_frames(ds))
             for k, b in _shown(ds, show, collate):
                 b = b.to(dev)
                 out = model(b.inputs)
                 dets = decode_detections(out.detection.float(), cfg.targets, threshold=FIXED_THRESHOLD)
                 plot_detection_frame(b.to(torch.device("cpu")), dets.to("cpu"), out.detection[0, 0].float().cpu(),
-                                     folder / "figures" / f"{res.stem}_{k}.png",
-                                     title=f"{cfg.name} {split} item {k} ({len(b.labels)} labels)")
+                                     folder / "figures" / f"{res.stem}_{names[k]}.png",
+                                     title=f"{cfg.name} {split} {names[k]} ({len(b.labels)} labels)")
     log(f"{folder}: {split} F1 {metrics['f1']:.4f} (AP {metrics['ap']:.4f}, AR {metrics['ar']:.4f}), "
         f"F1@0.2 {metrics['f1_fixed']:.4f}, freespace mIoU {miou if miou is not None else float('nan'):.4f}, "
-        f"{n_params:,} parameters, {fps:.1f} frames/s at batch 1 on {dev}, {precision}"
+        f"{n_params:,} parameters, {fps.text()} at batch 1 on {dev}, {precision}"
         + (", mirror-averaged" if mirror_average else "") + (", fast inference copy" if fast else ""))
     return res
+
+
+DETECTION_COLUMNS = ("root", "numSample", "score", "range_m", "azimuth_deg")
+"""Columns of ``eval_{split}..._detections.csv``: one row per detection the metrics scored (after
+RADIal's decoding at confidence 0.05 and NMS), frames in the split's order; ``root`` the dataset
+root's folder name, ``numSample`` RADIal's frame number, ``range_m`` / ``azimuth_deg`` the box
+reference point (azimuth positive to the left). A frame without detections has no row."""
+
+
+def _write_detections(path: Path, frames: list[tuple[Path, int]], found: list[Detections]) -> None:
+    per_frame = [d.frame(b) for d in found for b in range(len(d))]
+    if len(per_frame) != len(frames):
+        raise RuntimeError(f"{len(per_frame)} frames of detections for {len(frames)} items")
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(DETECTION_COLUMNS)
+    for (root, num), d in zip(frames, per_frame):
+        for score, r, a in d.rows().tolist():
+            w.writerow([root.name, num, repr(score), repr(r), repr(a)])
+    with atomic_write(path, "w") as f:
+        f.write(buf.getvalue())
+
+
+def _frame_names(frames: list[tuple[Path, int]]) -> list[str]:
+    """Figure names of items: ``frame000123`` (RADIal's numSample), prefixed by the root's folder
+    name when several roots are scored."""
+    several = len({root for root, _ in frames}) > 1
+    return [(f"{root.name}_" if several else "") + f"frame{num:06d}" for root, num in frames]
 
 
 def mirror_sectors_of(ds) -> tuple[int, int] | None:
@@ -316,28 +372,28 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
     targets = TargetConfig()
     collate = functools.partial(collate_points, targets=targets)
     det = DetectionMetrics()
+    found = []
     for batch in DataLoader(ds, batch_size=16, shuffle=False, collate_fn=collate):
-        det.update(classical_detect(batch.inputs, cfg), batch.labels, batch.label_offset)
+        dets = classical_detect(batch.inputs, cfg)
+        det.update(dets, batch.labels, batch.label_offset)
+        found.append(dets.to("cpu"))
     metrics = det.compute().to_dict()
     metrics["freespace_miou"] = None
     frames = [b for _, b in zip(range(fps_frames), DataLoader(ds, batch_size=1, shuffle=False, collate_fn=collate))]
-    rates = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        for b in frames:
-            classical_detect(b.inputs, cfg)
-        rates.append(len(frames) / max(time.perf_counter() - t0, 1e-12))
-    res = EvalResult(out, split, metrics, 0, float(statistics.median(rates)) if frames else math.nan, "cpu",
+    fps = _fps(lambda b: classical_detect(b.inputs, cfg), frames, torch.device("cpu"))
+    res = EvalResult(out, split, metrics, 0, fps, "cpu",
                      torch.get_num_threads(), data=(str(Path(data).resolve()),), points=(str(Path(points).resolve()),),
                      easy=not difficult)
     _write_eval(out, res, "classical (CFAR points, Doppler gating, BEV clusters)")
+    _write_detections(out / f"{res.stem}_detections.csv", item_frames(ds), found)
+    names = _frame_names(item_frames(ds))
     for k, b in _shown(ds, show, collate):
         rows = classical_detect(b.inputs, cfg).rows()
         shown = Detections.from_frames([rows[rows[:, 0] >= FIXED_THRESHOLD]])
-        plot_detection_frame(b, shown, None, out / "figures" / f"eval_{split}_{k}.png",
-                             title=f"classical {split} item {k} ({len(b.labels)} labels)")
+        plot_detection_frame(b, shown, None, out / "figures" / f"eval_{split}_{names[k]}.png",
+                             title=f"classical {split} {names[k]} ({len(b.labels)} labels)")
     log(f"{out}: classical {split} F1 {metrics['f1']:.4f} (AP {metrics['ap']:.4f}, AR {metrics['ar']:.4f}), "
-        f"F1@0.2 {metrics['f1_fixed']:.4f}, {res.fps:.1f} frames/s at batch 1")
+        f"F1@0.2 {metrics['f1_fixed']:.4f}, {fps.text()} at batch 1")
     return res
 
 
@@ -348,7 +404,8 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
 
     m = res.metrics
     doc = {"split": res.split, "data": list(res.data), "points": list(res.points) if res.points else None,
-           "metrics": m, "parameters": res.parameters, "fps_batch1": res.fps,
+           "metrics": m, "parameters": res.parameters, "fps_batch1": res.fps.median,
+           "fps_batch1_range": [res.fps.low, res.fps.high], "fps_sweeps": res.fps.repeats,
            "device": res.device, "threads": res.threads, "precision": res.precision,
            "mirror_average": res.mirror_average, "fast": res.fast, "easy": res.easy}
     with atomic_write(folder / f"{res.stem}.json", "w") as f:
@@ -365,7 +422,7 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
         f"| {m['ap']:.4f} | {m['ar']:.4f} | {m['f1']:.4f} | {m['f1_fixed']:.4f} | {m['range_error_m']:.3f} | "
         f"{m['azimuth_error_deg']:.3f} | "
         f"{(m['freespace_miou'] if m['freespace_miou'] is not None else math.nan):.4f} | {res.parameters:,} | "
-        f"{res.fps:.1f} ({res.device}, {res.threads} threads) |", "",
+        f"{res.fps.median:.3g} ({res.fps.low:.3g}-{res.fps.high:.3g}; {res.device}, {res.threads} threads) |", "",
         f"AP and AR: means over the confidence thresholds {thr} at IoU 0.5; F1 = 2 AP AR / (AP + AR). "
         f"F1 @ 0.2: precision and recall at confidence 0.2. Errors: mean absolute range and azimuth "
         f"differences of matched pairs at the sweep's thresholds.", "",

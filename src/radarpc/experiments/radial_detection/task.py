@@ -12,7 +12,7 @@ import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import torch
 from torch import nn
@@ -28,12 +28,12 @@ from radarpc.experiments.radial_detection.config import ExperimentConfig
 from radarpc.models.fftradnet import FFTRadNet, input_statistics
 from radarpc.models.heads import HeadOutput
 from radarpc.models.losses import detection_loss
-from radarpc.models.targets import TargetConfig, decode_detections, encode_batch
+from radarpc.models.targets import Detections, TargetConfig, decode_detections, encode_batch
 from radarpc.points import PointCloudBatch
 
 __all__ = ["DetectionBatch", "RadialDetectionTask", "collate_cubes", "collate_points",
            "collate_detection", "detection_dataset", "data_pairs", "ConcatFrames", "DataPaths",
-           "evaluate_model", "check_root", "point_datasets", "recorded_datasets", "preload_point_frames", "preload_budget_bytes", "DECODE_THRESHOLD", "MAX_CANDIDATES"]
+           "evaluate_model", "check_root", "item_frames", "point_datasets", "recorded_datasets", "preload_point_frames", "preload_budget_bytes", "DECODE_THRESHOLD", "MAX_CANDIDATES"]
 
 DataPaths = str | os.PathLike | Sequence[str | os.PathLike]
 """One path, or several in order (dataset roots, or their point stores)."""
@@ -228,6 +228,12 @@ def recorded_datasets(ds) -> list:
     return [r for d in ds.datasets for r in recorded_datasets(d)] if isinstance(ds, ConcatFrames) else [ds]
 
 
+def item_frames(ds) -> list[tuple[Path, int]]:
+    """``(root, numSample)`` of every item of ``ds`` (a dataset of :func:`detection_dataset`), in
+    item order: RADIal's frame number of each item."""
+    return [(Path(d.root), int(n)) for d in recorded_datasets(ds) for n in d.frame_ids]
+
+
 def point_datasets(ds) -> list[PointCloudDataset]:
     """The point datasets inside ``ds`` (a dataset of :func:`detection_dataset`), in order; [] for RD cubes."""
     return [d for d in recorded_datasets(ds) if isinstance(d, PointCloudDataset)]
@@ -340,8 +346,12 @@ class RadialDetectionTask:
 
 
 def evaluate_model(model: nn.Module, batches: Iterable[DetectionBatch], device: torch.device,
-                   targets: TargetConfig, *, max_candidates: int | None = MAX_CANDIDATES):
-    """RADIal's detection report and the freespace mIoU (None without a freespace head)."""
+                   targets: TargetConfig, *, max_candidates: int | None = MAX_CANDIDATES,
+                   on_detections: Callable[[Detections], None] | None = None):
+    """RADIal's detection report and the freespace mIoU (None without a freespace head).
+
+    ``on_detections`` is given each batch's decoded detections (on the CPU), in batch order.
+    """
     det = DetectionMetrics()
     fs = FreespaceMetrics()
     has_fs = False
@@ -351,7 +361,10 @@ def evaluate_model(model: nn.Module, batches: Iterable[DetectionBatch], device: 
         maps = out.detection.float()
         if max_candidates is not None:
             maps = _keep_top_cells(maps, max_candidates)
-        det.update(decode_detections(maps, targets, threshold=DECODE_THRESHOLD), batch.labels, batch.label_offset)
+        dets = decode_detections(maps, targets, threshold=DECODE_THRESHOLD)
+        det.update(dets, batch.labels, batch.label_offset)
+        if on_detections is not None:
+            on_detections(dets.to("cpu"))
         if out.freespace is not None:
             has_fs = True
             fs.update(torch.sigmoid(out.freespace.float())[:, 0], batch.freespace)
