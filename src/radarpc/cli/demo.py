@@ -134,8 +134,8 @@ def run_demo(cfg: DemoConfig) -> Path:
 
     ps = PointStore(store)
     n_points = int(ps.frame_table.n_points.sum())
-    steps[2].notes.append(f"{plural(len(ps), 'frame')}, {plural(n_points, 'point')}, target density {cfg.density}, achieved "
-                          f"mean density {ps.metadata.achieved_density:.4f} (of the encoded set S*(tau); "
+    steps[2].notes.append(f"{plural(len(ps), 'frame')}, {plural(n_points, 'point')}, target density {cfg.density}, "
+                          f"achieved mean density {ps.metadata.achieved_density:.4f} (of the encoded set S*(tau); "
                           f"CFAR peaks S(tau) alone {ps.metadata.peak_density:.4f})")
     metrics_md = preds / "metrics.md"
     report = out / "REPORT.md"
