@@ -39,6 +39,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "COLOR_BY",
+    "figure_format",
     "save_figure",
     "RADIAL_BOX_LENGTH_M",
     "plot_detection_frame",
@@ -71,11 +72,40 @@ def _figure(figsize: tuple[float, float]) -> "Figure":
     return Figure(figsize=figsize)
 
 
+_EXTERNAL_FORMATS = frozenset({"pgf"})
+"""Formats matplotlib lists but writes only with an outside program (pgf: a LaTeX installation)."""
+
+
+def figure_format(out: str | os.PathLike) -> str:
+    """The file format the suffix of ``out`` names (``.png`` -> ``"png"``, ``.PDF`` -> ``"pdf"``).
+
+    Any format matplotlib writes by itself is accepted (png, pdf, svg, jpg, eps, tiff, webp, ...).
+    Call it before computing a figure, so that a bad path fails at once.
+
+    Raises
+    ------
+    ValueError
+        ``out`` has no suffix, or one that is not such a format; the message names the path and
+        the supported suffixes.
+    """
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    formats = sorted(set(FigureCanvasBase.get_supported_filetypes()) - _EXTERNAL_FORMATS)
+    suffix = Path(out).suffix
+    if suffix.lower().removeprefix(".") not in formats:
+        what = f"its suffix {suffix!r} names no figure format" if suffix else "it has no suffix"
+        raise ValueError(f"cannot write the figure {out}: {what}; give a path ending in one of "
+                         + ", ".join(f".{f}" for f in formats))
+    return suffix.lower().removeprefix(".")
+
+
 def save_figure(fig: "Figure", out: str | os.PathLike, dpi: int) -> None:
-    """Write ``fig`` as a PNG at ``out`` atomically (temp file + rename): a reader never sees half
+    """Write ``fig`` at ``out`` in the format its suffix names (:func:`figure_format`: PNG for
+    ``.png``, PDF for ``.pdf``, ...), atomically (temp file + rename): a reader never sees half
     a figure, and two writers never mix one."""
+    fmt = figure_format(out)
     with atomic_write(out, "wb") as f:
-        fig.savefig(f, format="png", dpi=dpi)
+        fig.savefig(f, format=fmt, dpi=dpi)
 
 
 # ---- one frame: RD + CFAR + BEV points -----------------------------------------------------------

@@ -98,7 +98,7 @@ def test_empty_split_warning(tmp_path: Path, capsys: pytest.CaptureFixture) -> N
     out = write_radial_dataset(tmp_path / "two", TINY, 2, 1, 0, progress=False)   # 2 sequences: train only
     assert run([str(out), "--no-plot"]) == 0
     text = capsys.readouterr().out
-    assert "warning:     split 'val' is empty (2 sequence(s);" in text
+    assert "warning:     split 'val' is empty (2 sequences;" in text
     assert "warning:     split 'test' is empty" in text and "split 'train' is empty" not in text
 
 
@@ -208,8 +208,8 @@ def test_coloradar_info_and_check(tmp_path: Path, capsys: pytest.CaptureFixture,
         assert line.split() == [r.name, r.scene, r.split, str(r.radar_frames), "0", str(r.lidar_scans),
                                 str(r.pairs), f"{r.duration_s:.1f}", f"{r.lidar_points[0]:.0f}",
                                 f"{r.lidar_points[1]:.0f}"]
-    assert out[6:10] == ["scenes:      1 (hallway)", "train:       1 runs, 2 paired frames",
-                         "val:         1 runs, 2 paired frames", "test:        1 runs, 2 paired frames"]
+    assert out[6:10] == ["scenes:      1 (hallway)", "train:       1 run, 2 paired frames",
+                         "val:         1 run, 2 paired frames", "test:        1 run, 2 paired frames"]
     assert out[10] == (f"LiDAR:       {s.lidar_points[0]:.0f} points per scan, {s.lidar_points[1]:.0f} inside "
                        f"the radar frustum (mean of sampled scans)")
     assert out[11] == f"plot:        {tmp_path / 'info_colo.png'}" and (tmp_path / "info_colo.png").is_file()
@@ -221,7 +221,7 @@ def test_coloradar_info_and_check(tmp_path: Path, capsys: pytest.CaptureFixture,
     assert run([str(root), "--write-skip", str(skip), "--no-plot"]) == 1
     text = capsys.readouterr().out
     assert f"check:       {n_files} files, 1 bad" in text and "lidar_pointcloud_0.bin" in skip.read_text()
-    assert f"skip list:   1 file(s) written to {skip}" in text and "plot:" not in text
+    assert f"skip list:   1 file written to {skip}" in text and "plot:" not in text
 
 
 def test_a_directory_as_plot_or_skip_list_is_refused_before_work(tmp_path, capsys):

@@ -321,3 +321,33 @@ def test_a_nan_cube_under_workers_is_one_line(root, tmp_path, capsys):
                      "--workers", "2", "--chunk-frames", "2"]) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and "fft_000003.npy" in err[0] and "NaN" in err[0] and "Traceback" not in err[0]
+
+
+def test_a_sparse_rd_rerun_prints_the_roots_density(root, tmp_path, capsys):
+    # a rerun that reuses every cube (or all but one) prints the density of the whole root: the mean of
+    # the per-frame densities sparse_rd.json records, each the fraction of (range, Doppler) cells the
+    # stored cube keeps
+    import json
+
+    from radarpc.data.radial_format import stored_fft_path
+
+    srd = tmp_path / "srd"
+    argv = ["pointcloud", str(root), "--snr", "2.0", "--sparse-rd-out", str(srd), "--quiet"]
+
+    def printed() -> float:
+        line = capsys.readouterr().out
+        assert "n/a" not in line
+        return float(line.split("achieved density ")[1].split()[0])
+
+    assert run_cli(argv) == 0
+    first = printed()
+    sparse = RADIal(srd, split="all")
+    kept = [float((sparse[i][0] != 0).any(-1).double().mean()) for i in range(len(sparse))]
+    records = json.loads((srd / "sparse_rd.json").read_text())["frames"]
+    assert [records[str(n)]["density"] for n in sparse.frame_ids] == pytest.approx(kept, abs=1e-12)
+    assert first == pytest.approx(np.mean(kept), abs=5e-6)             # printed with 5 decimals
+    assert run_cli(argv) == 0                                           # every cube exists
+    assert printed() == first
+    stored_fft_path(srd, sparse.frame_ids[-1]).unlink()                 # one cube to write again
+    assert run_cli(argv) == 0
+    assert printed() == first

@@ -93,7 +93,11 @@ def test_show_coloradar_bad_input(colo, tmp_path):
         run_cli(["show", str(colo), "--out", out])
     with pytest.raises(DataFileError, match="is neither a RADIal root"):
         run_cli(["show", str(tmp_path), "--frame", "0", "--out", out])
-    assert not (tmp_path / "f.png").exists()
+    # a suffix that names no figure format is refused before the frame is looked for
+    with pytest.raises(ValueError, match=r"cannot write the figure .*f\.txt: its suffix '\.txt' names no figure "
+                                         r"format; give a path ending in one of .*\.png"):
+        run_cli(["show", str(colo), "--frame", "9", "--out", str(tmp_path / "f.txt")])
+    assert not (tmp_path / "f.png").exists() and not (tmp_path / "f.txt").exists()
 
 
 def test_show_tuning(tmp_path, capsys, figures):
@@ -113,3 +117,10 @@ def test_show_tuning(tmp_path, capsys, figures):
         run_cli(["show", str(tmp_path), "--frame", "0", "--tuning", str(folder), "--out", str(out)])
     with pytest.raises(DataFileError, match="OS-CFAR tuning file is missing"):
         run_cli(["show", "--tuning", str(tmp_path / "none"), "--out", str(out)])
+    # the suffix names the format: JPEG's and PDF's magic bytes; a suffix naming none is refused
+    for name, magic in (("t.jpg", b"\xff\xd8\xff"), ("t.pdf", b"%PDF-")):
+        assert run_cli(["show", "--tuning", str(folder), "--out", str(tmp_path / name)]) == 0
+        assert (tmp_path / name).read_bytes().startswith(magic)
+    with pytest.raises(ValueError, match="cannot write the figure .*t.doc: its suffix '.doc' names no figure format"):
+        run_cli(["show", "--tuning", str(folder), "--out", str(tmp_path / "t.doc")])
+    assert not (tmp_path / "t.doc").exists()

@@ -271,7 +271,7 @@ def test_cli_writes_a_root(tmp_path, capsys):
     args = parser.parse_args(["radial", "--out", str(out), "--sequences", "1", "--frames-per-sequence", "2",
                               "--sensor", "tiny", "--seed", "3", "--no-progress"])
     assert args.func(args) == 0
-    assert ": 2 frames (1 sequences x 2)" in capsys.readouterr().out
+    assert ": 2 frames (1 sequence x 2)" in capsys.readouterr().out
     assert fft_path(out, 1).is_file() and (out / "labels.csv").is_file()
     with pytest.raises(FileExistsError, match="--overwrite"):
         args.func(parser.parse_args(["radial", "--out", str(out), "--sensor", "tiny", "--seed", "4",

@@ -45,13 +45,14 @@ def run_detect(args: argparse.Namespace) -> int:
 
 
 def run_oscfar(args: argparse.Namespace) -> int:
+    from radarpc.cli.text import plural
     from radarpc.pipelines.oscfar import OSCFARJob, predict_oscfar
 
     job = OSCFARJob(root=args.root, out=args.out, split=args.split, tune_split=args.tune_split,
                     max_tune_frames=args.max_tune_frames, config=args.config, retune=args.retune,
                     quick_tune=args.quick_tune, overwrite=args.overwrite)
     res = predict_oscfar(job, on_config=lambda cfg, how: print(f"OS-CFAR config {how}: {cfg}"))
-    print(f"wrote {res.n_new} new point clouds ({res.n_frames} frames) to {Path(args.out)}")
+    print(f"wrote {plural(res.n_new, 'new point cloud')} ({plural(res.n_frames, 'frame')}) to {Path(args.out)}")
     return 0
 
 

@@ -1,7 +1,8 @@
 """``radarpc demo``: the main job end to end on the embedded simulator.
 
 RADIal side: simulate a RADIal-layout dataset -> summarize and check it -> spectral point clouds
-at RADIal's default density with both enrichments (SpectralPillars input) -> a frame figure.
+at RADIal's default density with both enrichments (SpectralPillars input) -> a frame figure (the
+test frame with the most labelled vehicles).
 ColoRadar side: simulate ColoRadar-layout runs -> OS-CFAR baseline tuned on val -> Chamfer / EMD
 on test. Every step is the same ``radarpc`` command a user would type (printed before it runs),
 so the demo doubles as a tour; the run folder ends with ``REPORT.md``. Re-running resumes.
@@ -16,7 +17,7 @@ from pathlib import Path
 
 from radarpc import __version__
 
-__all__ = ["DemoConfig", "run_demo", "add_parser"]
+__all__ = ["DemoConfig", "figure_frame", "run_demo", "add_parser"]
 
 
 @dataclass(frozen=True)
@@ -57,10 +58,39 @@ def _run(step: _Step) -> None:
         raise RuntimeError(f"demo step {step.name!r} failed with exit code {code}: radarpc {shlex.join(step.argv)}")
 
 
+def _most_labelled(ds) -> tuple[int, int]:
+    """``(numSample, vehicles)`` of the frame of ``ds`` with the most labelled vehicles, the first
+    in numSample order on a tie."""
+    counts = [len(ds.label_tensor(i)) for i in range(len(ds.frame_ids))]
+    best = max(range(len(counts)), key=lambda i: (counts[i], -i))       # frame_ids ascend
+    return ds.frame_ids[best], counts[best]
+
+
+def figure_frame(root: str | Path) -> tuple[int, int, str]:
+    """The frame the demo draws: the test frame with the most labelled vehicles (the first such in
+    numSample order on a tie); of every frame when the root has no test split or no test frame
+    has a vehicle.
+
+    Returns ``(numSample, number of labelled vehicles, split chosen from)``.
+    """
+    from radarpc.data.radial import RADIal
+
+    try:
+        test = RADIal(root, split="test")
+    except ValueError:                                  # fewer than 3 sequences: no test split
+        test = None
+    if test is not None:
+        frame, n = _most_labelled(test)
+        if n > 0:
+            return frame, n, "test"
+    return (*_most_labelled(RADIal(root, split="all")), "all")
+
+
 def run_demo(cfg: DemoConfig) -> Path:
     """Run every step of the demo into ``cfg.out``; return the path of ``REPORT.md``."""
     import torch
 
+    from radarpc.cli.text import plural
     from radarpc.io import atomic_write
     from radarpc.machine import cpu_model
 
@@ -70,6 +100,7 @@ def run_demo(cfg: DemoConfig) -> Path:
     store = out / f"pointcloud_{cfg.density:g}.parquet"
     colo_root = out / "sim_colo"
     preds = out / "preds" / "oscfar"
+    frame_step = _Step("frame figure", [])         # its frame is chosen once the root exists
     steps = [
         _Step("simulate RADIal", ["simulate", "radial", "--out", str(radial_root), "--sensor", cfg.sensor,
                                   "--sequences", str(cfg.sequences), "--frames-per-sequence",
@@ -77,9 +108,7 @@ def run_demo(cfg: DemoConfig) -> Path:
         _Step("check RADIal", ["info", str(radial_root), "--check", "--plot", str(out / "radial_info.png")]),
         _Step("spectral point clouds", ["pointcloud", str(radial_root), "--density", str(cfg.density),
                                         "--enrich", cfg.enrich, "--out", str(store), "--device", cfg.device]),
-        _Step("frame figure", ["show", str(radial_root), "--frame", str(cfg.frames_per_sequence * (cfg.sequences - 1)),
-                               "--density", str(cfg.density), "--out", str(out / "frame.png"),
-                               "--device", cfg.device]),
+        frame_step,
         _Step("simulate ColoRadar", ["simulate", "coloradar", "--out", str(colo_root), "--scenes", cfg.colo_scenes,
                                      "--runs-per-scene", str(cfg.colo_runs_per_scene), "--frames", str(cfg.colo_frames),
                                      "--seed", str(cfg.seed), "--lidar-beams", str(cfg.colo_lidar_beams)]),
@@ -90,6 +119,13 @@ def run_demo(cfg: DemoConfig) -> Path:
     ]
     t_all = time.perf_counter()
     for step in steps:
+        if step is frame_step:
+            frame, n_vehicles, split = figure_frame(radial_root)
+            step.argv = ["show", str(radial_root), "--frame", str(frame), "--density", str(cfg.density),
+                         "--out", str(out / "frame.png"), "--device", cfg.device]
+            where = "test frame" if split == "test" else "frame of any split"
+            step.notes.append(f"`frame.png` draws frame {frame} (numSample), the {where} with the most "
+                              f"labelled vehicles ({n_vehicles})")
         _run(step)
     total = time.perf_counter() - t_all
 
@@ -98,15 +134,15 @@ def run_demo(cfg: DemoConfig) -> Path:
 
     ps = PointStore(store)
     n_points = int(ps.frame_table.n_points.sum())
-    steps[2].notes.append(f"{len(ps)} frames, {n_points} points, target density {cfg.density}, achieved "
-                          f"mean density {ps.metadata.achieved_density:.4f} (of the encoded set S*(tau); "
+    steps[2].notes.append(f"{plural(len(ps), 'frame')}, {plural(n_points, 'point')}, target density {cfg.density}, "
+                          f"achieved mean density {ps.metadata.achieved_density:.4f} (of the encoded set S*(tau); "
                           f"CFAR peaks S(tau) alone {ps.metadata.peak_density:.4f})")
     metrics_md = preds / "metrics.md"
     report = out / "REPORT.md"
     lines = [
         "# radarpc demo report", "",
         f"radarpc {__version__}, torch {torch.__version__}, device {cfg.device}, "
-        f"{torch.get_num_threads()} threads, {cpu_model()}, "
+        f"{plural(torch.get_num_threads(), 'thread')}, {cpu_model()}, "
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}", "",
         "| step | command | seconds |", "|---|---|---|",
     ]

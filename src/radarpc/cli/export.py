@@ -42,6 +42,8 @@ __all__ = ["add_parser", "run_export"]
 
 
 def run_export(args: argparse.Namespace) -> int:
+    from radarpc.cli.text import plural
+
     if args.radial_pcl:
         from radarpc.pipelines.radial_pcl import write_radial_pcl
 
@@ -49,7 +51,8 @@ def run_export(args: argparse.Namespace) -> int:
             raise ValueError("--radial-pcl writes radar_PCL/ into the RADIal root (--root); it takes no "
                              "--out, --format or --columns")
         res = write_radial_pcl(args.source, args.root, progress=not args.no_progress)
-        print(f"wrote radar_PCL for {res.n_frames} frames ({res.n_points} points) into {res.root}")
+        print(f"wrote radar_PCL for {plural(res.n_frames, 'frame')} ({plural(res.n_points, 'point')}) into "
+              f"{res.root}")
         return 0
     if args.out is None:
         raise ValueError("--out is required (or --radial-pcl to write RADIal's radar_PCL/ into the root)")
@@ -62,7 +65,8 @@ def run_export(args: argparse.Namespace) -> int:
                  progress=not args.no_progress)
     reused = f", kept {res.n_reused} from an earlier run" if res.n_reused else ""
     empty = f", {res.n_empty} without points" if res.n_empty else ""
-    print(f"wrote {res.n_new} {res.fmt} files ({res.n_frames} frames{empty}{reused}) to {res.out}")
+    print(f"wrote {plural(res.n_new, f'{res.fmt} file')} ({plural(res.n_frames, 'frame')}{empty}{reused}) "
+          f"to {res.out}")
     print(f"columns (float32, in order): {' '.join(res.columns)}  (see {res.out / 'columns.txt'})")
     return 0
 

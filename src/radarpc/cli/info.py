@@ -10,6 +10,7 @@ from pathlib import Path
 
 from typing import TYPE_CHECKING
 
+from radarpc.cli.text import plural
 from radarpc.io import DataFileError
 
 if TYPE_CHECKING:                  # the readers import torch: loaded when a command runs, not for --help
@@ -31,10 +32,10 @@ def format_summary(s: RadialSummary) -> str:
         f"{c.range_res_m:.4f} m/bin, {c.velocity_res_mps:.4f} m/s/bin",
         f"frames:      {s.n_frames}",
         f"sequences:   {s.n_sequences}",
-        "splits:      " + ", ".join(f"{k} {s.split_frames[k]} frames / {s.split_sequences[k]} seq"
+        "splits:      " + ", ".join(f"{k} {plural(s.split_frames[k], 'frame')} / {s.split_sequences[k]} seq"
                                    for k in s.split_frames),
-        f"vehicles:    {s.n_vehicles} labels ({s.n_difficult} difficult)",
-        f"empty:       {s.n_empty_frames} frames without vehicles",
+        f"vehicles:    {plural(s.n_vehicles, 'label')} ({s.n_difficult} difficult)",
+        f"empty:       {plural(s.n_empty_frames, 'frame')} without vehicles",
         f"range:       {rng(s.range_m, 'm')}",
         f"azimuth:     {rng(s.azimuth_deg, 'deg')}",
         f"velocity:    {rng(s.doppler_mps, 'm/s')}",
@@ -44,7 +45,7 @@ def format_summary(s: RadialSummary) -> str:
         if s.split_frames[k] == 0:
             rule = ("simulated sequences: the last is test and the one before it val when there are at "
                     "least 3" if s.simulated else "real sequences: RADIal's official val/test lists")
-            lines.append(f"warning:     split {k!r} is empty ({s.n_sequences} sequence(s); {rule}); "
+            lines.append(f"warning:     split {k!r} is empty ({plural(s.n_sequences, 'sequence')}; {rule}); "
                          f"RADIal(root, split={k!r}) raises, use random_split or more sequences")
     return "\n".join(lines)
 
@@ -55,7 +56,7 @@ def _print_check(report: CheckReport, write_skip: str | None) -> int:
     print(report.format())
     if write_skip is not None:
         write_skip_file(write_skip, report.bad_frames)
-        print(f"skip list:   {len(report.bad_frames)} frame(s) written to {write_skip}")
+        print(f"skip list:   {plural(len(report.bad_frames), 'frame')} written to {write_skip}")
     return 0 if report.ok else 1
 
 
@@ -67,6 +68,7 @@ def default_plot_path(root: str | Path) -> Path:
 def check_outputs(args: argparse.Namespace, default_plot: Path) -> None:
     """Fail before any work when the figure or the skip list cannot be written (one clear line)."""
     from radarpc.runs import check_writable
+    from radarpc.viz import figure_format
 
     outputs = [(Path(args.write_skip), "skip list")] if getattr(args, "write_skip", None) else []
     if not getattr(args, "no_plot", False):
@@ -74,6 +76,8 @@ def check_outputs(args: argparse.Namespace, default_plot: Path) -> None:
     for path, what in outputs:
         if path.is_dir():
             raise IsADirectoryError(f"the {what} path {path} is a directory; give a file name")
+        if what == "figure":
+            figure_format(path)                 # the suffix names the format (.png, .pdf, .svg, ...)
         check_writable(path, what)
 
 
@@ -123,7 +127,7 @@ def add_parser(sub) -> None:
                    help="write the numSample of every bad frame to FILE, one per line (implies --check); "
                         "pass it to RADIal(skip=FILE)")
     p.add_argument("--plot", metavar="PATH", default=None,
-                   help="summary plot path (default ./info_{root name}.png in the current directory; "
-                        "nothing is written into the dataset root)")
+                   help="summary plot path, its suffix picks the format: .png, .pdf, .svg, ... (default "
+                        "./info_{root name}.png in the current directory; nothing is written into the dataset root)")
     p.add_argument("--no-plot", action="store_true", help="do not write the summary plot")
     p.set_defaults(func=run)

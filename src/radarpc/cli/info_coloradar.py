@@ -10,6 +10,7 @@ import argparse
 import math
 from pathlib import Path
 
+from radarpc.cli.text import plural
 from radarpc.data.summary import check_runs, coloradar_view, open_coloradar_runs, summarize_coloradar, write_check_list
 from radarpc.viz import plot_coloradar_info
 
@@ -49,7 +50,7 @@ def info_coloradar(args: argparse.Namespace) -> int:
               f"{s.pairs:>6}{s.duration_s:>7.1f}{p[0]:>10.0f}{p[1]:>8.0f}")
     print(f"scenes:      {len(summary.scenes)} ({', '.join(summary.scenes)})")
     for sp, n in summary.split_runs.items():
-        print(f"{sp + ':':<13}{n} runs, {summary.split_pairs[sp]} paired frames")
+        print(f"{sp + ':':<13}{plural(n, 'run')}, {plural(summary.split_pairs[sp], 'paired frame')}")
     for e in unopened or []:            # runs left out of the summary (counted as bad below)
         print(f"warning:     {e}")
     for run in runs:                    # timestamp lines vs data files (also counted as bad by --check)
@@ -67,11 +68,11 @@ def info_coloradar(args: argparse.Namespace) -> int:
     if getattr(args, "check", False) or write_skip:
         total, bad = check_runs(runs)
         bad = [str(e) for e in unopened] + bad
-        print(f"check:       {total} files, {len(bad)} bad")
+        print(f"check:       {plural(total, 'file')}, {len(bad)} bad")
         for line in bad:
             print(f"  {line}")
         if write_skip:
             write_check_list(write_skip, bad)
-            print(f"skip list:   {len(bad)} file(s) written to {write_skip}")
+            print(f"skip list:   {plural(len(bad), 'file')} written to {write_skip}")
         return 1 if bad else 0
     return 0

@@ -154,6 +154,7 @@ def density_warning(target: float | None, achieved: float, enrich: tuple[str, ..
 
 
 def run(args: argparse.Namespace) -> int:
+    from radarpc.cli.text import plural
     from radarpc.distributed import dist_env
     from radarpc.pipelines.pointclouds import ConvertSettings, convert_dataset
     from radarpc.pipelines.sparse_rd import write_sparse_rd
@@ -188,21 +189,21 @@ def run(args: argparse.Namespace) -> int:
             extra = "" if rd is None else \
                 f" of S*(tau) with {rd} neighbourhoods; CFAR peaks S(tau) alone {res.peak_density:.5f}"
             head = (f"{res.path} already holds this conversion (nothing to do)" if res.already_finished else
-                    f"wrote {res.path}: {res.n_frames - res.frames_reused} frames converted now, "
+                    f"wrote {res.path}: {plural(res.n_frames - res.frames_reused, 'frame')} converted now, "
                     f"{res.frames_reused} reused from an earlier run")
-            print(f"{head}; {res.n_frames} frames, {res.n_points} points, tau {tau}, "
+            print(f"{head}; {plural(res.n_frames, 'frame')}, {plural(res.n_points, 'point')}, tau {tau}, "
                   f"achieved density {res.achieved_density:.5f}"
                   + (f" (target {args.density})" if args.density is not None else "") + extra
-                  + f"; parts of {res.chunk_frames} frames: {res.chunks_converted} converted, "
+                  + f"; parts of {plural(res.chunk_frames, 'frame')}: {res.chunks_converted} converted, "
                   f"{res.chunks_skipped} reused")
             warn = density_warning(args.density, res.achieved_density, enrich)
             if warn is not None:
                 print(warn, file=sys.stderr)
     if args.sparse_rd_out is not None and dist_env().rank == 0:
         srd = write_sparse_rd(args.root, args.sparse_rd_out, settings, calibrated_tau=calibrated, **run_args)
-        dens = "n/a (all frames existed)" if math.isnan(srd.achieved_density) else f"{srd.achieved_density:.5f}"
-        print(f"wrote sparse-RD root {srd.root}: {srd.n_frames} frames ({srd.frames_written} written now), "
-              f"achieved density {dens} (per-frame taus and densities in sparse_rd.json)")
+        # the mean over every frame of the root, kept ones included (sparse_rd.json's mean_density)
+        print(f"wrote sparse-RD root {srd.root}: {plural(srd.n_frames, 'frame')} ({srd.frames_written} written "
+              f"now), achieved density {srd.achieved_density:.5f} (per-frame taus and densities in sparse_rd.json)")
         if args.out is None:                                  # else the store's line warned already
             warn = density_warning(args.density, srd.achieved_density, enrich)
             if warn is not None:

@@ -39,26 +39,38 @@ from radarpc.runs import check_writable
 __all__ = ["add_parser", "run"]
 
 
+def _check_figure_path(out: str | Path) -> None:
+    """Fail before any work when ``out`` is a folder, names no figure format by its suffix
+    (:func:`radarpc.viz.figure_format`) or cannot be written."""
+    from radarpc.viz import figure_format
+
+    if Path(out).is_dir():
+        raise IsADirectoryError(f"the figure path {out} is a directory; give the path of a .png file")
+    figure_format(out)
+    check_writable(out, "figure")
+
+
 def _run_tuning(args: argparse.Namespace) -> int:
+    from radarpc.cli.text import plural
     from radarpc.data.summary import read_tuning
     from radarpc.viz import plot_oscfar_tuning
 
     if args.root is not None or args.frame is not None or args.pred is not None:
         raise ValueError("--tuning draws the tuning search alone: give no ROOT, --frame or --pred with it")
     out = Path(args.out) if args.out is not None else Path("tuning.png")
-    if out.is_dir():
-        raise IsADirectoryError(f"the figure path {out} is a directory; give the path of a .png file")
-    check_writable(out, "figure")
+    _check_figure_path(out)
     table = read_tuning(args.tuning)
     plot_oscfar_tuning(table, out)
     b = table.best
-    print(f"wrote {out}: {len(table.tau_db)} OS-CFAR candidates on {table.n_frames} {table.split} frames; best "
+    print(f"wrote {out}: {plural(len(table.tau_db), 'OS-CFAR candidate')} on "
+          f"{plural(table.n_frames, f'{table.split} frame')}; best "
           f"{table.setting[b]}, tau {table.tau_db[b]:g} dB: mean Chamfer {table.chamfer_m[b]:.3f} m, "
           f"{table.points_per_frame[b]:.0f} points per frame")
     return 0
 
 
 def _run_coloradar(args: argparse.Namespace) -> int:
+    from radarpc.cli.text import plural
     from radarpc.viz import plot_coloradar_frame
 
     given = [f for f, v in (("--density", args.density), ("--snr", args.snr), ("--store", args.store)) if v is not None]
@@ -67,16 +79,17 @@ def _run_coloradar(args: argparse.Namespace) -> int:
                          "(give --frame, optionally --run and --pred)")
     out = args.out if args.out is not None else (f"{args.run}_frame{args.frame}.png" if args.run
                                                  else f"frame{args.frame}.png")
-    check_writable(out, "figure")
+    _check_figure_path(out)
     view = plot_coloradar_frame(args.root, args.frame, out, run=args.run, pred=args.pred)
-    pred = "" if view.pred_xyz is None else f", {len(view.pred_xyz)} predicted points ({view.pred_label})"
+    pred = "" if view.pred_xyz is None else f", {plural(len(view.pred_xyz), 'predicted point')} ({view.pred_label})"
     print(f"wrote {out}: run {view.run}, radar frame {view.radar_index}, LiDAR scan {view.lidar_index} "
-          f"({len(view.inside_xyz)} of {len(view.lidar_xyz)} points in the radar frustum){pred}")
+          f"({len(view.inside_xyz)} of {plural(len(view.lidar_xyz), 'point')} in the radar frustum){pred}")
     return 0
 
 
 def _run_radial(args: argparse.Namespace) -> int:
     from radarpc.cli.pointcloud import check_density_args, parse_enrich, resolve_cfar_args
+    from radarpc.cli.text import plural
     from radarpc.pipelines.pointclouds import ConvertSettings
     from radarpc.viz import plot_frame
 
@@ -91,12 +104,12 @@ def _run_radial(args: argparse.Namespace) -> int:
         settings = ConvertSettings(tau=args.snr, density=args.density, density_mode=args.density_mode,
                                    enrich=parse_enrich(args.enrich), **cfar)
     out = args.out if args.out is not None else f"frame{args.frame}.png"
-    check_writable(out, "figure")
+    _check_figure_path(out)
     res = plot_frame(args.root, args.frame, out, settings, store=args.store, color_by=args.color,
                      device=args.device if args.device is not None else "cpu")
-    print(f"wrote {res.path}: frame {res.frame}, {res.n_peaks} CFAR peaks, {res.n_points} points, "
-          f"tau {res.tau:.4g} (linear SNR), achieved density {res.density:.5f} (CFAR peaks S(tau) alone "
-          f"{res.peak_density:.5f}), {res.n_vehicles} labelled vehicles")
+    print(f"wrote {res.path}: frame {res.frame}, {plural(res.n_peaks, 'CFAR peak')}, "
+          f"{plural(res.n_points, 'point')}, tau {res.tau:.4g} (linear SNR), achieved density {res.density:.5f} "
+          f"(CFAR peaks S(tau) alone {res.peak_density:.5f}), {plural(res.n_vehicles, 'labelled vehicle')}")
     return 0
 
 
@@ -120,8 +133,9 @@ def add_parser(sub) -> None:
     p.add_argument("root", nargs="?", default=None, help="dataset root: RADIal or ColoRadar layout")
     p.add_argument("--frame", type=int, default=None,
                    help="RADIal: numSample of the frame; ColoRadar: radar (ADC) frame index in its run")
-    p.add_argument("--out", default=None, metavar="PNG",
-                   help="figure path (default frame{N}.png, {run}_frame{N}.png with --run, tuning.png with --tuning)")
+    p.add_argument("--out", default=None, metavar="FILE",
+                   help="figure path; its suffix picks the format (.png, .pdf, .svg, .jpg, ...; default "
+                        "frame{N}.png, {run}_frame{N}.png with --run, tuning.png with --tuning)")
     colo = p.add_argument_group("ColoRadar roots")
     colo.add_argument("--run", default=None, help="run folder name (default: the first run)")
     colo.add_argument("--pred", default=None, metavar="FOLDER",

@@ -35,6 +35,7 @@ def add_parser(kinds) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Write the dataset described by ``args``; returns the exit code."""
+    from radarpc.cli.text import plural
     from radarpc.machine import check_device
 
     from radarpc.sim.coloradar_writer import write_coloradar
@@ -46,7 +47,8 @@ def run(args: argparse.Namespace) -> int:
                            overwrite=args.overwrite, lidar_beams=args.lidar_beams,
                            lidar_azimuth_steps=args.lidar_azimuth_steps, device=args.device,
                            progress=not args.no_progress, on_finish=lambda w, k: counts.update(written=w, kept=k))
-    print(f"{root}: {len(scenes)} scenes x {args.runs_per_scene} runs x {args.frames} radar frames "
-          f"({', '.join(scenes)}); {counts['written']} radar frames and LiDAR scans simulated now, "
-          f"{counts['kept']} kept from an earlier run")
+    print(f"{root}: {plural(len(scenes), 'scene')} x {plural(args.runs_per_scene, 'run')} x "
+          f"{plural(args.frames, 'radar frame')} ({', '.join(scenes)}); "
+          f"{plural(counts['written'], 'radar frame or LiDAR scan', 'radar frames and LiDAR scans')} simulated "
+          f"now, {counts['kept']} kept from an earlier run")
     return 0

@@ -53,6 +53,7 @@ def add_parser(kinds) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Write the dataset described by ``args``; returns the exit code."""
+    from radarpc.cli.text import plural
     from radarpc.machine import check_device
     from radarpc.sensors.radial import radial_sensor
     from radarpc.sim.radial_writer import write_radial_dataset
@@ -66,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
                                 cube_format=args.cube_format, camera=not args.no_camera, laser=not args.no_laser,
                                 scenes=args.scenes)
     n = args.sequences * args.frames_per_sequence
-    print(f"{root}: {n} frames ({args.sequences} sequences x {args.frames_per_sequence}) of sensor "
-          f"{cfg.name!r} {cfg.rd_shape}; {counts['written']} simulated now, {counts['kept']} kept from an "
-          f"earlier run")
+    print(f"{root}: {plural(n, 'frame')} ({plural(args.sequences, 'sequence')} x {args.frames_per_sequence}) "
+          f"of sensor {cfg.name!r} {cfg.rd_shape}; {counts['written']} simulated now, {counts['kept']} kept from "
+          f"an earlier run")
     return 0

@@ -46,7 +46,8 @@ class SparseRDResult:
     root: Path                       # the sparse-RD root
     n_frames: int                    # frames in the root
     frames_written: int              # cubes computed in this call (the others existed)
-    achieved_density: float          # mean density of the frames written in this call (nan if none)
+    achieved_density: float          # mean density over every frame of the root, those written now and
+    #                                  those kept from an earlier run (the manifest's mean_density; nan if none)
     tau: float | None                # fixed or calibrated threshold (None in per-frame mode)
     frame_tau: dict[int, float] = dataclasses.field(default_factory=dict)      # per frame (numSample), all recorded frames
     frame_density: dict[int, float] = dataclasses.field(default_factory=dict)  # per frame, density of the kept set
@@ -265,11 +266,11 @@ def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSett
         elif has_freespace and (not resume or not dst.is_file()):
             _write_png(dst, ds.freespace_mask(i))
     recorded = [frames[str(num)] for num in ds.frame_ids if str(num) in frames]
+    mean_density = float(np.mean([r["density"] for r in recorded])) if recorded else None
     info.update(complete=True, frames_written_last_run=len(todo),
                 mean_density_last_run=float(np.mean(written)) if written else None,
-                mean_density=float(np.mean([r["density"] for r in recorded])) if recorded else None,
-                freespace=has_freespace)
+                mean_density=mean_density, freespace=has_freespace)
     run.write_manifest(info_path.name, info)
-    return SparseRDResult(out_root, len(ds), len(todo), float(np.mean(written)) if written else float("nan"),
+    return SparseRDResult(out_root, len(ds), len(todo), float("nan") if mean_density is None else mean_density,
                           cal_tau, frame_tau={int(k): v["tau"] for k, v in frames.items()},
                           frame_density={int(k): v["density"] for k, v in frames.items()})
