@@ -44,7 +44,8 @@ def run(args: argparse.Namespace) -> int:
     evaluate_run(args.run, args.split, data=args.data, points=args.points, device=args.device,
                  show=args.show, fps_frames=args.fps_frames, precision=args.precision,
                  mirror_average=args.mirror_average, fast=args.fast,
-                 easy=None if args.difficult is None else not args.difficult)
+                 easy=None if args.difficult is None else not args.difficult,
+                 empty_frames=not args.drop_empty_frames)
     return 0
 
 
@@ -72,4 +73,8 @@ def add_parser(sub) -> None:
                    help="--no-difficult leaves out RADIal's 'Difficult' labels: its easy mode (3-Evaluation.py "
                         "without --difficult), into eval_{split}_easy.*; --difficult scores every label. Default: "
                         "as the run was trained (its config's 'difficult')")
+    p.add_argument("--drop-empty-frames", action="store_true",
+                   help="leave out the frames without a vehicle to score, as RADIal's loader does in its easy mode "
+                        "(with --no-difficult this is what RADIal's 3-Evaluation.py scores); default: keep them, "
+                        "so their false alarms count. Writes eval_{split}[_easy]_vehicle_frames.*")
     p.set_defaults(func=run)

@@ -22,7 +22,7 @@ import dataclasses
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Iterable, Sequence
 
 import numpy as np
 import torch
@@ -177,6 +177,8 @@ class PointCloudDataset(torch.utils.data.Dataset):
         all of whose vehicles are difficult.
     validate : bool
         Validate every freespace PNG read (as :class:`RADIal`).
+    skip : iterable of int, optional
+        RADIal frame numbers to leave out (as :class:`RADIal`'s ``skip``).
 
     Attributes
     ----------
@@ -196,7 +198,8 @@ class PointCloudDataset(torch.utils.data.Dataset):
     """
 
     def __init__(self, store: PointStore | str | os.PathLike, root: str | os.PathLike,
-                 split: str | None = None, *, difficult: bool = True, validate: bool = True) -> None:
+                 split: str | None = None, *, difficult: bool = True, validate: bool = True,
+                 skip: Iterable[int] | None = None) -> None:
         if split is not None and split not in SPLIT_CHOICES:
             raise ValueError(f"split must be one of {SPLIT_CHOICES} or None, got {split!r}")
         self.store = store if isinstance(store, PointStore) else PointStore(store)
@@ -208,7 +211,7 @@ class PointCloudDataset(torch.utils.data.Dataset):
             raise ValueError(f"the point store {self.store.path} holds the {made!r} split of "
                              f"{self.store.metadata.source_root}, so no {split!r} frame")
         self.reader = RADIal(self.root, split=split or "all", difficult=difficult, validate=validate,
-                             device=self.store.device)
+                             device=self.store.device, skip=skip)
         # every frame of the store must be a frame of the root, in the same sequence
         lab = self.reader.labels
         ids, first = np.unique(lab.num_sample, return_index=True)

@@ -73,14 +73,17 @@ class EvalResult:
     """Scored and timed with :func:`~radarpc.models.fast.fast_inference`'s copy of the model."""
     easy: bool = False
     """Scored in RADIal's easy mode: ``Difficult`` labels dropped (:func:`evaluate_run`)."""
+    empty_frames: bool = True
+    """Frames without a vehicle to score were scored too (their false alarms count)."""
 
     @property
     def stem(self) -> str:
         """The name of the written files: ``eval_{split}``, then ``_on_{scored_on}`` for data not
-        the run's own, ``_easy`` in RADIal's easy mode, ``_mirror`` when mirror-averaged, ``_fast``
+        the run's own, ``_easy`` in RADIal's easy mode, ``_vehicle_frames`` without the frames that have no vehicle
+        to score, ``_mirror`` when mirror-averaged, ``_fast``
         for the fast inference copy and ``_{precision}`` unless fp32."""
         return (f"eval_{self.split}" + (f"_on_{self.scored_on}" if self.scored_on else "")
-                + ("_easy" if self.easy else "")
+                + ("_easy" if self.easy else "") + ("" if self.empty_frames else "_vehicle_frames")
                 + ("_mirror" if self.mirror_average else "") + ("_fast" if self.fast else "")
                 + ("" if self.precision == "fp32" else f"_{self.precision}"))
 
@@ -171,7 +174,7 @@ def _fps(run_frame: Callable[[object], object], frames: list, device: torch.devi
 def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths | None = None,
                  points: DataPaths | None = None, device: str | None = None, show: int = 0,
                  fps_frames: int = 20, batch_size: int = 4, precision: str = "fp32", mirror_average: bool = False,
-                 fast: bool = False, easy: bool | None = None, progress: bool = True,
+                 fast: bool = False, easy: bool | None = None, empty_frames: bool = True, progress: bool = True,
                  log: Callable[[str], None] = print) -> list[EvalResult]:
     """Score the best weights of every run in ``run`` on ``split`` (see the module docstring).
 
@@ -190,7 +193,9 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     ``eval_{split}[...]_easy.*``. Frames without vehicles stay in (RADIal's loader drops them with
     its easy rows), so their false alarms still count. ``easy=False`` scores every label. ``None``
     (the default) follows the run's config: every label, or easy mode for a run trained with
-    ``difficult: false``.
+    ``difficult: false``. ``empty_frames=False`` also leaves out the frames without a vehicle to
+    score, as RADIal's loader does in its easy mode (what its ``3-Evaluation.py`` scores by
+    default), into ``eval_{split}[...]_vehicle_frames.*``.
     """
     if precision not in EVAL_PRECISIONS:
         raise ValueError(f"precision must be one of {EVAL_PRECISIONS}, got {precision!r}")
@@ -210,7 +215,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
         with locked_output(folder, "run folder"):       # not while the run trains or another evaluation writes
             remove_temp_files(folder, recursive=False)  # what a killed evaluation left half-written
             results.append(_evaluate_folder(folder, split, data, points, dev, show, fps_frames, batch_size,
-                                            precision, mirror_average, fast, easy, log))
+                                            precision, mirror_average, fast, easy, empty_frames, log))
     if len(results) > 1:
         rows = [{"run": k, **{m: (r.metrics.get(m) if r.metrics.get(m) is not None else math.nan)
                               for m in SUMMARY_METRICS}} for k, r in enumerate(results)]
@@ -222,7 +227,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
 
 def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, show: int, fps_frames: int,
                      batch_size: int, precision: str, mirror_average: bool, fast: bool, easy: bool | None,
-                     log: Callable[[str], None]) -> EvalResult:
+                     empty_frames: bool, log: Callable[[str], None]) -> EvalResult:
     """:func:`evaluate_run` for one run folder (its lock held)."""
     from radarpc.viz import plot_detection_frame, plot_learning_curves
 
@@ -242,7 +247,8 @@ def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, 
     roots = data or key["data"]
     stores = (points or key.get("points")) if cfg.input_kind == "points" else None
     run_easy = (not cfg.difficult) if easy is None else easy   # by default as the run was trained
-    ds = detection_dataset(dataclasses.replace(cfg, difficult=not run_easy), roots, stores, split)
+    ds = detection_dataset(dataclasses.replace(cfg, difficult=not run_easy), roots, stores, split,
+                           empty_frames=empty_frames)
     if mirror_average:
         model = MirrorAveraged(model, cfg.targets, sectors=mirror_sectors_of(ds))
     scored = _resolved(data_pairs(roots, stores))
@@ -269,7 +275,8 @@ def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, 
     res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision,
                      data=tuple(str(r) for r, _ in scored),
                      points=None if stores is None else tuple(str(p) for _, p in scored),
-                     scored_on=_scored_on(scored, own), mirror_average=mirror_average, fast=fast, easy=run_easy)
+                     scored_on=_scored_on(scored, own), mirror_average=mirror_average, fast=fast, easy=run_easy,
+                     empty_frames=empty_frames)
     _write_eval(folder, res, cfg.name)
     _write_detections(folder / f"{res.stem}_detections.csv", item_frames(ds), found)
     if (folder / LOG_CSV).is_file():
@@ -407,7 +414,8 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
            "metrics": m, "parameters": res.parameters, "fps_batch1": res.fps.median,
            "fps_batch1_range": [res.fps.low, res.fps.high], "fps_sweeps": res.fps.repeats,
            "device": res.device, "threads": res.threads, "precision": res.precision,
-           "mirror_average": res.mirror_average, "fast": res.fast, "easy": res.easy}
+           "mirror_average": res.mirror_average, "fast": res.fast, "easy": res.easy,
+           "empty_frames": res.empty_frames}
     with atomic_write(folder / f"{res.stem}.json", "w") as f:
         json.dump(doc, f, indent=2)
     thr = ", ".join(f"{t:.1f}" for t in m["thresholds"])
@@ -415,6 +423,7 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
         f"# {name}: {res.split} split ({m['n_frames']} frames)"
         + ("" if res.precision == "fp32" else f", {res.precision} autocast")
         + (", RADIal's easy mode (Difficult labels dropped)" if res.easy else "")
+        + ("" if res.empty_frames else ", frames without a vehicle to score left out (RADIal's loader)")
         + (", averaged over each frame and its mirror image" if res.mirror_average else "")
         + (", fast inference copy (radarpc.models.fast)" if res.fast else ""), "",
         "| AP | AR | F1 | F1 @ 0.2 | range error (m) | azimuth error (deg) | freespace mIoU | parameters | frames/s (batch 1) |",

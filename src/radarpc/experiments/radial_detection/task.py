@@ -19,7 +19,7 @@ from torch import nn
 
 from radarpc.data.augment import MirroredFrames, RotatedFrames, SuperposedFrames
 from radarpc.data.point_dataset import PointCloudDataset, PointFrameBatch, collate_point_frames
-from radarpc.data.radial import RADIal, label_problems, read_labels, root_sensor
+from radarpc.data.radial import LabelTable, RADIal, label_problems, read_labels, root_sensor
 from radarpc.data.radial_format import SPARSE_RD_MANIFEST
 from radarpc.eval.detection import DetectionMetrics, FreespaceMetrics
 from radarpc.io import DataFileError
@@ -33,7 +33,7 @@ from radarpc.points import PointCloudBatch
 
 __all__ = ["DetectionBatch", "RadialDetectionTask", "collate_cubes", "collate_points",
            "collate_detection", "detection_dataset", "data_pairs", "ConcatFrames", "DataPaths",
-           "evaluate_model", "check_root", "item_frames", "point_datasets", "recorded_datasets", "preload_point_frames", "preload_budget_bytes", "DECODE_THRESHOLD", "MAX_CANDIDATES"]
+           "evaluate_model", "check_root", "item_frames", "frames_without_vehicles", "point_datasets", "recorded_datasets", "preload_point_frames", "preload_budget_bytes", "DECODE_THRESHOLD", "MAX_CANDIDATES"]
 
 DataPaths = str | os.PathLike | Sequence[str | os.PathLike]
 """One path, or several in order (dataset roots, or their point stores)."""
@@ -146,7 +146,14 @@ def check_root(root: Path) -> None:
         raise DataFileError(root, "is an empty folder; expected a RADIal-layout root (labels.csv, radar_FFT/, ...)")
 
 
-def _root_dataset(cfg: ExperimentConfig, data: Path, points: Path | None, split: str):
+def frames_without_vehicles(labels: LabelTable, difficult: bool) -> list[int]:
+    """RADIal frame numbers with no vehicle to score: no vehicle row at all, or (with ``difficult``
+    False) only ``Difficult`` ones. RADIal's own loader drops them in its easy mode."""
+    scored = labels.has_vehicle & ((labels.difficult == 0) | difficult)
+    return sorted(set(labels.num_sample.tolist()) - set(labels.num_sample[scored].tolist()))
+
+
+def _root_dataset(cfg: ExperimentConfig, data: Path, points: Path | None, split: str, empty_frames: bool = True):
     check_root(data)
     labels = read_labels(data / "labels.csv")
     problems = label_problems(labels, root_sensor(data)[0].max_range_m)
@@ -154,8 +161,9 @@ def _root_dataset(cfg: ExperimentConfig, data: Path, points: Path | None, split:
         more = f"; {len(problems) - 3} more" if len(problems) > 3 else ""
         raise DataFileError(labels.path, f"labels no radar could have measured: {'; '.join(problems[:3])}{more} "
                                          f"(`radarpc info {data} --check` lists them all)")
+    skip = None if empty_frames else frames_without_vehicles(labels, cfg.difficult)
     if cfg.input_kind == "rd":
-        ds = RADIal(data, split=split, difficult=cfg.difficult)
+        ds = RADIal(data, split=split, difficult=cfg.difficult, skip=skip)
         fc = cfg.model.config
         if ds.sensor.rd_shape != (fc.n_range, fc.n_doppler, fc.n_rx):
             raise ValueError(f"{data}: cubes of sensor {ds.sensor.name!r} are {ds.sensor.rd_shape}, the "
@@ -165,12 +173,12 @@ def _root_dataset(cfg: ExperimentConfig, data: Path, points: Path | None, split:
     if points is None:
         raise ValueError(f"experiment {cfg.name!r} trains on point clouds: give the point store "
                          f"(--points FILE.parquet, made by `radarpc pointcloud {data}`)")
-    return PointCloudDataset(points, data, split=split, difficult=cfg.difficult)
+    return PointCloudDataset(points, data, split=split, difficult=cfg.difficult, skip=skip)
 
 
 def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths | None = None,
                       split: str = "train", *,
-                      augment_seed: int | None = None):
+                      augment_seed: int | None = None, empty_frames: bool = True):
     """The dataset of ``split`` for ``cfg``'s input: RD cubes of ``data``, or the point store
     ``points`` joined with ``data``'s labels.
 
@@ -183,6 +191,10 @@ def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths 
     points : path-like or sequence of path-like, optional
         The point store of each root (pillar models); ignored by FFTRadNet.
     split : {"train", "val", "test", "all"}
+    empty_frames : bool
+        Keep the frames without a vehicle to score (their false alarms count; radarpc's default).
+        False leaves them out (:func:`frames_without_vehicles`), as RADIal's loader does in its
+        easy mode.
     augment_seed : int, optional
         Mirror ``cfg.mirror_probability`` of the items (:class:`MirroredFrames`), rotate them by up
         to ``cfg.rotation_max_deg`` (:class:`RotatedFrames`) and superpose ``cfg.superpose_probability``
@@ -205,7 +217,7 @@ def detection_dataset(cfg: ExperimentConfig, data: DataPaths, points: DataPaths 
         if augment_seed is not None and cfg.superpose_probability > 0 and (Path(root) / SPARSE_RD_MANIFEST).exists():
             raise ValueError(f"{root} is a sparse-RD root: the sum of two sparse cubes is not the sparse RD of "
                              f"both scenes (its mask is a CFAR decision); set superpose_probability to 0")
-        ds = _root_dataset(cfg, root, store, split)
+        ds = _root_dataset(cfg, root, store, split, empty_frames)
         if parts and cfg.input_kind == "points" and ds.store.metadata.enrich != parts[0].store.metadata.enrich:
             raise ValueError(f"point stores of different features cannot train one model: {store} has the "
                              f"enrichments {list(ds.store.metadata.enrich)}, {parts[0].store.path} has "
