@@ -85,8 +85,10 @@ def add_density_args(p: argparse.ArgumentParser):
     p.add_argument("--beamforming", choices=BEAMFORMING_MODES, default="auto",
                    help="how each point's direction is found; all give the same points: 'exact' "
                         "(whole float32 spectrum), 'screened' (bf16 GEMM screen with a rigorous error "
-                        "bound, survivors evaluated exactly; fast on AMX CPUs), 'auto' (default: screened on "
-                        "CPUs with AMX unless sector descriptors are asked for, else exact)")
+                        "bound, survivors evaluated exactly; fast where the CPU multiplies bf16 natively), "
+                        "'subspace' (certified block low-rank screen, survivors evaluated exactly), 'auto' "
+                        "(default: whichever of the three a one-off timing on this device and grid finds "
+                        "fastest; exact when sector descriptors are asked for or RADARPC_NO_NATIVE=1)")
     p.add_argument("--envelope", choices=ENVELOPES, default=None,
                    help="RD envelope: 'replicas' = sum over the n_tx replica bins of each consolidated cell "
                         "(the spectral point-cloud paper's eq. 1, default); 'all-slots' = RADIal rpl.py, sum over every DDMA slot "
