@@ -39,3 +39,19 @@ def test_a_closed_pipe_ends_quietly():
         code = p.wait(timeout=120)
     assert code == 141
     assert "Traceback" not in err and "BrokenPipeError" not in err
+
+
+def test_a_full_disk_is_one_line(monkeypatch, capsys):
+    """What the machine refuses (here a full disk while writing a checkpoint) ends in one line
+    naming the file, with exit 1, not a traceback."""
+    import errno
+
+    from radarpc.cli import models
+
+    def full(args):
+        raise OSError(errno.ENOSPC, "No space left on device", "runs/x/checkpoints/last.safetensors")
+
+    monkeypatch.setattr(models, "run", full)
+    assert main(["models"]) == 1
+    err = capsys.readouterr().err
+    assert err == "radarpc models: error: No space left on device (runs/x/checkpoints/last.safetensors)\n"

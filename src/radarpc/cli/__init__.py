@@ -67,6 +67,13 @@ def main(argv: list[str] | None = None) -> int:
         # points at /dev/null so that Python's flush at exit does not raise again
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except OSError as e:
+        # the machine said no (a full disk, a quota, an I/O error): one line, not a traceback
+        where = f" ({e.filename})" if e.filename else ""
+        hint = ("; finished work is kept: fix it and run the same command again to resume"
+                if args.command in RESUMABLE_COMMANDS else "")
+        print(f"radarpc {args.command}: error: {e.strerror or e}{where}{hint}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         # The long commands write atomically and resume: say so instead of a traceback.
         hint = ("; finished work is kept, run the same command again to resume"
