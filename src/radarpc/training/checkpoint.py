@@ -28,7 +28,7 @@ from safetensors.torch import load_file, save
 
 from radarpc.io import DataFileError, atomic_write
 
-__all__ = ["TrainingState", "save_state", "load_state", "save_weights", "load_weights"]
+__all__ = ["TrainingState", "save_state", "load_state", "save_weights", "load_weights", "load_model_state"]
 
 _META_KEY = "radarpc"
 
@@ -157,3 +157,20 @@ def load_weights(path: str | os.PathLike, map_location: str | torch.device = "cp
         raise DataFileError(path, f"expected radarpc weights, got kind {meta.get('kind')!r}")
     state = {k[len("model."):]: v.to(map_location) for k, v in tensors.items() if k.startswith("model.")}
     return state, meta.get("info", {})
+
+
+def load_model_state(model: torch.nn.Module, state: Mapping[str, torch.Tensor], path: str | os.PathLike,
+                     what: str = "the model") -> None:
+    """``model.load_state_dict(state)`` for weights read from ``path``, refusing with a
+    :class:`DataFileError` that names the file: non-finite values (a diverged or damaged run), and
+    weights that do not fit ``model`` (another model's: keys missing or left over, other shapes)."""
+    bad = [k for k, v in state.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+    if bad:
+        raise DataFileError(path, f"non-finite values (NaN or inf) in {len(bad)} tensor(s), e.g. {bad[0]!r}: "
+                                  f"a diverged or damaged checkpoint")
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as e:
+        first = str(e).strip().splitlines()
+        detail = "; ".join(line.strip() for line in first[1:3]) or first[0]
+        raise DataFileError(path, f"its weights do not fit {what} ({detail})") from None

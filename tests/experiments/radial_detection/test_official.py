@@ -120,6 +120,8 @@ def test_import_then_evaluate_from_the_command_line(root, tmp_path, capsys):
     (lambda d: d["dataset"].pop("statistics"), "'dataset.statistics.input_std'"),
     (lambda d: d["dataset"]["statistics"].update(input_mean=[0.0] * 5), "input_mean must be a list of 32 numbers"),
     (lambda d: d["dataset"]["statistics"].update(input_std=[0.0] * 32), "input_std must be positive"),
+    (lambda d: d["dataset"]["statistics"].update(input_std=[float("nan")] * 32), "input_std must hold finite numbers"),
+    (lambda d: d["dataset"]["statistics"].update(input_mean=[float("inf")] * 32), "input_mean must hold finite"),
     (lambda d: d["model"].update(SegmentationHead="maybe"), "model.SegmentationHead must be true or false"),
     (lambda d: d["model"].update(DetectionHead="False"), "needs the detection head"),
     (lambda d: d["model"].update(backbone_block=[3, 6, 6]), "model.backbone_block must be a list of 4 integers"),
@@ -149,4 +151,23 @@ def test_weights_that_do_not_fit_the_config_are_refused(root, tmp_path):
     wider = _official_config(tmp_path / "wider.json", MIMO_output=TINY.mimo_channels * 2)
     with pytest.raises(DataFileError, match=r"fft\.pth: its weights do not fit the FFTRadNet that wider\.json"):
         import_official_fftradnet(ckpt, wider, root, tmp_path / "run", base=TINY)
+    assert not (tmp_path / "run").exists()
+
+
+def test_non_finite_or_foreign_weights_are_refused_at_import(root, tmp_path, capsys):
+    conf = _official_config(tmp_path / "config.json")
+    official = _official_checkpoint(tmp_path / "fft.pth")
+    nan = {k: v.clone() for k, v in official.items()}
+    nan["FPN.pre_enc.conv.weight"][0, 0, 0, 0] = float("nan")
+    torch.save({"net_state_dict": nan}, tmp_path / "nan.pth")
+    with pytest.raises(DataFileError, match=r"nan\.pth: non-finite values \(NaN or inf\) in 1 tensor\(s\), "
+                                            r"e\.g\. 'pre_encoder\.conv\.weight'"):
+        import_official_fftradnet(tmp_path / "nan.pth", conf, root, tmp_path / "run", base=TINY)
+    # a state dict of another network: one line from the command, exit 2, nothing written
+    torch.save({"encoder.weight": torch.zeros(3), "head.bias": torch.zeros(1)}, tmp_path / "other.pth")
+    code = main(["import-fftradnet", str(tmp_path / "other.pth"), "--official-config", str(conf), "--data", str(root),
+                 "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err
+    assert "other.pth: not the state dict of an official FFTRadNet: 'encoder.weight' is not a key" in err
     assert not (tmp_path / "run").exists()

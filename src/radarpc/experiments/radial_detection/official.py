@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import pickle
 from collections.abc import Iterable, Mapping
@@ -40,7 +41,7 @@ from radarpc.models import ModelSpec
 from radarpc.models.fftradnet import FFTRadNetConfig
 from radarpc.models.targets import TargetConfig
 from radarpc.runs import RunFolder
-from radarpc.training.checkpoint import save_weights
+from radarpc.training.checkpoint import load_model_state, save_weights
 from radarpc.training.loop import BEST_WEIGHTS
 
 __all__ = ["OfficialConfig", "read_official_config", "official_experiment", "import_official_fftradnet",
@@ -143,7 +144,10 @@ def load_official_checkpoint(path: str | os.PathLike) -> dict[str, torch.Tensor]
     if not isinstance(obj, Mapping) or not obj or not all(isinstance(v, torch.Tensor) for v in obj.values()):
         raise ValueError(f"{path}: expected a state dict (name -> tensor) or a dict with 'net_state_dict', "
                          f"got {type(obj).__name__} with keys {list(obj)[:5] if isinstance(obj, Mapping) else '-'}")
-    return official_to_radarpc(obj)
+    try:
+        return official_to_radarpc(obj)
+    except KeyError as e:
+        raise DataFileError(path, f"not the state dict of an official FFTRadNet: {e.args[0]}") from None
 
 
 # ---- official configs -----------------------------------------------------------------------------
@@ -196,6 +200,8 @@ def _numbers(value: object, where: str, path: Path, n: int | None = None, intege
         want = f"{n} " if n is not None else ""
         raise DataFileError(path, f"{where} must be a list of {want}{'integers' if integer else 'numbers'}, "
                                   f"got {value!r}")
+    if not all(math.isfinite(v) for v in value):
+        raise DataFileError(path, f"{where} must hold finite numbers, got {value!r}")
     return tuple(int(v) if integer else float(v) for v in value)
 
 
@@ -322,11 +328,8 @@ def import_official_fftradnet(checkpoint: str | os.PathLike, official_config: st
     state = load_official_checkpoint(checkpoint) | {"input_mean": torch.tensor(official.input_mean),
                                                     "input_std": torch.tensor(official.input_std)}
     model = cfg.build_model()
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as e:     # keys missing or left over, or a tensor of another shape
-        raise DataFileError(checkpoint, f"its weights do not fit the FFTRadNet that {official_config.name} describes "
-                                        f"(is model.SegmentationHead right?): {e}") from None
+    load_model_state(model, state, checkpoint, f"the FFTRadNet that {official_config.name} describes "
+                                               f"(is model.SegmentationHead right?)")
     key = run_key(cfg, data) | {"imported": {
         "checkpoint": str(checkpoint.resolve()), "checkpoint_sha256": _sha256(checkpoint),
         "official_config": str(official_config.resolve()), "official_config_sha256": _sha256(official_config)}}
