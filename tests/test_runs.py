@@ -238,3 +238,126 @@ def test_changed_keys_names_the_top_level_keys_that_differ(tmp_path):
     (d / "a.json").write_text("{")
     (d / "b.json").unlink()
     assert RunFolder(d, {"a.json": {"x": 1}, "b.json": {"y": 2}}).changed_keys() == {"*"}
+
+
+def test_a_stored_key_is_read_through_the_canonical_function(tmp_path):
+    d = tmp_path / "run"
+    with RunFolder(d, {"run.json": {"a": 1, "version": "1"}}, ignore_keys=("version",)):
+        pass                                                    # stored before "b" existed
+    new = {"run.json": {"a": 1, "b": 5, "version": "2"}}
+    with pytest.raises(RunMismatchError, match=r"run\.json:b"):
+        RunFolder(d, new, ignore_keys=("version",)).start()     # raw: "b" reads as missing
+    seen = []
+
+    def with_defaults(stored: dict) -> dict:
+        seen.append(dict(stored))
+        if set(stored) - {"a", "b"}:
+            raise ValueError(f"unknown keys {sorted(set(stored) - {'a', 'b'})}")
+        return {"b": 5, **stored}
+
+    run = RunFolder(d, new, ignore_keys=("version",), canonical={"run.json": with_defaults})
+    assert run.differences() == [] and run.changed_keys() == set()
+    assert seen[0] == {"a": 1}                                  # the stored key, without ignore_keys
+    with run:
+        assert run.resumed
+    assert json.loads((d / "run.json").read_text()) == {"a": 1, "version": "1"}   # kept as found
+    # a stored value that differs after reading is a difference
+    assert RunFolder(d, {"run.json": {"a": 2, "b": 5}}, ignore_keys=("version",),
+                     canonical={"run.json": with_defaults}).differences() == ["run.json:a"]
+    # a stored key the function cannot read is another run's, named with the reason
+    (d / "run.json").write_text(json.dumps({"a": 1, "z": 0}))
+    other = RunFolder(d, new, ignore_keys=("version",), canonical={"run.json": with_defaults})
+    assert other.changed_keys() == {"a", "b"}
+    with pytest.raises(RunMismatchError, match=r"run\.json \(not readable as this run's key: unknown keys \['z'\]\)"):
+        other.start()
+    with pytest.raises(ValueError, match=r"canonical functions for \['x.json'\]"):
+        RunFolder(d, new, canonical={"x.json": with_defaults})
+
+
+def _fake_repo(root, head: str, *, loose=None, packed=None):
+    git = root / ".git"
+    git.mkdir(parents=True)
+    (git / "HEAD").write_text(head + "\n")
+    for ref, name in (loose or {}).items():
+        (git / ref).parent.mkdir(parents=True, exist_ok=True)
+        (git / ref).write_text(name + "\n")
+    if packed:
+        (git / "packed-refs").write_text("# pack-refs with: peeled fully-peeled sorted\n" + "".join(
+            f"{name} {ref}\n^{'f' * 40}\n" for ref, name in packed.items()))
+    return git
+
+
+def test_git_commit_is_read_from_the_files(tmp_path, monkeypatch):
+    import subprocess as sp
+
+    from radarpc import runs
+    from radarpc.runs import git_commit
+
+    calls = []
+    monkeypatch.setattr(runs.subprocess, "run", lambda *a, **k: calls.append((a, k)) or sp.CompletedProcess(a, 1, "", ""))
+    a, b, c = "a" * 40, "b" * 40, "c" * 40
+    _fake_repo(tmp_path / "loose", "ref: refs/heads/main", loose={"refs/heads/main": a})
+    assert git_commit(tmp_path / "loose") == a
+    _fake_repo(tmp_path / "packed", "ref: refs/heads/dev", packed={"refs/heads/main": a, "refs/heads/dev": b})
+    assert git_commit(tmp_path / "packed") == b                 # the peeled "^..." line is not a ref
+    _fake_repo(tmp_path / "detached", c)
+    assert git_commit(tmp_path / "detached") == c
+    # a linked work tree: .git is a file naming its git dir, whose commondir holds the branches
+    main = _fake_repo(tmp_path / "main", "ref: refs/heads/main", loose={"refs/heads/main": a},
+                      packed={"refs/heads/topic": b})
+    wt_git = main / "worktrees" / "wt"
+    wt_git.mkdir(parents=True)
+    (wt_git / "HEAD").write_text("ref: refs/heads/topic\n")
+    (wt_git / "commondir").write_text("../..\n")
+    (tmp_path / "wt").mkdir()
+    (tmp_path / "wt" / ".git").write_text(f"gitdir: {wt_git}\n")
+    assert git_commit(tmp_path / "wt") == b
+    assert calls == []                                          # all read without running git
+    assert git_commit(tmp_path / "nothing") is None and calls == []
+    # a HEAD the files do not resolve (an unborn branch, another ref format): git is asked, with
+    # a timeout, and its failure gives None
+    _fake_repo(tmp_path / "unborn", "ref: refs/heads/new")
+    assert git_commit(tmp_path / "unborn") is None
+    (args,), kwargs = calls[0]
+    assert args[:3] == ["git", "-C", str(tmp_path / "unborn")] and kwargs["timeout"] == 5.0
+
+
+def test_git_commit_never_fails_when_git_is_missing_or_hangs(tmp_path, monkeypatch):
+    import subprocess as sp
+
+    from radarpc import runs
+    from radarpc.runs import git_commit
+
+    _fake_repo(tmp_path / "r", "ref: refs/heads/new")
+
+    def missing(*a, **k):
+        raise FileNotFoundError("git")
+
+    def hangs(*a, **k):
+        raise sp.TimeoutExpired("git", k["timeout"])
+
+    for fake in (missing, hangs):
+        monkeypatch.setattr(runs.subprocess, "run", fake)
+        assert git_commit(tmp_path / "r") is None
+    monkeypatch.setattr(runs.subprocess, "run", lambda *a, **k: sp.CompletedProcess(a, 0, "d" * 40 + "\n", ""))
+    assert git_commit(tmp_path / "r") == "d" * 40               # what git says when the files do not
+    monkeypatch.setattr(runs.subprocess, "run", lambda *a, **k: sp.CompletedProcess(a, 0, "not a hash\n", ""))
+    assert git_commit(tmp_path / "r") is None
+
+
+def test_source_commit_is_the_checkouts_head():
+    import shutil
+    from pathlib import Path
+
+    import radarpc
+    from radarpc.runs import source_commit
+
+    root = Path(radarpc.__file__).resolve().parents[2]          # ROOT/src/radarpc/__init__.py
+    got = source_commit()
+    if not (root / ".git").exists() or shutil.which("git") is None:
+        # an installed package (no checkout), or no git to compare with: None or a commit name
+        assert got is None or len(got) == 40
+        return
+    head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                          check=True, timeout=30).stdout.strip()
+    assert got == head

@@ -14,7 +14,13 @@ from start to finish:
   beside it, then a rename), so a finished part is never half-written; :meth:`RunFolder.done`
   tells a resumed job which parts it can keep (optionally validating them);
 * **leftovers** — temp files that a killed job left (``.NAME.*.tmp``) are removed when the next
-  job takes the output.
+  job takes the output;
+* **older keys** — a key stored before a setting existed lacks it; the caller may pass a
+  ``canonical`` function per manifest that reads the stored key through its config type (so the
+  missing setting takes its default) before it is compared;
+* **provenance** — :func:`source_commit` names the git commit of the radarpc source tree (read from
+  ``.git`` without running git when it can), for records that are kept but not compared
+  (``ignore_keys``).
 
 Resuming is bit-identical by construction: every part is a deterministic function of the key and
 the part's index, and a part either exists whole under its final name or not at all.
@@ -33,6 +39,7 @@ import json
 import os
 import re
 import shutil
+import subprocess
 from pathlib import Path
 from typing import Callable, Iterator, Mapping, Sequence
 
@@ -46,6 +53,8 @@ __all__ = [
     "is_temp_name",
     "read_json",
     "locked_output",
+    "git_commit",
+    "source_commit",
 ]
 
 
@@ -246,6 +255,13 @@ class RunFolder:
         What the folder is, for messages.
     ignore_keys : sequence of str
         Top-level manifest keys that are recorded but do not identify the run (a version string).
+    canonical : mapping of str to callable, optional
+        ``{file name: function}``: the function reads that manifest as stored (a dict, without its
+        ``ignore_keys``) and returns it as this run would write it, e.g. through the config type
+        (``to_dict(from_dict(Config, d))``) so that a setting added since the run started takes
+        its default instead of reading as missing. It is applied before comparing; a
+        ``ValueError``, ``KeyError`` or ``TypeError`` it raises makes the stored manifest a
+        difference (the folder then holds another run).
     indent : int, optional
         JSON indentation of the manifests as written.
     owned : sequence of str, optional
@@ -267,13 +283,19 @@ class RunFolder:
 
     def __init__(self, path: str | os.PathLike, manifests: Mapping[str, Mapping], *, what: str = "run folder",
                  ignore_keys: Sequence[str] = (), indent: int | None = 1, owned: Sequence[str] | None = None,
-                 lock_output: str | os.PathLike | None = None, lock: OutputLock | None = None) -> None:
+                 lock_output: str | os.PathLike | None = None, lock: OutputLock | None = None,
+                 canonical: Mapping[str, Callable[[dict], dict]] | None = None) -> None:
         if not manifests:
             raise ValueError("a run folder needs at least one manifest file")
         self.path = Path(path)
         self.manifests = {str(k): _canonical(dict(v)) for k, v in manifests.items()}
         self.what = what
         self.ignore_keys = tuple(ignore_keys)
+        self.canonical = dict(canonical or {})
+        unknown = sorted(set(self.canonical) - set(self.manifests))
+        if unknown:
+            raise ValueError(f"canonical functions for {unknown}, which are not manifests of {self.path} "
+                             f"({sorted(self.manifests)})")
         self.indent = indent
         self.owned = None if owned is None else tuple(owned)
         self.lock = lock if lock is not None else OutputLock(self.path if lock_output is None else lock_output, what)
@@ -291,6 +313,21 @@ class RunFolder:
         """The manifests as found in the folder (None for a missing or unreadable one)."""
         return {name: read_json(self.path / name) for name in self.manifests}
 
+    def _stored_key(self, name: str, stored: object) -> object:
+        """The key part of stored manifest ``name`` (a dict), read through its ``canonical``
+        function; a :class:`ValueError` naming the problem when that function cannot read it."""
+        have = self._key(stored)
+        fn = self.canonical.get(name)
+        if fn is None or not isinstance(have, dict):
+            return have
+        try:
+            read = fn(dict(have))
+        except (ValueError, KeyError, TypeError) as e:
+            raise ValueError(f"{name} (not readable as this run's key: {e})") from e
+        if not isinstance(read, dict):
+            raise TypeError(f"the canonical function of {name} returned {type(read).__name__}, not a dict")
+        return self._key(_canonical(read))
+
     def differences(self) -> list[str]:
         """Keys (``file:key``) whose stored value differs from this run's; empty when they match.
 
@@ -300,9 +337,14 @@ class RunFolder:
         """
         out, missing = [], []
         for name, stored in self.stored().items():
-            want, have = self._key(self.manifests[name]), self._key(stored)
-            if not isinstance(have, dict):
+            want = self._key(self.manifests[name])
+            if not isinstance(stored, dict):
                 missing.append(f"{name} (missing or unreadable)")
+                continue
+            try:
+                have = self._stored_key(name, stored)
+            except ValueError as e:
+                out.append(str(e))
                 continue
             # the stored manifest may also hold records of the run (progress, calibrated values):
             # only this run's key is compared
@@ -319,6 +361,11 @@ class RunFolder:
         for name, have in stored.items():
             if isinstance(have, dict):
                 want = self._key(self.manifests[name])
+                try:
+                    have = self._stored_key(name, have)
+                except ValueError:
+                    out |= set(want)
+                    continue
                 out |= {k for k in want if want[k] != have.get(k)}
         return out
 
@@ -446,6 +493,87 @@ class RunFolder:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+_HASH = re.compile(r"[0-9a-f]{40}|[0-9a-f]{64}")       # SHA-1 or SHA-256 object names
+
+
+def _git_dirs(tree: Path) -> tuple[Path, Path] | None:
+    """``(git dir, common dir)`` of the work tree ``tree``: ``.git`` itself, or for a linked work
+    tree (``.git`` a file ``gitdir: PATH``) that folder and the main repository's (``commondir``)."""
+    dot = tree / ".git"
+    if dot.is_dir():
+        return dot, dot
+    if not dot.is_file():
+        return None
+    text = dot.read_text(encoding="utf-8").strip()
+    if not text.startswith("gitdir:"):
+        return None
+    gitdir = Path(text[len("gitdir:"):].strip())
+    gitdir = gitdir if gitdir.is_absolute() else tree / gitdir
+    common = gitdir
+    if (gitdir / "commondir").is_file():
+        c = Path((gitdir / "commondir").read_text(encoding="utf-8").strip())
+        common = c if c.is_absolute() else gitdir / c
+    return gitdir, common
+
+
+def _read_ref(gitdir: Path, common: Path, ref: str) -> str | None:
+    """The object name a ref (``refs/heads/main``) holds: its loose file (in the work tree's git
+    dir, then the common one) or its line of ``packed-refs``; None when neither has it."""
+    for d in (gitdir, common):
+        p = d / ref
+        if p.is_file():
+            return p.read_text(encoding="utf-8").strip()
+    for d in dict.fromkeys((gitdir, common)):
+        packed = d / "packed-refs"
+        if packed.is_file():
+            for line in packed.read_text(encoding="utf-8").splitlines():
+                parts = line.split()
+                if len(parts) == 2 and parts[1] == ref and not line.startswith(("#", "^")):
+                    return parts[0]
+    return None
+
+
+def git_commit(tree: str | os.PathLike, timeout: float = 5.0) -> str | None:
+    """The commit checked out (``HEAD``) in the git work tree ``tree``, or None.
+
+    Read from the files (``.git/HEAD``, the ref it names as a loose file or in ``packed-refs``,
+    linked work trees included) without running git; only when they do not give a commit (a
+    repository in another ref format) ``git rev-parse --verify HEAD`` is asked, with a
+    ``timeout`` in seconds. None when ``tree`` is not a git work tree, HEAD names no commit yet,
+    or git is missing, slow or fails: a record of the commit never stops a job. Changes not yet
+    committed are not detected.
+    """
+    tree = Path(tree)
+    try:
+        dirs = _git_dirs(tree)
+        if dirs is None:
+            return None
+        head: str | None = (dirs[0] / "HEAD").read_text(encoding="utf-8").strip()
+        for _ in range(5):                       # a symbolic ref may name another one
+            if head is None or not head.startswith("ref:"):
+                break
+            head = _read_ref(*dirs, head[len("ref:"):].strip())
+        if head is not None and _HASH.fullmatch(head):
+            return head
+    except (OSError, UnicodeDecodeError):
+        pass
+    try:
+        done = subprocess.run(["git", "-C", str(tree), "rev-parse", "--verify", "--quiet", "HEAD"],
+                              capture_output=True, text=True, timeout=timeout, check=False)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    name = done.stdout.strip()
+    return name if done.returncode == 0 and _HASH.fullmatch(name) else None
+
+
+def source_commit() -> str | None:
+    """The git commit of the radarpc source tree when radarpc runs from a git checkout (the
+    ``src`` layout: ``ROOT/src/radarpc`` with ``ROOT/.git``), else None (an installed package)."""
+    package = Path(__file__).resolve().parent
+    root = package.parent.parent if package.parent.name == "src" else package.parent
+    return git_commit(root) if (root / ".git").exists() else None
 
 
 @contextlib.contextmanager

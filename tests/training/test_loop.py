@@ -21,10 +21,10 @@ from radarpc.runs import RunMismatchError
 from radarpc.training.checkpoint import load_state, load_weights, save_state
 from radarpc.training.loop import (BEST_WEIGHTS, LAST_CHECKPOINT, LOG_CSV, TrainConfig, ema_decay_at, epoch_batches,
                                    fit)
-from toytask import ToyTask
+from toytask import ToyTask, assert_same_run
 
 CFG = TrainConfig(epochs=3, batch_size=4, eval_batch_size=4, num_workers=0, checkpoint_every=2,
-                  precision="fp32", seed=5)
+                  precision="fp32", seed=5, select_metric="mse", select_mode="min")
 KEY = {"model": "toy", "train": {"epochs": 3}}
 
 
@@ -58,16 +58,18 @@ def test_config_validation():
 def test_schedule_logs_and_best_checkpoint(tmp_path):
     res = fit(ToyTask(), CFG, tmp_path / "run", KEY, progress=False, log=lambda s: None)
     assert len(res.history) == 3 and res.best_epoch in (0, 1, 2)
-    assert res.best_score == max(r["val_f1"] for r in res.history)
+    assert res.best_score == min(r["val_mse"] for r in res.history)        # lower is better
+    assert res.best_row is res.history[res.best_epoch] and res.best_step == 6 * (res.best_epoch + 1)
     with open(tmp_path / "run" / LOG_CSV, newline="") as f:
         rows = list(csv.DictReader(f))
-    assert [int(r["epoch"]) for r in rows] == [0, 1, 2] and float(rows[-1]["val_mse"]) == -float(rows[-1]["val_f1"])
+    assert [int(r["epoch"]) for r in rows] == [0, 1, 2]
+    assert [float(r["val_mse"]) for r in rows] == [r["val_mse"] for r in res.history]
     # OneCycle: 6 steps per epoch, 18 in all; the lr after the last step is the annealed minimum
     # lr_max / (div_factor * final_div_factor) = lr_start / 1e4
     assert int(rows[-1]["step"]) == 18
     assert float(rows[-1]["lr"]) == pytest.approx(CFG.lr_start / 1e4, rel=1e-9)
     weights, info = load_weights(tmp_path / "run" / BEST_WEIGHTS)
-    assert info["run"] == KEY and info["epoch"] == res.best_epoch
+    assert info["run"] == KEY and info["epoch"] == res.best_epoch and info["step"] == res.best_step
     assert set(weights) == set(ToyTask().build_model().state_dict())
     # a finished run returns at once; another key is refused
     again = fit(ToyTask(), CFG, tmp_path / "run", KEY, progress=False, log=lambda s: None)
@@ -91,9 +93,10 @@ def test_interrupted_run_resumes_to_the_same_weights(tmp_path, kill_at):
     with pytest.raises(_Kill):
         fit(ToyTask(), CFG, tmp_path / "cut", KEY, progress=False, log=lambda s: None, on_step=stop)
     res = fit(ToyTask(), CFG, tmp_path / "cut", KEY, progress=False, log=lambda s: None)
-    a, b = _final(tmp_path / "full"), _final(tmp_path / "cut")
-    assert all(torch.equal(a[k], b[k]) for k in a)
-    assert res.history == full.history or [r["val_f1"] for r in res.history] == [r["val_f1"] for r in full.history]
+    # from the last checkpoint before the kill (the epoch ends, 6 and 12, are multiples of 2 too)
+    assert res.resumed_from_step == (kill_at - 1) // CFG.checkpoint_every * CFG.checkpoint_every
+    assert_same_run(tmp_path / "full", tmp_path / "cut")
+    assert [r["val_mse"] for r in res.history] == [r["val_mse"] for r in full.history]
 
 
 def test_auto_precision_is_kept_when_a_run_resumes_on_another_machine(tmp_path, monkeypatch):
@@ -117,7 +120,7 @@ def test_auto_precision_is_kept_when_a_run_resumes_on_another_machine(tmp_path, 
     assert any("resuming in bf16" in m and "would mean fp32" in m for m in logs), logs
     a, b = _final(tmp_path / "full"), _final(tmp_path / "cut")
     assert all(torch.equal(a[k], b[k]) for k in a)
-    assert [r["val_f1"] for r in res.history] == [r["val_f1"] for r in full.history]
+    assert [r["val_mse"] for r in res.history] == [r["val_mse"] for r in full.history]
     assert load_state(tmp_path / "cut" / LAST_CHECKPOINT).info["precision"] == "bf16"
     assert load_weights(tmp_path / "cut" / BEST_WEIGHTS)[1]["precision"] == "bf16"
     # and the bf16 run is not the fp32 run: the precision did change the weights
@@ -205,8 +208,8 @@ def test_weight_average_follows_its_equation_and_is_what_validation_scores(tmp_p
     for weights, epoch in ((state.ema, -1), (best, res.best_epoch)):
         model.load_state_dict(weights)
         with torch.no_grad():
-            score = task.evaluate(model, val, "cpu")["f1"]
-        assert res.history[epoch]["val_f1"] == pytest.approx(score, rel=1e-6)
+            score = task.evaluate(model, val, "cpu")["mse"]
+        assert res.history[epoch]["val_mse"] == pytest.approx(score, rel=1e-6)
 
 
 def test_interrupted_run_resumes_to_the_same_weight_average(tmp_path):
@@ -220,8 +223,7 @@ def test_interrupted_run_resumes_to_the_same_weight_average(tmp_path):
     with pytest.raises(_Kill):
         fit(ToyTask(), cfg, tmp_path / "cut", KEY, progress=False, log=lambda s: None, on_step=stop)
     fit(ToyTask(), cfg, tmp_path / "cut", KEY, progress=False, log=lambda s: None)
-    a, b = load_state(tmp_path / "full" / LAST_CHECKPOINT), load_state(tmp_path / "cut" / LAST_CHECKPOINT)
-    assert all(torch.equal(a.ema[k], b.ema[k]) and torch.equal(a.model[k], b.model[k]) for k in a.model)
+    assert_same_run(tmp_path / "full", tmp_path / "cut")            # the average included
     # a checkpoint without an average cannot resume as a run that keeps one
     with pytest.raises(_Kill):
         fit(ToyTask(), CFG, tmp_path / "plain", KEY, progress=False, log=lambda s: None, on_step=stop)
@@ -251,7 +253,8 @@ def test_killed_process_resumes_to_the_same_weights(tmp_path):
         sys.path.insert(0, {str(Path(__file__).parents[1])!r})
         from radarpc.training.loop import TrainConfig, fit
         from toytask import ToyTask
-        cfg = TrainConfig(epochs=8, batch_size=4, num_workers=0, checkpoint_every=3, precision="fp32", seed=5)
+        cfg = TrainConfig(epochs=8, batch_size=4, num_workers=0, checkpoint_every=3, precision="fp32", seed=5,
+                          select_metric="mse", select_mode="min")
         slow = (lambda step: time.sleep(0.01)) if sys.argv[2] == "slow" else None
         fit(ToyTask(), cfg, sys.argv[1], {{"k": 1}}, progress=False, log=lambda s: None, on_step=slow)
     """)
@@ -267,8 +270,7 @@ def test_killed_process_resumes_to_the_same_weights(tmp_path):
     p.wait()
     assert last.is_file()
     subprocess.run([sys.executable, "-c", script, str(tmp_path / "cut"), "fast"], check=True, env=env)
-    a, b = _final(tmp_path / "full"), _final(tmp_path / "cut")
-    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert_same_run(tmp_path / "full", tmp_path / "cut")
 
 
 def _free_port() -> int:
@@ -281,14 +283,16 @@ def _ddp_worker(rank: int, world: int, port: int, out: str, queue) -> None:
     os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank),
                       MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
     torch.set_num_threads(1)
-    cfg = TrainConfig(epochs=1, batch_size=8, num_workers=0, precision="fp32", seed=5)
+    cfg = TrainConfig(epochs=1, batch_size=8, num_workers=0, precision="fp32", seed=5, select_metric="mse",
+                      select_mode="min")
     res = fit(ToyTask(n_train=8, dropout=0.0), cfg, out, {"k": "ddp"}, progress=False, log=lambda s: None)
     queue.put((rank, res.history[0]["train_loss"]))
     torch.distributed.destroy_process_group()
 
 
 def test_ddp_gloo_matches_single_process_first_step(tmp_path):
-    cfg = TrainConfig(epochs=1, batch_size=8, num_workers=0, precision="fp32", seed=5)
+    cfg = TrainConfig(epochs=1, batch_size=8, num_workers=0, precision="fp32", seed=5, select_metric="mse",
+                      select_mode="min")
     single = fit(ToyTask(n_train=8, dropout=0.0), cfg, tmp_path / "single", {"k": "ddp"}, progress=False, log=lambda s: None)
     ctx = mp.get_context("spawn")
     q = ctx.Queue()

@@ -13,9 +13,14 @@ either the previous checkpoint or the new one, never a mix:
 
 Weights-only files (the best checkpoint, exported models) hold the ``model.`` tensors and the
 run's resolved config in the metadata; :func:`load_weights` reads them back.
+
+Every file records the software that wrote it (:func:`software_record`: the radarpc version, the
+git commit of its source tree when it runs from a checkout, the torch version): weights files in
+their ``info["software"]``, checkpoints in their metadata beside ``info``.
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 from dataclasses import dataclass
@@ -27,8 +32,10 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save
 
 from radarpc.io import DataFileError, atomic_write
+from radarpc.runs import source_commit
 
-__all__ = ["TrainingState", "save_state", "load_state", "save_weights", "load_weights", "load_model_state"]
+__all__ = ["TrainingState", "save_state", "load_state", "save_weights", "load_weights", "load_model_state",
+           "software_record"]
 
 _META_KEY = "radarpc"
 
@@ -59,6 +66,24 @@ class TrainingState:
     scaler: dict | None
     info: dict[str, Any]
     ema: dict[str, torch.Tensor] | None = None
+
+
+@functools.lru_cache(maxsize=1)
+def _software() -> tuple[tuple[str, str | None], ...]:
+    import radarpc
+
+    return (("radarpc", radarpc.__version__), ("commit", source_commit()), ("torch", torch.__version__))
+
+
+def software_record() -> dict[str, str | None]:
+    """The software of this process: ``{"radarpc": version, "commit": ..., "torch": version}``.
+
+    ``commit`` is the git commit of the radarpc source tree when radarpc runs from a git checkout
+    (:func:`radarpc.runs.source_commit`), else None. Read once per process, when first asked (a
+    training run asks as it starts): the code a process runs is the code it loaded, whatever is
+    committed later.
+    """
+    return dict(_software())
 
 
 def _contiguous_cpu(t: torch.Tensor) -> torch.Tensor:
@@ -116,6 +141,7 @@ def save_state(path: str | os.PathLike, state: TrainingState) -> Path:
         "scaler": {k: v for k, v in state.scaler.items() if not isinstance(v, torch.Tensor)}
         if state.scaler else None,
         "info": state.info,
+        "software": software_record(),
     }
     return _write(Path(path), tensors, meta)
 
@@ -143,9 +169,12 @@ def load_state(path: str | os.PathLike) -> TrainingState:
 
 def save_weights(path: str | os.PathLike, model_state: Mapping[str, torch.Tensor],
                  info: Mapping[str, Any]) -> Path:
-    """Write model weights (``state_dict``) and JSON-able ``info`` (e.g. the resolved config)."""
+    """Write model weights (``state_dict``) and JSON-able ``info`` (e.g. the resolved config).
+
+    ``info`` gains ``"software"`` (:func:`software_record`) unless it has that key already.
+    """
     return _write(Path(path), {f"model.{k}": v for k, v in model_state.items()},
-                  {"kind": "weights", "info": dict(info)})
+                  {"kind": "weights", "info": {**dict(info), "software": info.get("software", software_record())}})
 
 
 def load_weights(path: str | os.PathLike, map_location: str | torch.device = "cpu"
