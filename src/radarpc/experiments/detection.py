@@ -30,6 +30,7 @@ from typing import Callable
 import torch
 from torch.utils.data import DataLoader
 
+from radarpc.boxes import Detections
 from radarpc.config import from_dict, load_yaml, save_yaml, to_dict
 from radarpc.io import DataFileError, atomic_write
 from radarpc.runs import read_json
@@ -40,7 +41,7 @@ from radarpc.eval.detection import FIXED_THRESHOLD, NEAR_MISS_M, DetectionMetric
 from radarpc.data.augment import mirror_sectors
 from radarpc.models.classical import ClassicalConfig, classical_detect
 from radarpc.models.mirror import MirrorAveraged
-from radarpc.models.targets import Detections, TargetConfig, decode_detections
+from radarpc.models.targets import TargetConfig, decode_detections
 from radarpc.training.radial import (DetectionBatch, ExperimentConfig, RadialDetectionTask, collate_points,
                                      build_model, collate_detection, data_pairs, detection_dataset,
                                      evaluate_model, point_datasets, DataPaths)
