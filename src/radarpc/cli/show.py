@@ -46,9 +46,7 @@ def _run_tuning(args: argparse.Namespace) -> int:
     if args.root is not None or args.frame is not None or args.pred is not None:
         raise ValueError("--tuning draws the tuning search alone: give no ROOT, --frame or --pred with it")
     out = Path(args.out) if args.out is not None else Path("tuning.png")
-    if out.is_dir():
-        raise IsADirectoryError(f"the figure path {out} is a directory; give the path of a .png file")
-    check_writable(out, "figure")
+    _check_figure(out)
     table = read_tuning(args.tuning)
     plot_oscfar_tuning(table, out)
     b = table.best
@@ -58,8 +56,16 @@ def _run_tuning(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_figure(out: str | Path) -> None:
+    """Fail before any work when the figure cannot be written at ``out``."""
+    if Path(out).is_dir():
+        raise IsADirectoryError(f"the figure path {out} is a directory; give the path of a .png file")
+    check_writable(out, "figure")
+
+
 def _run_coloradar(args: argparse.Namespace) -> int:
-    from radarpc.viz import plot_coloradar_frame
+    from radarpc.pipelines.frames import coloradar_view_with_prediction
+    from radarpc.viz import plot_coloradar_view
 
     given = [f for f, v in (("--density", args.density), ("--snr", args.snr), ("--store", args.store)) if v is not None]
     if given:
@@ -67,8 +73,9 @@ def _run_coloradar(args: argparse.Namespace) -> int:
                          "(give --frame, optionally --run and --pred)")
     out = args.out if args.out is not None else (f"{args.run}_frame{args.frame}.png" if args.run
                                                  else f"frame{args.frame}.png")
-    check_writable(out, "figure")
-    view = plot_coloradar_frame(args.root, args.frame, out, run=args.run, pred=args.pred)
+    _check_figure(out)
+    view = coloradar_view_with_prediction(args.root, args.frame, run=args.run, pred=args.pred)
+    plot_coloradar_view(view, out)
     pred = "" if view.pred_xyz is None else f", {len(view.pred_xyz)} predicted points ({view.pred_label})"
     print(f"wrote {out}: run {view.run}, radar frame {view.radar_index}, LiDAR scan {view.lidar_index} "
           f"({len(view.inside_xyz)} of {len(view.lidar_xyz)} points in the radar frustum){pred}")
@@ -77,8 +84,9 @@ def _run_coloradar(args: argparse.Namespace) -> int:
 
 def _run_radial(args: argparse.Namespace) -> int:
     from radarpc.cli.pointcloud import check_density_args, parse_enrich, resolve_cfar_args
+    from radarpc.pipelines.frames import frame_view
     from radarpc.pipelines.pointclouds import ConvertSettings
-    from radarpc.viz import plot_frame
+    from radarpc.viz import plot_frame_view
 
     if args.run is not None or args.pred is not None:
         raise ValueError(f"--run and --pred apply to ColoRadar roots; {args.root} is a RADIal root")
@@ -91,9 +99,10 @@ def _run_radial(args: argparse.Namespace) -> int:
         settings = ConvertSettings(tau=args.snr, density=args.density, density_mode=args.density_mode,
                                    enrich=parse_enrich(args.enrich), **cfar)
     out = args.out if args.out is not None else f"frame{args.frame}.png"
-    check_writable(out, "figure")
-    res = plot_frame(args.root, args.frame, out, settings, store=args.store, color_by=args.color,
-                     device=args.device if args.device is not None else "cpu")
+    _check_figure(out)
+    view = frame_view(args.root, args.frame, settings, store=args.store,
+                      device=args.device if args.device is not None else "cpu")
+    res = plot_frame_view(view, out, args.color)
     print(f"wrote {res.path}: frame {res.frame}, {res.n_peaks} CFAR peaks, {res.n_points} points, "
           f"tau {res.tau:.4g} (linear SNR), achieved density {res.density:.5f} (CFAR peaks S(tau) alone "
           f"{res.peak_density:.5f}), {res.n_vehicles} labelled vehicles")
