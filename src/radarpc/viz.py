@@ -3,13 +3,14 @@ figures of ``radarpc info`` for RADIal and ColoRadar roots.
 
 The drawing functions take arrays (or the small dataclasses that hold them) and write a PNG
 atomically (:func:`radarpc.io.atomic_write`); they compute nothing of radar or dataset and read no
-dataset. ``radarpc show`` draws a RADIal frame (:func:`plot_frame_view`), a ColoRadar frame with
-its LiDAR and optionally a method's predicted cloud (:func:`plot_coloradar_view`), or the OS-CFAR
-tuning search of a prediction folder (:func:`plot_oscfar_tuning`). Figures are built on
-matplotlib's object API (:class:`matplotlib.figure.Figure`, saved through the Agg canvas), so that
-neither pyplot's figure registry nor the global backend is touched. :mod:`radarpc.pipelines.frames`
-computes the inputs of the frame figures from a dataset root (and optionally a point store or a
-prediction folder); :mod:`radarpc.data.summary` those of the summary figures.
+dataset (the learning curves read the runs' ``log.csv``). ``radarpc show`` draws a RADIal frame
+(:func:`plot_frame_view`), a ColoRadar frame with its LiDAR and optionally a method's predicted
+cloud (:func:`plot_coloradar_view`), or the OS-CFAR tuning search of a prediction folder
+(:func:`plot_oscfar_tuning`). Figures are built on matplotlib's object API
+(:class:`matplotlib.figure.Figure`, saved through the Agg canvas), so that neither pyplot's figure
+registry nor the global backend is touched. :mod:`radarpc.pipelines.frames` computes the inputs of
+the frame figures from a dataset root (and optionally a point store or a prediction folder);
+:mod:`radarpc.data.summary` those of the summary figures.
 """
 from __future__ import annotations
 
