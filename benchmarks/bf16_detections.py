@@ -30,10 +30,11 @@ import math
 import torch
 from torch.utils.data import DataLoader, Subset
 
+from radarpc.boxes import Detections
 from radarpc.eval.detection import THRESHOLDS as CONFIDENCE_THRESHOLDS
 from radarpc.experiments.detection import load_trained
 from radarpc.machine import cpu_has_native_bf16, cpu_model
-from radarpc.models.targets import Detections, decode_detections
+from radarpc.models.targets import decode_detections
 from radarpc.training.loop import autocast_context
 from radarpc.training.radial import DECODE_THRESHOLD, collate_detection, detection_dataset
 

@@ -31,9 +31,10 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
+from radarpc.boxes import BOX_LENGTH_M, BOX_WIDTH_M
 from radarpc.eval.detection import FIXED_THRESHOLD, IOU_THRESHOLD, NEAR_MISS_M, lateral_tolerance_m, match_frame
 from radarpc.experiments.detection import load_trained
-from radarpc.models.targets import BOX_LENGTH_M, BOX_WIDTH_M, decode_detections
+from radarpc.models.targets import decode_detections
 from radarpc.training.radial import DECODE_THRESHOLD, collate_detection, detection_dataset
 from radarpc.viz import save_figure
 

@@ -37,16 +37,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from radarpc.boxes import Detections, ra_to_box_xy
 from radarpc.eval.detection import evaluate_detections, freespace_iou
 from radarpc.models.losses import focal_loss, regression_loss
 from radarpc.models.targets import (
     RADIAL_REG_MEAN,
     RADIAL_REG_STD,
-    Detections,
     decode_detections,
     encode_targets,
     nms,
-    ra_to_box_xy,
 )
 
 

@@ -44,9 +44,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from radarpc.boxes import BOX_LENGTH_M, BOX_WIDTH_M, box_iou, ra_to_box_xy
 from radarpc.data.point_dataset import PointCloudDataset
 from radarpc.eval.detection import IOU_THRESHOLD, RANGE_GATE_M, lateral_tolerance_m
-from radarpc.models.targets import BOX_LENGTH_M, BOX_WIDTH_M, box_iou, ra_to_box_xy
 from radarpc.viz import save_figure
 
 RADII_M = (1.0, 2.0, 3.0, 5.0)

@@ -29,12 +29,14 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
+from radarpc.boxes import ra_to_box_xy
 from radarpc.eval.detection import FIXED_THRESHOLD, RANGE_GATE_M
 from radarpc.eval.false_alarms import FALSE_ALARM_CAUSES, false_alarm_causes, false_alarm_mask
 from radarpc.experiments.detection import load_trained
-from radarpc.models.targets import decode_detections, ra_to_box_xy
+from radarpc.models.targets import decode_detections
 from radarpc.sim.radial_labels import labelled_vehicles
 from radarpc.sim.radial_writer import RadialSimulator
+from radarpc.sim.road import GHOST_OWNER
 from radarpc.training.radial import collate_detection, detection_dataset
 from radarpc.viz import save_figure
 
@@ -78,7 +80,7 @@ def run_false_alarms(run: str, split: str, threshold: float, data: str | None = 
                 cause = false_alarm_causes(ra_to_box_xy(d.range_m[fa].double(), d.azimuth_deg[fa].double()),
                                            ra_to_box_xy(sc.range_m, sc.azimuth_deg).double(),
                                            sc.rcs_m2 / sc.range_m ** 4, fr.owner, labelled,
-                                           (sc.velocity_mps - static_v).abs() > MOVING_MPS)
+                                           (sc.velocity_mps - static_v).abs() > MOVING_MPS, fr.owner == GHOST_OWNER)
                 counts += np.bincount(cause.numpy(), minlength=len(FALSE_ALARM_CAUSES))
                 r = d.range_m[fa]
                 for (lo, hi) in by_range:

@@ -91,9 +91,9 @@ from scipy.ndimage import binary_dilation, maximum_filter  # noqa: E402
 from radarpc.dsp import SpectralPointCloud  # noqa: E402
 from radarpc.dsp.accel import DISABLE_ENV  # noqa: E402
 from radarpc.dsp.accel.native import native_available  # noqa: E402
-from radarpc.dsp.accel.screened import (MAX_SCREEN_CANDIDATES, beamform_peaks_screened,  # noqa: E402
-                                        resolve_beamforming, screen_bound)
+from radarpc.dsp.accel.screened import MAX_SCREEN_CANDIDATES, beamform_peaks_screened, screen_bound  # noqa: E402
 from radarpc.dsp.beamform import beamform_peaks  # noqa: E402
+from radarpc.dsp.beamform_modes import resolve_beamforming  # noqa: E402
 from radarpc.dsp.cfar import ca_cfar  # noqa: E402
 from radarpc.dsp.ddma import ddma_envelope, rx_magnitude_sum, virtual_snapshots  # noqa: E402
 from radarpc.dsp.density import neighbourhood_mask  # noqa: E402

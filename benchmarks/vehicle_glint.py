@@ -32,9 +32,9 @@ import json
 import numpy as np
 import torch
 
+from radarpc.boxes import BOX_WIDTH_M, box_iou, ra_to_box_xy
 from radarpc.dsp.beamform import angle_spectrum
 from radarpc.eval.detection import IOU_THRESHOLD, lateral_tolerance_m
-from radarpc.models.targets import BOX_WIDTH_M, box_iou, ra_to_box_xy
 from radarpc.sensors.radial import DDMARadarConfig, radial_sensor, steering_vectors
 from radarpc.sim.multipath import bistatic_fields, ground_image, path_fields
 from radarpc.sim.radial_calibration import make_calibration

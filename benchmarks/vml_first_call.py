@@ -5,7 +5,7 @@ an AMD EPYC one), the first MKL VML call (``sqrt``, ``sin``, ``cos``, ``exp``, `
 ``erf``, ...) that an OpenMP worker thread ran after MKL or oneDNN work came out of some
 processes at reduced accuracy on the worker's share of the tensor, and every later call exact
 (docs/results/vml_first_call.md). Run to run it moved NMS and true-positive decisions of the same
-weights, so :func:`radarpc.models.targets.ra_to_box_xy` computes boxes with numpy on the CPU.
+weights, so :func:`radarpc.boxes.ra_to_box_xy` computes boxes with numpy on the CPU.
 
 Each trial is a fresh Python process running what a pillar model's forward starts with (a
 Linear + GELU on 156 points, scattered into a 4 x 8 x 128 x 224 canvas, one 3 x 3 convolution,
@@ -14,7 +14,7 @@ which triggered it more often than a lone GEMM), then ``torch.sqrt`` of a
 between threads); the trial is inaccurate when the two calls differ. The same trial runs with
 ``MKL_NUM_THREADS=1`` (torch then runs one thread too); then the box positions of 114,688
 detections are the first call after the forward, once as torch computes them (``R sin A``,
-``R cos A``: the baseline) and once through :func:`radarpc.models.targets.ra_to_box_xy`, whose
+``R cos A``: the baseline) and once through :func:`radarpc.boxes.ra_to_box_xy`, whose
 two calls must agree in every process::
 
     python benchmarks/vml_first_call.py --processes 40
@@ -36,7 +36,7 @@ def trial(first: str) -> dict:
     import torch
     import torch.nn.functional as F
 
-    from radarpc.models.targets import ra_to_box_xy
+    from radarpc.boxes import ra_to_box_xy
 
     g = torch.Generator().manual_seed(0)
     x = torch.rand(114_688, generator=g) + 0.1

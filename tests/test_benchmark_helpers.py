@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from radarpc.models.targets import Detections
+from radarpc.boxes import Detections
 
 
 def _script(name):
@@ -134,7 +134,7 @@ def test_focal_implied_probability_inverts_the_focal_minimiser():
 
 
 def test_failing_axis_on_hand_worked_offsets_and_against_box_iou():
-    from radarpc.models.targets import box_iou
+    from radarpc.boxes import box_iou
     failing_axis = _script("box_offsets").failing_axis
     # 1.8 m x 4 m boxes match while (1.8 - |dx|)(4 - |dy|) >= 4.8: alone |dx| <= 0.6, |dy| <= 4 / 3
     got = failing_axis(np.array([0.59, 0.61, 0.0, 0.0, 0.5, 0.7, -0.3]), np.array([0.0, 0.0, 1.3, -1.4, 1.0, 1.5, 0.5]))

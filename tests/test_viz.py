@@ -1,4 +1,4 @@
-"""Tests of :mod:`radarpc.viz`: each figure at tiny size, and the frame figure's encoded-cell mask."""
+"""Tests of :mod:`radarpc.viz`: each figure at tiny size, from the inputs its callers compute."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,9 +9,9 @@ from PIL import Image
 from radarpc import viz
 from radarpc.data.radial import RADIal, read_labels
 from radarpc.data.summary import ColoRadarView, first_rd_power_db, summarize_radial
-from radarpc.dsp.ddma import replica_bins
-from radarpc.dsp.sparse_rd import sparse_rd_mask
-from radarpc.pipelines.pointclouds import ConvertSettings, build_point_cloud
+from radarpc.dsp.sparse_rd import encoded_cells
+from radarpc.pipelines.frames import frame_view
+from radarpc.pipelines.pointclouds import ConvertSettings
 from radarpc.sensors.coloradar import AWR1843_FOV
 from radarpc.sensors.radial import TINY
 from radarpc.sim.scenes import scene_mix
@@ -46,37 +46,15 @@ def _png_size(path) -> tuple[int, int]:
         return im.size
 
 
-def test_encoded_cells_is_sparse_rd_mask(root):
-    ds = RADIal(root, split="all")
-    rd = ds[1][0].unsqueeze(0)
-    for enrich in ((), ("rd3",)):
-        spc = build_point_cloud(ds, ConvertSettings(density=0.1, enrich=enrich), None, "cpu")
-        enc, cloud = spc.encode(rd), spc(rd)
-        want = sparse_rd_mask(enc.kept, TINY, rd)[0]                     # d0 resolved from the cube
-        got = viz.encoded_cells(cloud, TINY)
-        assert torch.equal(got, want) and int(got.sum()) == TINY.n_tx * cloud.num_points
-        # the replica mask show.py used to build by hand: every point's range x its n_tx replicas
-        old = torch.zeros(TINY.n_range, TINY.n_doppler, dtype=torch.bool)
-        bins = replica_bins(TINY, cloud.doppler_full)
-        old[cloud.range_bin[:, None].expand_as(bins), bins] = True
-        assert torch.equal(got, old)
-        # any point order gives the same cells
-        perm = torch.randperm(cloud.num_points, generator=torch.Generator().manual_seed(0))
-        shuffled = type(cloud)(**{**{k: getattr(cloud, k) for k in ("offset", "tau", "density", "peak_density")},
-                                  **{k: (None if getattr(cloud, k) is None else getattr(cloud, k)[perm])
-                                     for k in cloud._PER_POINT}})
-        assert torch.equal(viz.encoded_cells(shuffled, TINY), want)
-
-
 def test_frame_view_and_figure(root, tmp_path, figures):
     settings = ConvertSettings(density=0.1, enrich=("rd3",))
     labels = read_labels(root / "labels.csv")
     fr = int(labels.num_sample[labels.has_vehicle][0])                    # a frame with vehicles
-    view = viz.frame_view(root, fr, settings)
+    view = frame_view(root, fr, settings)
     assert view.set_name == "S*(tau)" and view.frame == fr
     assert view.rd_magnitude.shape == view.encoded.shape == (TINY.n_range, TINY.n_doppler)
     assert view.envelope.shape == view.peaks.shape == (TINY.n_range, TINY.slot_width)
-    assert torch.equal(torch.from_numpy(view.encoded), viz.encoded_cells(view.cloud, TINY))
+    assert torch.equal(torch.from_numpy(view.encoded), encoded_cells(view.cloud, TINY))
     out = tmp_path / "f.png"
     res = viz.plot_frame_view(view, out, color_by="amplitude")
     assert res.path == out and _png_size(out) == (18 * 80, 7 * 80)
@@ -112,9 +90,7 @@ def test_frame_view_and_figure(root, tmp_path, figures):
     with pytest.raises(ValueError, match="color_by must be one of"):
         viz.plot_frame_view(view, out, color_by="snr")
     with pytest.raises(ValueError, match="give exactly one of settings"):
-        viz.frame_view(root, 1)
-    with pytest.raises(IsADirectoryError, match="is a directory"):
-        viz.plot_frame(root, 1, tmp_path, settings)
+        frame_view(root, 1)
 
 
 def test_geometry_of_the_rd_panels():

@@ -2,35 +2,30 @@
 figures of ``radarpc info`` for RADIal and ColoRadar roots.
 
 The drawing functions take arrays (or the small dataclasses that hold them) and write a PNG
-atomically (:func:`radarpc.io.atomic_write`). ``radarpc show`` draws a RADIal frame
-(:func:`plot_frame`), a ColoRadar frame with its LiDAR and optionally a method's predicted cloud
-(:func:`plot_coloradar_frame`), or the OS-CFAR tuning search of a prediction folder
+atomically (:func:`radarpc.io.atomic_write`); they compute nothing of radar or dataset and read no
+dataset (the learning curves read the runs' ``log.csv``). ``radarpc show`` draws a RADIal frame
+(:func:`plot_frame_view`), a ColoRadar frame with its LiDAR and optionally a method's predicted
+cloud (:func:`plot_coloradar_view`), or the OS-CFAR tuning search of a prediction folder
 (:func:`plot_oscfar_tuning`). Figures are built on matplotlib's object API
 (:class:`matplotlib.figure.Figure`, saved through the Agg canvas), so that neither pyplot's figure
-registry nor the global backend is touched. :func:`frame_view` prepares the inputs of the frame
-figure from a dataset root (and optionally a point store); :mod:`radarpc.data.summary` those of the
-summary figures.
+registry nor the global backend is touched. :mod:`radarpc.pipelines.frames` computes the inputs of
+the frame figures from a dataset root (and optionally a point store or a prediction folder);
+:mod:`radarpc.data.summary` those of the summary figures.
 """
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from radarpc.data.point_dataset import check_store_root
-from radarpc.data.pointstore import PointStore
-from radarpc.data.radial import LabelTable, RADIal
-from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS
-from radarpc.data.summary import ColoRadarView, RadialSummary, TuningTable, coloradar_frame_view
-from radarpc.dsp.ddma import rx_magnitude_sum
-from radarpc.dsp.sparse_rd import sparse_rd_mask
+from radarpc.boxes import BOX_LENGTH_M, BOX_WIDTH_M
+from radarpc.data.radial import LabelTable
+from radarpc.data.summary import ColoRadarView, FrameView, RadialSummary, TuningTable
 from radarpc.io import atomic_write
-from radarpc.machine import check_device
-from radarpc.pipelines.pointclouds import ConvertSettings, build_point_cloud, calibrate_tau
 from radarpc.points import PointCloudBatch
 from radarpc.sensors.radial import DDMARadarConfig
 
@@ -41,23 +36,16 @@ __all__ = [
     "COLOR_BY",
     "figure_format",
     "save_figure",
-    "RADIAL_BOX_LENGTH_M",
     "plot_detection_frame",
-    "RADIAL_BOX_WIDTH_M",
     "radial_box_corners",
     "rd_extent",
     "doppler_mps_of_column",
     "peak_marker_range_m",
-    "encoded_cells",
-    "FrameView",
-    "frame_view",
     "FramePlot",
     "plot_frame_view",
-    "plot_frame",
     "plot_radial_info",
     "plot_coloradar_info",
     "plot_coloradar_view",
-    "plot_coloradar_frame",
     "plot_oscfar_tuning",
 ]
 
@@ -109,17 +97,13 @@ def save_figure(fig: "Figure", out: str | os.PathLike, dpi: int) -> None:
 
 
 # ---- one frame: RD + CFAR + BEV points -----------------------------------------------------------
-RADIAL_BOX_LENGTH_M = 4.0
-RADIAL_BOX_WIDTH_M = 1.8
-"""RADIal's vehicle box (FFTRadNet ``utils/metrics.py``, ``RA_to_cartesian_box``: ``L = 4``, ``W = 1.8``)."""
-
-
-def radial_box_corners(range_m, azimuth_deg, length: float = RADIAL_BOX_LENGTH_M,
-                       width: float = RADIAL_BOX_WIDTH_M) -> np.ndarray:
+def radial_box_corners(range_m, azimuth_deg, length: float = BOX_LENGTH_M,
+                       width: float = BOX_WIDTH_M) -> np.ndarray:
     """Corners ``(V, 4, 2)`` ``(x, y)`` (x forward, y left, metres) of RADIal's vehicle boxes.
 
     RADIal's metrics turn a label ``(R, A)`` (``radar_R_m``, ``radar_A_deg``) into an axis-aligned
-    bird's-eye box ``width`` wide and ``length`` long whose near edge is centred on the label point
+    bird's-eye box ``width`` wide and ``length`` long (:mod:`radarpc.boxes`: 1.8 m x 4 m, FFTRadNet
+    ``utils/metrics.py`` ``RA_to_cartesian_box``) whose near edge is centred on the label point
     ``(X, Y) = (R cos A, R sin A)``: ``x`` in ``[X, X + length]``, ``y`` in ``[Y - width/2, Y + width/2]``.
     Corners in RADIal's order: near right, near left, far left, far right (``y`` = left)."""
     r = np.asarray(range_m, dtype=np.float64).reshape(-1)
@@ -164,97 +148,9 @@ def peak_marker_range_m(cfg: DDMARadarConfig, range_bin: np.ndarray) -> np.ndarr
     return np.asarray(range_bin, dtype=np.float64) * cfg.range_res_m
 
 
-def encoded_cells(cloud: PointCloudBatch, cfg: DDMARadarConfig) -> torch.Tensor:
-    """The full-grid set a one-frame cloud encodes, ``S(tau)`` (``S*(tau)`` with ``rdN`` points):
-    :func:`radarpc.dsp.sparse_rd.sparse_rd_mask` of the points' consolidated cells and their ``d0``.
-
-    Parameters
-    ----------
-    cloud : PointCloudBatch
-        One frame (e.g. ``SpectralPointCloud(rd)`` of one cube, or ``PointStore[i]``); any point order.
-    cfg : DDMARadarConfig
-
-    Returns
-    -------
-    BoolTensor ``(Nr, Nd)``, on the CPU
-    """
-    r, l = cloud.range_bin.cpu().long(), cloud.doppler_bin.cpu().long()
-    kept = torch.zeros(cfg.n_range, cfg.slot_width, dtype=torch.bool)
-    kept[r, l] = True
-    order = torch.argsort(r * cfg.slot_width + l)          # d0 in torch.nonzero(kept) order
-    return sparse_rd_mask(kept, cfg, cloud.doppler_full.cpu().long()[order])[0]
-
-
-@dataclass(frozen=True)
-class FrameView:
-    """What the frame figure draws, on the CPU."""
-
-    title: str                      # figure title: root name, frame, sequence
-    frame: int                      # RADIal numSample
-    sensor: DDMARadarConfig
-    rd_magnitude: np.ndarray        # (Nr, Nd) A = sum_rx |R|
-    encoded: np.ndarray             # (Nr, Nd) bool, the set the cloud encodes (encoded_cells)
-    set_name: str                   # "S(tau)" or "S*(tau)"
-    envelope: np.ndarray            # (Nr, W) E(r, l)
-    peaks: np.ndarray               # (Nr, W) bool, P(tau)
-    cloud: PointCloudBatch          # the frame's points
-    vehicles_ra: np.ndarray         # (V, 2) radar_R_m, radar_A_deg of the labelled vehicles
-
-
-def frame_view(root: str | os.PathLike, frame: int, settings: ConvertSettings | None = None, *,
-               store: str | os.PathLike | None = None, device: torch.device | str = "cpu",
-               tau: float | None = None) -> FrameView:
-    """Load frame ``frame`` (numSample) of ``root`` and compute what :func:`plot_frame_view` draws.
-
-    Parameters are those of :func:`plot_frame`.
-    """
-    root = Path(root)
-    if (settings is None) == (store is None):
-        raise ValueError("give exactly one of settings (a threshold or density) and store (a point store)")
-    ds = RADIal(root, split="all")
-    try:
-        i = ds.index_of(int(frame))
-    except KeyError:
-        raise ValueError(f"frame {frame} is not in {root} (numSample from {ds.frame_ids[0] if ds.frame_ids else '-'} "
-                         f"to {ds.frame_ids[-1] if ds.frame_ids else '-'})") from None
-    rd, labels, _ = ds[i]
-    dev = check_device(device)
-    stored = None
-    if store is not None:
-        pstore = PointStore(store)
-        stored = pstore[pstore.index_of(int(frame))] if int(frame) in pstore.frames else None
-        if stored is None:
-            raise ValueError(f"frame {frame} is not in the point store {store}")
-        m = pstore.metadata
-        check_store_root(pstore, root)     # its points must not be drawn over another dataset's spectrum
-        settings = ConvertSettings(tau=float(stored.tau[0]), enrich=m.enrich, window=m.window, guard=m.guard,
-                                   envelope=m.envelope)
-    if settings.mode == "per-dataset":
-        tau = calibrate_tau(root, settings, device=dev) if tau is None else float(tau)
-    else:
-        tau = settings.tau
-    spc = build_point_cloud(ds, settings, tau, dev)
-    rd_b = rd.unsqueeze(0).to(dev)                                          # (1, Nr, Nd, Nrx)
-    with torch.no_grad():
-        env, _, peaks = spc.detect(rd_b)                                    # (1, Nr, W) each
-        cloud = spc(rd_b) if stored is None else stored
-    cloud = cloud.to("cpu")
-    lab = labels.cpu().numpy()
-    cols = [LABEL_TENSOR_COLUMNS.index("radar_R_m"), LABEL_TENSOR_COLUMNS.index("radar_A_deg")]
-    how = (f"points of {Path(store).name}" if store is not None else
-           f"target density {settings.density:g} ({settings.mode})" if settings.density is not None
-           else "fixed threshold")
-    return FrameView(
-        title=f"RADIal root '{root.name}': frame {frame} (numSample), sequence {ds.sequences[i]}; {how}",
-        frame=int(frame), sensor=ds.sensor,
-        rd_magnitude=rx_magnitude_sum(rd_b)[0].cpu().numpy(), encoded=encoded_cells(cloud, ds.sensor).numpy(),
-        set_name="S*(tau)" if settings.point_cloud_config().neighbourhood is not None else "S(tau)",
-        envelope=env[0].cpu().numpy(), peaks=peaks[0].cpu().numpy(), cloud=cloud, vehicles_ra=lab[:, cols])
-
-
 @dataclass(frozen=True)
 class FramePlot:
-    """What :func:`plot_frame` drew."""
+    """What :func:`plot_frame_view` drew."""
 
     path: Path               # the PNG
     frame: int               # RADIal numSample
@@ -291,7 +187,7 @@ def _bev_extent(cfg: DDMARadarConfig, y: np.ndarray, box_y: np.ndarray, box_x: n
 
 
 def plot_frame_view(view: FrameView, out: str | os.PathLike, color_by: str = "velocity") -> FramePlot:
-    """Draw a :class:`FrameView` to ``out`` (PNG, atomic), 18 x 7 in at 80 dpi.
+    """Draw a :class:`~radarpc.data.summary.FrameView` to ``out`` (PNG, atomic), 18 x 7 in at 80 dpi.
 
     Panels: (a) ``A(r, d)`` in dB against Doppler in m/s (Doppler-centred; the cube's bin index on
     the top axis) with the encoded set overlaid cell by cell, (b) the envelope ``E(r, l)`` in dB
@@ -370,41 +266,6 @@ def plot_frame_view(view: FrameView, out: str | os.PathLike, color_by: str = "ve
     peak_density = float(pk.sum()) * cfg.n_tx / (cfg.n_range * cfg.n_doppler)
     return FramePlot(path=out, frame=view.frame, n_points=int(len(x)), n_peaks=int(pk.sum()),
                      density=density, tau=tau_used, n_vehicles=int(len(boxes)), peak_density=peak_density)
-
-
-def plot_frame(root: str | os.PathLike, frame: int, out: str | os.PathLike, settings: ConvertSettings | None = None,
-               *, store: str | os.PathLike | None = None, color_by: str = "velocity",
-               device: torch.device | str = "cpu", tau: float | None = None) -> FramePlot:
-    """Draw frame ``frame`` (numSample) of ``root`` to ``out``: :func:`frame_view` then
-    :func:`plot_frame_view`.
-
-    Parameters
-    ----------
-    root : path-like
-        RADIal-layout root.
-    frame : int
-        RADIal numSample of the frame.
-    out : path-like
-        PNG to write.
-    settings : ConvertSettings, optional
-        Threshold or density, enrichments and CFAR geometry (``split`` is ignored: any frame of
-        the root can be shown; per-dataset mode calibrates on the training split at every call
-        unless ``tau`` is given).
-    store : path-like, optional
-        Instead of ``settings``: a point store made from ``root``; the points are read from it
-        and the CFAR panels use its CFAR geometry and the frame's stored threshold.
-    color_by : {"velocity", "amplitude"}
-    device : torch.device or str
-    tau : float, optional
-        Per-dataset mode: the tau already calibrated (e.g. ``ConvertResult.tau`` or a store's
-        ``metadata.tau``), so that plotting many frames does not recalibrate each time.
-    """
-    if color_by not in COLOR_BY:
-        raise ValueError(f"color_by must be one of {COLOR_BY}, got {color_by!r}")
-    if Path(out).is_dir():
-        raise IsADirectoryError(f"the figure path {out} is a directory; give the path of a .png file")
-    view = frame_view(root, frame, settings, store=store, device=device, tau=tau)
-    return plot_frame_view(view, out, color_by)
 
 
 # ---- radarpc info: RADIal ------------------------------------------------------------------------
@@ -580,37 +441,6 @@ def plot_coloradar_view(view: ColoRadarView, out: str | os.PathLike) -> Path:
     return out
 
 
-def plot_coloradar_frame(root: str | os.PathLike, frame: int, out: str | os.PathLike, *, run: str | None = None,
-                         pred: str | os.PathLike | None = None) -> ColoRadarView:
-    """Draw radar frame ``frame`` of ``run`` (default the first run) of a ColoRadar root to ``out``
-    (:func:`radarpc.data.summary.coloradar_frame_view` then :func:`plot_coloradar_view`); ``pred``, a
-    prediction folder (:mod:`radarpc.eval.predictions`), adds its cloud for that frame. Returns
-    the view drawn."""
-    from radarpc.eval.predictions import load_prediction
-
-    if Path(out).is_dir():
-        raise IsADirectoryError(f"the figure path {out} is a directory; give the path of a .png file")
-    view = coloradar_frame_view(root, frame, run)
-    if pred is not None:
-        pts = load_prediction(pred, view.run, view.radar_index)
-        method = _prediction_method(pred)
-        view = replace(view, pred_xyz=np.asarray(pts, dtype=np.float64),
-                       pred_label=f"{method} ({Path(pred).name})" if method else Path(pred).name)
-    plot_coloradar_view(view, out)
-    return view
-
-
-def _prediction_method(pred: str | os.PathLike) -> str:
-    import json
-
-    from radarpc.eval.predictions import INDEX_FILE
-
-    try:
-        return str(json.loads((Path(pred) / INDEX_FILE).read_text()).get("method", ""))
-    except (OSError, ValueError, AttributeError):
-        return ""
-
-
 # ---- OS-CFAR tuning ------------------------------------------------------------------------------
 def plot_oscfar_tuning(table: TuningTable, out: str | os.PathLike) -> Path:
     """The OS-CFAR grid search (PNG, atomic, 13 x 5 in at 100 dpi): (a) mean Chamfer distance
@@ -671,7 +501,7 @@ def plot_detection_frame(batch, detections, probability: torch.Tensor | None, ou
     ----------
     batch : radarpc.experiments.radial_detection.task.DetectionBatch
         A batch of one frame (on the CPU).
-    detections : radarpc.models.targets.Detections
+    detections : radarpc.boxes.Detections
         Its decoded detections (one frame).
     probability : Tensor ``(128, 224)`` or None
         Channel 0 of the detection head's output; None (a detector without a map, the classical

@@ -147,9 +147,10 @@ def test_show_geometry_and_encoded_density(root, tmp_path):
     w, dv = TINY.slot_width, TINY.velocity_res_mps
     np.testing.assert_allclose((x0, x1), ((-w // 2 - 0.5) * dv, (w - w // 2 - 0.5) * dv))   # m/s, Doppler-centred
     # FramePlot.density is the encoded set's (S* with rd3), the CFAR peaks' S apart
+    from radarpc.pipelines.frames import frame_view
     from radarpc.pipelines.pointclouds import ConvertSettings
 
-    res = viz.plot_frame(root, 1, tmp_path / "f.png", ConvertSettings(density=0.1, enrich=("rd3",)))
+    res = viz.plot_frame_view(frame_view(root, 1, ConvertSettings(density=0.1, enrich=("rd3",))), tmp_path / "f.png")
     assert res.density == pytest.approx(0.1, rel=0.1) and res.peak_density < res.density
     assert res.peak_density == pytest.approx(res.n_peaks * TINY.n_tx / (TINY.n_range * TINY.n_doppler))
 

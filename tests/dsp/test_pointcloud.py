@@ -420,7 +420,7 @@ def test_screened_falls_back_to_the_whole_spectrum_for_flat_spectra(selection):
 
 def test_auto_beamforming_resolves_by_measurement_and_sectors(monkeypatch):
     from radarpc.dsp.accel import screened
-    from radarpc.dsp.accel.screened import resolve_beamforming
+    from radarpc.dsp.beamform_modes import resolve_beamforming
     cpu = torch.device("cpu")
     assert resolve_beamforming("exact", cpu, None) == "exact"
     assert resolve_beamforming("screened", cpu, None) == "screened"

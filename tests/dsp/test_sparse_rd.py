@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 import torch
 
+from radarpc.dsp.ddma import replica_bins
 from radarpc.dsp.density import density_of_mask
 from radarpc.dsp.pointcloud import SpectralPointCloud
-from radarpc.dsp.sparse_rd import sparse_rd, sparse_rd_mask
+from radarpc.dsp.sparse_rd import encoded_cells, sparse_rd, sparse_rd_mask
 from radarpc.sensors.radial import RADIAL_S, TINY
 from radarpc.sim.radial_calibration import make_calibration
 from radarpc.sim.rd import Scatterers, synthesize_rd
@@ -59,6 +60,32 @@ def test_sparse_rd_of_rd_neighbourhood_cloud_is_s_star():
     # the per-cell gap search on the cube resolves the same d0 as the envelope's map
     assert torch.equal(sparse_rd_mask(enc.kept, cfg, rd), s_star)
     assert torch.equal(enc.tx0_doppler(), clouds.doppler_full)
+
+
+@pytest.mark.parametrize("enrich", [(), ("rd3",)])
+def test_encoded_cells_of_a_cloud_is_its_sparse_rd_mask(enrich):
+    # the set a one-frame cloud encodes, from its points alone, is the mask of the cube's P (P*)
+    cfg = TINY
+    g = torch.Generator().manual_seed(3)
+    sc = Scatterers(torch.tensor([8.0, 15.0, 22.0]), torch.tensor([-10.0, 20.0, 5.0]), torch.zeros(3),
+                    torch.tensor([2.0, -5.0, 1.0]), torch.tensor([10.0, 10.0, 10.0]))
+    rd = synthesize_rd(cfg, [sc], noise=True, generator=g)
+    spc = SpectralPointCloud(cfg, make_calibration(cfg), density=0.1, enrich=enrich)
+    enc, cloud = spc.encode(rd), spc(rd)
+    want = sparse_rd_mask(enc.kept, cfg, rd)[0]                        # d0 resolved from the cube
+    got = encoded_cells(cloud, cfg)
+    assert torch.equal(got, want) and int(got.sum()) == cfg.n_tx * cloud.num_points > 0
+    # every point's range x its n_tx replica bins, built by hand
+    ref = torch.zeros(cfg.n_range, cfg.n_doppler, dtype=torch.bool)
+    bins = replica_bins(cfg, cloud.doppler_full)
+    ref[cloud.range_bin[:, None].expand_as(bins), bins] = True
+    assert torch.equal(got, ref)
+    # any point order gives the same cells
+    perm = torch.randperm(cloud.num_points, generator=torch.Generator().manual_seed(0))
+    shuffled = type(cloud)(**{**{k: getattr(cloud, k) for k in ("offset", "tau", "density", "peak_density")},
+                              **{k: (None if getattr(cloud, k) is None else getattr(cloud, k)[perm])
+                                 for k in cloud._PER_POINT}})
+    assert torch.equal(encoded_cells(shuffled, cfg), want)
 
 
 def test_single_frame_and_bad_input():

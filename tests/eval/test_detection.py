@@ -6,6 +6,7 @@ import math
 import pytest
 import torch
 
+from radarpc.boxes import Detections
 from radarpc.eval.detection import (
     THRESHOLDS,
     DetectionMetrics,
@@ -14,7 +15,6 @@ from radarpc.eval.detection import (
     freespace_iou,
     lateral_tolerance_m,
 )
-from radarpc.models.targets import Detections
 
 ALL = len(THRESHOLDS)
 
@@ -87,7 +87,7 @@ def test_iou_boundary():
 
 
 def test_lateral_tolerance_is_where_the_box_iou_crosses_the_threshold():
-    from radarpc.models.targets import box_iou
+    from radarpc.boxes import box_iou
     label = torch.tensor([[0.0, 50.0]], dtype=torch.float64)
     for t in (0.3, 0.5, 0.7):
         tol = lateral_tolerance_m(t)

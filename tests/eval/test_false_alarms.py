@@ -2,10 +2,9 @@
 import pytest
 import torch
 
+from radarpc.boxes import Detections
 from radarpc.eval.detection import DetectionMetrics
 from radarpc.eval.false_alarms import FALSE_ALARM_CAUSES, false_alarm_causes, false_alarm_mask
-from radarpc.models.targets import Detections
-from radarpc.sim.road import GHOST_OWNER
 
 
 def _cause(name: str) -> int:
@@ -59,25 +58,30 @@ def test_causes_by_hand():
         [-10.0, 41.0],                 # box 5: an unlabelled vehicle alone
     ])
     power = torch.tensor([1.0, 0.5, 2.0, 1.0, 1.0, 1.0, 9.0, 9.0, 1.0])
-    owner = torch.tensor([3, -1, GHOST_OWNER, 4, -1, -1, 3, 3, 4])
+    owner = torch.tensor([3, -1, -2, 4, -1, -1, 3, 3, 4])          # the ghost belongs to no vehicle
     labelled = torch.tensor([True, False, False, False, False, False, True, True, False])
     moving = torch.tensor([True, False, True, True, True, False, True, True, True])
-    cause = false_alarm_causes(boxes, xy, power, owner, labelled, moving)
+    ghost = torch.tensor([False, False, True, False, False, False, False, False, False])
+    cause = false_alarm_causes(boxes, xy, power, owner, labelled, moving, ghost)
     assert [FALSE_ALARM_CAUSES[c] for c in cause] == [
         "labelled vehicle, box off", "mirror ghost", "moving person or cyclist", "static clutter", "nothing",
         "vehicle without a label"]
     # without the margin, the edge scatterers of boxes 2 and 3 fall outside
-    cause = false_alarm_causes(boxes, xy, power, owner, labelled, moving, margin_m=0.0)
+    cause = false_alarm_causes(boxes, xy, power, owner, labelled, moving, ghost, margin_m=0.0)
     assert cause[2] == cause[3] == _cause("nothing")
     # a frame without scatterers
     empty = torch.zeros(0)
-    cause = false_alarm_causes(boxes, torch.zeros(0, 2), empty, empty.long(), empty.bool(), empty.bool())
+    cause = false_alarm_causes(boxes, torch.zeros(0, 2), empty, empty.long(), empty.bool(), empty.bool(),
+                               empty.bool())
     assert (cause == _cause("nothing")).all()
 
 
 def test_bad_shapes_are_named():
     with pytest.raises(ValueError, match=r"power must be \(2,\) like scatterer_xy's rows, got \(3,\)"):
         false_alarm_causes(torch.zeros(1, 2), torch.zeros(2, 2), torch.zeros(3), torch.zeros(2).long(),
-                           torch.zeros(2).bool(), torch.zeros(2).bool())
+                           torch.zeros(2).bool(), torch.zeros(2).bool(), torch.zeros(2).bool())
+    with pytest.raises(ValueError, match=r"ghost must be \(2,\) like scatterer_xy's rows, got \(1,\)"):
+        false_alarm_causes(torch.zeros(1, 2), torch.zeros(2, 2), torch.zeros(2), torch.zeros(2).long(),
+                           torch.zeros(2).bool(), torch.zeros(2).bool(), torch.zeros(1).bool())
     with pytest.raises(ValueError, match=r"labels must be \(M, >= 2\)"):
         false_alarm_mask(torch.zeros(2), torch.zeros(2), torch.zeros(2), torch.zeros(3))

@@ -48,11 +48,12 @@ class _Step:
 
 
 def _run(step: _Step) -> None:
-    from radarpc.cli import main
+    from radarpc.cli import baseline, evaluate_points, info, pointcloud, show, simulate
+    from radarpc.cli.runner import build_parser, run_command
 
     print(f"\n$ radarpc {shlex.join(step.argv)}", flush=True)
     t0 = time.perf_counter()
-    code = main(step.argv)
+    code = run_command(build_parser([simulate, info, pointcloud, show, baseline, evaluate_points]), step.argv)
     step.seconds = time.perf_counter() - t0
     if code != 0:
         raise RuntimeError(f"demo step {step.name!r} failed with exit code {code}: radarpc {shlex.join(step.argv)}")

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from typing import TYPE_CHECKING
 
+from radarpc.cli.info_outputs import check_outputs
 from radarpc.cli.text import plural
 from radarpc.io import DataFileError
 
@@ -63,22 +64,6 @@ def _print_check(report: CheckReport, write_skip: str | None) -> int:
 def default_plot_path(root: str | Path) -> Path:
     """``./info_{root name}.png`` in the current directory (the dataset root is never written)."""
     return Path.cwd() / f"info_{Path(root).resolve().name}.png"
-
-
-def check_outputs(args: argparse.Namespace, default_plot: Path) -> None:
-    """Fail before any work when the figure or the skip list cannot be written (one clear line)."""
-    from radarpc.runs import check_writable
-    from radarpc.viz import figure_format
-
-    outputs = [(Path(args.write_skip), "skip list")] if getattr(args, "write_skip", None) else []
-    if not getattr(args, "no_plot", False):
-        outputs.append((Path(args.plot) if getattr(args, "plot", None) else default_plot, "figure"))
-    for path, what in outputs:
-        if path.is_dir():
-            raise IsADirectoryError(f"the {what} path {path} is a directory; give a file name")
-        if what == "figure":
-            figure_format(path)                 # the suffix names the format (.png, .pdf, .svg, ...)
-        check_writable(path, what)
 
 
 def info_radial(args: argparse.Namespace) -> int:

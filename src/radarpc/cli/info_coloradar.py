@@ -10,6 +10,7 @@ import argparse
 import math
 from pathlib import Path
 
+from radarpc.cli.info_outputs import check_outputs
 from radarpc.cli.text import plural
 from radarpc.data.summary import check_runs, coloradar_view, open_coloradar_runs, summarize_coloradar, write_check_list
 from radarpc.viz import plot_coloradar_info
@@ -26,8 +27,6 @@ def default_plot_path(root: str | Path) -> Path:
 
 def info_coloradar(args: argparse.Namespace) -> int:
     """``radarpc info`` on a ColoRadar root; returns 1 if ``--check`` found a bad file, else 0."""
-    from radarpc.cli.info import check_outputs
-
     root = Path(args.root)
     check_outputs(args, default_plot_path(root))
     # --check lists every run that cannot be opened instead of stopping at the first

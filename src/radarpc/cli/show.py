@@ -71,7 +71,8 @@ def _run_tuning(args: argparse.Namespace) -> int:
 
 def _run_coloradar(args: argparse.Namespace) -> int:
     from radarpc.cli.text import plural
-    from radarpc.viz import plot_coloradar_frame
+    from radarpc.pipelines.frames import coloradar_view_with_prediction
+    from radarpc.viz import plot_coloradar_view
 
     given = [f for f, v in (("--density", args.density), ("--snr", args.snr), ("--store", args.store)) if v is not None]
     if given:
@@ -80,7 +81,8 @@ def _run_coloradar(args: argparse.Namespace) -> int:
     out = args.out if args.out is not None else (f"{args.run}_frame{args.frame}.png" if args.run
                                                  else f"frame{args.frame}.png")
     _check_figure_path(out)
-    view = plot_coloradar_frame(args.root, args.frame, out, run=args.run, pred=args.pred)
+    view = coloradar_view_with_prediction(args.root, args.frame, run=args.run, pred=args.pred)
+    plot_coloradar_view(view, out)
     pred = "" if view.pred_xyz is None else f", {plural(len(view.pred_xyz), 'predicted point')} ({view.pred_label})"
     print(f"wrote {out}: run {view.run}, radar frame {view.radar_index}, LiDAR scan {view.lidar_index} "
           f"({len(view.inside_xyz)} of {plural(len(view.lidar_xyz), 'point')} in the radar frustum){pred}")
@@ -90,8 +92,9 @@ def _run_coloradar(args: argparse.Namespace) -> int:
 def _run_radial(args: argparse.Namespace) -> int:
     from radarpc.cli.pointcloud import check_density_args, parse_enrich, resolve_cfar_args
     from radarpc.cli.text import plural
+    from radarpc.pipelines.frames import frame_view
     from radarpc.pipelines.pointclouds import ConvertSettings
-    from radarpc.viz import plot_frame
+    from radarpc.viz import plot_frame_view
 
     if args.run is not None or args.pred is not None:
         raise ValueError(f"--run and --pred apply to ColoRadar roots; {args.root} is a RADIal root")
@@ -105,8 +108,9 @@ def _run_radial(args: argparse.Namespace) -> int:
                                    enrich=parse_enrich(args.enrich), **cfar)
     out = args.out if args.out is not None else f"frame{args.frame}.png"
     _check_figure_path(out)
-    res = plot_frame(args.root, args.frame, out, settings, store=args.store, color_by=args.color,
-                     device=args.device if args.device is not None else "cpu")
+    view = frame_view(args.root, args.frame, settings, store=args.store,
+                      device=args.device if args.device is not None else "cpu")
+    res = plot_frame_view(view, out, args.color)
     print(f"wrote {res.path}: frame {res.frame}, {plural(res.n_peaks, 'CFAR peak')}, "
           f"{plural(res.n_points, 'point')}, tau {res.tau:.4g} (linear SNR), achieved density {res.density:.5f} "
           f"(CFAR peaks S(tau) alone {res.peak_density:.5f}), {plural(res.n_vehicles, 'labelled vehicle')}")

@@ -1,5 +1,7 @@
 """What a dataset root holds: the counts ``radarpc info`` prints, the file scan of ``--check`` on
-ColoRadar roots, and the arrays its summary figures draw (:mod:`radarpc.viz` draws them).
+ColoRadar roots, and the arrays its summary figures draw (:mod:`radarpc.viz` draws them); also
+:class:`FrameView`, what the RADIal frame figure draws (:func:`radarpc.pipelines.frames.frame_view`
+computes it).
 
 RADIal roots: :func:`summarize_radial` reads ``labels.csv`` and ``sensor.json`` only;
 :func:`first_rd_power_db` loads the first readable RD cube. ColoRadar roots: :func:`summarize_coloradar`
@@ -41,6 +43,7 @@ from radarpc.data.radial_truth import LabelStatistics, label_statistics
 from radarpc.io import DataFileError, atomic_write
 from radarpc.data.coloradar_format import load_calib
 from radarpc.dsp.tdm import radar_cube
+from radarpc.points import PointCloudBatch
 from radarpc.sensors.coloradar import AWR1843_FOV, ColoRadarCalib, RadarFOV
 from radarpc.sensors.radial import DDMARadarConfig
 
@@ -48,6 +51,7 @@ __all__ = [
     "RadialSummary",
     "summarize_radial",
     "first_rd_power_db",
+    "FrameView",
     "RunSummary",
     "summarize_run",
     "ColoRadarSummary",
@@ -138,6 +142,22 @@ def first_rd_power_db(root: str | os.PathLike, labels: LabelTable,
             continue
         return num, 10.0 * np.log10(np.mean(np.abs(cube) ** 2, axis=2) + 1e-30)
     return None
+
+
+@dataclass(frozen=True)
+class FrameView:
+    """What the RADIal frame figure draws (:func:`radarpc.viz.plot_frame_view`), on the CPU."""
+
+    title: str                      # figure title: root name, frame, sequence
+    frame: int                      # RADIal numSample
+    sensor: DDMARadarConfig
+    rd_magnitude: np.ndarray        # (Nr, Nd) A = sum_rx |R|
+    encoded: np.ndarray             # (Nr, Nd) bool, the set the cloud encodes (radarpc.dsp.sparse_rd.encoded_cells)
+    set_name: str                   # "S(tau)" or "S*(tau)"
+    envelope: np.ndarray            # (Nr, W) E(r, l)
+    peaks: np.ndarray               # (Nr, W) bool, P(tau)
+    cloud: PointCloudBatch          # the frame's points
+    vehicles_ra: np.ndarray         # (V, 2) radar_R_m, radar_A_deg of the labelled vehicles
 
 
 # ---- ColoRadar ---------------------------------------------------------------------------------

@@ -14,19 +14,24 @@ choose between it (``"exact"``), the screened bfloat16 beamformer of
 :mod:`radarpc.dsp.accel.screened` (``"screened"``) and the subspace beamformer of
 :mod:`radarpc.dsp.accel.subspace` (``"subspace"``: the same ``k_j`` and ``Ae_j`` through the same
 certified decision); ``"auto"`` runs the one measured fastest on the device and no sector
-descriptor is asked for. The mode's entry point is :func:`radarpc.dsp.accel.screened.beamform`.
+descriptor is asked for. The mode's entry point is :func:`radarpc.dsp.beamform_modes.beamform`.
+The dictionary's forms and the result type (:class:`DictionaryTables`, :func:`dictionary_tables`,
+:func:`stack_real`, :func:`column_to_direction`, :class:`BeamformResult`) are defined in
+:mod:`radarpc.dsp.dictionary`, which every beamformer shares, and are importable from here too.
 """
 from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
 from fractions import Fraction
 
 import torch
 import torch.nn.functional as F
 
 from radarpc.dsp.accel.workspace import Workspace
+from radarpc.dsp.dictionary import (SNAPSHOT_BLOCK, BeamformResult, DictionaryTables, check_snapshots,
+                                    column_to_direction, dictionary_tables, range_exponents, row_norms,
+                                    scaled_snapshots, stack_real, tables_for)
 
 __all__ = ["angle_spectrum", "BeamformResult", "DictionaryTables", "dictionary_tables",
            "beamform_peaks", "sector_pool", "stack_real", "column_to_direction", "reduced_fp32_matmul",
@@ -37,23 +42,6 @@ BEAMFORMING_MODES = ("auto", "exact", "screened", "subspace")
 (:mod:`radarpc.dsp.accel.screened`); ``"subspace"``: the certified block low-rank screen
 (:mod:`radarpc.dsp.accel.subspace`); ``"auto"``: whichever of them a one-off measurement on this
 device and dictionary found fastest (:func:`radarpc.dsp.accel.screened.measured_choice`)."""
-
-# Snapshots per GEMM block: the (block, n_az n_el) float32 buffers stay a few MB for RADIal.
-_BLOCK = 1024
-
-# Snapshots whose 2-norm lies in [2^-40, 2^40] are beamformed as they are: every float32 value
-# the beamformers form from them (squared entries that matter, |B v|^2 over the grid) stays in the
-# normal range. Others are first scaled by a power of two (exact) so that their largest |Re| or
-# |Im| lies in [0.5, 1), and the amplitudes scaled back (:func:`_range_exponents`).
-_SAFE_NORM = (2.0 ** -40, 2.0 ** 40)
-
-def _check(snapshots: torch.Tensor, dictionary: torch.Tensor) -> None:
-    if not snapshots.is_complex() or not dictionary.is_complex():
-        raise ValueError(f"snapshots and dictionary must be complex, got {snapshots.dtype} and "
-                         f"{dictionary.dtype}")
-    if snapshots.ndim != 2 or dictionary.ndim != 2 or snapshots.shape[1] != dictionary.shape[1]:
-        raise ValueError(f"snapshots (P, n_virtual) and dictionary (n_dir, n_virtual) must share "
-                         f"n_virtual, got {tuple(snapshots.shape)} and {tuple(dictionary.shape)}")
 
 
 def angle_spectrum(snapshots: torch.Tensor, dictionary: torch.Tensor) -> torch.Tensor:
@@ -69,24 +57,8 @@ def angle_spectrum(snapshots: torch.Tensor, dictionary: torch.Tensor) -> torch.T
     -------
     Tensor, real, ``(P, n_dir)``
     """
-    _check(snapshots, dictionary)
+    check_snapshots(snapshots, dictionary)
     return torch.abs(snapshots @ dictionary.to(snapshots.dtype).transpose(0, 1))
-
-
-@dataclass
-class BeamformResult:
-    """Per-snapshot outputs of :func:`beamform`.
-
-    Attributes
-    ----------
-    index : LongTensor ``(P,)``          dominant direction ``k_j`` (eq. 6)
-    amplitude : Tensor ``(P,)``          ``Ae_j = s_j[k_j]`` (eq. 7)
-    sectors : Tensor ``(P, n_az_sec * n_el_sec)`` or None   sector maxima of ``s_j`` (eq. 10)
-    """
-
-    index: torch.Tensor
-    amplitude: torch.Tensor
-    sectors: torch.Tensor | None
 
 
 def sector_pool(spectrum: torch.Tensor, grid: tuple[int, int], sectors: tuple[int, int]) -> torch.Tensor:
@@ -107,82 +79,6 @@ def sector_pool(spectrum: torch.Tensor, grid: tuple[int, int], sectors: tuple[in
         return F.adaptive_max_pool1d(x, n_as).reshape(spectrum.shape[0], n_as)
     x = spectrum.reshape(-1, 1, n_az, n_el)
     return F.adaptive_max_pool2d(x, (n_as, n_es)).reshape(spectrum.shape[0], n_as * n_es)
-
-
-def stack_real(dictionary_t: torch.Tensor) -> torch.Tensor:
-    """Real form of a complex ``B^T`` ``(N, K)`` for one real GEMM: ``(2N, 2K)``.
-
-    Row ``2n`` is ``[Re B^T[n], Im B^T[n]]`` and row ``2n + 1`` is ``[-Im B^T[n], Re B^T[n]]``, so that
-    ``view_as_real(v).reshape(P, 2N) @ W = [Re (B v)^T | Im (B v)^T]`` (the interleaved real view of
-    the snapshots needs no copy, and the output halves are contiguous column blocks).
-    """
-    n, k = dictionary_t.shape
-    re, im = dictionary_t.real, dictionary_t.imag
-    w = torch.empty(n, 2, 2 * k, dtype=re.dtype, device=re.device)
-    w[:, 0, :k], w[:, 0, k:] = re, im
-    w[:, 1, :k], w[:, 1, k:] = -im, re
-    return w.reshape(2 * n, 2 * k)
-
-
-@dataclass
-class DictionaryTables:
-    """The forms of ``B^T`` the beamformers use, computed once (:func:`dictionary_tables`).
-
-    Attributes
-    ----------
-    grid : (n_az, n_el)              the angle grid, ``K = n_az n_el``, direction ``k = az n_el + el``
-    rows : complex ``(K, N)``        ``B``, row ``k`` = direction ``k`` (exact dot products)
-    re, im, gauss : real ``(N, K)``  ``Re B^T``, ``Im B^T`` and ``Re B^T + Im B^T`` (Gauss's trick)
-    screen_bf16 : bfloat16 ``(2N, 2K)``   :func:`stack_real` of ``B^T`` rounded to bfloat16
-
-    The GEMM forms (``re``, ``im``, ``gauss``, ``screen_bf16``) hold the directions in
-    elevation-major order, column ``c = el n_az + az`` (:func:`column_to_direction`), so that
-    maxima over elevation are reductions over a leading axis.
-    row_norm_max : float             ``max_k ||B[k]||_2``, for the screen's error bound
-    subspace : SubspaceTables or None   the subspace beamformer's factorisation, built on first use
-    """
-
-    grid: tuple[int, int]
-    rows: torch.Tensor
-    re: torch.Tensor
-    im: torch.Tensor
-    gauss: torch.Tensor
-    screen_bf16: torch.Tensor
-    row_norm_max: float
-    subspace: object | None = None   # radarpc.dsp.accel.subspace.SubspaceTables, built on first use
-
-    @property
-    def n_dir(self) -> int:
-        return int(self.rows.shape[0])
-
-    def to(self, device: torch.device | str) -> "DictionaryTables":
-        return DictionaryTables(grid=self.grid, rows=self.rows.to(device), re=self.re.to(device),
-                                im=self.im.to(device), gauss=self.gauss.to(device),
-                                screen_bf16=self.screen_bf16.to(device), row_norm_max=self.row_norm_max)
-
-
-def dictionary_tables(dictionary_t: torch.Tensor, grid: tuple[int, int],
-                      dtype: torch.dtype = torch.complex64) -> DictionaryTables:
-    """:class:`DictionaryTables` of ``B^T`` ``(n_virtual, n_az * n_el)`` complex, in ``dtype``."""
-    if not dictionary_t.is_complex() or dictionary_t.ndim != 2:
-        raise ValueError(f"dictionary_t must be a complex (n_virtual, n_dir) matrix, got "
-                         f"{dictionary_t.dtype} {tuple(dictionary_t.shape)}")
-    n_az, n_el = (int(g) for g in grid)
-    if n_az < 1 or n_el < 1 or n_az * n_el != dictionary_t.shape[1]:
-        raise ValueError(f"grid {tuple(grid)} does not match the dictionary's {dictionary_t.shape[1]} directions")
-    bt = dictionary_t.to(dtype)
-    rows = bt.transpose(0, 1).contiguous()
-    norm = float(torch.linalg.vector_norm(rows.to(torch.complex128), dim=1).max()) if rows.numel() else 0.0
-    bt_em = bt[:, column_to_direction(torch.arange(n_az * n_el, device=bt.device), (n_az, n_el))]
-    re, im = bt_em.real.contiguous(), bt_em.imag.contiguous()
-    return DictionaryTables(grid=(n_az, n_el), rows=rows, re=re, im=im, gauss=(re + im).contiguous(),
-                            screen_bf16=stack_real(bt_em).to(torch.bfloat16), row_norm_max=norm)
-
-
-def column_to_direction(col: torch.Tensor, grid: tuple[int, int]) -> torch.Tensor:
-    """Direction ``k = az n_el + el`` of elevation-major GEMM column ``col = el n_az + az``."""
-    n_az, n_el = grid
-    return (col % n_az) * n_el + torch.div(col, n_az, rounding_mode="floor")
 
 
 def _sector_columns(n: int, n_sec: int, device: torch.device) -> torch.Tensor:
@@ -211,50 +107,6 @@ def _sector_pool_elevation_major(power: torch.Tensor, grid: tuple[int, int],
         return best.index_select(1, idx.reshape(-1)).view(-1, idx.shape[0], n_as).amax(dim=1)
     pooled = F.adaptive_max_pool2d(x.unsqueeze(1), (n_es, n_as))      # (P, 1, n_es, n_as)
     return pooled.reshape(-1, n_es, n_as).transpose(1, 2).reshape(-1, n_as * n_es)
-
-
-def _tables_for(snapshots: torch.Tensor, dictionary_t: torch.Tensor | DictionaryTables,
-                grid: tuple[int, int]) -> DictionaryTables:
-    if isinstance(dictionary_t, DictionaryTables):
-        t = dictionary_t
-        if tuple(t.grid) != tuple(grid):
-            raise ValueError(f"grid {tuple(grid)} differs from the dictionary tables' {t.grid}")
-    else:
-        t = dictionary_tables(dictionary_t, grid, snapshots.dtype if snapshots.is_complex() else torch.complex64)
-    _check(snapshots, t.rows)
-    if t.rows.dtype != snapshots.dtype:
-        raise ValueError(f"snapshots are {snapshots.dtype} but the dictionary tables are {t.rows.dtype}")
-    return t
-
-
-def _row_norms(snapshots: torch.Tensor) -> torch.Tensor:
-    """Float32 2-norms of the rows of complex ``(P, N)`` snapshots (the interleaved real view: the
-    complex-input norm is ~100x slower on CPU)."""
-    return torch.linalg.vector_norm(torch.view_as_real(snapshots.resolve_conj()).flatten(1), dim=1)
-
-
-def _range_exponents(snapshots: torch.Tensor, norms: torch.Tensor) -> torch.Tensor | None:
-    """Per-row exponents ``e`` (int32 ``(P,)``) such that ``snapshots * 2^-e`` has its largest
-    ``|Re|`` or ``|Im|`` in ``[0.5, 1)``, for the rows whose ``norms`` lie outside
-    :data:`_SAFE_NORM` (``e = 0`` for the others, and for all-zero or non-finite rows); ``None``
-    when every row is inside (the common case: one reduction, no copy)."""
-    lo, hi = _SAFE_NORM
-    out = ~((norms >= lo) & (norms <= hi))                       # NaN / inf norms are outside too
-    if not bool(out.any()):
-        return None
-    x = torch.view_as_real(snapshots[out].resolve_conj()).flatten(1)
-    amax = torch.maximum(x.amax(dim=1), -x.amin(dim=1)) if x.shape[1] else torch.zeros(len(x), device=x.device)
-    _, e = torch.frexp(amax)                                     # amax = m 2^e, m in [0.5, 1)
-    e = torch.where(torch.isfinite(amax), e.clamp(-126, 126), torch.zeros_like(e))
-    exps = torch.zeros(snapshots.shape[0], dtype=torch.int32, device=snapshots.device)
-    exps[out] = e.to(torch.int32)
-    return exps
-
-
-def _scaled(snapshots: torch.Tensor, exps: torch.Tensor) -> torch.Tensor:
-    """``snapshots * 2^-exps`` per row, exactly (scaling by a power of two rounds nothing)."""
-    x = torch.view_as_real(snapshots.resolve_conj())
-    return torch.view_as_complex(torch.ldexp(x, -exps[:, None, None]).to(x.dtype).contiguous())
 
 
 def reduced_fp32_matmul(device: torch.device | str) -> bool:
@@ -304,15 +156,15 @@ def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Diction
     workspace : Workspace, optional
         Reused scratch buffers (repeated calls then allocate no large temporaries).
     """
-    t = _tables_for(snapshots, dictionary_t, grid)
+    t = tables_for(snapshots, dictionary_t, grid)
     ws = Workspace() if workspace is None else workspace
     real = t.re.dtype
     k_dir = t.n_dir
     p, n = snapshots.shape
     dev = snapshots.device
-    exps = _range_exponents(snapshots, _row_norms(snapshots))
+    exps = range_exponents(snapshots, row_norms(snapshots))
     if exps is not None:                                              # extreme magnitudes: 2^-e v
-        snapshots = _scaled(snapshots, exps)
+        snapshots = scaled_snapshots(snapshots, exps)
     a = ws.empty("exact.re", (p, n), real, dev).copy_(snapshots.real)        # (P, N)
     b = ws.empty("exact.im", (p, n), real, dev).copy_(snapshots.imag)
     index = torch.empty(p, dtype=torch.long, device=dev)
@@ -320,7 +172,7 @@ def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Diction
     sec = None
     if sectors is not None:
         sec = torch.empty(p, sectors[0] * sectors[1], dtype=real, device=dev)
-    blk = min(_BLOCK, max(p, 1))
+    blk = min(SNAPSHOT_BLOCK, max(p, 1))
     t1, t2, t3 = (ws.empty(f"exact.t{q}", (blk, k_dir), real, dev) for q in (1, 2, 3))
     ab = ws.empty("exact.a+b", (blk, n), real, dev)
     reduced = reduced_fp32_matmul(dev)
@@ -328,7 +180,7 @@ def beamform_peaks(snapshots: torch.Tensor, dictionary_t: torch.Tensor | Diction
         warnings.warn(_REDUCED_PRECISION_WARNING, RuntimeWarning, stacklevel=2)
     certify = snapshots.dtype == torch.complex64 and not reduced and p > 0
     if certify:                                                       # |s^ - s| <= e_j (exact_bound)
-        e = _row_norms(snapshots).double() * ((1.0 + 2.0 ** -14) * exact_bound(n) * t.row_norm_max)
+        e = row_norms(snapshots).double() * ((1.0 + 2.0 ** -14) * exact_bound(n) * t.row_norm_max)
         pairs_j, pairs_c = [], []
     for i in range(0, p, blk):
         m = min(blk, p - i)

@@ -34,9 +34,10 @@ from typing import Iterable, Sequence
 import torch
 import torch.nn.functional as F
 
-from radarpc.dsp.accel.screened import beamform
 from radarpc.dsp.accel.workspace import Workspace
-from radarpc.dsp.beamform import DictionaryTables, check_beamforming, dictionary_tables
+from radarpc.dsp.beamform import check_beamforming
+from radarpc.dsp.beamform_modes import beamform
+from radarpc.dsp.dictionary import DictionaryTables, dictionary_tables
 from radarpc.dsp.cfar import RADIAL_TAU, CFARResult, ca_cfar, check_tau, check_window
 from radarpc.dsp.ddma import (DDMAEnvelope, check_envelope_kind, check_finite_envelope, check_rd,
                               ddma_envelope, rx_magnitude_sum, virtual_snapshots)

@@ -6,15 +6,17 @@ the peak's resolved Tx-0 Doppler bin (see :mod:`radarpc.dsp.ddma`). ``|S(tau)| =
 The mask of a point cloud with the RD-neighbourhood enrichment ``rdN`` is ``S*(tau)``: pass
 ``P*(tau)`` (``SpectralPointCloud.encode(rd).kept``) with its ``d0`` (``EncodedSet.tx0_doppler()``),
 the set the cloud encodes and the one :func:`radarpc.pipelines.sparse_rd.write_sparse_rd` writes.
+:func:`encoded_cells` gives that set from a one-frame cloud alone (its points' cells and ``d0``).
 """
 from __future__ import annotations
 
 import torch
 
 from radarpc.dsp.ddma import check_rd, replica_bins, resolve_tx0_doppler, rx_magnitude_sum
+from radarpc.points import PointCloudBatch
 from radarpc.sensors.radial import DDMARadarConfig
 
-__all__ = ["sparse_rd_mask", "sparse_rd"]
+__all__ = ["sparse_rd_mask", "sparse_rd", "encoded_cells"]
 
 
 def sparse_rd_mask(mask_consolidated: torch.Tensor, cfg: DDMARadarConfig,
@@ -80,3 +82,24 @@ def sparse_rd(rd: torch.Tensor, mask_full: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"mask_full must be bool with shape {tuple(x.shape[:3])} (B, Nr, Nd) of rd, "
                          f"got {m.dtype} {tuple(mask_full.shape)}")
     return torch.where(m.unsqueeze(-1), x, torch.zeros((), dtype=x.dtype, device=x.device))
+
+
+def encoded_cells(cloud: PointCloudBatch, cfg: DDMARadarConfig) -> torch.Tensor:
+    """The full-grid set a one-frame cloud encodes, ``S(tau)`` (``S*(tau)`` with ``rdN`` points):
+    :func:`sparse_rd_mask` of the points' consolidated cells and their ``d0``.
+
+    Parameters
+    ----------
+    cloud : PointCloudBatch
+        One frame (e.g. ``SpectralPointCloud(rd)`` of one cube, or ``PointStore[i]``); any point order.
+    cfg : DDMARadarConfig
+
+    Returns
+    -------
+    BoolTensor ``(Nr, Nd)``, on the CPU
+    """
+    r, l = cloud.range_bin.cpu().long(), cloud.doppler_bin.cpu().long()
+    kept = torch.zeros(cfg.n_range, cfg.slot_width, dtype=torch.bool)
+    kept[r, l] = True
+    order = torch.argsort(r * cfg.slot_width + l)          # d0 in torch.nonzero(kept) order
+    return sparse_rd_mask(kept, cfg, cloud.doppler_full.cpu().long()[order])[0]

@@ -2,7 +2,7 @@
 
 Detection (RADIal ``FFTRadNet/utils/metrics.py`` ``GetFullMetrics``; facts, not code, carried
 over). Every detection and label becomes RADIal's fixed ``1.8 m x 4 m`` axis-aligned box whose
-near edge is centred on the point (:func:`radarpc.models.targets.ra_to_box_xy`,
+near edge is centred on the point (:func:`radarpc.boxes.ra_to_box_xy`,
 ``x = R sin A``, ``y = R cos A``). Labels are kept when ``5 <= R <= 100`` m; detections, as
 the official code does, when the near-edge forward distance ``5 <= y = R cos A <= 100`` m. For each
 confidence threshold ``t`` in 0.1, 0.2, ..., 0.9 the detections with score ``> t`` (strictly) are
@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import torch
 
-from radarpc.models.targets import BOX_WIDTH_M, Detections, box_iou, ra_to_box_xy
+from radarpc.boxes import BOX_WIDTH_M, Detections, box_iou, ra_to_box_xy
 
 __all__ = [
     "THRESHOLDS",

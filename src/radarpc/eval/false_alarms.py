@@ -10,22 +10,22 @@ grown by ``margin_m`` on every side; the causes are :data:`FALSE_ALARM_CAUSES`:
   allows (it is then usually also a near miss of that label);
 * a vehicle without a label: a vehicle the labels leave out (out of the labelled field of view);
 * a mirror ghost: a vehicle seen via a wall or rail, at the mirrored position;
-* a moving person or cyclist: owner ``-1`` with a radial velocity more than ``moving_mps`` away
+* a moving person or cyclist: no vehicle's, with a radial velocity more than ``moving_mps`` away
   from a static point's at that direction (``-v_ego cos(A) cos(E)``);
-* static clutter: owner ``-1`` otherwise (posts, rails, walls, buildings, standing people);
+* static clutter: no vehicle's otherwise (posts, rails, walls, buildings, standing people);
 * nothing: no scatterer in the box (noise, sidelobes, or a score without support).
 
 The scene truth comes from the simulator that wrote the root
-(:meth:`radarpc.sim.radial_writer.RadialSimulator.from_root`); ``benchmarks/false_alarms.py`` runs
-it for trained runs.
+(:meth:`radarpc.sim.radial_writer.RadialSimulator.from_root`); the caller turns it into the
+per-scatterer arrays taken here (owner, labelled, moving, ghost), so that the metric does not
+depend on the simulator. ``benchmarks/false_alarms.py`` runs it for trained runs.
 """
 from __future__ import annotations
 
 import torch
 
+from radarpc.boxes import BOX_LENGTH_M, BOX_WIDTH_M
 from radarpc.eval.detection import FIXED_THRESHOLD, IOU_THRESHOLD, RANGE_GATE_M, match_frame
-from radarpc.models.targets import BOX_LENGTH_M, BOX_WIDTH_M
-from radarpc.sim.road import GHOST_OWNER
 
 __all__ = ["FALSE_ALARM_CAUSES", "false_alarm_mask", "false_alarm_causes"]
 
@@ -72,25 +72,27 @@ def false_alarm_mask(score: torch.Tensor, range_m: torch.Tensor, azimuth_deg: to
 
 
 def false_alarm_causes(box_xy: torch.Tensor, scatterer_xy: torch.Tensor, power: torch.Tensor,
-                       owner: torch.Tensor, labelled: torch.Tensor, moving: torch.Tensor, *,
-                       margin_m: float = 1.0) -> torch.Tensor:
+                       owner: torch.Tensor, labelled: torch.Tensor, moving: torch.Tensor, ghost: torch.Tensor,
+                       *, margin_m: float = 1.0) -> torch.Tensor:
     """The cause of each false alarm: the owner of the strongest scatterer inside its box.
 
     Parameters
     ----------
     box_xy : Tensor ``(K, 2)``
-        Near-edge centres of the false alarms' boxes (:func:`radarpc.models.targets.ra_to_box_xy`).
+        Near-edge centres of the false alarms' boxes (:func:`radarpc.boxes.ra_to_box_xy`).
     scatterer_xy : Tensor ``(N, 2)``
         The scene's scatterers in the same ``(x, y) = (R sin A, R cos A)`` frame.
     power : Tensor ``(N,)``
         Their strength (e.g. ``rcs / R^4``); the strongest in a box decides.
     owner : LongTensor ``(N,)``
-        :attr:`radarpc.sim.road.RoadFrame.owner`: a vehicle index, ``-1`` for static clutter and
-        people, :data:`radarpc.sim.road.GHOST_OWNER` for mirror ghosts.
+        The index (``>= 0``) of the vehicle the scatterer belongs to, negative for none (static
+        clutter, people, mirror ghosts), e.g. :attr:`radarpc.sim.road.RoadFrame.owner`.
     labelled : BoolTensor ``(N,)``
         The scatterer belongs to a vehicle that has a label in this frame.
     moving : BoolTensor ``(N,)``
-        The scatterer moves over the ground (used for owner ``-1`` only).
+        The scatterer moves over the ground (used for scatterers of no vehicle only).
+    ghost : BoolTensor ``(N,)``
+        The scatterer is a mirror ghost (``RoadFrame.owner == radarpc.sim.road.GHOST_OWNER``).
     margin_m : float
         The box ``[x - W/2, x + W/2] x [y, y + L]`` is grown by this much on every side.
 
@@ -103,7 +105,8 @@ def false_alarm_causes(box_xy: torch.Tensor, scatterer_xy: torch.Tensor, power: 
     if box_xy.ndim != 2 or box_xy.shape[1] != 2 or scatterer_xy.ndim != 2 or scatterer_xy.shape[1] != 2:
         raise ValueError(f"box_xy and scatterer_xy must be (K, 2) and (N, 2), got {tuple(box_xy.shape)} "
                          f"and {tuple(scatterer_xy.shape)}")
-    for name, t in (("power", power), ("owner", owner), ("labelled", labelled), ("moving", moving)):
+    for name, t in (("power", power), ("owner", owner), ("labelled", labelled), ("moving", moving),
+                    ("ghost", ghost)):
         if t.shape != (n,):
             raise ValueError(f"{name} must be ({n},) like scatterer_xy's rows, got {tuple(t.shape)}")
     if margin_m < 0:
@@ -114,10 +117,10 @@ def false_alarm_causes(box_xy: torch.Tensor, scatterer_xy: torch.Tensor, power: 
     dy = scatterer_xy[None, :, 1] - box_xy[:, None, 1]                          # (K, N)
     inside = (dx.abs() <= BOX_WIDTH_M / 2 + margin_m) & (dy >= -margin_m) & (dy <= BOX_LENGTH_M + margin_m)
     strongest = torch.where(inside, power[None, :].to(torch.float64), -torch.inf).argmax(1)   # (K,)
-    o, lab, mov = owner[strongest], labelled[strongest], moving[strongest]
+    o, lab, mov, gh = owner[strongest], labelled[strongest], moving[strongest], ghost[strongest]
     cause = torch.full((box_xy.shape[0],), FALSE_ALARM_CAUSES.index("static clutter"), dtype=torch.long)
-    cause[(o == -1) & mov] = FALSE_ALARM_CAUSES.index("moving person or cyclist")
-    cause[o == GHOST_OWNER] = FALSE_ALARM_CAUSES.index("mirror ghost")
+    cause[(o < 0) & mov] = FALSE_ALARM_CAUSES.index("moving person or cyclist")
+    cause[gh] = FALSE_ALARM_CAUSES.index("mirror ghost")
     cause[(o >= 0) & lab] = FALSE_ALARM_CAUSES.index("labelled vehicle, box off")
     cause[(o >= 0) & ~lab] = FALSE_ALARM_CAUSES.index("vehicle without a label")
     cause[~inside.any(1)] = FALSE_ALARM_CAUSES.index("nothing")

@@ -36,7 +36,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from radarpc.models.targets import Detections
+from radarpc.boxes import Detections
 from radarpc.points import PointCloudBatch
 from radarpc.sensors.radial import RADIAL
 

@@ -8,7 +8,8 @@ what exists only for speed, each tested for equality with the core path it repla
   when it is built, else the torch formula in cache-sized row blocks;
 * :mod:`~radarpc.dsp.accel.screened`: the screened bfloat16 beamformer (the ``"screened"`` and
   ``"auto"`` beamforming modes; its selection step runs in C when the kernels are built) and
-  :func:`~radarpc.dsp.accel.screened.beamform`, the entry point of a beamforming mode;
+  :func:`~radarpc.dsp.accel.screened.measured_choice`, the one-off timing that picks ``"auto"``'s
+  beamformer (the core's :func:`radarpc.dsp.beamform_modes.beamform` runs the mode);
 * :mod:`~radarpc.dsp.accel.subspace`: the subspace beamformer (``"subspace"``), a certified
   block low-rank float32 screen of the dictionary; its screen and selection run in C when built;
 * :mod:`~radarpc.dsp.accel.native`: the optional C kernels (``_rxsum.c``, ``_screen.c``; a

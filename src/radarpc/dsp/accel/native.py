@@ -36,7 +36,7 @@ import torch
 from radarpc.dsp.accel import DISABLE_ENV, enabled
 
 if TYPE_CHECKING:
-    from radarpc.dsp.accel.subspace import SubspaceTables
+    from radarpc.dsp.dictionary import SubspaceTables
 
 __all__ = [
     "KERNELS",
@@ -466,7 +466,7 @@ def subspace_select_native(y: torch.Tensor, tables: SubspaceTables, xn: torch.Te
     Parameters
     ----------
     y : Tensor ``(P, >= G 2r)`` float32, unit column stride: ``[Re y_g | Im y_g]`` per group
-    tables : :class:`~radarpc.dsp.accel.subspace.SubspaceTables` on the CPU
+    tables : :class:`~radarpc.dsp.dictionary.SubspaceTables` on the CPU
     xn : Tensor ``(P,)`` float32, the snapshot norms rounded up
     snapshots : Tensor ``(P, N)`` complex64;  rows : Tensor ``(K, N)`` complex64
     max_candidates : int

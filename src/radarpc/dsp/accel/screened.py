@@ -5,9 +5,11 @@ It gives the ``k_j`` and ``Ae_j`` of the exact :func:`radarpc.dsp.beamform.beamf
 the exact argmax, up to float32 rounding of near-ties), not an approximation, and is faster where
 bfloat16 GEMMs are (measured on CPUs with AMX). Its selection step runs in the C kernel of
 :mod:`radarpc.dsp.accel.native` when that is built and :func:`radarpc.dsp.accel.enabled`, else in
-torch (:func:`_screen_select`, the kernel's reference). :func:`beamform` is the entry point of a
-beamforming mode (:data:`radarpc.dsp.beamform.BEAMFORMING_MODES`); it lives here because it must
-reach both beamformers and the exact one cannot import this module, which builds on it.
+torch (:func:`_screen_select`, the kernel's reference).
+
+:func:`measured_choice` is the one-off timing behind the ``"auto"`` beamforming mode: it measures
+the exact, subspace and screened beamformers on this device and dictionary and picks the fastest.
+The core's :func:`radarpc.dsp.beamform_modes.beamform` runs the beamformer a mode names.
 """
 from __future__ import annotations
 
@@ -20,12 +22,14 @@ from collections.abc import Callable
 import torch
 
 from radarpc.dsp.accel import enabled as accel_enabled, native
+from radarpc.dsp.accel.subspace import beamform_peaks_subspace
 from radarpc.dsp.accel.workspace import Workspace
-from radarpc.dsp.beamform import (_BLOCK, BeamformResult, DictionaryTables, _range_exponents, _row_norms, _scaled,
-                                  _tables_for, beamform_peaks, check_beamforming, column_to_direction)
+from radarpc.dsp.beamform import beamform_peaks
+from radarpc.dsp.dictionary import (SNAPSHOT_BLOCK, BeamformResult, DictionaryTables, column_to_direction,
+                                    range_exponents, row_norms, scaled_snapshots, tables_for)
 
-__all__ = ["beamform", "beamform_peaks_screened", "screen_bound", "resolve_beamforming", "measured_choice",
-           "measure_beamformers", "time_modes", "choose_beamformer", "probe_snapshots", "MAX_SCREEN_CANDIDATES"]
+__all__ = ["beamform_peaks_screened", "screen_bound", "measured_choice", "measure_beamformers", "time_modes",
+           "choose_beamformer", "probe_snapshots", "MAX_SCREEN_CANDIDATES"]
 
 # The screen's bfloat16 GEMM runs on this many blocks at once (larger GEMMs run closer to peak).
 _SCREEN_GEMM_BLOCKS = 8
@@ -72,10 +76,10 @@ def screen_bound(snapshots: torch.Tensor, row_norm_max: float) -> tuple[float, t
     beta : Tensor ``(P,)`` float32
     """
     v = snapshots.resolve_conj()
-    vnorm = _row_norms(v)
-    exps = _range_exponents(v, vnorm)
+    vnorm = row_norms(v)
+    exps = range_exponents(v, vnorm)
     if exps is not None:
-        vnorm = torch.ldexp(_row_norms(_scaled(v, exps)), exps).to(vnorm.dtype)
+        vnorm = torch.ldexp(row_norms(scaled_snapshots(v, exps)), exps).to(vnorm.dtype)
     return _bound_terms(vnorm, 2 * snapshots.shape[1], row_norm_max)
 
 
@@ -192,7 +196,7 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     if snapshots.dtype != torch.complex64:
         raise ValueError(f"the screened beamformer works on complex64 snapshots, got {snapshots.dtype}; "
                          f"use beamform_peaks for other precisions")
-    t = _tables_for(snapshots, dictionary_t, grid)
+    t = tables_for(snapshots, dictionary_t, grid)
     if isinstance(max_candidates, bool) or int(max_candidates) < 1:
         raise ValueError(f"max_candidates must be an integer >= 1, got {max_candidates!r}")
     ws = Workspace() if workspace is None else workspace
@@ -200,17 +204,17 @@ def beamform_peaks_screened(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     p = snapshots.shape[0]
     dev = snapshots.device
     v = snapshots.resolve_conj().contiguous()
-    vnorm = _row_norms(v)
-    exps = _range_exponents(v, vnorm)
+    vnorm = row_norms(v)
+    exps = range_exponents(v, vnorm)
     if exps is not None:                                              # extreme magnitudes: 2^-e v
-        v = _scaled(v, exps)
-        vnorm = _row_norms(v)
+        v = scaled_snapshots(v, exps)
+        vnorm = row_norms(v)
     alpha, beta = _bound_terms(vnorm, 2 * v.shape[1], t.row_norm_max)   # screen_bound of v
     x = torch.view_as_real(v).reshape(p, 2 * v.shape[1])            # (P, 2N) interleaved
     index = torch.empty(p, dtype=torch.long, device=dev)
     amplitude = torch.empty(p, dtype=torch.float32, device=dev)
     heavy_rows = []
-    blk = min(_BLOCK, max(p, 1))
+    blk = min(SNAPSHOT_BLOCK, max(p, 1))
     gemm_rows = min(_SCREEN_GEMM_BLOCKS * blk, max(p, 1))             # one bf16 GEMM per few blocks
     x16 = ws.empty("screen.x16", (gemm_rows, x.shape[1]), torch.bfloat16, dev)
     y16 = ws.empty("screen.y16", (gemm_rows, 2 * k_dir), torch.bfloat16, dev)
@@ -280,7 +284,7 @@ def measure_beamformers(tables: DictionaryTables, device: torch.device | str, po
     ws = Workspace()
     run = {"exact": lambda x: beamform_peaks(x, t, t.grid, workspace=ws),
            "screened": lambda x: beamform_peaks_screened(x, t, t.grid, workspace=ws),
-           "subspace": lambda x: _subspace().beamform_peaks_subspace(x, t, t.grid, workspace=ws)}
+           "subspace": lambda x: beamform_peaks_subspace(x, t, t.grid, workspace=ws)}
 
     def clock(f, x) -> float:
         if device.type == "cuda":
@@ -337,40 +341,3 @@ def measured_choice(tables: DictionaryTables, device: torch.device | str) -> str
         if key not in _choices:
             _choices[key] = choose_beamformer(measure_beamformers(tables, device))
         return _choices[key]
-
-
-def resolve_beamforming(mode: str, device: torch.device | str, sectors: tuple[int, int] | None,
-                        tables: DictionaryTables | None = None) -> str:
-    """The beamformer that runs: ``"exact"``, ``"screened"`` or ``"subspace"``.
-
-    Sector descriptors need the whole spectrum, so they always run ``"exact"``; an explicit mode
-    runs as asked; ``"auto"`` runs :func:`measured_choice` for ``tables`` on ``device`` (``"exact"``
-    without ``tables``, or with the accelerated paths off). Every mode gives the same points.
-    """
-    check_beamforming(mode)
-    if sectors is not None or mode == "exact":
-        return "exact"
-    if mode != "auto":
-        return mode
-    if tables is None:
-        return "exact"
-    return measured_choice(tables, device)
-
-
-def _subspace():
-    from radarpc.dsp.accel import subspace                 # builds on this module's exact path only
-    return subspace
-
-
-def beamform(snapshots: torch.Tensor, tables: torch.Tensor | DictionaryTables, grid: tuple[int, int],
-             sectors: tuple[int, int] | None = None, mode: str = "auto", *,
-             workspace: Workspace | None = None) -> BeamformResult:
-    """:func:`beamform_peaks`, :func:`beamform_peaks_screened` or
-    :func:`~radarpc.dsp.accel.subspace.beamform_peaks_subspace`, as :func:`resolve_beamforming` picks."""
-    t = tables if isinstance(tables, DictionaryTables) else None
-    chosen = resolve_beamforming(mode, snapshots.device, sectors, t)
-    if chosen == "screened" and snapshots.dtype == torch.complex64:
-        return beamform_peaks_screened(snapshots, tables, grid, workspace=workspace)
-    if chosen == "subspace" and snapshots.dtype == torch.complex64:
-        return _subspace().beamform_peaks_subspace(snapshots, tables, grid, workspace=workspace)
-    return beamform_peaks(snapshots, tables, grid, sectors, workspace=workspace)

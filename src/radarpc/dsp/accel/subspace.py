@@ -37,14 +37,14 @@ the sizes and the measurements behind them are in ``docs/results/pointcloud.md``
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 
 from radarpc.dsp.accel import native
 from radarpc.dsp.accel.workspace import Workspace
-from radarpc.dsp.beamform import (_BLOCK, BeamformResult, DictionaryTables, _range_exponents, _row_norms, _scaled,
-                                  _tables_for, beamform_peaks, certified_argmax, stack_real)
+from radarpc.dsp.beamform import beamform_peaks, certified_argmax
+from radarpc.dsp.dictionary import (SNAPSHOT_BLOCK, BeamformResult, DictionaryTables, SubspaceTables, range_exponents,
+                                    row_norms, scaled_snapshots, stack_real, tables_for)
 
 __all__ = ["SubspaceTables", "subspace_tables", "group_residuals", "beamform_peaks_subspace", "SUBSPACE_GROUP",
            "SUBSPACE_RANK", "MAX_SUBSPACE_CANDIDATES"]
@@ -64,53 +64,6 @@ _SCREEN_POINTS = 128
 # switch between torch's GEMM threads and the native selection's threads costs (torch's OpenMP
 # workers keep spinning after a GEMM).
 _Y_BYTES = 64 << 20
-
-
-@dataclass
-class SubspaceTables:
-    """The factorised dictionary of :func:`subspace_tables`.
-
-    Attributes
-    ----------
-    grid : (n_az, n_el)
-    group, rank : int          azimuths per group, basis rank ``r``
-    w1 : float32 ``(2N, G 2r)``   real form of every ``Q_G^T`` (:func:`~radarpc.dsp.beamform.stack_real`),
-                                  group ``g`` in columns ``g 2r .. (g + 1) 2r`` as ``[Re y_G | Im y_G]``
-    w2 : float32 ``(G, 2r, 2M)``  real form of ``C_G^T``: ``[Re y_G | Im y_G] @ w2[g] = [Re z^ | Im z^]``
-    coef : float32 ``(G, 2, r, M)``  ``Re`` and ``Im`` of ``C_G^T`` (the native kernel's layout of ``w2``)
-    resid : float32 ``(G M,)``    ``||rho_k||`` per direction, rounded up (0 for the last group's padding)
-    slack : float32 ``(G M,)``    ``sigma_k``: ``||rho_k P_G||`` plus the screen's float32 rounding, per
-                                  unit ``||v||`` (so ``e_k = resid_k R_G + slack_k ||v||``)
-    cmax, rmax, smax : float32 ``(G,)``  per group, the largest ``||c_k||``, ``resid_k`` and ``slack_k``
-                                  (the group bound of the native selection)
-    gram_max : float64 ``(G,)``   an upper bound of ``lambda_max(Q_G Q_G^H)`` (the stored basis is
-                                  orthonormal only to float32 accuracy)
-    y_error : float               ``||y^_G - Q_G v|| <= y_error ||v||`` for the float32 first GEMM
-    """
-
-    grid: tuple[int, int]
-    group: int
-    rank: int
-    w1: torch.Tensor
-    w2: torch.Tensor
-    coef: torch.Tensor
-    resid: torch.Tensor
-    slack: torch.Tensor
-    cmax: torch.Tensor
-    rmax: torch.Tensor
-    smax: torch.Tensor
-    gram_max: torch.Tensor
-    y_error: float
-
-    @property
-    def n_groups(self) -> int:
-        return int(self.w2.shape[0])
-
-    def to(self, device: torch.device | str) -> "SubspaceTables":
-        return SubspaceTables(self.grid, self.group, self.rank, self.w1.to(device), self.w2.to(device),
-                              self.coef.to(device), self.resid.to(device), self.slack.to(device),
-                              self.cmax.to(device), self.rmax.to(device), self.smax.to(device),
-                              self.gram_max.to(device), self.y_error)
 
 
 def subspace_tables(rows: torch.Tensor, grid: tuple[int, int], group: int = SUBSPACE_GROUP,
@@ -238,7 +191,7 @@ def beamform_peaks_subspace(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     if snapshots.dtype != torch.complex64:
         raise ValueError(f"the subspace beamformer works on complex64 snapshots, got {snapshots.dtype}; "
                          f"use beamform_peaks for other precisions")
-    t = _tables_for(snapshots, dictionary_t, grid)
+    t = tables_for(snapshots, dictionary_t, grid)
     if max_candidates is not None and (isinstance(max_candidates, bool) or int(max_candidates) < 1):
         raise ValueError(f"max_candidates must be an integer >= 1 or None, got {max_candidates!r}")
     ws = Workspace() if workspace is None else workspace
@@ -249,11 +202,11 @@ def beamform_peaks_subspace(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     p, n = snapshots.shape
     dev = snapshots.device
     v = snapshots.resolve_conj().contiguous()
-    vnorm = _row_norms(v)
-    exps = _range_exponents(v, vnorm)
+    vnorm = row_norms(v)
+    exps = range_exponents(v, vnorm)
     if exps is not None:
-        v = _scaled(v, exps)
-        vnorm = _row_norms(v)
+        v = scaled_snapshots(v, exps)
+        vnorm = row_norms(v)
     xn = (vnorm * (1.0 + 2.0 ** -14)).contiguous()                    # covers the float32 norm's rounding
     x = torch.view_as_real(v).reshape(p, 2 * n)
     index = torch.empty(p, dtype=torch.long, device=dev)
@@ -263,7 +216,7 @@ def beamform_peaks_subspace(snapshots: torch.Tensor, dictionary_t: torch.Tensor 
     if max_candidates is None:
         max_candidates = max(k_dir, 1) if native_ok else MAX_SUBSPACE_CANDIDATES
     n_groups, two_r = st.n_groups, 2 * st.rank
-    blk = min(max(_BLOCK, _Y_BYTES // (4 * n_groups * two_r)), max(p, 1))
+    blk = min(max(SNAPSHOT_BLOCK, _Y_BYTES // (4 * n_groups * two_r)), max(p, 1))
     y = ws.empty("subspace.y", (blk, n_groups * two_r), torch.float32, dev)
     pairs_j, pairs_k = [], []
     for i in range(0, p, blk):

@@ -36,7 +36,8 @@ from radarpc.experiments.radial_detection.train import SUMMARY_METRICS, run_fold
 from radarpc.io import DataFileError, atomic_write
 from radarpc.models.classical import ClassicalConfig, classical_detect
 from radarpc.models.mirror import MirrorAveraged
-from radarpc.models.targets import Detections, TargetConfig, decode_detections
+from radarpc.boxes import Detections
+from radarpc.models.targets import TargetConfig, decode_detections
 from radarpc.machine import check_device
 from radarpc.runs import check_writable, locked_output, read_json, remove_temp_files
 from radarpc.training.checkpoint import load_model_state, load_weights

@@ -28,7 +28,8 @@ from radarpc.experiments.radial_detection.config import ExperimentConfig
 from radarpc.models.fftradnet import FFTRadNet, input_statistics
 from radarpc.models.heads import HeadOutput
 from radarpc.models.losses import detection_loss
-from radarpc.models.targets import Detections, TargetConfig, decode_detections, encode_batch
+from radarpc.boxes import Detections
+from radarpc.models.targets import TargetConfig, decode_detections, encode_batch
 from radarpc.points import PointCloudBatch
 
 __all__ = ["DetectionBatch", "RadialDetectionTask", "collate_cubes", "collate_points",
