@@ -7,7 +7,7 @@ import shutil
 import pytest
 
 from radarpc.cli import main
-from radarpc.data.radial import LabelTable, label_problems, read_labels
+from radarpc.data.radial import LabelTable, label_problems, label_reach_m, read_labels
 from radarpc.data.radial_format import LABEL_COLUMNS
 from radarpc.sensors.radial import RADIAL_S
 from radarpc.sim.radial_writer import write_radial_dataset
@@ -24,6 +24,13 @@ def _row(**values):
     row = {c: 0 for c in LABEL_COLUMNS} | {"dataset": "s", "radar_R_m": 20.0, "radar_A_deg": 10.0, "Difficult": 0}
     row |= values
     return tuple(row[c] for c in LABEL_COLUMNS)
+
+
+def test_the_labels_reach_radials_range_at_least():
+    from radarpc.sensors.radial import RADIAL, TINY
+
+    assert label_reach_m(RADIAL) == label_reach_m(RADIAL_S) == RADIAL.max_range_m == 103.0
+    assert TINY.max_range_m < 103.0 and label_reach_m(TINY) == 103.0   # a small sensor labels a whole scene
 
 
 def test_label_problems_by_hand():
@@ -67,7 +74,7 @@ def test_info_check_lists_and_training_refuses_implausible_labels(tiny_root, tmp
     assert main(["info", str(bad), "--check"]) != 0
     out = capsys.readouterr().out
     assert "radar_R_m 1e+06 is outside 0 .. " in out and "Difficult 7 is neither 0 nor 1" in out
-    assert not label_problems(read_labels(tiny_root / "labels.csv"), RADIAL_S.max_range_m)   # the simulator's are fine
+    assert not label_problems(read_labels(tiny_root / "labels.csv"), label_reach_m(RADIAL_S))   # the simulator's are fine
     (tmp_path / "fft.yaml").write_text("name: f\nmodel: {variant: fftradnet-tiny}\ntrain: {epochs: 1}\n")
     code = main(["train", str(tmp_path / "fft.yaml"), "--data", str(bad), "--out", str(tmp_path / "run"),
                  "--no-progress"])

@@ -56,6 +56,7 @@ __all__ = [
     "SIMULATED_META_KEYS",
     "LabelTable",
     "label_problems",
+    "label_reach_m",
     "SimulatedMeta",
     "FileProblem",
     "CheckReport",
@@ -194,13 +195,20 @@ class LabelTable:
         return out
 
 
+def label_reach_m(sensor: DDMARadarConfig) -> float:
+    """How far the labels of a RADIal-layout root may reach: the larger of the sensor's
+    instrumented range and RADIal's (103 m, the reach of the format's detection map). A small
+    simulated sensor sees less far than the scene it labels."""
+    return max(sensor.max_range_m, RADIAL.max_range_m)
+
+
 def label_problems(labels: LabelTable, max_range_m: float | None = None) -> list[str]:
     """What in ``labels`` no radar could have measured, one line per bad value (empty: none).
 
-    A vehicle row must have a range ``radar_R_m`` in [0, ``max_range_m``] (the sensor's
-    unambiguous range; without it, any range >= 0), an azimuth ``radar_A_deg`` within +-90 deg (in
-    front of the array) and ``Difficult`` 0 or 1. A frame's empty marker row (-1 in the position
-    columns) is left alone.
+    A vehicle row must have a range ``radar_R_m`` in [0, ``max_range_m``] (without it, any range
+    >= 0), an azimuth ``radar_A_deg`` within +-90 deg (in front of the array) and ``Difficult`` 0
+    or 1. A frame's empty marker row (-1 in the position columns) is left alone.
+    :func:`label_reach_m` gives the range a root's labels may reach.
     """
     out = []
     r = labels.column("radar_R_m")
@@ -983,7 +991,7 @@ def check_root(root: str | os.PathLike, sensor: DDMARadarConfig | None = None, *
     except DataFileError as e:
         report.add(e)
         return report
-    for problem in label_problems(labels, None if sensor is None else sensor.max_range_m):
+    for problem in label_problems(labels, None if sensor is None else label_reach_m(sensor)):
         report.add(DataFileError(labels.path, problem))
     ids = np.unique(labels.num_sample).tolist()
     report.n_frames = len(ids)

@@ -19,7 +19,7 @@ from torch import nn
 
 from radarpc.data.augment import MirroredFrames, RotatedFrames, SuperposedFrames
 from radarpc.data.point_dataset import PointCloudDataset, PointFrameBatch, collate_point_frames
-from radarpc.data.radial import LabelTable, RADIal, label_problems, read_labels, root_sensor
+from radarpc.data.radial import LabelTable, RADIal, label_problems, label_reach_m, read_labels, root_sensor
 from radarpc.data.radial_format import SPARSE_RD_MANIFEST
 from radarpc.eval.detection import DetectionMetrics, FreespaceMetrics
 from radarpc.io import DataFileError
@@ -157,7 +157,7 @@ def frames_without_vehicles(labels: LabelTable, difficult: bool) -> list[int]:
 def _root_dataset(cfg: ExperimentConfig, data: Path, points: Path | None, split: str, empty_frames: bool = True):
     check_root(data)
     labels = read_labels(data / "labels.csv")
-    problems = label_problems(labels, root_sensor(data)[0].max_range_m)
+    problems = label_problems(labels, label_reach_m(root_sensor(data)[0]))
     if problems:
         more = f"; {len(problems) - 3} more" if len(problems) > 3 else ""
         raise DataFileError(labels.path, f"labels no radar could have measured: {'; '.join(problems[:3])}{more} "
