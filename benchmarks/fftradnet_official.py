@@ -14,7 +14,8 @@ full RADIal size ``(1, 32, 512, 256)`` prints one JSON object with:
   detections (:func:`radarpc.models.targets.decode_detections`, threshold 0.05, NMS 0.05) are the
   same (scores within 1e-4, range and azimuth within 1e-3 m / deg; ``same_beyond_margin`` also
   accepts a difference in cells within 1e-4 of the 0.05 threshold);
-* ``bound`` (with ``--peak``): the model's convolution GMAC a frame, the CPU's best GMAC/s per
+* ``bound`` (with ``--peak``): the model's convolution GMAC a frame
+  (:func:`radarpc.models.complexity.conv_gmac`), the CPU's best GMAC/s per
   dtype (a 4096^3 matrix product and the model's largest convolution alone), and from them the
   fastest the detection-only network could run and its speedup over the measured official time;
 * ``speed``: batch-1 inference seconds/frame (best and median of ``--repeats``, methods
@@ -51,7 +52,7 @@ with that one name is registered (reported as ``torchvision``).
 
 Usage::
 
-    python benchmarks/fftradnet_official.py --radial-repo /work/peers/RADIal [--repeats 3] [--threads 2] [--compile] [--peak]
+    python benchmarks/fftradnet_official.py --radial-repo path/to/RADIal [--repeats 3] [--threads 2] [--compile] [--peak]
 """
 from __future__ import annotations
 
@@ -70,6 +71,7 @@ import torch
 
 from radarpc.machine import cpu_has_native_bf16, cpu_model
 from radarpc.models.batchnorm import randomise_batchnorm_
+from radarpc.models.complexity import conv_gmac
 from radarpc.models.fftradnet import fftradnet, fuse_for_inference, official_to_radarpc
 from radarpc.models.fast_inference import fast_inference
 from radarpc.models.fourier_stem import fourier_stem_for_inference
@@ -134,27 +136,6 @@ def _compare_rows(da, db, tol: float) -> dict:
     ua, ub = unmatched(a, b), unmatched(b, a)
     return {"ours": len(a), "official": len(b), "same": not len(ua) and not len(ub),
             "same_beyond_margin": bool((torch.cat([ua[:, 0], ub[:, 0]]) < 0.05 + tol).all())}
-
-
-def _conv_gmac(model: torch.nn.Module, x: torch.Tensor) -> float:
-    """Multiply-accumulates of every convolution in one forward pass, in GMAC (forward hooks:
-    each output element of a convolution takes kernel elements x input channels per group; each
-    input element of a transposed one feeds kernel elements x output channels per group)."""
-    total = [0]
-
-    def hook(conv, inp, out):
-        # weight[0]: (in / groups, kh, kw) for a convolution, (out / groups, kh, kw) for a transposed one
-        n = inp[0].numel() if isinstance(conv, torch.nn.ConvTranspose2d) else out.numel()
-        total[0] += n * conv.weight[0].numel()
-    hooks = [m.register_forward_hook(hook) for m in model.modules()
-             if isinstance(m, (torch.nn.Conv2d, torch.nn.ConvTranspose2d))]
-    try:
-        with torch.inference_mode():
-            model.forward_channels(x)
-    finally:
-        for h in hooks:
-            h.remove()
-    return total[0] / 1e9
 
 
 def _peak(bf16: bool) -> dict:
@@ -324,7 +305,8 @@ def main(argv: list[str] | None = None) -> None:
                  "cpu_speedup_vs_official": round(best_cpu["official"] / best_cpu[k], 3)} for k in methods}
     bound = {}
     if a.peak:
-        gmac = {"both_heads": _conv_gmac(ours, x), "detections_only": _conv_gmac(fused_cl_det, x_cl)}
+        gmac = {"both_heads": conv_gmac(ours, x, forward=ours.forward_channels),
+                "detections_only": conv_gmac(fused_cl_det, x_cl, forward=fused_cl_det.forward_channels)}
         peak = _peak("bf16" in methods)
         # at the best GMAC/s measured for a dtype, the detection-only network needs at least this
         floor = {dt: gmac["detections_only"] / max(v.values()) for dt, v in peak.items()}
