@@ -10,7 +10,7 @@ first, so a root written by another simulator version is refused rather than mis
 
 ::
 
-    python benchmarks/false_alarms.py runs/sp_r1 runs/sp1 --split test --threshold 0.2 \\
+    python docs/notebook/scripts/false_alarms.py runs/sp_r1 runs/sp1 --split test --threshold 0.2 \\
         --names "spectralpillars-s, radial" "spectralpillars-s, radial-s" \\
         --figure docs/results/figures/detection_false_alarms.png
 

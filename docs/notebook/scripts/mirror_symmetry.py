@@ -10,7 +10,7 @@ true and false detections at 0.2 and freespace mIoU of the run's best weights on
 is, on every frame mirrored, and averaged over both views (:class:`radarpc.models.mirror.MirrorAveraged`).
 Usage::
 
-    python benchmarks/mirror_symmetry.py runs/pp --split test [--data ROOT --points STORE]
+    python docs/notebook/scripts/mirror_symmetry.py runs/pp --split test [--data ROOT --points STORE]
 """
 from __future__ import annotations
 
