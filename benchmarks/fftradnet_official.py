@@ -3,7 +3,7 @@
 Imports ``FFTRadNet/model/FFTRadNet.py`` from a local clone of valeoai/RADIal (``--radial-repo``;
 nothing of it is copied into radarpc), builds the official model with random weights and
 non-trivial BN statistics, loads the same weights into radarpc's model through
-:func:`radarpc.models.fftradnet.official_to_radarpc`, and on a random normalised input of the
+:func:`radarpc.experiments.radial_detection.official.official_to_radarpc`, and on a random normalised input of the
 full RADIal size ``(1, 32, 512, 256)`` prints one JSON object with:
 
 * ``match``: max |ours - official| / max |official| of the detection and freespace maps (fp32,
@@ -14,7 +14,8 @@ full RADIal size ``(1, 32, 512, 256)`` prints one JSON object with:
   detections (:func:`radarpc.models.targets.decode_detections`, threshold 0.05, NMS 0.05) are the
   same (scores within 1e-4, range and azimuth within 1e-3 m / deg; ``same_beyond_margin`` also
   accepts a difference in cells within 1e-4 of the 0.05 threshold);
-* ``bound`` (with ``--peak``): the model's convolution GMAC a frame, the CPU's best GMAC/s per
+* ``bound`` (with ``--peak``): the model's convolution GMAC a frame
+  (:func:`radarpc.models.complexity.conv_gmac`), the CPU's best GMAC/s per
   dtype (a 4096^3 matrix product and the model's largest convolution alone), and from them the
   fastest the detection-only network could run and its speedup over the measured official time;
 * ``speed``: batch-1 inference seconds/frame (best and median of ``--repeats``, methods
@@ -22,7 +23,7 @@ full RADIal size ``(1, 32, 512, 256)`` prints one JSON object with:
   the official model measured in the same run, also in process CPU seconds (``cpu_s``: on a loaded
   machine, with ``--threads 1``, a steadier measure of the work than wall time), for:
   ``official``; ``plain`` (radarpc, as built); ``fused`` (BN folded, pre-encoder as one GEMM:
-  :func:`~radarpc.models.fftradnet.fuse_for_inference`); ``fused_cl`` (+ channels-last);
+  :func:`~radarpc.models.fast.batchnorm.fuse_for_inference`); ``fused_cl`` (+ channels-last);
   ``fused_cl_det`` (+ the freespace head skipped: detections only, the decoded detections are
   unchanged); ``bf16`` (autocast, only where the CPU has native bf16: AVX512-BF16 or AMX);
   ``compiled`` (``torch.compile`` of ``fused_cl_det``) and ``compiled_frozen`` (the same with
@@ -30,10 +31,10 @@ full RADIal size ``(1, 32, 512, 256)`` prints one JSON object with:
   ``bf16_compiled_frozen`` (``compiled_frozen`` under bf16 autocast, with ``--compile`` where
   ``bf16`` runs); ``winograd`` (``fused_cl_det`` with its 3 x 3 stride-1 layers of at least
   ``--winograd-min-channels`` channels as Winograd F(4x4, 3x3):
-  :func:`radarpc.models.winograd.winograd_for_inference`; its first pass compiles the transforms);
+  :func:`radarpc.models.fast.winograd.winograd_for_inference`; its first pass compiles the transforms);
   ``fourier_winograd`` (``winograd`` with the pre-encoder, stem and first ReLU computed per Doppler
-  frequency: :func:`radarpc.models.fourier_stem.fourier_stem_for_inference`); ``fast``
-  (:func:`radarpc.models.fast_inference.fast_inference`, detections only: ``fourier_winograd`` with
+  frequency: :func:`radarpc.models.fast.fourier_stem.fourier_stem_for_inference`); ``fast``
+  (:func:`radarpc.models.fast.fast_inference`, detections only: ``fourier_winograd`` with
   the detection head collapsed into one correlation and activations fused into convolutions).
 
 ``THP_MEM_ALLOC_ENABLE`` (PyTorch's switch for 2 MB pages on large CPU allocations) is reported:
@@ -51,7 +52,7 @@ with that one name is registered (reported as ``torchvision``).
 
 Usage::
 
-    python benchmarks/fftradnet_official.py --radial-repo /work/peers/RADIal [--repeats 3] [--threads 2] [--compile] [--peak]
+    python benchmarks/fftradnet_official.py --radial-repo path/to/RADIal [--repeats 3] [--threads 2] [--compile] [--peak]
 """
 from __future__ import annotations
 
@@ -69,12 +70,15 @@ from pathlib import Path
 import torch
 
 from radarpc.machine import cpu_has_native_bf16, cpu_model
-from radarpc.models.batchnorm import randomise_batchnorm_
-from radarpc.models.fftradnet import fftradnet, fuse_for_inference, official_to_radarpc
-from radarpc.models.fast_inference import fast_inference
-from radarpc.models.fourier_stem import fourier_stem_for_inference
+from radarpc.models.fast.batchnorm import randomise_batchnorm_
+from radarpc.models.complexity import conv_gmac
+from radarpc.experiments.radial_detection.official import official_to_radarpc
+from radarpc.models.fast.batchnorm import fuse_for_inference
+from radarpc.models.fftradnet import fftradnet
+from radarpc.models.fast import fast_inference
+from radarpc.models.fast.fourier_stem import fourier_stem_for_inference
 from radarpc.models.targets import decode_detections
-from radarpc.models.winograd import winograd_for_inference
+from radarpc.models.fast.winograd import winograd_for_inference
 from radarpc.training.loop import autocast_context
 
 
@@ -134,27 +138,6 @@ def _compare_rows(da, db, tol: float) -> dict:
     ua, ub = unmatched(a, b), unmatched(b, a)
     return {"ours": len(a), "official": len(b), "same": not len(ua) and not len(ub),
             "same_beyond_margin": bool((torch.cat([ua[:, 0], ub[:, 0]]) < 0.05 + tol).all())}
-
-
-def _conv_gmac(model: torch.nn.Module, x: torch.Tensor) -> float:
-    """Multiply-accumulates of every convolution in one forward pass, in GMAC (forward hooks:
-    each output element of a convolution takes kernel elements x input channels per group; each
-    input element of a transposed one feeds kernel elements x output channels per group)."""
-    total = [0]
-
-    def hook(conv, inp, out):
-        # weight[0]: (in / groups, kh, kw) for a convolution, (out / groups, kh, kw) for a transposed one
-        n = inp[0].numel() if isinstance(conv, torch.nn.ConvTranspose2d) else out.numel()
-        total[0] += n * conv.weight[0].numel()
-    hooks = [m.register_forward_hook(hook) for m in model.modules()
-             if isinstance(m, (torch.nn.Conv2d, torch.nn.ConvTranspose2d))]
-    try:
-        with torch.inference_mode():
-            model.forward_channels(x)
-    finally:
-        for h in hooks:
-            h.remove()
-    return total[0] / 1e9
 
 
 def _peak(bf16: bool) -> dict:
@@ -324,7 +307,8 @@ def main(argv: list[str] | None = None) -> None:
                  "cpu_speedup_vs_official": round(best_cpu["official"] / best_cpu[k], 3)} for k in methods}
     bound = {}
     if a.peak:
-        gmac = {"both_heads": _conv_gmac(ours, x), "detections_only": _conv_gmac(fused_cl_det, x_cl)}
+        gmac = {"both_heads": conv_gmac(ours, x, forward=ours.forward_channels),
+                "detections_only": conv_gmac(fused_cl_det, x_cl, forward=fused_cl_det.forward_channels)}
         peak = _peak("bf16" in methods)
         # at the best GMAC/s measured for a dtype, the detection-only network needs at least this
         floor = {dt: gmac["detections_only"] / max(v.values()) for dt, v in peak.items()}

@@ -7,10 +7,10 @@ SpectralPillars), and times, batch 1, passes interleaved method by method so tha
 processes hits them alike:
 
 * ``fftradnet`` (radarpc's model as built), ``fftradnet_fused``
-  (:func:`radarpc.models.fftradnet.fuse_for_inference`) and ``fftradnet_fused_cl`` (+ channels-last
+  (:func:`radarpc.models.fast.batchnorm.fuse_for_inference`) and ``fftradnet_fused_cl`` (+ channels-last
   weights): RD cube -> detections and freespace; ``fftradnet_fused_cl_det``: the same with the
   freespace head skipped (detections only, what the detection metrics use);
-* for each pillar model, as built, fused (:func:`radarpc.models.pillars.fuse_for_inference`) and
+* for each pillar model, as built, fused (:func:`radarpc.models.fast.batchnorm.fuse_for_inference`) and
   fused with channels-last weights (``_fused_cl``; the scatter's canvas is channels-last already),
   and ``_fused_cl_det`` (detections only): ``<model>`` the network on the ready point cloud (point
   extraction excluded) and ``<model>+points`` RD cube -> point cloud -> network (extraction
@@ -25,11 +25,11 @@ processes hits them alike:
   path with the same heads;
 * with ``--winograd``, ``fftradnet_winograd_det`` and ``<model>_winograd_det``: the ``_fused_cl_det``
   models with their wide 3 x 3 stride-1 layers as Winograd F(4x4, 3x3)
-  (:func:`radarpc.models.winograd.winograd_for_inference`; the first pass compiles the transforms),
+  (:func:`radarpc.models.fast.winograd.winograd_for_inference`; the first pass compiles the transforms),
   compared with ``fftradnet_fourier_winograd_det`` (``fftradnet_winograd_det`` with the pre-encoder,
-  stem and first ReLU as :func:`radarpc.models.fourier_stem.fourier_stem_for_inference`),
+  stem and first ReLU as :func:`radarpc.models.fast.fourier_stem.fourier_stem_for_inference`),
   ``fftradnet_winograd_det`` and ``fftradnet_fused_cl_det``; and ``fftradnet_fast_det`` and
-  ``<model>_fast_det``: :func:`radarpc.models.fast_inference.fast_inference` (detections only; the
+  ``<model>_fast_det``: :func:`radarpc.models.fast.fast_inference` (detections only; the
   Winograd rows with the detection head collapsed into one correlation, activations fused into the
   convolutions, and FFTRadNet's pre-encoder and stem per Doppler frequency), compared with
   ``fftradnet_fast_det``, ``fftradnet_fourier_winograd_det`` and ``fftradnet_winograd_det``.
@@ -84,9 +84,10 @@ from radarpc.dsp import SpectralPointCloud  # noqa: E402
 from radarpc.machine import cpu_has_native_bf16, cpu_model  # noqa: E402
 from radarpc.models import fftradnet as fft  # noqa: E402
 from radarpc.models import pillars  # noqa: E402
-from radarpc.models.fast_inference import fast_inference  # noqa: E402
-from radarpc.models.fourier_stem import fourier_stem_for_inference  # noqa: E402
-from radarpc.models.winograd import winograd_for_inference  # noqa: E402
+from radarpc.models.fast.batchnorm import fuse_for_inference  # noqa: E402
+from radarpc.models.fast import fast_inference  # noqa: E402
+from radarpc.models.fast.fourier_stem import fourier_stem_for_inference  # noqa: E402
+from radarpc.models.fast.winograd import winograd_for_inference  # noqa: E402
 from radarpc.sensors.radial import RADIAL, RADIAL_S  # noqa: E402
 from radarpc.sim.radial_writer import SimulatedRADIal  # noqa: E402
 from radarpc.training.loop import autocast_context  # noqa: E402
@@ -163,38 +164,38 @@ def main(args: argparse.Namespace) -> None:
     fftnet = fft_factory().eval()
     methods: dict[str, Callable[[int], object]] = {
         "fftradnet": lambda i: fftnet(cubes[i]),
-        "fftradnet_fused": (lambda m: lambda i: m(cubes[i]))(fft.fuse_for_inference(fftnet)),
+        "fftradnet_fused": (lambda m: lambda i: m(cubes[i]))(fuse_for_inference(fftnet)),
         "fftradnet_fused_cl": (lambda m: lambda i: m(cubes[i]))(
-            fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last)),
+            fuse_for_inference(fftnet).to(memory_format=torch.channels_last)),
         "fftradnet_fused_cl_det": (lambda m: lambda i: m(cubes[i]))(
-            _detections_only(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last))),
+            _detections_only(fuse_for_inference(fftnet).to(memory_format=torch.channels_last))),
     }
     bf16 = cpu_has_native_bf16()
     if bf16:
         methods["fftradnet_bf16"] = (lambda m: lambda i: m(cubes[i]))(
-            _bf16_autocast(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last)))
+            _bf16_autocast(fuse_for_inference(fftnet).to(memory_format=torch.channels_last)))
         methods["fftradnet_bf16_det"] = (lambda m: lambda i: m(cubes[i]))(_bf16_autocast(
-            _detections_only(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last))))
+            _detections_only(fuse_for_inference(fftnet).to(memory_format=torch.channels_last))))
     if args.winograd:
         methods["fftradnet_winograd_det"] = (lambda m: lambda i: m(cubes[i]))(winograd_for_inference(
-            _detections_only(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last))))
+            _detections_only(fuse_for_inference(fftnet).to(memory_format=torch.channels_last))))
         methods["fftradnet_fourier_winograd_det"] = (lambda m: lambda i: m(cubes[i]))(winograd_for_inference(
             fourier_stem_for_inference(
-                _detections_only(fft.fuse_for_inference(fftnet).to(memory_format=torch.channels_last)))))
+                _detections_only(fuse_for_inference(fftnet).to(memory_format=torch.channels_last)))))
         methods["fftradnet_fast_det"] = (lambda m: lambda i: m(cubes[i]))(fast_inference(fftnet, detections_only=True))
     points = {}
     parts = {}
     for name, (factory, enrich) in pillar_models.items():
         model = factory().eval()
-        fused = pillars.fuse_for_inference(model)
-        fused_cl = pillars.fuse_for_inference(model).to(memory_format=torch.channels_last)
-        fused_cl_det = _detections_only(pillars.fuse_for_inference(model).to(memory_format=torch.channels_last))
+        fused = fuse_for_inference(model)
+        fused_cl = fuse_for_inference(model).to(memory_format=torch.channels_last)
+        fused_cl_det = _detections_only(fuse_for_inference(model).to(memory_format=torch.channels_last))
         spc, cl = extractors[enrich], clouds[enrich]
         variants = [("", model), ("_fused", fused), ("_fused_cl", fused_cl), ("_fused_cl_det", fused_cl_det)]
         if model.freespace_head is not None and model.freespace_head.upsample_logits:
             # the same weights through the official head's order (features resized to 256 rows, then
             # convolved): what the resized logits save, measured in this run
-            fused_cl_fs256 = pillars.fuse_for_inference(model).to(memory_format=torch.channels_last)
+            fused_cl_fs256 = fuse_for_inference(model).to(memory_format=torch.channels_last)
             fused_cl_fs256.freespace_head.upsample_logits = False
             variants.append(("_fused_cl_fs256", fused_cl_fs256))
         if bf16:

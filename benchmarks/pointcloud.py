@@ -31,7 +31,7 @@ and whether the points (range bin, Tx-0 Doppler bin, azimuth, elevation) are ide
 Usage::
 
     python benchmarks/pointcloud.py --threads 2 --frames 16 --batch 8
-    python benchmarks/pointcloud.py --radial-repo /work/peers/RADIal --rpl-frames 8 --densities
+    python benchmarks/pointcloud.py --radial-repo path/to/RADIal --rpl-frames 8 --densities
 """
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 
 A point store is compressed in row groups of many frames (64 for `radarpc pointcloud`), and a
 frame read from the file decodes its whole row group; training reads the frames in random order.
-:func:`radarpc.training.radial.preload_point_frames` holds them in memory instead. This script
+:func:`radarpc.experiments.radial_detection.task.preload_point_frames` holds them in memory instead. This script
 builds the training split of a run (``--config``, ``--data`` roots, ``--points`` stores), takes
 the first ``--batches`` batches of epoch 0 in the loop's order (:func:`radarpc.training.loop.epoch_batches`)
 and times, in this one process, item reading plus the collate (target encoding included):
@@ -48,10 +48,10 @@ import time  # noqa: E402
 
 import torch  # noqa: E402
 
-from radarpc.experiments.detection import load_experiment  # noqa: E402
+from radarpc.experiments.radial_detection.config import load_experiment  # noqa: E402
 from radarpc.machine import cpu_model  # noqa: E402
 from radarpc.training.loop import autocast_context, epoch_batches  # noqa: E402
-from radarpc.training.radial import RadialDetectionTask, preload_point_frames  # noqa: E402
+from radarpc.experiments.radial_detection.task import RadialDetectionTask, preload_point_frames  # noqa: E402
 
 
 def _read(task: RadialDetectionTask, batches: list[list[int]]) -> tuple[float, list]:

@@ -107,7 +107,7 @@ def ra_to_box_xy(range_m: torch.Tensor, azimuth_deg: torch.Tensor) -> torch.Tens
     On the CPU (without autograd) the box is computed in float64 by numpy and returned in the
     inputs' dtype: torch's CPU ``sin``/``cos`` run through MKL VML, whose first call on an OpenMP
     worker after an MKL GEMM came out of some processes at reduced accuracy (1e-4 relative in
-    float32, 1e-8 in float64; torch 2.13, ``benchmarks/vml_first_call.py``), and these positions
+    float32, 1e-8 in float64; torch 2.13, ``docs/notebook/scripts/vml_first_call.py``), and these positions
     decide NMS and true positives at IoU thresholds, so they must be the same in every process.
     """
     if range_m.device.type == azimuth_deg.device.type == "cpu" and not (range_m.requires_grad

@@ -18,7 +18,7 @@ grown by ``margin_m`` on every side; the causes are :data:`FALSE_ALARM_CAUSES`:
 The scene truth comes from the simulator that wrote the root
 (:meth:`radarpc.sim.radial_writer.RadialSimulator.from_root`); the caller turns it into the
 per-scatterer arrays taken here (owner, labelled, moving, ghost), so that the metric does not
-depend on the simulator. ``benchmarks/false_alarms.py`` runs it for trained runs.
+depend on the simulator. ``docs/notebook/scripts/false_alarms.py`` runs it for trained runs.
 """
 from __future__ import annotations
 

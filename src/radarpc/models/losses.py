@@ -39,7 +39,7 @@ class LossConfig:
     focal_gamma : focusing exponent of the focal loss. ``0`` is cross-entropy (up to the
         ``1e-6``), RADIal's other classification loss. At ``2`` the loss is smallest, for a cell
         that is positive 2.4 % of the time, at score 0.2 (at ``0``, at 0.024), so RADIal's fixed
-        threshold 0.2 can admit many weak detections (``benchmarks/operating_points.py``;
+        threshold 0.2 can admit many weak detections (``docs/notebook/scripts/operating_points.py``;
         measured in ``docs/results/detection.md``).
     regression : ``"smooth_l1"`` or ``"l1"`` (what the official runs used, see the module docstring)
     weights : ``(classification, regression, freespace)`` multipliers

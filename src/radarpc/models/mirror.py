@@ -7,7 +7,7 @@ runs the detector on both, maps the second output back through the mirror and av
 alone sees weakly loses half its probability, one both views see keeps it. It costs a second
 forward pass, so frames/s halve. It helps only where the world is left-right symmetric: road
 traffic keeps to one side, and a model that has learned where roads and oncoming cars lie scores
-mirrored frames worse (``benchmarks/mirror_symmetry.py`` measures how much; on the simulator's
+mirrored frames worse (``docs/notebook/scripts/mirror_symmetry.py`` measures how much; on the simulator's
 right-hand traffic the average lowered F1, ``docs/notebook/2026-12-04-detection.md``).
 
 Mirroring an output map back (:func:`mirror_detection_map`): column ``j`` of the 224 azimuth

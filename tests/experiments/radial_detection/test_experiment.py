@@ -427,7 +427,7 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
         detection.evaluate_run(out, "test", fast=True, precision="bf16")
     # benchmarks/mirror_symmetry.py: the split as it is and mirror-averaged score as evaluate scored
     # them, and every frame mirrored is scored too
-    script_mirror = Path(__file__).parents[3] / "benchmarks" / "mirror_symmetry.py"
+    script_mirror = Path(__file__).parents[3] / "docs" / "notebook" / "scripts" / "mirror_symmetry.py"
     res = subprocess.run([sys.executable, str(script_mirror), str(out)], capture_output=True, text=True, check=True)
     ms = json.loads(res.stdout)
     assert ms["frames"] == 4 and set(ms) >= {"as_is", "mirrored", "mirror_averaged"}
@@ -454,7 +454,7 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     save_weights(eager / BEST_WEIGHTS, state, info)
     assert main(["evaluate", str(eager), "--split", "test", "--fps-frames", "1", "--device", "cpu"]) == 0
     fp = json.loads((eager / "eval_test.json").read_text())["metrics"]["fp"][0]
-    script = Path(__file__).parents[3] / "benchmarks" / "false_alarms.py"
+    script = Path(__file__).parents[3] / "docs" / "notebook" / "scripts" / "false_alarms.py"
     res = subprocess.run([sys.executable, str(script), str(eager), "--threshold", "0.1", "--no-progress",
                           "--figure", str(tmp_path / "fa.png")], capture_output=True, text=True, check=True)
     fa = json.loads(res.stdout.splitlines()[-1])
@@ -466,7 +466,7 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     assert (tmp_path / "fa.png").stat().st_size > 1000
     # the same weights in fp32 and under bf16 autocast (benchmarks/bf16_detections.py): every
     # detection is paired or reported alone, whatever this CPU's bf16 rounding does to them
-    script_bf16 = Path(__file__).parents[3] / "benchmarks" / "bf16_detections.py"
+    script_bf16 = Path(__file__).parents[3] / "docs" / "notebook" / "scripts" / "bf16_detections.py"
     res = subprocess.run([sys.executable, str(script_bf16), str(eager), "--frames", "3", "--threads", "1"],
                          capture_output=True, text=True, check=True)
     bd = json.loads(res.stdout)
@@ -490,7 +490,7 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     assert bd["cells"]["cells"] == 3 * 128 * 224 and bd["cells"]["max_logit_diff"] >= 0
     # where the eager run's boxes sit against its labels (benchmarks/box_offsets.py): the same
     # labels, misses and near misses at 0.2 as the metrics count
-    script_box = Path(__file__).parents[3] / "benchmarks" / "box_offsets.py"
+    script_box = Path(__file__).parents[3] / "docs" / "notebook" / "scripts" / "box_offsets.py"
     res = subprocess.run([sys.executable, str(script_box), str(eager), "--figure", str(tmp_path / "box.png")],
                          capture_output=True, text=True, check=True)
     bo = json.loads(res.stdout)

@@ -9,7 +9,8 @@ under bf16 autocast (the same weights) and prints one JSON object with, over the
 * ``by_threshold``: for the decoding threshold 0.05 and each of RADIal's confidence thresholds
   0.1 ... 0.9 (the metrics see only detections above these), the detections above it in each
   precision, those left without a partner in the other (pairs: one to one, nearest first,
-  within half a cell: 0.4 m in range and 0.4 deg in azimuth), and the frames where every detection
+  within half a cell: 0.4 m in range and 0.4 deg in azimuth;
+  :func:`radarpc.eval.agreement.pair_detections`), and the frames where every detection
   has its partner (``frames_same``);
 * ``matched``: over the pairs at 0.05, the largest score, range and azimuth differences;
 * ``cells``: the largest logit difference over all cells (``max_logit_diff``) and how many cells
@@ -18,7 +19,7 @@ under bf16 autocast (the same weights) and prints one JSON object with, over the
 
 Usage::
 
-    python benchmarks/bf16_detections.py runs/fft --split test [--frames 100] [--threads 2]
+    python docs/notebook/scripts/bf16_detections.py runs/fft --split test [--frames 100] [--threads 2]
 """
 from __future__ import annotations
 
@@ -30,34 +31,14 @@ import math
 import torch
 from torch.utils.data import DataLoader, Subset
 
-from radarpc.boxes import Detections
+from radarpc.eval.agreement import pair_detections
 from radarpc.eval.detection import THRESHOLDS as CONFIDENCE_THRESHOLDS
-from radarpc.experiments.detection import load_trained
+from radarpc.experiments.radial_detection.evaluation import load_trained
 from radarpc.machine import cpu_has_native_bf16, cpu_model
+from radarpc.boxes import Detections
 from radarpc.models.targets import decode_detections
 from radarpc.training.loop import autocast_context
-from radarpc.training.radial import DECODE_THRESHOLD, collate_detection, detection_dataset
-
-HALF_CELL = (0.4, 0.4)        # m, deg: below half a range (0.805 m) and azimuth (0.8 deg) cell
-
-
-def pair_detections(a: Detections, b: Detections, half_cell: tuple[float, float] = HALF_CELL
-                    ) -> tuple[list[tuple[int, int]], list[int], list[int]]:
-    """Greedy one-to-one pairs ``(i, j)`` of the detections of one frame, nearest first, within
-    ``half_cell`` in range and azimuth; and the rows of ``a`` and of ``b`` left without a pair."""
-    dr = (a.range_m[:, None] - b.range_m[None, :]).abs()
-    da = (a.azimuth_deg[:, None] - b.azimuth_deg[None, :]).abs()
-    ok = (dr <= half_cell[0]) & (da <= half_cell[1])
-    cost = torch.where(ok, dr / half_cell[0] + da / half_cell[1], torch.full_like(dr, math.inf))
-    pairs = []
-    while cost.numel() and bool(torch.isfinite(cost).any()):
-        k = int(torch.argmin(cost))
-        i, j = divmod(k, cost.shape[1])
-        pairs.append((i, j))
-        cost[i, :] = math.inf
-        cost[:, j] = math.inf
-    return (pairs, sorted(set(range(a.num_detections)) - {i for i, _ in pairs}),
-            sorted(set(range(b.num_detections)) - {j for _, j in pairs}))
+from radarpc.experiments.radial_detection.task import DECODE_THRESHOLD, collate_detection, detection_dataset
 
 
 def _above(d: Detections, t: float) -> Detections:

@@ -22,7 +22,7 @@ torchvision's import needs (the tools only use its PIL transforms), and says so 
 
 Usage::
 
-    python benchmarks/compat_radial_tools.py --radial-repo /work/peers/RADIal [--frames 2] [--md out.md]
+    python checks/radial_tools.py --radial-repo path/to/RADIal [--frames 2] [--sensors radial radial-s] [--no-forward]
 """
 from __future__ import annotations
 

@@ -10,7 +10,7 @@ first, so a root written by another simulator version is refused rather than mis
 
 ::
 
-    python benchmarks/false_alarms.py runs/sp_r1 runs/sp1 --split test --threshold 0.2 \\
+    python docs/notebook/scripts/false_alarms.py runs/sp_r1 runs/sp1 --split test --threshold 0.2 \\
         --names "spectralpillars-s, radial" "spectralpillars-s, radial-s" \\
         --figure docs/results/figures/detection_false_alarms.png
 
@@ -32,12 +32,12 @@ from tqdm import tqdm
 from radarpc.boxes import ra_to_box_xy
 from radarpc.eval.detection import FIXED_THRESHOLD, RANGE_GATE_M
 from radarpc.eval.false_alarms import FALSE_ALARM_CAUSES, false_alarm_causes, false_alarm_mask
-from radarpc.experiments.detection import load_trained
+from radarpc.experiments.radial_detection.evaluation import load_trained
 from radarpc.models.targets import decode_detections
 from radarpc.sim.radial_labels import labelled_vehicles
 from radarpc.sim.radial_writer import RadialSimulator
 from radarpc.sim.road import GHOST_OWNER
-from radarpc.training.radial import collate_detection, detection_dataset
+from radarpc.experiments.radial_detection.task import collate_detection, detection_dataset
 from radarpc.viz import save_figure
 
 MOVING_MPS = 0.5  # radial speed over the ground above which an unowned scatterer is a person or cyclist

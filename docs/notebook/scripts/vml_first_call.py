@@ -17,7 +17,7 @@ detections are the first call after the forward, once as torch computes them (``
 ``R cos A``: the baseline) and once through :func:`radarpc.boxes.ra_to_box_xy`, whose
 two calls must agree in every process::
 
-    python benchmarks/vml_first_call.py --processes 40
+    python docs/notebook/scripts/vml_first_call.py --processes 40
 
 Prints one JSON object.
 """

@@ -27,7 +27,7 @@ The tool imports OpenCV (``cv2``) and matplotlib: ``pip install opencv-python-he
 
 Usage::
 
-    python benchmarks/compat_coloradar_tools.py --coloradar-repo /work/peers/coloradar [--frames 2] [--md out.md]
+    python checks/coloradar_tools.py --coloradar-repo path/to/coloradar [--frames 2] [--md out.md]
 """
 from __future__ import annotations
 
@@ -333,7 +333,7 @@ def main(argv=None) -> int:
         load = " ".join(f.read().split()[:3])
     res = {"coloradar_repo": str(repo), "tool_commit": commit, "frames": args.frames,
            "lidar": f"{lidar['lidar_beams']} beams x {lidar['lidar_azimuth_steps']} steps",
-           "command": "python benchmarks/compat_coloradar_tools.py " + " ".join(sys.argv[1:] if argv is None else argv),
+           "command": "python checks/coloradar_tools.py " + " ".join(sys.argv[1:] if argv is None else argv),
            "simulate_s": round(sim_s, 1), "loadavg": load, "steps": steps}
     print(json.dumps(res, indent=1, default=float))
     if args.md:

@@ -2,11 +2,12 @@
 
 Usage::
 
-    python benchmarks/check_radial_metrics.py [--radial /work/peers/RADIal] [--cases 200] [--seed 0]
+    python checks/radial_metrics.py --radial-repo path/to/RADIal [--cases 200] [--seed 0]
 
-Needs a checkout of valeoai/RADIal and ``shapely`` (which its metrics import); the official
-modules are imported from the checkout, never copied (``pkbar``, a progress bar it imports but
-does not use here, is replaced by an empty module when missing).
+Needs a local clone of valeoai/RADIal (``--radial-repo``; ``--radial`` is the same option) and
+``shapely`` (which its metrics import); the official modules are imported from the clone, never
+copied (``pkbar``, a progress bar it imports but does not use here, is replaced by an empty module
+when missing).
 
 * ``metrics``: random frames (0-4 labels at 3-105 m, detections jittered around them plus false
   alarms, raw candidates before NMS) scored by the official ``GetFullMetrics`` (its printed mAP,
@@ -160,13 +161,14 @@ def check_freespace(rng, n_cases: int) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--radial", type=Path, default=Path("/work/peers/RADIal"), help="valeoai/RADIal checkout")
+    ap.add_argument("--radial-repo", "--radial", dest="radial", type=Path, required=True,
+                    metavar="RADIAL_REPO", help="local clone of valeoai/RADIal")
     ap.add_argument("--cases", type=int, default=200)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     base = args.radial / "FFTRadNet"
     if not (base / "utils" / "metrics.py").is_file():
-        sys.exit(f"{base / 'utils' / 'metrics.py'} not found: pass --radial <valeoai/RADIal checkout>")
+        sys.exit(f"{base / 'utils' / 'metrics.py'} not found: pass --radial-repo <local clone of valeoai/RADIal>")
     try:
         import shapely  # noqa: F401
     except ImportError:

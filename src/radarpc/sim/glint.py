@@ -1,47 +1,36 @@
-"""Where one frame puts a car across from its rear face: angle glint against RADIal's tolerance.
+"""Angle glint of a car's rear face: the azimuth one RD cell gives it, under the simulator's model.
 
-A RADIal box is 1.8 m wide; a detection level with a label matches it (IoU >= 0.5) only within
-``W (1 - t) / (1 + t) = 0.6 m`` across (:func:`radarpc.eval.detection.lateral_tolerance_m`). The
-scatterers of a car's rear face (bumper, lights and the strong corners of the simulator's vehicle
-template) lie at one range and share one Doppler, so they and their ground bounces fill one RD
-cell, and the DSP gives that cell one azimuth: the maximum of its calibrated angle spectrum over
-all directions (the seed's eq. 6). Their carrier phases differ by millimetre path differences, so
-that maximum wanders across the face from frame to frame (angle glint). Nearer in, the corners
-are resolved and the maximum tends to pick one of them; once the face is about as wide as the
-beam, it lands between them.
+The scatterers of a car's rear face (bumper, lights and the strong corners of the simulator's
+vehicle template, :mod:`radarpc.sim.road`) lie at one range and share one Doppler, so they and
+their ground bounces (:mod:`radarpc.sim.multipath`) fill one RD cell, and the DSP gives that cell
+one azimuth: the maximum of its calibrated angle spectrum over all directions (the seed's eq. 6).
+Their carrier phases differ by millimetre path differences, so that maximum wanders across the
+face from frame to frame (angle glint). Nearer in, the corners are resolved and the maximum tends
+to pick one of them; once the face is about as wide as the beam (:func:`beamwidth_deg`), it lands
+between them.
 
-For a car at each range (straight ahead, or at ``--azimuth``) this draws ``--draws`` rear faces:
-the template's scatterers with their RCS draws, heights and the simulator's aspect factor
-``sqrt(cos)``; the face turned by up to ``--yaw`` degrees and moved by up to 0.5 m in range, so
-that the carrier phases vary as between frames; and each scatterer's three paths as the simulator
-makes them (direct, ground bistatic ``4 |Gamma|^2``, ground double ``|Gamma|^4``, radar 0.8 m above
-the road). It beamforms each cell with the sensor's own calibration
-(:func:`radarpc.sim.radial_calibration.make_calibration`, hardware errors included), with no noise
-and no other cell, and scores the maximum's azimuth with RADIal's box rule at the face's range.
-Under-body returns lie in other range cells and are left out. Prints one JSON object: the beam's
--3 dB width and, per range, the share of faces matched and the median offset across.
-``--figure`` plots the share against range. Usage::
-
-    python benchmarks/vehicle_glint.py --sensor radial --draws 400 --figure glint.png
+:func:`rear_face` draws the template's rear-facing scatterers, :func:`face_paths` their three
+paths each as the simulator makes them, :func:`beamformed_azimuth` the azimuth of a cell of
+point paths, and :func:`glint_azimuths` all three for many faces turned and moved as between
+frames, with no noise and no other cell. Scoring the azimuths with RADIal's box rule (a detection
+level with its label matches only within 0.6 m across) is the metric's business
+(:func:`radarpc.models.targets.box_iou`); ``docs/notebook/scripts/vehicle_glint.py`` does it.
 """
 from __future__ import annotations
-
-import argparse
-import json
 
 import numpy as np
 import torch
 
-from radarpc.boxes import BOX_WIDTH_M, box_iou, ra_to_box_xy
 from radarpc.dsp.beamform import angle_spectrum
-from radarpc.eval.detection import IOU_THRESHOLD, lateral_tolerance_m
-from radarpc.sensors.radial import DDMARadarConfig, radial_sensor, steering_vectors
+from radarpc.sensors.radial import DDMARadarConfig, steering_vectors
 from radarpc.sim.multipath import bistatic_fields, ground_image, path_fields
 from radarpc.sim.radial_calibration import make_calibration
 from radarpc.sim.road import RoadSceneConfig, _vehicle_template
-from radarpc.viz import save_figure
 
-CAR_LWH_M = (4.0, BOX_WIDTH_M, 1.5)          # as wide as RADIal's box
+__all__ = ["CAR_LWH_M", "rear_face", "face_paths", "beamformed_azimuth", "glint_azimuths", "beamwidth_deg"]
+
+CAR_LWH_M = (4.0, 1.8, 1.5)
+"""Length, width and height (m) of the car: as wide as RADIal's 1.8 m box."""
 
 
 def rear_face(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -71,9 +60,24 @@ def face_paths(local_yz: np.ndarray, rcs: np.ndarray, range_m: float, azimuth_de
                radar_height_m: float, ground_reflection_db: float) -> tuple[np.ndarray, ...]:
     """The simulator's paths of one rear face whose centre is at ``(range_m, azimuth_deg)``.
 
-    The face is perpendicular to the line of sight turned by ``yaw_deg``. Returns ``(range_m,
-    azimuth_deg, elevation_deg, rcs)``, each ``(3 K,)``: the direct paths, the ground-bistatic ones
-    (``4 |Gamma|^2``) and the ground-double ones (``|Gamma|^4``), as ``RoadScene.frame`` makes them.
+    Parameters
+    ----------
+    local_yz, rcs : ndarray ``(K, 2)``, ``(K,)``
+        The face's scatterers (:func:`rear_face`).
+    range_m, azimuth_deg : float
+        Position of the face centre on the road (radar frame, ground plane).
+    yaw_deg : float
+        The face is perpendicular to the line of sight turned by this angle.
+    radar_height_m : float
+        Height of the radar above the road.
+    ground_reflection_db : float
+        Power loss ``|Gamma|^2`` of one bounce off the road (dB).
+
+    Returns
+    -------
+    range_m, azimuth_deg, elevation_deg, rcs : ndarray ``(3 K,)``
+        The direct paths, the ground-bistatic ones (``4 |Gamma|^2``) and the ground-double ones
+        (``|Gamma|^4``), as ``RoadScene.frame`` makes them.
     """
     a, t = np.radians(azimuth_deg), np.radians(azimuth_deg + yaw_deg)
     across = np.array([-np.sin(t), np.cos(t)])                        # body y in the radar frame
@@ -120,10 +124,10 @@ def beamformed_azimuth(cfg: DDMARadarConfig, range_m: np.ndarray, azimuth_deg: n
     return cfg.azimuth_table_deg[(s.argmax(1) // n_el).numpy()]
 
 
-def glint_draws(cfg: DDMARadarConfig, range_m: float, draws: int, rng: np.random.Generator, *,
+def glint_azimuths(cfg: DDMARadarConfig, range_m: float, draws: int, rng: np.random.Generator, *,
                 azimuth_deg: float = 0.0, yaw_deg: float = 5.0, ground_reflection_db: float | None = None,
                 dictionary: torch.Tensor | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Draw ``draws`` rear faces near ``range_m`` and score their cells' azimuths as RADIal would.
+    """Draw ``draws`` rear faces near ``range_m`` and the azimuth the DSP gives each one's cell.
 
     Parameters
     ----------
@@ -144,11 +148,12 @@ def glint_draws(cfg: DDMARadarConfig, range_m: float, draws: int, rng: np.random
 
     Returns
     -------
-    matched : ndarray of bool ``(draws,)``
-        Whether a detection at the face's range and the maximum's azimuth matches the label at the
-        face centre (IoU >= 0.5 of their boxes).
-    dx_m : ndarray ``(draws,)``
-        The detection's offset across, ``R (sin A_peak - sin A_0)``, as the metric's boxes see it.
+    range_m : ndarray ``(draws,)``
+        Range of each face centre (within 0.5 m of ``range_m``).
+    peak_azimuth_deg : ndarray ``(draws,)``
+        Azimuth of the maximum of each face's cell (:func:`beamformed_azimuth`). A detection there
+        and a label at the face centre (``azimuth_deg``), both at the face's range, are what
+        RADIal's box rule scores.
     """
     if range_m <= 0.5 or draws < 1 or yaw_deg < 0:
         raise ValueError(f"range_m must be > 0.5, draws >= 1 and yaw_deg >= 0, got {range_m}, {draws}, {yaw_deg}")
@@ -166,12 +171,7 @@ def glint_draws(cfg: DDMARadarConfig, range_m: float, draws: int, rng: np.random
         p = face_paths(local_yz, rcs, r_face[i], azimuth_deg, rng.uniform(-yaw_deg, yaw_deg),
                        scene.radar_height_m, ground_reflection_db)
         paths[:, i, :len(p[0])] = p
-    peak = beamformed_azimuth(cfg, *paths, dictionary)
-    r = torch.as_tensor(r_face)
-    det = ra_to_box_xy(r, torch.as_tensor(peak, dtype=torch.float64))
-    lab = ra_to_box_xy(r, torch.full_like(r, azimuth_deg))
-    matched = box_iou(det, lab).diagonal() >= IOU_THRESHOLD
-    return matched.numpy(), (det[:, 0] - lab[:, 0]).numpy()
+    return r_face, beamformed_azimuth(cfg, *paths, dictionary)
 
 
 def beamwidth_deg(cfg: DDMARadarConfig, azimuth_deg: float = 0.0, dictionary: torch.Tensor | None = None, *,
@@ -215,56 +215,3 @@ def beamwidth_deg(cfg: DDMARadarConfig, azimuth_deg: float = 0.0, dictionary: to
         return az_table[inside] + f * (az_table[outside] - az_table[inside])
 
     return float(crossing(hi, hi + 1) - crossing(lo, lo - 1))
-
-
-def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--sensor", default="radial", help="a RADIal sensor name (radial, radial-s, tiny)")
-    p.add_argument("--ranges", type=float, nargs="+", default=[10, 20, 30, 40, 50, 60, 70, 80, 90, 100])
-    p.add_argument("--draws", type=int, default=400, help="rear faces per range")
-    p.add_argument("--azimuth", type=float, default=0.0, help="azimuth of the car (deg)")
-    p.add_argument("--yaw", type=float, default=5.0, help="faces turned by up to this many degrees")
-    p.add_argument("--ground-reflection-db", type=float, default=RoadSceneConfig.ground_reflection_db,
-                   help="power loss of one bounce off the road (the simulator's by default; -200: no bounce)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--figure", help="write the share matched against range here (PNG)")
-    a = p.parse_args(argv)
-    cfg = radial_sensor(a.sensor)
-    dictionary = make_calibration(cfg).dictionary()
-    rng = np.random.default_rng(a.seed)
-    theta = beamwidth_deg(cfg, a.azimuth, dictionary)
-    rows = []
-    for r in a.ranges:
-        matched, dx = glint_draws(cfg, r, a.draws, rng, azimuth_deg=a.azimuth, yaw_deg=a.yaw,
-                                  ground_reflection_db=a.ground_reflection_db, dictionary=dictionary)
-        share = float(matched.mean())
-        rows.append({"range_m": r, "share_matched": share,
-                     "standard_error": float(np.sqrt(share * (1 - share) / a.draws)),
-                     "median_abs_dx_m": float(np.median(np.abs(dx))),
-                     "face_width_deg": float(2 * np.degrees(np.arctan(CAR_LWH_M[1] / 2 / r)))})
-    print(json.dumps({"sensor": a.sensor, "azimuth_deg": a.azimuth, "yaw_deg": a.yaw, "draws": a.draws,
-                      "ground_reflection_db": a.ground_reflection_db,
-                      "seed": a.seed, "lateral_tolerance_m": lateral_tolerance_m(), "beamwidth_3db_deg": theta,
-                      "face_as_wide_as_beam_at_m": CAR_LWH_M[1] / np.radians(theta), "by_range": rows}))
-    if a.figure:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-        fig, ax = plt.subplots(figsize=(6.5, 4))
-        share = np.array([r["share_matched"] for r in rows])
-        err = np.array([r["standard_error"] for r in rows])
-        ax.errorbar(a.ranges, share, yerr=2 * err, fmt="o-", capsize=3,
-                    label=f"the cell's azimuth matches the label ({a.draws} faces a range, 2 s.e.)")
-        ax.axvline(CAR_LWH_M[1] / np.radians(theta), color="0.5", ls=":",
-                   label=f"face as wide as the beam ({theta:.2f} deg at -3 dB)")
-        ax.set(xlabel="range of the car (m)", ylabel="share of faces", ylim=(0, 1),
-               title=f"{a.sensor}: one car's rear-face cell, no noise")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        save_figure(fig, a.figure, dpi=120)
-        plt.close(fig)
-
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,7 @@
 """How many labels a point store lets a detector reach at all: the data-side ceiling of recall.
 
-For every label of a split (RADIal's 5..100 m gate) this measures, on the store's points:
+For every label of a split (RADIal's 5..100 m gate) this measures, on the store's points
+(:func:`radarpc.eval.localisation.point_reach`):
 
 * the distance (m, bird's-eye view) from the label's reference point to the nearest point of its
   frame;
@@ -11,26 +12,24 @@ For every label of a split (RADIal's 5..100 m gate) this measures, on the store'
 and, over all points, the share within 3 m of some label: the vehicle returns among the clutter.
 
 Where the points put a box across (``placement_by_range_m``, by label range 0-30, 30-60, >= 60 m):
-a box matches (IoU >= 0.5, no error along) only within ``W / 3 = 0.6 m`` of the label across, so
-for the points inside each label's box grown by that much on every side, it gives the share of
-labels whose points place the box that well by three rules: the centre of their extent across,
-the strongest point, and the power-weighted centroid. The grown box is centred on the truth, so
-the rules know where the vehicle is (a detector must find it first), but its points come mixed
-with any clutter inside; they are simple rules, not bounds, and say how well the points carry the
-vehicle's position across (``benchmarks/vehicle_glint.py`` gives the physics of one rear face).
+:func:`radarpc.eval.localisation.lateral_placement` and ``placement_summary``, the share of labels
+whose points (inside the label's box grown by the 0.6 m tolerance across) place the box within
+that tolerance by three rules: the centre of their extent across, the strongest point, and the
+power-weighted centroid (``docs/notebook/scripts/vehicle_glint.py`` gives the physics of one rear
+face).
 
 A label without a point within a few metres can only be found by guessing, so the share of labels
 with a point nearby bounds the recall of any point-cloud detector on that store, and the share
 with a matching point is what a detector that does not learn offsets can reach. Several stores
 (e.g. densities) are compared side by side::
 
-    python benchmarks/detection_ceiling.py --data data/sim_rs --points pc057.parquet pc200.parquet \\
+    python docs/notebook/scripts/detection_ceiling.py --data data/sim_rs --points pc057.parquet pc200.parquet \\
         --split test --figure docs/results/figures/detection_ceiling.png
 
 and so are stores of different roots (e.g. the same scenes seen by the ``radial`` and ``radial-s``
 sensors), one ``--data`` root per store::
 
-    python benchmarks/detection_ceiling.py --data sim_r1 sim_rs1 --points pc_r1.parquet pc_rs1.parquet \\
+    python docs/notebook/scripts/detection_ceiling.py --data sim_r1 sim_rs1 --points pc_r1.parquet pc_rs1.parquet \\
         --split test --figure reach.png
 
 Prints one JSON object per store.
@@ -44,100 +43,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from radarpc.boxes import BOX_LENGTH_M, BOX_WIDTH_M, box_iou, ra_to_box_xy
 from radarpc.data.point_dataset import PointCloudDataset
-from radarpc.eval.detection import IOU_THRESHOLD, RANGE_GATE_M, lateral_tolerance_m
+from radarpc.eval.detection import RANGE_GATE_M
+from radarpc.eval.localisation import (
+    LATERAL_TOLERANCE_M,
+    PLACEMENT_RULES,
+    lateral_placement,
+    placement_summary,
+    point_reach,
+)
+from radarpc.boxes import ra_to_box_xy
 from radarpc.viz import save_figure
 
 RADII_M = (1.0, 2.0, 3.0, 5.0)
-LABEL_RANGE_BINS_M = (30.0, 60.0)                        # as benchmarks/box_offsets.py
-LATERAL_TOLERANCE_M = lateral_tolerance_m(IOU_THRESHOLD)  # 0.6 m across
-PLACEMENT_RULES = ("extent_centre", "strongest_point", "power_centroid")
-
-
-def lateral_placement(label_xy: torch.Tensor, point_xy: torch.Tensor, amplitude: torch.Tensor,
-                      grow_m: float = LATERAL_TOLERANCE_M) -> torch.Tensor:
-    """How one frame's points place each label's box across.
-
-    Parameters
-    ----------
-    label_xy : Tensor ``(L, 2)``
-        Labels' near-edge centres in RADIal's box frame (``x`` across, ``y`` along the boresight).
-    point_xy : Tensor ``(N, 2)``
-        The frame's points in the same frame.
-    amplitude : Tensor ``(N,)``
-        The points' amplitudes (``Ae``), non-negative.
-    grow_m : float
-        Margin by which each label's ``W x L`` box is grown on every side, >= 0.
-
-    Returns
-    -------
-    Tensor ``(L, 4)``, float64
-        Per label: the number of points inside its grown box, then the offset across (point minus
-        label, m) of the centre of their extent, of the strongest of them, and of their centroid
-        weighted by ``amplitude**2``; NaN offsets where no point is inside.
-    """
-    if label_xy.ndim != 2 or label_xy.shape[1] != 2 or point_xy.ndim != 2 or point_xy.shape[1] != 2:
-        raise ValueError(f"label_xy and point_xy must be (L, 2) and (N, 2), got {tuple(label_xy.shape)} "
-                         f"and {tuple(point_xy.shape)}")
-    if amplitude.shape != point_xy.shape[:1]:
-        raise ValueError(f"amplitude must be ({point_xy.shape[0]},), got {tuple(amplitude.shape)}")
-    if grow_m < 0:
-        raise ValueError(f"grow_m must be >= 0, got {grow_m}")
-    if len(point_xy) == 0:
-        out = torch.full((len(label_xy), 4), float("nan"), dtype=torch.float64)
-        out[:, 0] = 0
-        return out
-    d = point_xy.double()[None] - label_xy.double()[:, None]                     # (L, N, 2)
-    dx = d[..., 0]
-    inside = (dx.abs() <= BOX_WIDTH_M / 2 + grow_m) & (d[..., 1] >= -grow_m) & (d[..., 1] <= BOX_LENGTH_M + grow_m)
-    n = inside.sum(1)
-    inf = torch.tensor(float("inf"), dtype=torch.float64)
-    extent = (torch.where(inside, dx, inf).amin(1) + torch.where(inside, dx, -inf).amax(1)) / 2
-    power = torch.where(inside, amplitude.double()[None] ** 2, torch.zeros((), dtype=torch.float64))  # (L, N)
-    # -1 outside: the strongest is an inside point even where all inside amplitudes are 0
-    strongest = dx.gather(1, torch.where(inside, power, -1.0).argmax(1, keepdim=True))[:, 0]
-    centroid = (power * dx).sum(1) / power.sum(1)
-    out = torch.stack([n.double(), extent, strongest, centroid], 1)
-    out[n == 0, 1:] = float("nan")
-    return out
-
-
-def placement_summary(range_m: np.ndarray, placement: np.ndarray, tolerance_m: float = LATERAL_TOLERANCE_M) -> dict:
-    """Counts and shares of :func:`lateral_placement` rows, overall and by label range.
-
-    Parameters
-    ----------
-    range_m : ndarray ``(L,)``
-        The labels' ranges.
-    placement : ndarray ``(L, 4)``
-        Their :func:`lateral_placement` rows.
-    tolerance_m : float
-        An offset across counts as placed when ``|dx| <= tolerance_m``.
-
-    Returns
-    -------
-    dict
-        Under ``"all"`` and one key per range bin (``"0-30"``, ``"30-60"``, ``">=60"``: ``lo <= R <
-        hi``): ``labels``, ``median_points_in_grown_box``, ``share_without_a_point`` and, per rule of
-        :data:`PLACEMENT_RULES`, ``share_placed_within_tolerance`` (a label without a point is not
-        placed). Values of an empty bin are None.
-    """
-    edges = (0.0,) + LABEL_RANGE_BINS_M + (np.inf,)
-
-    def one(sel: np.ndarray) -> dict:
-        p = placement[sel]
-        if len(p) == 0:
-            return {"labels": 0, "median_points_in_grown_box": None, "share_without_a_point": None,
-                    "share_placed_within_tolerance": dict.fromkeys(PLACEMENT_RULES)}
-        return {"labels": int(sel.sum()), "median_points_in_grown_box": float(np.median(p[:, 0])),
-                "share_without_a_point": float(np.mean(p[:, 0] == 0)),
-                "share_placed_within_tolerance": {  # NaN (no point) compares False
-                    rule: float(np.mean(np.abs(p[:, 1 + k]) <= tolerance_m)) for k, rule in enumerate(PLACEMENT_RULES)}}
-
-    return {"all": one(np.ones(len(range_m), bool)),
-            **{(f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}"): one((range_m >= lo) & (range_m < hi))
-               for lo, hi in zip(edges[:-1], edges[1:])}}
+SUPPORT_RADIUS_M = 3.0
 
 
 def label_reach(points: str, data: str, split: str) -> dict:
@@ -156,17 +75,11 @@ def label_reach(points: str, data: str, split: str) -> dict:
         xy_pt = ra_to_box_xy(p.range_m.double(), p.azimuth_deg.double())          # (N, 2)
         label_range.append(lab[:, 0].double())
         placement.append(lateral_placement(xy_lab, xy_pt, p.amplitude))
-        if p.num_points == 0:
-            nearest += [np.inf] * len(lab)
-            matched += [False] * len(lab)
-            support += [0] * len(lab)
-            continue
-        d = torch.cdist(xy_lab, xy_pt)                                             # (L, N)
-        nearest += d.min(1).values.tolist()
-        on_vehicle += int((d < 3.0).any(0).sum())
-        support += (d < 3.0).sum(1).tolist()
-        iou = box_iou(xy_lab, xy_pt)                                               # (L, N)
-        matched += (iou >= IOU_THRESHOLD).any(1).tolist()
+        reach = point_reach(xy_lab, xy_pt, SUPPORT_RADIUS_M)
+        nearest += reach.nearest_m.tolist()
+        matched += reach.matched.tolist()
+        support += reach.support.tolist()
+        on_vehicle += int(reach.near_a_label.sum())
     nearest = np.asarray(nearest)
     label_range = torch.cat(label_range).numpy() if label_range else np.zeros(0)
     placement = torch.cat(placement).numpy() if placement else np.zeros((0, 4))

@@ -10,7 +10,7 @@ true and false detections at 0.2 and freespace mIoU of the run's best weights on
 is, on every frame mirrored, and averaged over both views (:class:`radarpc.models.mirror.MirrorAveraged`).
 Usage::
 
-    python benchmarks/mirror_symmetry.py runs/pp --split test [--data ROOT --points STORE]
+    python docs/notebook/scripts/mirror_symmetry.py runs/pp --split test [--data ROOT --points STORE]
 """
 from __future__ import annotations
 
@@ -23,9 +23,9 @@ from torch.utils.data import DataLoader
 
 from radarpc.data.augment import MirroredFrames
 from radarpc.eval.detection import FIXED_THRESHOLD
-from radarpc.experiments.detection import load_trained, mirror_sectors_of
+from radarpc.experiments.radial_detection.evaluation import load_trained, mirror_sectors_of
 from radarpc.models.mirror import MirrorAveraged
-from radarpc.training.radial import ConcatFrames, collate_detection, detection_dataset, evaluate_model, point_datasets
+from radarpc.experiments.radial_detection.task import ConcatFrames, collate_detection, detection_dataset, evaluate_model, point_datasets
 
 
 def scores(model, frames, cfg, batch_size: int = 4) -> dict:

@@ -10,7 +10,8 @@ frames, and from the same initial weights computes the loss gradients in each mo
   (``--modes`` picks; bf16 modes need a device that runs bf16 autocast).
 
 It prints one JSON object with, per mode, the loss of the batch, the median over weight tensors
-of ``|g - g_ref| / |g_ref|`` and the five weight tensors with the lowest cosine to the reference.
+of ``|g - g_ref| / |g_ref|`` and the five weight tensors with the lowest cosine to the reference
+(:func:`radarpc.training.gradients.compare_gradients`).
 Only tensors of two or more dimensions are compared: a convolution's bias that a BatchNorm follows
 has a zero gradient in exact arithmetic, so rounding is all its gradient holds. bf16 rounding
 gives eager bf16 some spread (every activation carries 2^-9 relative error); a mode whose
@@ -23,7 +24,7 @@ includes the compilation).
 
 Usage::
 
-    python benchmarks/training_gradients.py configs/fftradnet-s.yaml --data ROOT [--points STORE]
+    python docs/notebook/scripts/training_gradients.py configs/fftradnet-s.yaml --data ROOT [--points STORE]
         [--batch-size 8] [--steps 250] [--modes eager_fp32 eager_bf16 compiled_bf16] [--device cpu]
 """
 from __future__ import annotations
@@ -40,7 +41,9 @@ import torch
 
 from radarpc.config import load_yaml
 from radarpc.machine import cpu_model
-from radarpc.training.radial import ExperimentConfig, RadialDetectionTask
+from radarpc.training.gradients import compare_gradients
+from radarpc.experiments.radial_detection.config import ExperimentConfig
+from radarpc.experiments.radial_detection.task import RadialDetectionTask
 
 MODES = ("eager_fp32", "eager_bf16", "compiled_bf16", "compiled_fp32")
 WINDOW = 50
@@ -51,24 +54,6 @@ def autocast(mode: str, device: torch.device):
     if mode.endswith("bf16"):
         return torch.autocast(device.type, dtype=torch.bfloat16)
     return contextlib.nullcontext()
-
-
-def compare(g: dict[str, torch.Tensor], ref: dict[str, torch.Tensor]) -> dict:
-    """Median relative error and the lowest cosines of ``g`` against ``ref`` over weight tensors."""
-    rows = []
-    for k, r in ref.items():
-        if r.ndim < 2 or k not in g or float(r.norm()) == 0.0:
-            continue
-        rel = float((g[k] - r).norm() / r.norm())
-        cos = float(torch.nn.functional.cosine_similarity(g[k].flatten(), r.flatten(), dim=0))
-        ratio = float(g[k].norm() / r.norm())
-        rows.append((cos, rel, ratio, k))
-    rows.sort()
-    return {"weights_compared": len(rows),
-            "median_relative_error": statistics.median(r[1] for r in rows),
-            "median_cosine": statistics.median(r[0] for r in rows),
-            "lowest_cosines": [{"parameter": k, "cosine": c, "relative_error": e, "norm_ratio": q}
-                               for c, e, q, k in rows[:5]]}
 
 
 def run_mode(task: RadialDetectionTask, model: torch.nn.Module, mode: str, batches: list, lr: float,
@@ -136,7 +121,7 @@ def main() -> None:
         if mode == "eager_fp32":
             ref = g
         elif ref is not None:
-            row |= compare(g, ref)
+            row |= compare_gradients(g, ref)
         if args.steps:
             row["training"] = {"steps": len(losses), "wall_s": wall, "window": WINDOW,
                                "mean_loss_per_window": [statistics.fmean(losses[i:i + WINDOW])
