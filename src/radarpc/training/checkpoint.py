@@ -34,7 +34,8 @@ from safetensors.torch import load_file, save
 from radarpc.io import DataFileError, atomic_write
 from radarpc.runs import source_commit
 
-__all__ = ["TrainingState", "save_state", "load_state", "save_weights", "load_weights", "load_model_state",
+__all__ = ["TrainingState", "save_state", "load_state", "read_info", "save_weights", "load_weights",
+           "load_model_state",
            "software_record"]
 
 _META_KEY = "radarpc"
@@ -144,6 +145,24 @@ def save_state(path: str | os.PathLike, state: TrainingState) -> Path:
         "software": software_record(),
     }
     return _write(Path(path), tensors, meta)
+
+
+def read_info(path: str | os.PathLike) -> tuple[str, dict[str, Any]]:
+    """``(kind, info)`` of a file written by :func:`save_state` (``"training-state"``; info: epoch,
+    step, finished, history...) or :func:`save_weights` (``"weights"``; info: run key, epoch, step,
+    metrics...), read from its metadata alone: no tensor is loaded."""
+    from safetensors import safe_open
+
+    path = Path(path)
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = (f.metadata() or {}).get(_META_KEY)
+        if meta is None:
+            raise DataFileError(path, f"safetensors file without radarpc metadata (key {_META_KEY!r})")
+        meta = json.loads(meta)
+    except (OSError, SafetensorError, json.JSONDecodeError) as e:
+        raise DataFileError(path, f"not a readable radarpc checkpoint ({e})") from e
+    return str(meta.get("kind")), dict(meta.get("info", {}))
 
 
 def load_state(path: str | os.PathLike) -> TrainingState:

@@ -386,6 +386,8 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     key = json.loads((easy_run / "run.json").read_text())
     key["experiment"]["difficult"] = False
     (easy_run / "run.json").write_text(json.dumps(key))
+    state, info = load_weights(easy_run / "best.safetensors")         # weights carry the key they trained under
+    save_weights(easy_run / "best.safetensors", state, {**info, "run": key})
     for flag, stem, n_labels in (([], "eval_test_on_hard_easy", easy["metrics"]["n_labels"]),
                                  (["--difficult"], "eval_test_on_hard", len(tested))):
         assert main(["evaluate", str(easy_run), "--split", "test", "--fps-frames", "1", "--data", str(hard),
@@ -654,3 +656,58 @@ def test_shown_frames_spread_over_the_split():
     assert picks(0) == []
     assert picks(20) == list(range(10))       # more asked than there are: each once
     assert _shown(items, 2, lambda batch: batch) == [(0, [0]), (9, [9])]
+
+
+def test_evaluate_refuses_what_is_not_the_runs_own_and_says_when_unfinished(root, store, tmp_path, capsys,
+                                                                           monkeypatch):
+    """A run killed in epoch 1 of 2 is scored with a warning and says so in its outputs; weights
+    copied in from another run, non-finite weights and a folder in place of the weights are refused
+    with one line naming the file."""
+    from radarpc.experiments.radial_detection.train import train_runs
+
+    cfg = ExperimentConfig(name="sp-kill", model=ModelSpec("pillars-tiny"),
+                           train=dataclasses.replace(TINY_TRAIN, epochs=2, batch_size=4, eval_batch_size=4))
+    steps_per_epoch = len(PointCloudDataset(store, root, split="train")) // 4
+
+    def kill(step):
+        if step == steps_per_epoch + 1:                  # in epoch 1, after epoch 0's validation
+            raise KeyboardInterrupt
+
+    run = tmp_path / "run"
+    import radarpc.experiments.radial_detection.train as train_module
+
+    fitted = train_module.fit
+    with monkeypatch.context() as m, pytest.raises(KeyboardInterrupt):
+        m.setattr(train_module, "fit", lambda *a, **k: fitted(*a, **k, on_step=kill))
+        train_runs(cfg, root, run, points=store, progress=False, log=lambda s: None)
+    assert main(["evaluate", str(run), "--split", "test", "--fps-frames", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "warning: the run has not finished" in out and "from epoch 0" in out
+    doc = json.loads((run / "eval_test.json").read_text())
+    # the kill came before the next checkpoint: the last one is epoch 0's end
+    assert doc["training"] == {"weights_epoch": 0, "weights_step": steps_per_epoch, "finished": False,
+                               "epochs_done": 1, "steps_done": steps_per_epoch}
+    assert "UNFINISHED run" in (run / "eval_test.md").read_text()
+    # another run's weights copied in: refused, nothing scored under this run's name
+    other = tmp_path / "other"
+    train_runs(dataclasses.replace(cfg, name="sp-other", train=dataclasses.replace(cfg.train, epochs=1)), root, other,
+               points=store, progress=False, log=lambda s: None)
+    best = run / "best.safetensors"
+    saved = best.read_bytes()
+    shutil.copy(other / "best.safetensors", best)
+    assert main(["evaluate", str(run), "--split", "test"]) == 2
+    err = capsys.readouterr().err
+    assert "best.safetensors: these weights were trained under another run key" in err and "Traceback" not in err
+    # non-finite weights
+    state, info = load_weights(other / "best.safetensors")
+    state = {k: (v.fill_(float("nan")) if v.is_floating_point() else v) for k, v in state.items()}
+    best.write_bytes(saved)
+    _, own_info = load_weights(best)
+    save_weights(best, state, own_info)
+    assert main(["evaluate", str(run), "--split", "test"]) == 2
+    assert "non-finite values (NaN or inf)" in capsys.readouterr().err
+    # a folder in place of the weights
+    best.unlink()
+    best.mkdir()
+    assert main(["evaluate", str(run), "--split", "test"]) == 2
+    assert "best.safetensors: is a folder; expected the run's best weights" in capsys.readouterr().err

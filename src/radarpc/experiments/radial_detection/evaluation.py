@@ -40,10 +40,10 @@ from radarpc.boxes import Detections
 from radarpc.models.targets import TargetConfig, decode_detections
 from radarpc.machine import check_device
 from radarpc.runs import check_writable, locked_output, read_json, remove_temp_files
-from radarpc.training.checkpoint import load_model_state, load_weights
-from radarpc.training.loop import BEST_WEIGHTS, LOG_CSV, autocast_context
+from radarpc.training.checkpoint import load_model_state, load_weights, read_info
+from radarpc.training.loop import BEST_WEIGHTS, LAST_CHECKPOINT, LOG_CSV, autocast_context
 
-__all__ = ["load_trained", "EvalResult", "evaluate_run", "evaluate_classical", "mirror_sectors_of",
+__all__ = ["load_trained", "EvalResult", "evaluate_run", "evaluate_classical", "mirror_sectors_of", "training_status", "DETECTION_COLUMNS",
            "EVAL_PRECISIONS"]
 
 EVAL_PRECISIONS = ("fp32", "bf16")
@@ -76,6 +76,9 @@ class EvalResult:
     """Scored in RADIal's easy mode: ``Difficult`` labels dropped (:func:`evaluate_run`)."""
     empty_frames: bool = True
     """Frames without a vehicle to score were scored too (their false alarms count)."""
+    training: dict | None = None
+    """What the weights are (:func:`training_status`): their epoch and step, and whether the run
+    had finished (None for the classical detector)."""
 
     @property
     def stem(self) -> str:
@@ -124,6 +127,22 @@ def load_trained(folder: str | os.PathLike, device: torch.device | str = "cpu"
     model = cfg.build_model()
     load_model_state(model, state, best, f"model {cfg.model.variant!r} of {folder / 'run.json'}")
     return cfg, model.to(device).eval(), key
+
+
+def training_status(folder: str | os.PathLike) -> dict:
+    """Where a run's best weights come from: ``{"weights_epoch", "weights_step", "finished",
+    "epochs_done", "steps_done"}``. ``finished`` is None for weights not trained here (imported),
+    False while the run's last checkpoint says it has steps left (a killed or running run)."""
+    folder = Path(folder)
+    _, best = read_info(folder / BEST_WEIGHTS)
+    status = {"weights_epoch": best.get("epoch"), "weights_step": best.get("step"), "finished": None,
+              "epochs_done": None, "steps_done": None}
+    last = folder / LAST_CHECKPOINT
+    if last.is_file():
+        _, progress = read_info(last)
+        status.update(finished=bool(progress.get("finished")), epochs_done=progress.get("epoch"),
+                      steps_done=progress.get("step"))
+    return status
 
 
 def _comparable(key: object) -> object:
@@ -238,6 +257,10 @@ def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, 
             raise ValueError(f"{folder}: mirror averaging applies to point models; {stored.name!r} takes RD "
                              f"cubes (mirroring a cube would need the array's geometry)")
     cfg, model, key = load_trained(folder, dev)
+    status = training_status(folder)
+    if status["finished"] is False:
+        log(f"{folder}: warning: the run has not finished (its last checkpoint is at epoch {status['epochs_done']}, "
+            f"step {status['steps_done']}); scoring its best weights so far, from epoch {status['weights_epoch']}")
     if points is not None and cfg.input_kind != "points":
         raise ValueError(f"{folder}: model {cfg.model.variant!r} reads RD cubes, not point stores; drop --points")
     n_params = sum(p.numel() for p in model.parameters())
@@ -277,7 +300,7 @@ def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, 
                      data=tuple(str(r) for r, _ in scored),
                      points=None if stores is None else tuple(str(p) for _, p in scored),
                      scored_on=_scored_on(scored, own), mirror_average=mirror_average, fast=fast, easy=run_easy,
-                     empty_frames=empty_frames)
+                     empty_frames=empty_frames, training=status)
     _write_eval(folder, res, cfg.name)
     _write_detections(folder / f"{res.stem}_detections.csv", item_frames(ds), found)
     if (folder / LOG_CSV).is_file():
@@ -416,7 +439,7 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
            "fps_batch1_range": [res.fps.low, res.fps.high], "fps_sweeps": res.fps.repeats,
            "device": res.device, "threads": res.threads, "precision": res.precision,
            "mirror_average": res.mirror_average, "fast": res.fast, "easy": res.easy,
-           "empty_frames": res.empty_frames}
+           "empty_frames": res.empty_frames, "training": res.training}
     with atomic_write(folder / f"{res.stem}.json", "w") as f:
         json.dump(doc, f, indent=2)
     thr = ", ".join(f"{t:.1f}" for t in m["thresholds"])
@@ -425,6 +448,8 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
         + ("" if res.precision == "fp32" else f", {res.precision} autocast")
         + (", RADIal's easy mode (Difficult labels dropped)" if res.easy else "")
         + ("" if res.empty_frames else ", frames without a vehicle to score left out (RADIal's loader)")
+        + (f", UNFINISHED run: best weights so far, from epoch {res.training['weights_epoch']}"
+           if res.training and res.training["finished"] is False else "")
         + (", averaged over each frame and its mirror image" if res.mirror_average else "")
         + (", fast inference copy (radarpc.models.fast)" if res.fast else ""), "",
         "| AP | AR | F1 | F1 @ 0.2 | range error (m) | azimuth error (deg) | freespace mIoU | parameters | frames/s (batch 1) |",

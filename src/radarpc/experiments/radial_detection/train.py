@@ -85,7 +85,7 @@ def train_runs(cfg: ExperimentConfig, data: DataPaths, out: str | os.PathLike, *
         results.append(res)
     if runs > 1:
         rows = [{"run": k, "best_epoch": r.best_epoch,
-                 **{m: r.history[r.best_epoch].get(f"val_{m}", math.nan) for m in SUMMARY_METRICS}}
+                 **{m: (r.best_row or {}).get(f"val_{m}", math.nan) for m in SUMMARY_METRICS}}
                 for k, r in enumerate(results)]
         write_summary(out / "summary", rows, f"{cfg.name}: best validation epoch of {runs} runs")
     return results
