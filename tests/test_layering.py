@@ -35,6 +35,8 @@ ALLOWED = {
     "eval": {"sensors", "dsp", "data"} | CONTRACTS,
     # figures draw the data handed to them (data's view types, eval's report constants)
     "viz": {"sensors", "data", "eval"} | CONTRACTS,
+    # the generic loop and its checkpoints: no model, dataset or experiment (those are the Task's)
+    "training": {"runs", "distributed"} | CONTRACTS,
 }
 # never, whatever else changes: the rules
 FORBIDDEN = {
@@ -42,6 +44,10 @@ FORBIDDEN = {
     "data": {"pipelines", "cli", "viz", "sim"},
     "eval": {"models", "sim", "pipelines", "training", "experiments"},
     "viz": {"pipelines", "models", "training", "experiments", "sim", "dsp"},
+    "training": {"models", "data", "experiments", "pipelines", "sim", "eval", "rald"},
+    "models": {"training", "experiments", "data", "pipelines", "sim", "eval"},
+    # an experiment is a sibling folder of experiments/: the command line sits above it
+    "experiments": {"cli"},
 }
 
 
