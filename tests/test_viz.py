@@ -269,3 +269,14 @@ def test_plot_label_outcomes_bars_are_the_reports_shares(tmp_path, figures):
     heights = [p.get_height() for p in ax.patches]           # matched, near, nothing near; 2 bars each
     np.testing.assert_allclose(heights, [0.6, 0.3, 0.3, 0.2, 0.1, 0.5])
     np.testing.assert_allclose([p.get_height() for p in ax_fp.patches], [2.0, 0.5])
+
+
+def test_plot_label_outcomes_without_labels_draws_no_share(tmp_path, figures):
+    # a split without labels once showed "the 0 labels" 100 % matched (n_labels clamped to 1)
+    metrics = {"thresholds": [0.1, 0.2], "fn": [0, 0], "fn_near": [0, 0], "fp": [3, 1], "n_labels": 0,
+               "n_frames": 2}
+    viz.plot_label_outcomes(metrics, tmp_path / "labels.png")
+    ax, ax_fp = figures[-1].axes
+    assert len(ax.patches) == 0 and ax.get_title() == "no labels"
+    assert "no labels in these frames" in ax.texts[0].get_text()
+    np.testing.assert_allclose([p.get_height() for p in ax_fp.patches], [1.5, 0.5])

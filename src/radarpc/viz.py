@@ -613,19 +613,23 @@ def plot_label_outcomes(metrics: dict, out: str | os.PathLike, title: str = "") 
     t = np.asarray(metrics["thresholds"], dtype=float)
     fp = np.asarray(metrics["fp"], float)
     fn, near = np.asarray(metrics["fn"], float), np.asarray(metrics["fn_near"], float)
-    n_labels = max(int(metrics["n_labels"]), 1)
-    matched = n_labels - fn                    # labels, not detections (TP counts detections)
+    n_labels = int(metrics["n_labels"])
     fig = _figure((10, 4))
     ax, ax_fp = fig.subplots(1, 2)
     w = 0.07
-    ax.bar(t, matched / n_labels, w, label="matched (IoU >= 0.5)", color="tab:green")
-    ax.bar(t, near / n_labels, w, bottom=matched / n_labels, label=f"missed, a detection within {NEAR_MISS_M:g} m",
-           color="tab:orange")
-    ax.bar(t, (fn - near) / n_labels, w, bottom=(matched + near) / n_labels, label="missed, nothing near",
-           color="tab:red")
+    if n_labels:
+        matched = n_labels - fn                # labels, not detections (TP counts detections)
+        ax.bar(t, matched / n_labels, w, label="matched (IoU >= 0.5)", color="tab:green")
+        ax.bar(t, near / n_labels, w, bottom=matched / n_labels,
+               label=f"missed, a detection within {NEAR_MISS_M:g} m", color="tab:orange")
+        ax.bar(t, (fn - near) / n_labels, w, bottom=(matched + near) / n_labels, label="missed, nothing near",
+               color="tab:red")
+        ax.legend(fontsize=8, loc="upper right", framealpha=0.9)
+    else:                                      # nothing to match: no bar may look like a score
+        ax.text(0.5, 0.5, "no labels in these frames:\nrecall and F1 are not defined", ha="center", va="center",
+                transform=ax.transAxes)
     ax.set(xlabel="confidence threshold", ylabel="share of labels", ylim=(0, 1), xticks=t,
-           title=f"the {int(metrics['n_labels'])} labels")
-    ax.legend(fontsize=8, loc="upper right", framealpha=0.9)
+           title=f"the {n_labels} labels" if n_labels else "no labels")
     ax_fp.bar(t, fp / max(int(metrics.get("n_frames", 1)), 1), w, color="tab:gray")
     ax_fp.set(xlabel="confidence threshold", ylabel="false alarms per frame", xticks=t, title="false alarms")
     for a in (ax, ax_fp):
