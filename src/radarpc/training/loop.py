@@ -100,6 +100,8 @@ FROZEN_ATTR = "frozen_submodules"
 LAST_CHECKPOINT = Path("checkpoints") / "last.safetensors"
 BEST_WEIGHTS = Path("best.safetensors")
 LOG_CSV = Path("log.csv")
+MAX_WORKERS = 256
+"""The most loader processes a config may ask for (a million of them hung torch)."""
 ONECYCLE_FINAL_DIV = 1e4
 """``OneCycleLR``'s ``final_div_factor``: the one-cycle schedule ends at ``lr_start / 1e4``."""
 
@@ -167,6 +169,9 @@ class TrainConfig:
             raise ValueError(f"train.warmup_steps={self.warmup_steps} must be below train.max_steps={self.max_steps}")
         if self.weight_decay < 0 or self.grad_clip_norm < 0 or self.num_workers < 0 or self.seed < 0:
             raise ValueError("train: weight_decay, grad_clip_norm, num_workers and seed must be >= 0")
+        if self.num_workers > MAX_WORKERS:
+            raise ValueError(f"train.num_workers={self.num_workers}: at most {MAX_WORKERS} loader processes "
+                             f"(each holds a copy of the dataset object)")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"train.ema_decay must be in [0, 1) (0 = no weight averaging), got {self.ema_decay}")
         if self.precision not in PRECISIONS:
@@ -635,12 +640,13 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, software: dict,
                 for k, v in row.items():
                     if k not in ("epoch", "step"):
                         tb.add_scalar(f"{'validation' if by_step else 'epoch'}/{k}", v, info["step"])
-            if by_step:
-                log(f"step {info['step']} (epoch {epoch}): loss {row['train_loss']:.4f}, val {cfg.select_metric} "
-                    f"{score:.4f} (best {info['best_score']:.4f} at step {info['best_step']})")
-            else:
-                log(f"epoch {epoch}: loss {row['train_loss']:.4f}, val {cfg.select_metric} {score:.4f} "
-                    f"(best {info['best_score']:.4f} at epoch {info['best_epoch']})")
+            with tqdm.external_write_mode():     # on a line of its own, above the progress bar
+                if by_step:
+                    log(f"step {info['step']} (epoch {epoch}): loss {row['train_loss']:.4f}, val "
+                        f"{cfg.select_metric} {score:.4f} (best {info['best_score']:.4f} at step {info['best_step']})")
+                else:
+                    log(f"epoch {epoch}: loss {row['train_loss']:.4f}, val {cfg.select_metric} {score:.4f} "
+                        f"(best {info['best_score']:.4f} at epoch {info['best_epoch']})")
         info["history"].append(row)
         info.update(sums={}, n_sums=0)
         if env.rank == 0:

@@ -24,6 +24,8 @@ GOOD = "name: x\nmodel: {variant: pillars-tiny}\ntrain: {epochs: 1}\n"
     ("name: x\nmodel: {variant: pillars-tiny}\ntrain: {select_metric: accuracy}\n",
      "train.select_metric 'accuracy' is not a validation metric of this experiment; one of ap, ar, f1"),
     ("name: x\nmodel: {variant: pillars-tiny}\n", "no 'train'"),
+    ("name: x\nmodel: {variant: pillars-tiny}\ntrain: {num_workers: 1000000}\n",
+     "train.num_workers=1000000: at most 256 loader processes"),
     ("name: x\nmodel: {variant: pillars-tiny}\ntargets: {n_range: 64}\ntrain: {epochs: 1}\n",
      "targets: n_range x n_azimuth = 64 x 224, but the models' detection map is 128 x 224"),
     ("name: x\ntrain: {epochs: 1}\n", "no 'model'"),
