@@ -310,3 +310,23 @@ def test_ddp_gloo_matches_single_process_first_step(tmp_path):
     assert got[0] == got[1]
     assert math.isclose(got[0], want, rel_tol=16 * 2 ** -24 * 8)
     assert (tmp_path / "ddp" / BEST_WEIGHTS).is_file()
+
+
+def test_a_checkpoint_of_another_model_is_refused_naming_the_file(tmp_path):
+    """``checkpoints/last.safetensors`` swapped for another model's: the rerun says which file does
+    not fit, instead of load_state_dict's traceback."""
+    import shutil
+
+    from radarpc.io import DataFileError
+
+    class WiderToy(ToyTask):
+        def build_model(self):
+            return torch.nn.Sequential(torch.nn.Linear(6, 32), torch.nn.GELU(), torch.nn.Dropout(0.2), torch.nn.Linear(32, 2))
+
+    one = dataclasses.replace(CFG, epochs=1)
+    fit(ToyTask(), one, tmp_path / "run", KEY, progress=False, log=lambda s: None)
+    fit(WiderToy(), one, tmp_path / "wide", KEY, progress=False, log=lambda s: None)
+    shutil.copy(tmp_path / "wide" / LAST_CHECKPOINT, tmp_path / "run" / LAST_CHECKPOINT)
+    with pytest.raises(DataFileError, match=r"last\.safetensors: its weights do not fit this run's model "
+                                            r"\(another model's checkpoint\?.*size mismatch"):
+        fit(ToyTask(), one, tmp_path / "run", KEY, progress=False, log=lambda s: None)

@@ -60,6 +60,10 @@ def run_command(parser: argparse.ArgumentParser, argv: list[str] | None = None) 
         # Bad input is reported as one clear line, not a traceback.
         print(f"radarpc {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except FloatingPointError as e:
+        # a run that diverged (non-finite loss): the loop says what to change
+        print(f"radarpc {args.command}: error: {e}", file=sys.stderr)
+        return 1
     except BrokenPipeError:
         # the reader went away (`radarpc info ROOT | head`): stop quietly, as Unix tools do; stdout
         # points at /dev/null so that Python's flush at exit does not raise again

@@ -85,7 +85,7 @@ from radarpc.distributed import DistEnv, dist_env, rank_device
 from radarpc.io import atomic_write
 from radarpc.machine import cpu_has_native_bf16
 from radarpc.runs import RunFolder
-from radarpc.training.checkpoint import (TrainingState, load_state, save_state, save_weights,
+from radarpc.training.checkpoint import (TrainingState, load_model_state, load_state, save_state, save_weights,
                                          software_record)
 
 __all__ = ["PRECISIONS", "SCHEDULES", "SELECT_MODES", "FROZEN_ATTR", "TrainConfig", "Task", "FitResult",
@@ -549,12 +549,13 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, software: dict,
     if cfg.ema_decay > 0:
         average = copy.deepcopy(model).requires_grad_(False).eval()
     if state is not None:
-        model.load_state_dict(state.model)
+        load_model_state(model, state.model, last, "this run's model (another model's checkpoint? start over with "
+                                                    "--overwrite, or train in another folder)")
         if average is not None:
             if state.ema is None:
                 raise ValueError(f"{last}: the checkpoint holds no weight average, but train.ema_decay is "
                                  f"{cfg.ema_decay}; resume with the config the run started with")
-            average.load_state_dict(state.ema)
+            load_model_state(average, state.ema, last, "this run's model (its weight average)")
         optimizer.load_state_dict(state.optimizer)
         scheduler.load_state_dict(state.scheduler)
         if scaler is not None and state.scaler:
