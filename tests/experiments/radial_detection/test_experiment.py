@@ -711,3 +711,46 @@ def test_evaluate_refuses_what_is_not_the_runs_own_and_says_when_unfinished(root
     best.mkdir()
     assert main(["evaluate", str(run), "--split", "test"]) == 2
     assert "best.safetensors: is a folder; expected the run's best weights" in capsys.readouterr().err
+
+
+def test_train_and_evaluate_bad_input_is_one_line(root, store, tmp_path, capsys):
+    """Each bad input of `train` / `evaluate` ends in one line naming what is wrong, exit 2."""
+    pp = tmp_path / "pp.yaml"
+    every = "difficult: true\ntargets: {}\nloss: {}\n"              # all sections given: no notice line
+    pp.write_text("name: pp\nmodel: {variant: pillars-tiny}\ntrain: {epochs: 1, batch_size: 4, eval_batch_size: 4, "
+                  "num_workers: 0, precision: fp32}\n" + every)
+    fft = tmp_path / "fft.yaml"
+    fft.write_text("name: fft\nmodel: {variant: fftradnet-tiny}\ntrain: {epochs: 1, num_workers: 0}\n" + every)
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "afile").write_text("x")
+
+    def one_line(args, *needles):
+        code = main(args)
+        err = capsys.readouterr().err
+        assert code == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+        for n in needles:
+            assert n in err, (n, err)
+
+    out = ["--out", str(tmp_path / "run"), "--no-progress"]
+    one_line(["train", str(pp), "--data", str(tmp_path / "missing"), "--points", str(store), *out],
+             "missing: dataset root does not exist")
+    one_line(["train", str(pp), "--data", str(tmp_path / "afile"), "--points", str(store), *out], "afile: is a file")
+    one_line(["train", str(pp), "--data", str(tmp_path / "empty"), "--points", str(store), *out],
+             "empty: is an empty folder")
+    one_line(["train", str(pp), "--data", str(root), str(root), "--points", str(store), str(store), *out],
+             "the same dataset root is given twice")
+    one_line(["train", str(fft), "--data", str(root), "--points", str(store), *out],
+             "model 'fftradnet-tiny' reads RD cubes, not point stores; drop --points")
+    assert not (tmp_path / "run").exists()
+    # a finished tiny run, then evaluate's bad input
+    assert main(["train", str(pp), "--data", str(root), "--points", str(store), *out]) == 0
+    capsys.readouterr()
+    run = str(tmp_path / "run")
+    for flag, value in (("--fps-frames", "0"), ("--fps-frames", "-5"), ("--show", "-1")):
+        one_line(["evaluate", run, flag, value], f"{flag[2:]} must be an integer >= ")
+    one_line(["evaluate", run, "--device", "gpu0"], "--device 'gpu0' is not a torch device")
+    # a killed evaluation's half-written file is cleared by the next one
+    stale = tmp_path / "run" / ".eval_test.json.x1y2.tmp"
+    stale.write_text("{")
+    assert main(["evaluate", run, "--fps-frames", "1"]) == 0
+    assert not stale.exists()
