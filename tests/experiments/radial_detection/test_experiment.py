@@ -745,6 +745,9 @@ def test_train_and_evaluate_bad_input_is_one_line(root, store, tmp_path, capsys)
     # a finished tiny run, then evaluate's bad input
     assert main(["train", str(pp), "--data", str(root), "--points", str(store), *out]) == 0
     capsys.readouterr()
+    # loader processes change nothing a run computes: another count is not another run
+    assert main(["train", str(pp), "--data", str(root), "--points", str(store), *out, "--num-workers", "1"]) == 0
+    assert "already finished" in capsys.readouterr().out
     run = str(tmp_path / "run")
     for flag, value in (("--fps-frames", "0"), ("--fps-frames", "-5"), ("--show", "-1")):
         one_line(["evaluate", run, flag, value], f"{flag[2:]} must be an integer >= ")
