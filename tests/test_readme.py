@@ -1,6 +1,7 @@
 """The README's commands and snippets, run in order in a temporary folder at tiny sizes.
 
-Every ```bash and ```python block of README.md is run, top to bottom, in one working folder, so
+Every ```bash and ```python block of README.md is run (and every ```yaml block loaded as an experiment
+config), top to bottom, in one working folder, so
 that later blocks find what earlier ones wrote (``data/sim_radial``, the point stores,
 ``data/sim_colo``). ``radarpc`` commands run in-process through :func:`radarpc.cli.main` and must
 exit 0; Python blocks are executed as written.
@@ -148,8 +149,14 @@ def test_readme_commands_and_snippets_run(tmp_path, monkeypatch, capsys):
                 continue
             exec(compile(body, f"README.md python block {k}", "exec"), {"__name__": "readme"})
             ran["python"] += 1
+        elif lang == "yaml":                  # an experiment config as the README shows one: it must load
+            from radarpc.experiments.radial_detection.config import load_experiment
+
+            (tmp_path / f"readme_block{k}.yaml").write_text(body)
+            load_experiment(tmp_path / f"readme_block{k}.yaml")
         else:
-            pytest.fail(f"README block {k} has language {lang!r}; this test runs bash and python blocks")
+            pytest.fail(f"README block {k} has language {lang!r}; this test runs bash and python blocks "
+                        f"and loads yaml ones as experiment configs")
     # every part of the README ran: the radial, point-cloud and ColoRadar commands and 3 snippets
     assert ran["bash"] >= 12 and ran["python"] >= 3, (ran, skipped)
     assert sum("CalibrationTable" in s or "real" in s for s in skipped) == 1, skipped

@@ -101,7 +101,16 @@ def test_radial_pcl_into_a_root(store, tmp_path, capsys):
     argv = ["export", str(store.path), "--radial-pcl", "--root", str(root), "--no-progress"]
     assert main(argv) == 2
     assert "is not a RADIal root (no labels.csv)" in capsys.readouterr().err
-    (root / "labels.csv").write_text("numSample\n")
+    from radarpc.data.radial_format import LABEL_COLUMNS
+
+    # a root that lists the store's frames (one empty-frame row each); the store's recorded root,
+    # /data/root, does not exist here (a moved root), so the frames decide
+    rows = [",".join(LABEL_COLUMNS)] + [",".join(str(n) if c == "numSample" else "A" if c == "dataset" else "-1"
+                                                 for c in LABEL_COLUMNS) for n in (10, 11, 12)]
+    (root / "labels.csv").write_text("\n".join(rows) + "\n")
+    assert main(argv) == 2                                            # frame 1234567 is not this root's
+    assert "(1 of 4, e.g. numSample 1234567)" in capsys.readouterr().err
+    (root / "labels.csv").write_text("\n".join(rows + [rows[-1].replace("12,", "1234567,", 1)]) + "\n")
     assert main(argv) == 0
     assert f"wrote radar_PCL for 4 frames" in capsys.readouterr().out
     pcl = np.load(radar_pcl_path(root, 12))

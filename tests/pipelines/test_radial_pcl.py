@@ -88,7 +88,7 @@ def test_a_store_of_another_root_is_refused(root_and_store, tmp_path, capsys):
     code = main(["export", str(tmp_path / "a.parquet"), "--radial-pcl", "--root", str(small)])
     err = capsys.readouterr().err
     assert code == 2 and "Traceback" not in err
-    assert "holds 3 frames that" in err and "does not list (e.g. numSample 1): it was made from another root" in err
+    assert "holds frames that" in err and "does not list (3 of 4, e.g. numSample 1): it was made from another root" in err
     assert not list(small.glob("radar_PCL/*.npy"))
     # the moved root itself still takes its own store
     assert write_radial_pcl(tmp_path / "a.parquet", tmp_path / "a_moved", progress=False).n_frames == 4

@@ -104,8 +104,8 @@ def write_radial_pcl(store: str | os.PathLike | PointStore, root: str | os.PathL
     listed = set(read_labels(root / "labels.csv").num_sample.tolist())
     foreign = [int(f) for f in store.frames if int(f) not in listed]
     if foreign:
-        raise ValueError(f"the point store {store.path} holds {len(foreign)} frames that {root}/labels.csv does not "
-                         f"list (e.g. numSample {foreign[0]}): it was made from another root")
+        raise ValueError(f"the point store {store.path} holds frames that {root}/labels.csv does not list "
+                         f"({len(foreign)} of {len(store)}, e.g. numSample {foreign[0]}): it was made from another root")
     n_points = 0
     with locked_output(root, "dataset root"):
         for i in tqdm(range(len(store)), desc="radar_PCL", unit="frame", disable=not progress):

@@ -309,10 +309,15 @@ def _check_detections_file(path, metrics, root, frames):
     assert tuple(rows[0]) == DETECTION_COLUMNS
     rows = rows[1:]
     assert {r[0] for r in rows} <= {root.name} and {int(r[1]) for r in rows} <= set(frames)
-    scores = [float(r[2]) for r in rows]
-    assert all(0.05 <= s <= 1.0 for s in scores)
+    from radarpc.boxes import ra_to_box_xy
+    from radarpc.eval.detection import RANGE_GATE_M
+
+    score, r, a = (torch.tensor([float(row[k]) for row in rows], dtype=torch.float64) for k in (2, 3, 4))
+    assert bool(((score >= 0.05) & (score <= 1.0)).all())
+    near_edge = ra_to_box_xy(r, a)[:, 1]                           # RADIal gates boxes by their near edge
+    scored = score[(near_edge >= RANGE_GATE_M[0]) & (near_edge <= RANGE_GATE_M[1])]
     for t, tp, fp in zip(metrics["thresholds"], metrics["tp"], metrics["fp"]):
-        assert sum(s >= t for s in scores) == tp + fp, t
+        assert int((scored > t).sum()) == tp + fp, t               # RADIal: score > t, strictly
 
 
 def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):

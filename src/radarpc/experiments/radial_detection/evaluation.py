@@ -323,10 +323,12 @@ def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, 
 
 
 DETECTION_COLUMNS = ("root", "numSample", "score", "range_m", "azimuth_deg")
-"""Columns of ``eval_{split}..._detections.csv``: one row per detection the metrics scored (after
-RADIal's decoding at confidence 0.05 and NMS), frames in the split's order; ``root`` the dataset
-root's folder name, ``numSample`` RADIal's frame number, ``range_m`` / ``azimuth_deg`` the box
-reference point (azimuth positive to the left). A frame without detections has no row."""
+"""Columns of ``eval_{split}..._detections.csv``: one row per decoded detection (RADIal's decoding
+at confidence 0.05 and NMS; the metrics then keep those whose box's near edge lies within
+:data:`~radarpc.eval.detection.RANGE_GATE_M`, as RADIal does), frames in the split's order;
+``root`` the dataset root's folder name, ``numSample`` RADIal's frame number, ``range_m`` /
+``azimuth_deg`` the box reference point (azimuth positive to the left). A frame without
+detections has no row."""
 
 
 def _write_detections(path: Path, frames: list[tuple[Path, int]], found: list[Detections]) -> None:
