@@ -5,7 +5,8 @@ names one.
 builds the model, each override replacing one field of the variant's model config. It is what the
 CLI and the experiment configs choose from. A model built here has a ``cfg`` (its resolved,
 frozen config) and an ``input_kind`` (what its forward takes: ``"rd"`` complex range-Doppler cubes,
-``"points"`` a :class:`~radarpc.points.PointCloudBatch`).
+``"points"`` a :class:`~radarpc.points.PointCloudBatch`, ``"radar"`` RaLD's radar intensity cube
+``(B, range, azimuth, elevation)``).
 
 An experiment names its model with a :class:`ModelSpec`::
 
@@ -29,6 +30,7 @@ import torch
 from torch import nn
 
 from radarpc.models.fftradnet import fftradnet, fftradnet_s, fftradnet_tiny
+from radarpc.models.latent_dit import rald_dit, rald_dit_d12, rald_dit_d18, rald_dit_s, rald_dit_tiny
 from radarpc.models.pillars import (pillars_tiny, polar_pointpillars, polar_pointpillars_s, spectralpillars,
                                     spectralpillars_s)
 
@@ -43,6 +45,11 @@ MODELS: dict[str, Callable[..., nn.Module]] = {
     "pointpillars-s": polar_pointpillars_s,
     "spectralpillars-s": spectralpillars_s,
     "pillars-tiny": pillars_tiny,               # tests
+    "rald-dit": rald_dit,                       # RaLD's radar-conditioned latent diffusion, paper size (depth 24)
+    "rald-dit-d12": rald_dit_d12,               # ... the seed's depth ablations
+    "rald-dit-d18": rald_dit_d18,
+    "rald-dit-s": rald_dit_s,                   # trains on 2 CPU cores
+    "rald-dit-tiny": rald_dit_tiny,             # tests
 }
 """Model size variants by name: ``MODELS[name](**overrides) -> nn.Module``."""
 
@@ -114,7 +121,8 @@ class ModelSpec:
 
     @property
     def input_kind(self) -> str:
-        """``"rd"`` (complex range-Doppler cubes) or ``"points"`` (a point cloud batch)."""
+        """``"rd"`` (complex range-Doppler cubes), ``"points"`` (a point cloud batch) or ``"radar"``
+        (RaLD's radar intensity cube)."""
         return self._input_kind
 
     def build(self, device: torch.device | str | None = None) -> nn.Module:
