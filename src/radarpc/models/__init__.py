@@ -5,7 +5,8 @@ names one.
 builds the model, each override replacing one field of the variant's model config. It is what the
 CLI and the experiment configs choose from. A model built here has a ``cfg`` (its resolved,
 frozen config) and an ``input_kind`` (what its forward takes: ``"rd"`` complex range-Doppler cubes,
-``"points"`` a :class:`~radarpc.points.PointCloudBatch`).
+``"points"`` a :class:`~radarpc.points.PointCloudBatch`, ``"lidar"`` dense ``(B, N, 3)`` LiDAR points
+and ``(B, Q, 3)`` query points normalised to [-1, 1]).
 
 An experiment names its model with a :class:`ModelSpec`::
 
@@ -31,6 +32,7 @@ from torch import nn
 from radarpc.models.fftradnet import fftradnet, fftradnet_s, fftradnet_tiny
 from radarpc.models.pillars import (pillars_tiny, polar_pointpillars, polar_pointpillars_s, spectralpillars,
                                     spectralpillars_s)
+from radarpc.models.vecset import rald_ae, rald_ae_s, rald_ae_tiny
 
 __all__ = ["MODELS", "ModelSpec", "build_model"]
 
@@ -43,6 +45,9 @@ MODELS: dict[str, Callable[..., nn.Module]] = {
     "pointpillars-s": polar_pointpillars_s,
     "spectralpillars-s": spectralpillars_s,
     "pillars-tiny": pillars_tiny,               # tests
+    "rald-ae": rald_ae,                         # RaLD's LiDAR occupancy autoencoder, official size
+    "rald-ae-s": rald_ae_s,                     # ... small, trains on 2 CPU cores
+    "rald-ae-tiny": rald_ae_tiny,               # tests
 }
 """Model size variants by name: ``MODELS[name](**overrides) -> nn.Module``."""
 
@@ -114,7 +119,8 @@ class ModelSpec:
 
     @property
     def input_kind(self) -> str:
-        """``"rd"`` (complex range-Doppler cubes) or ``"points"`` (a point cloud batch)."""
+        """``"rd"`` (complex range-Doppler cubes), ``"points"`` (a point cloud batch) or ``"lidar"``
+        (dense normalised LiDAR points and occupancy queries)."""
         return self._input_kind
 
     def build(self, device: torch.device | str | None = None) -> nn.Module:
