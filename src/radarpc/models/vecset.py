@@ -32,8 +32,9 @@ logit depends on that query alone.
 
 The model is agnostic of the occupancy partitioning: it reads point and query coordinates already
 normalised to ``[-1, 1]`` per axis (RaLD normalises polar range, azimuth and elevation over its
-frustum grid, :func:`radarpc.rald.frustum.normalize`); which cells make a query occupied is the
-data's choice (:mod:`radarpc.rald.frustum`).
+frustum grid, :func:`radarpc.rald.frustum.normalize`); which cells make a query occupied, RaLD's
+frustums or Cartesian voxels, is the data's choice (:func:`radarpc.rald.voxels.partition_grid`,
+:func:`radarpc.rald.voxels.model_coords`).
 
 Losses: :func:`occupancy_loss` (BCE, weighted separately on occupied and empty queries) and
 :func:`kl_divergence`; :meth:`VecSetAutoencoder.loss` adds them with the config's weights.
@@ -277,7 +278,8 @@ class VecSetAutoencoder(nn.Module):
         return x
 
     def occupancy_logits(self, tokens: torch.Tensor, queries: torch.Tensor) -> torch.Tensor:
-        """Occupancy logits ``(B, Q)`` of queries ``(B, Q, 3)`` against tokens ``(B, M, C)`` of :meth:`latent_tokens`."""
+        """Occupancy logits ``(B, Q)`` of queries ``(B, Q, 3)`` against the tokens ``(B, M, C)`` of
+        :meth:`latent_tokens`."""
         _check_points(queries, "queries")
         if queries.shape[0] != tokens.shape[0]:
             raise ValueError(f"queries hold {queries.shape[0]} frames but the latents {tokens.shape[0]}")
