@@ -17,7 +17,8 @@ ENVELOPES = ("replicas", "all-slots")                      # radarpc.dsp.ddma.EN
 COLOR_BY = ("velocity", "amplitude")                       # radarpc.viz.COLOR_BY
 DEFAULT_WAIT_S = 7200.0                                    # radarpc.distributed.DEFAULT_WAIT_S
 MODEL_NAMES = ("fftradnet", "fftradnet-s", "fftradnet-tiny", "pointpillars", "spectralpillars",
-               "pointpillars-s", "spectralpillars-s", "pillars-tiny")   # radarpc.models.MODELS
+               "pointpillars-s", "spectralpillars-s", "pillars-tiny", "rald-ae", "rald-ae-s", "rald-ae-tiny",
+               "rald-dit", "rald-dit-d12", "rald-dit-d18", "rald-dit-s", "rald-dit-tiny")   # radarpc.models.MODELS
 
 
 def plain_text(text: str | None) -> str | None:

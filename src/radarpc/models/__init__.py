@@ -6,7 +6,8 @@ builds the model, each override replacing one field of the variant's model confi
 CLI and the experiment configs choose from. A model built here has a ``cfg`` (its resolved,
 frozen config) and an ``input_kind`` (what its forward takes: ``"rd"`` complex range-Doppler cubes,
 ``"points"`` a :class:`~radarpc.points.PointCloudBatch`, ``"radar"`` RaLD's radar intensity cube
-``(B, range, azimuth, elevation)``).
+``(B, range, azimuth, elevation)``, ``"lidar"`` dense ``(B, N, 3)`` LiDAR points and ``(B, Q, 3)``
+query points normalised to [-1, 1]).
 
 An experiment names its model with a :class:`ModelSpec`::
 
@@ -33,6 +34,7 @@ from radarpc.models.fftradnet import fftradnet, fftradnet_s, fftradnet_tiny
 from radarpc.models.latent_dit import rald_dit, rald_dit_d12, rald_dit_d18, rald_dit_s, rald_dit_tiny
 from radarpc.models.pillars import (pillars_tiny, polar_pointpillars, polar_pointpillars_s, spectralpillars,
                                     spectralpillars_s)
+from radarpc.models.vecset import rald_ae, rald_ae_s, rald_ae_tiny
 
 __all__ = ["MODELS", "ModelSpec", "build_model"]
 
@@ -45,6 +47,9 @@ MODELS: dict[str, Callable[..., nn.Module]] = {
     "pointpillars-s": polar_pointpillars_s,
     "spectralpillars-s": spectralpillars_s,
     "pillars-tiny": pillars_tiny,               # tests
+    "rald-ae": rald_ae,                         # RaLD's LiDAR occupancy autoencoder, official size
+    "rald-ae-s": rald_ae_s,                     # ... small, trains on 2 CPU cores
+    "rald-ae-tiny": rald_ae_tiny,               # tests
     "rald-dit": rald_dit,                       # RaLD's radar-conditioned latent diffusion, paper size (depth 24)
     "rald-dit-d12": rald_dit_d12,               # ... the seed's depth ablations
     "rald-dit-d18": rald_dit_d18,
@@ -121,8 +126,9 @@ class ModelSpec:
 
     @property
     def input_kind(self) -> str:
-        """``"rd"`` (complex range-Doppler cubes), ``"points"`` (a point cloud batch) or ``"radar"``
-        (RaLD's radar intensity cube)."""
+        """``"rd"`` (complex range-Doppler cubes), ``"points"`` (a point cloud batch), ``"radar"``
+        (RaLD's radar intensity cube) or ``"lidar"`` (dense normalised LiDAR points and occupancy
+        queries)."""
         return self._input_kind
 
     def build(self, device: torch.device | str | None = None) -> nn.Module:

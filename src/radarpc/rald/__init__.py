@@ -1,4 +1,4 @@
-"""RaLD: frustum occupancy, latent diffusion models and baselines for dense radar point clouds."""
+"""RaLD: frustum (or Cartesian voxel) occupancy, latent diffusion models and baselines for dense radar point clouds."""
 from radarpc.rald.frustum import (
     RALD_CELL,
     RALD_GRID,
@@ -17,6 +17,17 @@ from radarpc.rald.frustum import (
     sample_queries_batch,
     voxelize,
     voxelize_batch,
+)
+from radarpc.rald.voxels import (
+    PARTITIONS,
+    RALD_VOXEL,
+    CartesianGrid,
+    cartesian_points,
+    cell_centres,
+    grid_coords,
+    model_coords,
+    partition_grid,
+    voxelize_points,
 )
 from radarpc.rald.oscfar_baseline import (
     CubeAxes,
@@ -45,6 +56,15 @@ __all__ = [
     "sample_queries_batch",
     "voxelize",
     "voxelize_batch",
+    "PARTITIONS",
+    "RALD_VOXEL",
+    "CartesianGrid",
+    "cartesian_points",
+    "cell_centres",
+    "grid_coords",
+    "model_coords",
+    "partition_grid",
+    "voxelize_points",
     "CubeAxes",
     "OSCFARConfig",
     "TuningGrid",

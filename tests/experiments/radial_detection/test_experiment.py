@@ -69,6 +69,8 @@ def test_experiment_config_names_one_registered_model():
                              where="x.yaml")
     with pytest.raises(ValueError, match="model.overrides must be a mapping"):
         ModelSpec("pillars-tiny", [1, 2])
+    with pytest.raises(ValueError, match="model 'rald-ae-tiny' reads 'lidar' inputs"):   # not a detector
+        ExperimentConfig(name="x", model=ModelSpec("rald-ae-tiny"))
 
 
 def test_overrides_change_the_model_built():
