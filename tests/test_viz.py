@@ -14,15 +14,12 @@ from radarpc.pipelines.frames import frame_view
 from radarpc.pipelines.pointclouds import ConvertSettings
 from radarpc.sensors.coloradar import AWR1843_FOV
 from radarpc.sensors.radial import TINY
-from radarpc.sim.scenes import scene_mix
-from radarpc.sim.radial_writer import write_radial_dataset
 
 
-@pytest.fixture(scope="module")
-def root(tmp_path_factory):
-    # 3 sequences (train, val, test) x 2 frames of the TINY sensor, city scenes (vehicles in view)
-    return write_radial_dataset(tmp_path_factory.mktemp("sim") / "root", TINY, 3, 2, seed=0, progress=False,
-                                scenes=scene_mix("city"))
+@pytest.fixture
+def root(tiny_city_root):
+    # the session's 3 sequences (train, val, test) x 3 frames of the TINY sensor, city scenes (vehicles in view)
+    return tiny_city_root
 
 
 @pytest.fixture

@@ -1,5 +1,6 @@
-"""What several test modules share: tiny ColoRadar simulation settings, a stalling writer, a
-point-cloud comparison and point clouds from (range, azimuth) pairs.
+"""What several test modules share: the parameters of the simulated roots that ``tests/conftest.py``
+builds once per session, tiny ColoRadar simulation settings, a stalling writer, a point-cloud
+comparison and point clouds from (range, azimuth) pairs.
 
 Importable from any test as ``testkit`` (``pythonpath = ["tests"]`` in pyproject.toml).
 """
@@ -15,8 +16,23 @@ import torch
 from radarpc.points import PointCloudBatch
 from radarpc.sensors.coloradar import AWR1843, CASCADE, DEFAULT_CALIB, beam_angles
 from radarpc.sim.coloradar_synth import RadarSimConfig
+from radarpc.sim.scenes import scene_mix
 
-__all__ = ["TINY_CASCADE", "TINY_CALIB", "TINY_RADAR", "TINY_KW", "make_cloud", "same_cloud", "stalling_writer_script"]
+__all__ = ["TINY_ROOT", "TINY_CITY_ROOT", "RADIAL_S_CITY_ROOT", "COLO_ROOT", "CHEAP_COLO_KW", "COLO_HALLWAY_ROOT",
+           "COLO_CLI_ARGV", "TINY_CASCADE", "TINY_CALIB", "TINY_RADAR", "TINY_KW", "make_cloud", "same_cloud",
+           "stalling_writer_script"]
+
+# ---- the session roots of tests/conftest.py --------------------------------------------------------
+# Keyword arguments of write_radial_dataset / SimulatedRADIal (the sensor is given apart), so that a
+# test can rebuild the same frames on the fly or write a variant of the root.
+TINY_ROOT = dict(n_sequences=3, frames_per_sequence=2, seed=0)
+"""``tiny_root``: 3 sequences (q000 train, q001 val, q002 test) x 2 frames of the TINY sensor, seed 0,
+the default scene mix (no labelled vehicle in these 6 frames)."""
+TINY_CITY_ROOT = dict(n_sequences=3, frames_per_sequence=3, seed=3, scenes=scene_mix("city"))
+"""``tiny_city_root``: 3 sequences x 3 frames of the TINY sensor, seed 3, city scenes: labelled vehicles
+in the train (frames 0-2) and test (frames 6-8) sequences, none in val (frames 3-5)."""
+RADIAL_S_CITY_ROOT = dict(n_sequences=3, frames_per_sequence=4, seed=3, scenes=scene_mix("city"))
+"""``radial_s_city_root``: 3 sequences x 4 frames of the radial-s sensor, seed 3, city scenes (24 vehicles)."""
 
 TINY_CASCADE = CASCADE.replace(num_range_bins=64, num_azimuth_bins=16, num_elevation_bins=4,
                                azimuth_bins=beam_angles(16, CASCADE.element_spacing, half_bin=True),
@@ -28,6 +44,21 @@ TINY_CALIB = dataclasses.replace(DEFAULT_CALIB, single_chip=AWR1843.replace(num_
 TINY_RADAR = RadarSimConfig(az_step_deg=4.0, el_step_deg=5.0)
 TINY_KW = dict(lidar_beams=8, lidar_azimuth_steps=128, calib=TINY_CALIB, radar=TINY_RADAR, progress=False)
 """Keyword arguments of :func:`radarpc.sim.coloradar_writer.write_coloradar` for a tiny root."""
+COLO_ROOT = dict(scenes=["lab"], runs_per_scene=3, frames=2, seed=7)
+"""``colo_root``: with :data:`TINY_KW`, 3 runs of the lab (lab_run0 train, lab_run1 val, lab_run2 test) of
+2 radar frames (4 LiDAR scans) each, seed 7."""
+CHEAP_COLO_KW = dict(calib=dataclasses.replace(DEFAULT_CALIB, cascade=None, base_to_cascade=None),
+                     radar=RadarSimConfig(az_step_deg=6.0, el_step_deg=8.0, edges=False, multipath=False,
+                                          max_scatterers=200),
+                     lidar_beams=16, lidar_azimuth_steps=256, progress=False)
+"""Keyword arguments of ``write_coloradar`` for a root without cascade: ColoRadar's own single chip
+(128 chirps) fed by a cheap scatterer model, a 16 x 256 LiDAR."""
+COLO_HALLWAY_ROOT = dict(scenes=["hallway"], runs_per_scene=3, frames=2, seed=0)
+"""``colo_hallway_root``: with :data:`CHEAP_COLO_KW`, 3 hallway runs (train, val, test) of 2 radar frames."""
+COLO_CLI_ARGV = ["simulate", "coloradar", "--scenes", "outdoor", "--runs-per-scene", "1", "--frames", "1",
+                 "--lidar-beams", "4", "--lidar-azimuth-steps", "64", "--no-progress"]
+"""``colo_cli_root``: the ``radarpc simulate coloradar`` command line (without ``--out``): one outdoor run of
+one full-size radar frame (the default calibration: single chip and cascade), a 4 x 64 LiDAR."""
 
 
 def stalling_writer_script(module: str, suffix: str, call: str) -> str:

@@ -185,19 +185,14 @@ def test_through_radarpc_main(tmp_path: Path, capsys: pytest.CaptureFixture,
     assert "neither a RADIal root" in capsys.readouterr().err
 
 
-def test_coloradar_info_and_check(tmp_path: Path, capsys: pytest.CaptureFixture,
+def test_coloradar_info_and_check(colo_hallway_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture,
                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    import dataclasses
+    import shutil
 
     from radarpc.data.summary import open_coloradar_runs, summarize_coloradar
-    from radarpc.sensors.coloradar import DEFAULT_CALIB
-    from radarpc.sim.coloradar_synth import RadarSimConfig
-    from radarpc.sim.coloradar_writer import write_coloradar
 
-    calib = dataclasses.replace(DEFAULT_CALIB, cascade=None, base_to_cascade=None)
-    radar = RadarSimConfig(az_step_deg=6.0, el_step_deg=8.0, edges=False, multipath=False, max_scatterers=200)
-    root = write_coloradar(tmp_path / "colo", ["hallway"], 3, 2, 0, lidar_beams=8, lidar_azimuth_steps=64,
-                           calib=calib, radar=radar, progress=False)
+    # a copy of the session's hallway root (3 runs x 2 radar frames, no cascade): this test damages a scan
+    root = shutil.copytree(colo_hallway_root, tmp_path / "colo")
     monkeypatch.chdir(tmp_path)
     assert run([str(root), "--check"]) == 0
     out = capsys.readouterr().out.splitlines()
@@ -224,12 +219,10 @@ def test_coloradar_info_and_check(tmp_path: Path, capsys: pytest.CaptureFixture,
     assert f"skip list:   1 file written to {skip}" in text and "plot:" not in text
 
 
-def test_a_directory_as_plot_or_skip_list_is_refused_before_work(tmp_path, capsys):
+def test_a_directory_as_plot_or_skip_list_is_refused_before_work(tiny_root, tmp_path, capsys):
     from radarpc.cli import main
-    from radarpc.sensors.radial import TINY
-    from radarpc.sim.radial_writer import write_radial_dataset
 
-    root = write_radial_dataset(tmp_path / "root", TINY, 1, 1, seed=0, progress=False)
+    root = tiny_root                                                # read-only: refused before any work
     d = tmp_path / "figs"
     d.mkdir()
     for args in (["--plot", str(d)], ["--no-plot", "--write-skip", str(d)]):

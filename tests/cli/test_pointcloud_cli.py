@@ -14,7 +14,7 @@ from radarpc.data.pointstore import PointStore
 from radarpc.data.radial import RADIal
 from radarpc.io import DataFileError
 from radarpc.sensors.radial import TINY
-from radarpc.sim.radial_writer import write_radial_dataset
+from testkit import TINY_ROOT
 
 
 def run_cli(argv: list[str]) -> int:
@@ -27,10 +27,23 @@ def run_cli(argv: list[str]) -> int:
     return args.func(args)
 
 
+@pytest.fixture
+def root(tiny_root):
+    # 3 sequences (train, val, test) x 2 frames of the TINY sensor (tests/conftest.py), read-only
+    return tiny_root
+
+
 @pytest.fixture(scope="module")
-def root(tmp_path_factory):
-    # 3 sequences (train, val, test) x 2 frames of the TINY sensor
-    return write_radial_dataset(tmp_path_factory.mktemp("sim") / "root", TINY, 3, 2, seed=0, progress=False)
+def density_store(tiny_root, tmp_path_factory):
+    """``(store, stdout, stderr)`` of one ``pointcloud ROOT --density 0.1 --quiet`` run, which two tests read."""
+    import contextlib
+    import io
+
+    out, err = io.StringIO(), io.StringIO()
+    store = tmp_path_factory.mktemp("density") / "pc.parquet"
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        assert run_cli(["pointcloud", str(tiny_root), "--density", "0.1", "--out", str(store), "--quiet"]) == 0
+    return store, out.getvalue(), err.getvalue()
 
 
 def test_pointcloud_density_enrich(root, tmp_path, capsys):
@@ -115,7 +128,7 @@ def test_pointcloud_rd3_density_sparse_rd_matches_store(root, tmp_path, capsys):
     assert "per-frame taus and densities in sparse_rd.json" in capsys.readouterr().out
 
 
-def test_show_writes_a_png(root, tmp_path, capsys):
+def test_show_writes_a_png(root, density_store, tmp_path, capsys):
     png = tmp_path / "frame1.png"
     assert run_cli(["show", str(root), "--frame", "1", "--density", "0.1", "--out", str(png)]) == 0
     assert "(linear SNR)" in capsys.readouterr().out
@@ -124,9 +137,7 @@ def test_show_writes_a_png(root, tmp_path, capsys):
         arr = np.asarray(im.convert("L"))
     assert arr.std() > 10                                # not a blank canvas
     # from a store: the same points as the store holds for that frame
-    store = tmp_path / "pc.parquet"
-    run_cli(["pointcloud", str(root), "--density", "0.1", "--out", str(store), "--quiet"])
-    capsys.readouterr()
+    store = density_store[0]
     png2 = tmp_path / "frame1_store.png"
     assert run_cli(["show", str(root), "--frame", "1", "--store", str(store), "--color", "amplitude",
                     "--out", str(png2)]) == 0
@@ -224,7 +235,7 @@ def test_pointcloud_beamforming_flag(root, tmp_path, capsys):
     assert PointStore(exact).metadata.settings["beamforming"] == "screened"
 
 
-def test_density_far_off_target_is_warned(root, tmp_path, capsys):
+def test_density_far_off_target_is_warned(root, density_store, tmp_path, capsys):
     # on TINY, 0.007 with rd5 is out of reach (one peak's 5x5 neighbourhood overshoots it)
     run_cli(["pointcloud", str(root), "--density", "0.007", "--enrich", "rd5", "--out",
              str(tmp_path / "a.parquet"), "--quiet"])
@@ -232,9 +243,9 @@ def test_density_far_off_target_is_warned(root, tmp_path, capsys):
     achieved = PointStore(tmp_path / "a.parquet").metadata.achieved_density
     assert abs(achieved - 0.007) / 0.007 > pointcloud.DENSITY_WARN_REL
     assert f"warning: the achieved density {achieved:.5f} is" in err and "with rd5" in err
-    run_cli(["pointcloud", str(root), "--density", "0.1", "--out", str(tmp_path / "b.parquet"), "--quiet"])
-    achieved = PointStore(tmp_path / "b.parquet").metadata.achieved_density
-    assert abs(achieved - 0.1) / 0.1 <= pointcloud.DENSITY_WARN_REL and capsys.readouterr().err == ""
+    store, _, store_err = density_store                    # pointcloud ROOT --density 0.1 --quiet
+    achieved = PointStore(store).metadata.achieved_density
+    assert abs(achieved - 0.1) / 0.1 <= pointcloud.DENSITY_WARN_REL and store_err == ""
     assert pointcloud.density_warning(0.1, 0.13, ()) is not None
     assert pointcloud.density_warning(0.1, 0.12, ()) is None and pointcloud.density_warning(None, 0.5, ()) is None
 
@@ -252,8 +263,7 @@ def test_show_refuses_a_store_of_another_root_and_a_directory_as_figure(root, tm
     from radarpc.sim.radial_writer import SimulatedRADIal
 
     obj_store = tmp_path / "obj.parquet"
-    convert_dataset(SimulatedRADIal(TINY, n_sequences=3, frames_per_sequence=2, seed=0, split="all"), obj_store,
-                    tau=3.0, progress=False)
+    convert_dataset(SimulatedRADIal(TINY, **TINY_ROOT, split="all"), obj_store, tau=3.0, progress=False)
     assert not PointStore(obj_store).metadata.source_root.startswith("/")
     run_cli(["show", str(root), "--frame", "0", "--store", str(obj_store), "--out", str(tmp_path / "g.png")])
     (tmp_path / "figs").mkdir()

@@ -1,5 +1,4 @@
 """``radarpc baseline os-cfar`` and ``radarpc evaluate-points`` end to end on a tiny simulated root."""
-import dataclasses
 import json
 
 import numpy as np
@@ -9,20 +8,12 @@ from radarpc.cli import main
 from radarpc.data.coloradar import ColoRadar
 from radarpc.eval.pointsets import chamfer_distance, earth_movers_distance
 from radarpc.rald.oscfar_baseline import load_config
-from radarpc.sensors.coloradar import DEFAULT_CALIB
-from radarpc.sim.coloradar_synth import RadarSimConfig
-from radarpc.sim.coloradar_writer import write_coloradar
 
 
-@pytest.fixture(scope="module")
-def root(tmp_path_factory):
-    # 3 runs of one scene: run0 train, run1 val, run2 test; a cheap radar and LiDAR, no cascade.
-    out = tmp_path_factory.mktemp("colo") / "sim"
-    calib = dataclasses.replace(DEFAULT_CALIB, cascade=None, base_to_cascade=None)
-    radar = RadarSimConfig(az_step_deg=6.0, el_step_deg=8.0, edges=False, multipath=False, max_scatterers=200)
-    write_coloradar(out, ["hallway"], 3, 2, 0, lidar_beams=16, lidar_azimuth_steps=256, calib=calib,
-                    radar=radar, progress=False)
-    return out
+@pytest.fixture
+def root(colo_hallway_root):
+    # the session's 3 runs of one scene: run0 train, run1 val, run2 test; a cheap radar and LiDAR, no cascade
+    return colo_hallway_root
 
 
 def test_baseline_then_evaluate(root, tmp_path, capsys):

@@ -14,10 +14,8 @@ from radarpc.cli import show
 from radarpc.data.coloradar import ColoRadarRun, pair_radar_lidar
 from radarpc.eval.predictions import prediction_path, write_index
 from radarpc.io import DataFileError, save_npy_atomic
-from radarpc.sim.coloradar_writer import write_coloradar
-from testkit import TINY_KW as KW
 
-# the tiny simulated ColoRadar of tests/data/test_coloradar.py, one run of 2 radar frames
+# the session's tiny simulated ColoRadar root (tests/conftest.py): 3 lab runs of 2 radar frames
 
 
 def run_cli(argv: list[str]) -> int:
@@ -28,11 +26,9 @@ def run_cli(argv: list[str]) -> int:
     return args.func(args)
 
 
-@pytest.fixture(scope="module")
-def colo(tmp_path_factory):
-    root = tmp_path_factory.mktemp("colo") / "sim"
-    write_coloradar(root, ["lab"], 1, 2, seed=7, **KW)
-    return root
+@pytest.fixture
+def colo(colo_root):
+    return colo_root
 
 
 @pytest.fixture
@@ -83,7 +79,7 @@ def test_show_coloradar_bad_input(colo, tmp_path):
     out = str(tmp_path / "f.png")
     with pytest.raises(ValueError, match="radar frame 9 is not in run lab_run0 \\(it has 2 single-chip frames"):
         run_cli(["show", str(colo), "--frame", "9", "--out", out])
-    with pytest.raises(ValueError, match="run 'nope' is not in .* \\(runs: lab_run0\\)"):
+    with pytest.raises(ValueError, match="run 'nope' is not in .* \\(runs: lab_run0, lab_run1, lab_run2\\)"):
         run_cli(["show", str(colo), "--frame", "0", "--run", "nope", "--out", out])
     with pytest.raises(ValueError, match="--density apply to RADIal roots; .* is a ColoRadar root"):
         run_cli(["show", str(colo), "--frame", "0", "--density", "0.1", "--out", out])

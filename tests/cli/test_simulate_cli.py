@@ -1,9 +1,12 @@
 """``radarpc simulate``: the summary says what was simulated now and what an earlier run left."""
 from __future__ import annotations
 
+import shutil
+
 from radarpc.cli import main
 from radarpc.cli.text import plural
 from radarpc.data.radial_format import fft_path
+from testkit import COLO_CLI_ARGV
 
 
 def test_radial_summary_counts_kept_frames(tmp_path, capsys):
@@ -24,16 +27,16 @@ def test_radial_summary_of_one_sequence_of_one_frame_is_singular(tmp_path, capsy
     assert f"{out}: 1 frame (1 sequence x 1) of sensor 'tiny'" in capsys.readouterr().out
 
 
-def test_coloradar_summary_counts_kept_files(tmp_path, capsys):
-    out = tmp_path / "colo"
-    argv = ["simulate", "coloradar", "--out", str(out), "--scenes", "hallway", "--runs-per-scene", "1",
-            "--frames", "2", "--lidar-beams", "4", "--lidar-azimuth-steps", "16", "--no-progress"]
-    assert main(argv) == 0
-    first = capsys.readouterr().out
-    assert f"{out}: 1 scene x 1 run x 2 radar frames (hallway); " in first
+def test_coloradar_summary_counts_kept_files(colo_cli_root, tmp_path, capsys):
+    # the session's one `radarpc simulate coloradar` run (testkit.COLO_CLI_ARGV: one outdoor run, one frame)
+    # and what it printed; resumed here on a copy
+    root, first = colo_cli_root
+    assert f"{root}: 1 scene x 1 run x 1 radar frame (outdoor); " in first      # singular counts
     n = int(first.split("); ")[1].split(" radar frames and LiDAR scans simulated now")[0])
     assert n > 0 and f"{n} radar frames and LiDAR scans simulated now, 0 kept" in first
-    scans = sorted((out / "hallway_run0" / "lidar" / "pointclouds").glob("*.bin"))
+    out = shutil.copytree(root, tmp_path / "colo")
+    argv = COLO_CLI_ARGV + ["--out", str(out)]
+    scans = sorted((out / "outdoor_run0" / "lidar" / "pointclouds").glob("*.bin"))
     scans[0].unlink()
     assert main(argv) == 0
     # one file written again: singular

@@ -27,13 +27,10 @@ LATERAL = ("radar_A_deg", "radar_Y_m", "laser_Y_m")
 
 
 @pytest.fixture(scope="module")
-def frames(tmp_path_factory):
-    # city scenes, seed 3: the 25.6 m of the tiny sensor hold a few vehicles
-    root = write_radial_dataset(tmp_path_factory.mktemp("sim") / "root", TINY, 3, 3, seed=3, progress=False,
-                                scenes=scene_mix("city"))
-    out = tmp_path_factory.mktemp("pc") / "pc.parquet"
-    convert_dataset(root, out, tau=1.5, enrich=("sector4",), progress=False)    # TINY grid: 61 x 5
-    return PointCloudDataset(out, root)
+def frames(tiny_city_root, tiny_city_store):
+    # the session's TINY root of 3 x 3 city frames, seed 3 (the 25.6 m of the tiny sensor hold a few
+    # vehicles), and its store at tau 1.5 with sector4 (TINY grid: 61 x 5)
+    return PointCloudDataset(tiny_city_store, tiny_city_root)
 
 
 def test_mirror_negates_lateral_quantities_only(frames):
@@ -308,11 +305,9 @@ def test_superposed_cubes_are_the_cube_of_both_scenes():
 
 
 @pytest.fixture(scope="module")
-def cube_frames(tmp_path_factory):
+def cube_frames(tiny_city_root):
     from radarpc.data.radial import RADIal
-    root = write_radial_dataset(tmp_path_factory.mktemp("sim") / "root", TINY, 3, 2, seed=3, progress=False,
-                                scenes=scene_mix("city"))
-    return RADIal(root, split="all")
+    return RADIal(tiny_city_root, split="all")             # 3 x 3 city frames, seed 3
 
 
 def test_superposed_frames_draw_partners_by_seed_epoch_and_item(cube_frames):

@@ -46,11 +46,10 @@ from testkit import TINY_CALIB as CALIB, TINY_RADAR as RADAR, TINY_KW as KW
 
 
 
-@pytest.fixture(scope="module")
-def sim_root(tmp_path_factory):
-    root = tmp_path_factory.mktemp("colo") / "sim"
-    write_coloradar(root, ["lab"], 3, 2, seed=7, **KW)
-    return root
+@pytest.fixture
+def sim_root(colo_root):
+    # the session's tiny ColoRadar root (tests/conftest.py): 3 lab runs x 2 radar frames, seed 7; read-only
+    return colo_root
 
 
 def test_reader_agrees_with_simulator(sim_root):
@@ -87,13 +86,16 @@ def test_reader_agrees_with_simulator(sim_root):
 
 
 def test_resume_and_refuse(sim_root, tmp_path):
-    f = sim_root / "lab_run0" / "single_chip" / "adc_samples" / "data" / "frame_0.bin"
+    import shutil
+
+    copy = shutil.copytree(sim_root, tmp_path / "copy")            # the session root is read-only
+    f = copy / "lab_run0" / "single_chip" / "adc_samples" / "data" / "frame_0.bin"
     before = f.read_bytes()
     f.unlink()
-    write_coloradar(sim_root, ["lab"], 3, 2, seed=7, **KW)          # resumes: rewrites the missing file
+    write_coloradar(copy, ["lab"], 3, 2, seed=7, **KW)              # resumes: rewrites the missing file
     assert f.read_bytes() == before
     with pytest.raises(FileExistsError, match="not empty"):
-        write_coloradar(sim_root, ["lab"], 3, 2, seed=8, **KW)
+        write_coloradar(copy, ["lab"], 3, 2, seed=8, **KW)
     (tmp_path / "other.txt").write_text("x")
     with pytest.raises(FileExistsError):
         write_coloradar(tmp_path, ["lab"], 1, 1, seed=0, **KW)
@@ -265,13 +267,12 @@ def test_upsample_intensity_is_ralds_angle_upsampling():
     torch.testing.assert_close(batch[1], up + 1)
 
 
-def test_cli_simulate_and_info(sim_root, tmp_path, capsys, monkeypatch):
+def test_cli_simulate_and_info(sim_root, colo_cli_root, tmp_path, capsys, monkeypatch):
     from radarpc.cli import main
 
-    out = tmp_path / "cli"
-    rc = main(["simulate", "coloradar", "--out", str(out), "--scenes", "outdoor", "--runs-per-scene", "1",
-               "--frames", "1", "--lidar-beams", "4", "--lidar-azimuth-steps", "64", "--no-progress"])
-    assert rc == 0
+    # the session's `radarpc simulate coloradar --scenes outdoor --runs-per-scene 1 --frames 1 --lidar-beams 4
+    # --lidar-azimuth-steps 64 --no-progress` (tests/conftest.py checks its exit code 0); read-only
+    out = colo_cli_root[0]
     run = ColoRadarRun(out / "outdoor_run0")
     assert run.num_radar_frames == 1 and run.adc(0).shape == (3, 4, 128, 128)
     assert run.lidar(0, drop_zeros=False).shape == (4 * 64, 4)

@@ -18,27 +18,27 @@ from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS, freespace_path
 from radarpc.points import PointCloudBatch
 from radarpc.sensors.radial import TINY
 from radarpc.sim.radial_writer import SimulatedRADIal, write_radial_dataset
+from testkit import TINY_CITY_ROOT
 
 try:                                           # the conversion driver is moving out of dsp/
     from radarpc.pipelines.pointclouds import convert_dataset
 except ImportError:
     from radarpc.pipelines.pointclouds import convert_dataset
 
-N_SEQ, PER_SEQ = 3, 2                          # simulated_split of 3 sequences: q000 train, q001 val, q002 test
+# the session's TINY city root (tests/conftest.py): simulated_split of 3 sequences, q000 train, q001 val,
+# q002 test, labelled vehicles in train and test
+N_SEQ, PER_SEQ = TINY_CITY_ROOT["n_sequences"], TINY_CITY_ROOT["frames_per_sequence"]
 
 
-@pytest.fixture(scope="module")
-def root(tmp_path_factory):
-    return write_radial_dataset(tmp_path_factory.mktemp("sim") / "root", TINY, N_SEQ, PER_SEQ, seed=0,
-                                progress=False)
+@pytest.fixture
+def root(tiny_city_root):
+    return tiny_city_root
 
 
-@pytest.fixture(scope="module")
-def store(root, tmp_path_factory):
-    out = tmp_path_factory.mktemp("pc") / "all.parquet"
-    # a low threshold so that frames hold points; sector enrichment exercises a list column
-    convert_dataset(root, out, tau=1.5, enrich=("sector4",), progress=False)
-    return PointStore(out)
+@pytest.fixture
+def store(tiny_city_store):
+    # tau 1.5, a low threshold so that frames hold points; sector enrichment exercises a list column
+    return PointStore(tiny_city_store)
 
 
 def assert_cloud_equal(a: PointCloudBatch, b: PointCloudBatch) -> None:
@@ -170,17 +170,19 @@ def test_refuses_a_store_of_another_root(root, store, tmp_path):
     check_store_root(store, root)
     # a store made from a dataset object records its repr: joined by frame id and sequence
     obj = tmp_path / "obj.parquet"
-    convert_dataset(SimulatedRADIal(TINY, n_sequences=N_SEQ, frames_per_sequence=PER_SEQ, seed=0, split="all"),
-                    obj, tau=1.5, progress=False)
+    convert_dataset(SimulatedRADIal(TINY, **TINY_CITY_ROOT, split="all"), obj, tau=1.5, progress=False)
     ds = PointCloudDataset(obj, root)
     assert ds.frame_ids == store.frames and torch.equal(ds[1].labels, RADIal(root, split="all")[1][1])
     # ... but refused over a root without its frames, or with them in other sequences
-    short = write_radial_dataset(tmp_path / "short", TINY, N_SEQ, 1, seed=0, progress=False)
+    short = write_radial_dataset(tmp_path / "short", TINY, **dict(TINY_CITY_ROOT, frames_per_sequence=1),
+                                 progress=False)
     missing = sorted(set(store.frames) - set(RADIal(short, split="all").frame_ids))
     with pytest.raises(ValueError, match=re.escape(f"point store {obj} holds {len(missing)} frame(s) that "
                                                    f"{short / 'labels.csv'} does not list (numSample {missing})")):
         PointCloudDataset(obj, short)
-    seed1 = write_radial_dataset(tmp_path / "seed1", TINY, N_SEQ, PER_SEQ, seed=1, progress=False)
-    with pytest.raises(ValueError, match=rf"{obj} puts frame 0 in sequence 'SIM@s0_q000' but "
-                                         rf"{seed1 / 'labels.csv'} puts it in 'SIM@s1_q000'.*not made from {seed1}"):
+    seed = TINY_CITY_ROOT["seed"]
+    seed1 = write_radial_dataset(tmp_path / "seed1", TINY, **dict(TINY_CITY_ROOT, seed=seed + 1), progress=False)
+    with pytest.raises(ValueError, match=rf"{obj} puts frame 0 in sequence 'SIM@s{seed}_q000' but "
+                                         rf"{seed1 / 'labels.csv'} puts it in 'SIM@s{seed + 1}_q000'.*not made "
+                                         rf"from {seed1}"):
         PointCloudDataset(obj, seed1)

@@ -36,6 +36,7 @@ from radarpc.io import DataFileError
 from radarpc.data.radial_format import save_calibration
 from radarpc.sensors.radial import RADIAL, TINY
 from radarpc.sim.radial_calibration import make_calibration
+from testkit import TINY_ROOT
 
 
 # ---- a hand-made root -------------------------------------------------------------------------
@@ -411,20 +412,21 @@ def test_check_root_lists_everything(sim_root: Path) -> None:
 
 
 # ---- round trip with the simulator's writer ---------------------------------------------------
-def test_reads_what_the_simulator_writes(tmp_path: Path) -> None:
-    from radarpc.sim.radial_writer import SimulatedRADIal, write_radial_dataset
+def test_reads_what_the_simulator_writes(tiny_root: Path) -> None:
+    from radarpc.sim.radial_writer import SimulatedRADIal
 
-    root = write_radial_dataset(tmp_path / "sim", TINY, 3, 2, seed=0, progress=False)
+    root = tiny_root                                                # the session's TINY root (read-only)
+    assert TINY_ROOT == dict(n_sequences=3, frames_per_sequence=2, seed=0)     # the frames checked below
     assert check_root(root).ok
     ds = RADIal(root, "all")
     assert ds.sensor == TINY and ds.frame_ids == list(range(6))
     assert ds.sequences == [simulated_sequence_name(0, q) for q in range(3) for _ in range(2)]
-    fly = SimulatedRADIal(TINY, 3, 2, 0, "all")
+    fly = SimulatedRADIal(TINY, **TINY_ROOT, split="all")
     for i in range(len(ds)):  # bit-identical to the on-the-fly frames on the same device
         for a, b in zip(ds[i], fly[i]):
             assert a.dtype == b.dtype and torch.equal(a, b)
     for split in ("train", "val", "test"):  # 3 sequences: q0 train, q1 val, q2 test
-        assert RADIal(root, split).frame_ids == SimulatedRADIal(TINY, 3, 2, 0, split).frame_ids
+        assert RADIal(root, split).frame_ids == SimulatedRADIal(TINY, **TINY_ROOT, split=split).frame_ids
     assert RADIal(root, "test").frame_ids == [4, 5]
     raw = ds.frame_labels(0)
     assert raw and set(raw[0]) == set(LABEL_COLUMNS) and raw[0]["dataset"] == "SIM@s0_q000"

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import csv
-import dataclasses
 
 import numpy as np
 import pytest
@@ -12,25 +11,19 @@ from radarpc.data.coloradar import ColoRadarRun
 from radarpc.data.radial import read_labels
 from radarpc.data.radial_format import fft_path
 from radarpc.io import DataFileError
-from radarpc.sensors.coloradar import DEFAULT_CALIB
 from radarpc.sensors.radial import TINY
-from radarpc.sim.coloradar_synth import RadarSimConfig
-from radarpc.sim.coloradar_writer import write_coloradar
-from radarpc.sim.radial_writer import write_radial_dataset
 
 
-@pytest.fixture(scope="module")
-def radial_root(tmp_path_factory):
-    return write_radial_dataset(tmp_path_factory.mktemp("sim") / "root", TINY, 3, 2, seed=1, progress=False)
+@pytest.fixture
+def radial_root(tiny_city_root):
+    # the session's TINY root: 3 sequences (train, val, test) x 3 city frames, vehicles in train and test
+    return tiny_city_root
 
 
-@pytest.fixture(scope="module")
-def colo_root(tmp_path_factory):
-    # 3 runs of one scene (train, val, test), 2 radar frames each, a cheap radar, no cascade
-    calib = dataclasses.replace(DEFAULT_CALIB, cascade=None, base_to_cascade=None)
-    radar = RadarSimConfig(az_step_deg=6.0, el_step_deg=8.0, edges=False, multipath=False, max_scatterers=200)
-    return write_coloradar(tmp_path_factory.mktemp("colo") / "sim", ["hallway"], 3, 2, 0, lidar_beams=8,
-                           lidar_azimuth_steps=64, calib=calib, radar=radar, progress=False)
+@pytest.fixture
+def colo_root(colo_hallway_root):
+    # the session's 3 runs of one scene (train, val, test), 2 radar frames each, a cheap radar, no cascade
+    return colo_hallway_root
 
 
 def test_summarize_radial_against_labels_csv(radial_root):
@@ -39,8 +32,8 @@ def test_summarize_radial_against_labels_csv(radial_root):
     frames = {int(r["numSample"]) for r in rows}
     vehicles = [r for r in rows if float(r["radar_R_m"]) >= 0 and int(r["Difficult"]) >= 0]
     s = summary.summarize_radial(radial_root)
-    assert s.simulated and s.sensor == TINY and s.n_frames == len(frames) == 6 and s.n_sequences == 3
-    assert list(s.split_frames) == ["train", "val", "test"] and s.split_frames == {"train": 2, "val": 2, "test": 2}
+    assert s.simulated and s.sensor == TINY and s.n_frames == len(frames) == 9 and s.n_sequences == 3
+    assert list(s.split_frames) == ["train", "val", "test"] and s.split_frames == {"train": 3, "val": 3, "test": 3}
     assert s.n_vehicles == len(vehicles)
     assert s.n_empty_frames == len(frames - {int(r["numSample"]) for r in vehicles})
     if vehicles:

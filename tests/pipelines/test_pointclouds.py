@@ -441,14 +441,16 @@ def test_sparse_rd_masks_exactly_the_encoded_set_of_the_store(root, tmp_path, mo
     assert info["mean_density"] == pytest.approx(float(store.frame_table.density.mean()), rel=1e-6)
 
 
-def test_simulated_dataset_object_converts_like_its_written_root(tmp_path):
-    from radarpc.sim.radial_writer import SimulatedRADIal, write_radial_dataset
+def test_simulated_dataset_object_converts_like_its_written_root(tiny_root, tmp_path):
+    from radarpc.sim.radial_writer import SimulatedRADIal
 
-    sim_root = write_radial_dataset(tmp_path / "sim", TINY, 3, 2, 0, progress=False)
+    from testkit import TINY_ROOT
+
+    sim_root = tiny_root                                   # TINY, 3 sequences x 2 frames, seed 0 (read-only)
     kw = dict(density=0.1, enrich=("rd3", "sector4"), chunk_frames=4, progress=False)
     a, b = tmp_path / "root.parquet", tmp_path / "object.parquet"
     convert_dataset(sim_root, a, **kw)
-    convert_dataset(SimulatedRADIal(TINY, 3, 2, 0, split="all"), b, **kw)
+    convert_dataset(SimulatedRADIal(TINY, **TINY_ROOT, split="all"), b, **kw)
     ta, ma, fa = read_all(a)
     tb, mb, fb = read_all(b)
     assert ta.equals(tb) and fa == fb
@@ -457,18 +459,18 @@ def test_simulated_dataset_object_converts_like_its_written_root(tmp_path):
     c, d = tmp_path / "root_pd.parquet", tmp_path / "object_pd.parquet"
     rc = convert_dataset(sim_root, c, density=0.1, density_mode="per-dataset", split="test", progress=False)
     with pytest.raises(ValueError, match="calibration_source"):
-        convert_dataset(SimulatedRADIal(TINY, 3, 2, 0, split="test"), d, density=0.1,
+        convert_dataset(SimulatedRADIal(TINY, **TINY_ROOT, split="test"), d, density=0.1,
                         density_mode="per-dataset", progress=False)
-    rd_ = convert_dataset(SimulatedRADIal(TINY, 3, 2, 0, split="test"), d, density=0.1, density_mode="per-dataset",
-                          calibration_source=SimulatedRADIal(TINY, 3, 2, 0, split="train"), progress=False)
+    rd_ = convert_dataset(SimulatedRADIal(TINY, **TINY_ROOT, split="test"), d, density=0.1, density_mode="per-dataset",
+                          calibration_source=SimulatedRADIal(TINY, **TINY_ROOT, split="train"), progress=False)
     assert rd_.tau == rc.tau and read_all(c)[0].equals(read_all(d)[0])
     assert PointStore(d).metadata.split == "test"
     with pytest.raises(ValueError, match="does not match the dataset object's split"):
-        convert_dataset(SimulatedRADIal(TINY, 3, 2, 0, split="test"), d, tau=2.0, split="val", progress=False)
+        convert_dataset(SimulatedRADIal(TINY, **TINY_ROOT, split="test"), d, tau=2.0, split="val", progress=False)
     # the sparse-RD writer takes the object too (labels from frame_labels, freespace from freespace_mask)
     s1, s2 = tmp_path / "srd_root", tmp_path / "srd_object"
     write_sparse_rd(sim_root, s1, tau=3.0, progress=False)
-    write_sparse_rd(SimulatedRADIal(TINY, 3, 2, 0, split="all"), s2, tau=3.0, progress=False)
+    write_sparse_rd(SimulatedRADIal(TINY, **TINY_ROOT, split="all"), s2, tau=3.0, progress=False)
     for num in range(6):
         assert np.array_equal(stored_cube(s1, num), stored_cube(s2, num)), num
     r1, r2 = RADIal(s1, split="all"), RADIal(s2, split="all")

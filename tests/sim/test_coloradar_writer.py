@@ -138,7 +138,9 @@ def test_overwrite_removes_the_runs_of_the_old_simulation(tmp_path):
     from radarpc.data.coloradar import find_runs
 
     out = tmp_path / "colo"
-    small = dict(lidar_beams=4, lidar_azimuth_steps=16, progress=False)
+    # the tiny radar of TINY_KW (8 chirps, a 64 x 16 x 4 cascade): which runs a root holds does not
+    # depend on the frame sizes, and the full-size frames took 10 s
+    small = dict(KW, lidar_beams=4, lidar_azimuth_steps=16)
     write_coloradar(out, ["lab"], 2, 1, seed=7, **small)
     write_coloradar(out, ["lab"], 1, 1, seed=8, overwrite=True, **small)
     assert find_runs(out) == ["lab_run0"]

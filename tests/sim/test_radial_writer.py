@@ -20,10 +20,10 @@ from radarpc.sensors.radial import TINY
 from radarpc.sim.radial_calibration import make_calibration
 from radarpc.sim import radial_writer
 from radarpc.sim.radial_writer import RadialSimulator, SimulatedRADIal, write_radial_dataset
-from radarpc.sim.scenes import CITY, DEFAULT_MIX, SceneMix, scene_mix
+from radarpc.sim.scenes import CITY, DEFAULT_MIX, SceneMix
 from radarpc.io import DataFileError
 from radarpc.runs import OutputBusyError, RunMismatchError
-from testkit import stalling_writer_script
+from testkit import RADIAL_S_CITY_ROOT, stalling_writer_script
 
 N_SEQ, N_FR, SEED = 3, 2, 11
 
@@ -219,16 +219,20 @@ def test_same_code_path_on_both_datasets(root, kw):
     assert torch.equal(disk.cube(0), fly.cube(0)) and fly.cube(0).dtype == torch.complex64
 
 
-def test_radial_s_on_disk_equals_on_the_fly(tmp_path):
+def test_radial_s_on_disk_equals_on_the_fly(radial_s_city_root):
+    # the session's radial-s root (3 sequences x 4 city frames, seed 3): the first and last frame of each
+    # sequence, labelled vehicles among them
     from radarpc.sensors.radial import RADIAL_S
-    out = write_radial_dataset(tmp_path / "s", RADIAL_S, 1, 2, 5, progress=False)
-    disk = RADIal(out, "all")
-    fly = SimulatedRADIal(RADIAL_S, 1, 2, 5, "all")
-    assert len(disk) == len(fly) == 2
-    for i in range(2):
+    disk = RADIal(radial_s_city_root, "all")
+    fly = SimulatedRADIal(RADIAL_S, **RADIAL_S_CITY_ROOT, split="all")
+    assert len(disk) == len(fly) == 12
+    labelled = 0
+    for i in (0, 3, 4, 7, 8, 11):
         for x, y in zip(disk[i], fly[i]):
             assert x.dtype == y.dtype and torch.equal(x, y)
         assert disk.frame_labels(i) == fly.frame_labels(i)
+        labelled += len(fly[i][1])
+    assert labelled > 0
 
 
 @pytest.mark.parametrize("split", ["train", "val", "test", "all"])
@@ -280,7 +284,7 @@ def test_cli_writes_a_root(tmp_path, capsys):
         args.func(parser.parse_args(["radial", "--out", str(tmp_path / "x"), "--device", "nodevice"]))
 
 
-def test_labels_point_at_their_vehicles_in_the_rd_cube():
+def test_labels_point_at_their_vehicles_in_the_rd_cube(radial_s_city_root):
     # independent of the label code: the label's range and radial velocity must find the vehicle's
     # echo (Tx 0 replica) in the synthesised cube, well above the noise floor
     from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS
@@ -288,7 +292,7 @@ def test_labels_point_at_their_vehicles_in_the_rd_cube():
     from radarpc.sim.rd import noise_power_rd
 
     cfg = RADIAL_S
-    ds = SimulatedRADIal(cfg, 3, 2, 5, split="all", scenes=scene_mix("city"))      # city: the densest traffic
+    ds = RADIal(radial_s_city_root, "all")          # the session's 3 x 4 city frames (the densest traffic), seed 3
     col = {c: k for k, c in enumerate(LABEL_TENSOR_COLUMNS)}
     ratios = []
     for i in range(len(ds)):
