@@ -111,14 +111,14 @@ def _store_of(root: Path, tmp_path_factory) -> Path:
     return out
 
 
-@pytest.fixture(scope="module")
-def root(tmp_path_factory):
-    return _city_root(tmp_path_factory, "root", 4, seed=3)          # 24 vehicles with seed 3
+@pytest.fixture
+def root(radial_s_city_root):
+    return radial_s_city_root                                       # the session's: 3 x 4 frames, 24 vehicles
 
 
-@pytest.fixture(scope="module")
-def store(root, tmp_path_factory):
-    return _store_of(root, tmp_path_factory)
+@pytest.fixture
+def store(radial_s_city_store):
+    return radial_s_city_store                                      # its 5.7 % sector32 store
 
 
 def _overfit(cfg: ExperimentConfig, root, store, tmp_path) -> list[dict]:
