@@ -302,12 +302,13 @@ def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, 
                      scored_on=_scored_on(scored, own), mirror_average=mirror_average, fast=fast, easy=run_easy,
                      empty_frames=empty_frames, training=status)
     _write_eval(folder, res, cfg.name)
-    _write_detections(folder / f"{res.stem}_detections.csv", item_frames(ds), found)
+    frames_of_items = item_frames(ds)
+    _write_detections(folder / f"{res.stem}_detections.csv", frames_of_items, found)
     if (folder / LOG_CSV).is_file():
         plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
     if show:
         with torch.inference_mode(), autocast_context(precision, dev):
-            names = _frame_names(item_frames(ds))
+            names = _frame_names(frames_of_items)
             for k, b in _shown(ds, show, collate):
                 b = b.to(dev)
                 out = model(b.inputs)
@@ -418,8 +419,9 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
                      torch.get_num_threads(), data=(str(Path(data).resolve()),), points=(str(Path(points).resolve()),),
                      easy=not difficult)
     _write_eval(out, res, "classical (CFAR points, Doppler gating, BEV clusters)")
-    _write_detections(out / f"{res.stem}_detections.csv", item_frames(ds), found)
-    names = _frame_names(item_frames(ds))
+    frames_of_items = item_frames(ds)
+    _write_detections(out / f"{res.stem}_detections.csv", frames_of_items, found)
+    names = _frame_names(frames_of_items)
     for k, b in _shown(ds, show, collate):
         rows = classical_detect(b.inputs, cfg).rows()
         shown = Detections.from_frames([rows[rows[:, 0] >= FIXED_THRESHOLD]])
