@@ -330,3 +330,24 @@ def test_a_checkpoint_of_another_model_is_refused_naming_the_file(tmp_path):
     with pytest.raises(DataFileError, match=r"last\.safetensors: its weights do not fit this run's model "
                                             r"\(another model's checkpoint\?.*size mismatch"):
         fit(ToyTask(), one, tmp_path / "run", KEY, progress=False, log=lambda s: None)
+
+
+def test_log_lines_print_on_their_own_line_above_the_progress_bar(tmp_path):
+    """With the bar and the log on one terminal (stdout and stderr the same stream), each log line
+    starts at column 0 of a line the bar was cleared from, not after the bar's text."""
+    import contextlib
+    import io
+    import re
+
+    term = io.StringIO()
+    with contextlib.redirect_stdout(term), contextlib.redirect_stderr(term):
+        fit(ToyTask(), CFG, tmp_path / "run", KEY, progress=True, log=print)
+    text = term.getvalue()
+    logs = list(re.finditer(r"epoch \d: loss", text))
+    assert len(logs) == CFG.epochs and "train run" in text             # the bar was drawn as well
+    for m in logs:
+        line = text[:m.start()].rsplit("\n", 1)[-1]                    # this terminal line before the log
+        *drawn, cleared, tail = line.split("\r")
+        assert tail == "", f"the log line follows {tail!r} on its terminal line"
+        assert cleared.strip() == "" and any(s.strip() for s in drawn), \
+            f"the bar {drawn!r} was not cleared ({cleared!r}) before the log line"
