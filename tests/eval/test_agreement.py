@@ -35,3 +35,33 @@ def test_pairs_nearest_first_and_one_to_one():
     assert pairs == [(0, 1), (1, 0)]
     with pytest.raises(ValueError, match="half_cell"):
         pair_detections(_dets([]), _dets([]), half_cell=(0.0, 0.4))
+
+
+def _greedy_by_argmin(a, b, half_cell=HALF_CELL):
+    """The definition, step by step: the cheapest pair left over the whole matrix (argmin, so the
+    first in row-major order among equal costs), then its row and column are taken out."""
+    import math
+    dr = (a.range_m[:, None] - b.range_m[None, :]).abs()
+    da = (a.azimuth_deg[:, None] - b.azimuth_deg[None, :]).abs()
+    ok = (dr <= half_cell[0]) & (da <= half_cell[1])
+    cost = torch.where(ok, dr / half_cell[0] + da / half_cell[1], torch.full_like(dr, math.inf))
+    pairs = []
+    while cost.numel() and bool(torch.isfinite(cost).any()):
+        i, j = divmod(int(torch.argmin(cost)), cost.shape[1])
+        pairs.append((i, j))
+        cost[i, :] = math.inf
+        cost[:, j] = math.inf
+    return pairs
+
+
+def test_pairs_equal_the_step_by_step_definition_on_crowded_frames_with_ties():
+    g = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        # positions on a 0.1 grid: many candidates per detection and many equal costs
+        a = _dets((torch.randint(0, 12, (40, 2), generator=g) * 0.1 + torch.tensor([10.0, 0.0])).tolist())
+        b = _dets((torch.randint(0, 12, (35, 2), generator=g) * 0.1 + torch.tensor([10.0, 0.0])).tolist())
+        pairs, lone_a, lone_b = pair_detections(a, b)
+        want = _greedy_by_argmin(a, b)
+        assert pairs == want and len(pairs) > 10
+        assert lone_a == sorted(set(range(40)) - {i for i, _ in want})
+        assert lone_b == sorted(set(range(35)) - {j for _, j in want})

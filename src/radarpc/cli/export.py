@@ -3,6 +3,7 @@
   radarpc export STORE.parquet --out OUT [--format npy|bin|ply] [--columns x,y,z,...]
   radarpc export PRED_DIR --out OUT            (a ColoRadar prediction folder, as PLY)
   radarpc export STORE.parquet --radial-pcl [--root ROOT]   (RADIal's radar_PCL/ inside the root)
+  radarpc export RUN/eval_test_detections.csv --out dets.npz|dets.jsonl   (an evaluation's detections)
 
 A point store is written in OpenPCDet's custom-dataset layout:
 
@@ -24,6 +25,14 @@ property per column. A frame without points gives a valid empty file.
 
 A prediction folder ({run}/{frame:06d}.npy, from radarpc baseline) becomes OUT/{run}/{frame:06d}.ply
 with float properties x, y, z.
+
+An evaluation's detections file (radarpc evaluate writes RUN/eval_{split}..._detections.csv, one
+row per detection, and lists the frames scored in the .json of the same stem) becomes, by --out's
+suffix: .npz, offset-batched arrays root (F,), numSample (F,), offset (F,) cumulative counts and
+detections (D, 3) range_m, azimuth_deg, score -- per frame the (N, 3) array RADIal's GetFullMetrics
+takes as a frame's predictions (np.split(detections, offset[:-1])); or .jsonl, one object per frame
+(frames without detections included) with each detection's score, range, azimuth, x, y and the
+corners of RADIal's evaluation box in metres.
 
 --radial-pcl writes the store's points in RADIal's own radar point-cloud layout into the RADIal
 root the store was made from (or --root): ROOT/radar_PCL/pcl_{frame:06d}.npy, float32 (9, N), rows
@@ -56,6 +65,15 @@ def run_export(args: argparse.Namespace) -> int:
         return 0
     if args.out is None:
         raise ValueError("--out is required (or --radial-pcl to write RADIal's radar_PCL/ into the root)")
+    if args.source.endswith("_detections.csv"):
+        from radarpc.pipelines.export import export_detections
+
+        if args.columns is not None or args.root is not None:
+            raise ValueError("an evaluation's detections file takes no --columns or --root")
+        res = export_detections(args.source, args.out, args.format, overwrite=args.overwrite)
+        print(f"wrote {plural(res.n_detections, 'detection')} of {plural(res.n_frames, 'frame')} to {res.out} "
+              f"({res.fmt})")
+        return 0
     if args.root is not None:
         raise ValueError("--root goes with --radial-pcl only")
     from radarpc.pipelines.export import export
@@ -72,14 +90,15 @@ def run_export(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("export", help="per-frame point clouds (npy, bin, ply) from a point store or predictions",
+    p = sub.add_parser("export", help="per-frame point clouds (npy, bin, ply) from a point store or predictions; detections as npz/jsonl",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("source", help="a point store (.parquet, from radarpc pointcloud) or a ColoRadar "
-                                  "prediction folder (from radarpc baseline)")
+    p.add_argument("source", help="a point store (.parquet, from radarpc pointcloud), a ColoRadar "
+                                  "prediction folder (from radarpc baseline) or an evaluation's "
+                                  "eval_{split}..._detections.csv (from radarpc evaluate)")
     p.add_argument("--out", default=None, help="export folder (required unless --radial-pcl)")
-    p.add_argument("--format", default=None, choices=("npy", "bin", "ply"),
+    p.add_argument("--format", default=None, choices=("npy", "bin", "ply", "npz", "jsonl"),
                    help="file format per frame (default: npy for a store, ply for a prediction folder, "
-                        "its only format)")
+                        "its only format); a detections file goes to npz or jsonl, named by --out's suffix")
     p.add_argument("--columns", default=None, metavar="NAME,NAME,...",
                    help="column order for a store, starting with x,y,z (default: x,y,z,amplitude,velocity_mps,"
                         "snr,range_m,azimuth_deg,elevation_deg; also range_bin, doppler_bin, doppler_full, "

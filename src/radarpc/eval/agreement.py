@@ -7,8 +7,6 @@ paths' rounding of a threshold).
 """
 from __future__ import annotations
 
-import math
-
 import torch
 
 from radarpc.boxes import Detections
@@ -43,13 +41,17 @@ def pair_detections(a: Detections, b: Detections, half_cell: tuple[float, float]
     dr = (a.range_m[:, None] - b.range_m[None, :]).abs()
     da = (a.azimuth_deg[:, None] - b.azimuth_deg[None, :]).abs()
     ok = (dr <= half_cell[0]) & (da <= half_cell[1])
-    cost = torch.where(ok, dr / half_cell[0] + da / half_cell[1], torch.full_like(dr, math.inf))
-    pairs = []
-    while cost.numel() and bool(torch.isfinite(cost).any()):
-        k = int(torch.argmin(cost))
-        i, j = divmod(k, cost.shape[1])
-        pairs.append((i, j))
-        cost[i, :] = math.inf
-        cost[:, j] = math.inf
+    # Taking the cheapest pair left, again and again, is taking the candidate pairs in ascending
+    # cost and keeping each whose rows are both still free; a stable sort of the row-major
+    # candidates breaks ties as an argmin over the whole matrix would.
+    ij = torch.nonzero(ok).tolist()
+    cost = (dr / half_cell[0] + da / half_cell[1])[ok]
+    pairs, used_a, used_b = [], set(), set()
+    for k in torch.argsort(cost, stable=True).tolist():
+        i, j = ij[k]
+        if i not in used_a and j not in used_b:
+            pairs.append((i, j))
+            used_a.add(i)
+            used_b.add(j)
     return (pairs, sorted(set(range(a.num_detections)) - {i for i, _ in pairs}),
             sorted(set(range(b.num_detections)) - {j for _, j in pairs}))

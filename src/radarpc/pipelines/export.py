@@ -16,6 +16,9 @@ A prediction folder (:mod:`radarpc.eval.predictions`) is exported as PLY beside 
 
 The formats and the column order are documented in :mod:`radarpc.data.export`.
 
+An evaluation's detections file (``eval_{split}..._detections.csv``, :mod:`radarpc.eval.detection_files`)
+becomes one ``.npz`` or ``.jsonl`` file (:func:`export_detections`).
+
 Ownership and resume (:class:`radarpc.runs.RunFolder`): the output folder is locked for the whole
 job; ``export.json`` is the run's key (source, its identity, format, columns), so a rerun with the
 same settings keeps the frames already written and writes the rest, and a folder holding anything
@@ -42,11 +45,13 @@ from radarpc.data.export import (
     write_frame,
 )
 from radarpc.data.pointstore import PointStore
+from radarpc.eval.detection_files import DETECTION_FORMATS, read_detections, write_detections_as
 from radarpc.eval.predictions import INDEX_FILE
 from radarpc.io import atomic_write, load_array
 from radarpc.runs import RunFolder, read_json
 
-__all__ = ["EXPORT_FILE", "COLUMNS_FILE", "ExportRun", "export_store", "export_predictions", "export"]
+__all__ = ["EXPORT_FILE", "COLUMNS_FILE", "ExportRun", "DetectionsExport", "export_store", "export_predictions",
+           "export_detections", "export"]
 
 EXPORT_FILE = "export.json"
 """The export folder's manifest: settings (the run's key) and the source's description."""
@@ -233,6 +238,41 @@ def export_predictions(folder: str | os.PathLike, out: str | os.PathLike, *, ove
     return ExportRun(out, "ply", cols, len(files), n_new, n_points, n_empty)
 
 
+@dataclass(frozen=True)
+class DetectionsExport:
+    """What :func:`export_detections` wrote."""
+
+    out: Path
+    fmt: str
+    n_frames: int
+    n_detections: int
+
+
+def export_detections(source: str | os.PathLike, out: str | os.PathLike, fmt: str | None = None, *,
+                      overwrite: bool = False) -> DetectionsExport:
+    """Convert an evaluation's ``eval_{split}..._detections.csv`` (with the frame list of its
+    ``.json``) into ``out``, an ``.npz`` or ``.jsonl`` file (:mod:`radarpc.eval.detection_files`).
+
+    ``fmt``, when given, must agree with ``out``'s suffix; an existing ``out`` is replaced only
+    with ``overwrite``. The file is written atomically.
+    """
+    source, out = Path(source), Path(out)
+    if not source.is_file():
+        raise FileNotFoundError(f"{source} does not exist: expected an evaluation's detections file "
+                                "(eval_{split}..._detections.csv, written by `radarpc evaluate`)")
+    suffix = out.suffix.lstrip(".").lower()
+    if fmt is not None and fmt != suffix:
+        raise ValueError(f"--format {fmt} but --out {out} ends in {out.suffix or 'no suffix'}: detections are "
+                         f"written as {' or '.join('.' + f for f in DETECTION_FORMATS)}, named by the suffix")
+    if out.is_dir():
+        raise ValueError(f"--out {out} is a folder: detections export to one file (.npz or .jsonl)")
+    if out.exists() and not overwrite:
+        raise ValueError(f"--out {out} exists; pass --overwrite to replace it")
+    table = read_detections(source)
+    written = write_detections_as(table, out)
+    return DetectionsExport(out, written, len(table.root), len(table.rows))
+
+
 def export(source: str | os.PathLike, out: str | os.PathLike, fmt: str | None = None,
            columns: Sequence[str] | None = None, *, overwrite: bool = False, progress: bool = True) -> ExportRun:
     """Export a point store (a file) or a prediction folder (a folder), whichever ``source`` is.
@@ -241,6 +281,8 @@ def export(source: str | os.PathLike, out: str | os.PathLike, fmt: str | None = 
     ``columns`` applies to stores only.
     """
     source = Path(source)
+    if source.name.endswith("_detections.csv"):
+        raise ValueError(f"{source} is an evaluation's detections file: export it with export_detections")
     if fmt is not None:
         check_format(fmt)
     if source.is_dir():

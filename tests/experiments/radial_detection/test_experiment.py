@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -301,10 +302,17 @@ def _with_difficult_labels(root: Path, tmp_path: Path) -> tuple[Path, Path, list
 
 def _check_detections_file(path, metrics, root, frames):
     """The per-frame detections file against the metrics computed from the same detections: every
-    detection at or above a threshold is a true or a false positive there."""
+    detection at or above a threshold is a true or a false positive there; its evaluation lists
+    every frame, and ``radarpc export`` turns the pair into per-frame arrays holding the same rows."""
     import csv
 
-    from radarpc.experiments.radial_detection.evaluation import DETECTION_COLUMNS
+    from radarpc.eval.detection_files import DETECTION_COLUMNS
+
+    summary = json.loads(path.with_name(path.name.replace("_detections.csv", ".json")).read_text())
+    assert summary["frames"] == {"root": [root.name] * len(frames), "numSample": [int(n) for n in frames]}
+    assert main(["export", str(path), "--out", str(path.with_suffix(".npz")), "--overwrite"]) == 0
+    with np.load(path.with_suffix(".npz")) as z:
+        per_frame = dict(zip(z["numSample"].tolist(), np.split(z["detections"], z["offset"][:-1])))
 
     with open(path, newline="") as f:
         rows = list(csv.reader(f))
@@ -320,6 +328,9 @@ def _check_detections_file(path, metrics, root, frames):
     scored = score[(near_edge >= RANGE_GATE_M[0]) & (near_edge <= RANGE_GATE_M[1])]
     for t, tp, fp in zip(metrics["thresholds"], metrics["tp"], metrics["fp"]):
         assert int((scored > t).sum()) == tp + fp, t               # RADIal: score > t, strictly
+    for n in frames:                                                  # (range, azimuth, score) per frame
+        want = [[float(x[3]), float(x[4]), float(x[2])] for x in rows if int(x[1]) == int(n)]
+        np.testing.assert_array_equal(per_frame[int(n)], np.asarray(want).reshape(-1, 3))
 
 
 def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):

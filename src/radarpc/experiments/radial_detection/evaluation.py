@@ -9,10 +9,8 @@ so the two can be compared. :func:`evaluate_classical` scores the classical dete
 """
 from __future__ import annotations
 
-import csv
 import dataclasses
 import functools
-import io
 import json
 import math
 import os
@@ -29,6 +27,7 @@ from radarpc.config import save_yaml
 from radarpc.data.augment import mirror_sectors
 from radarpc.data.point_dataset import PointCloudDataset
 from radarpc.eval.detection import FIXED_THRESHOLD, NEAR_MISS_M, DetectionMetrics
+from radarpc.eval.detection_files import write_detections
 from radarpc.experiments.radial_detection.config import ExperimentConfig, canonical_key, experiment_from_dict
 from radarpc.experiments.radial_detection.task import (DataPaths, DetectionBatch, collate_detection, collate_points, data_pairs,
                                                        detection_dataset, evaluate_model, item_frames, point_datasets)
@@ -43,7 +42,7 @@ from radarpc.runs import check_writable, locked_output, read_json, remove_temp_f
 from radarpc.training.checkpoint import load_model_state, load_weights, read_info
 from radarpc.training.loop import BEST_WEIGHTS, LAST_CHECKPOINT, LOG_CSV, autocast_context
 
-__all__ = ["load_trained", "EvalResult", "evaluate_run", "evaluate_classical", "mirror_sectors_of", "training_status", "DETECTION_COLUMNS",
+__all__ = ["load_trained", "EvalResult", "evaluate_run", "evaluate_classical", "mirror_sectors_of", "training_status",
            "EVAL_PRECISIONS"]
 
 EVAL_PRECISIONS = ("fp32", "bf16")
@@ -301,8 +300,8 @@ def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, 
                      points=None if stores is None else tuple(str(p) for _, p in scored),
                      scored_on=_scored_on(scored, own), mirror_average=mirror_average, fast=fast, easy=run_easy,
                      empty_frames=empty_frames, training=status)
-    _write_eval(folder, res, cfg.name)
     frames_of_items = item_frames(ds)
+    _write_eval(folder, res, cfg.name, frames_of_items)
     _write_detections(folder / f"{res.stem}_detections.csv", frames_of_items, found)
     if (folder / LOG_CSV).is_file():
         plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
@@ -323,27 +322,11 @@ def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, 
     return res
 
 
-DETECTION_COLUMNS = ("root", "numSample", "score", "range_m", "azimuth_deg")
-"""Columns of ``eval_{split}..._detections.csv``: one row per decoded detection (RADIal's decoding
-at confidence 0.05 and NMS; the metrics then keep those whose box's near edge lies within
-:data:`~radarpc.eval.detection.RANGE_GATE_M`, as RADIal does), frames in the split's order;
-``root`` the dataset root's folder name, ``numSample`` RADIal's frame number, ``range_m`` /
-``azimuth_deg`` the box reference point (azimuth positive to the left). A frame without
-detections has no row."""
-
-
 def _write_detections(path: Path, frames: list[tuple[Path, int]], found: list[Detections]) -> None:
-    per_frame = [d.frame(b) for d in found for b in range(len(d))]
+    per_frame = [d.frame(b).rows().double().numpy() for d in found for b in range(len(d))]
     if len(per_frame) != len(frames):
         raise RuntimeError(f"{len(per_frame)} frames of detections for {len(frames)} items")
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(DETECTION_COLUMNS)
-    for (root, num), d in zip(frames, per_frame):
-        for score, r, a in d.rows().tolist():
-            w.writerow([root.name, num, repr(score), repr(r), repr(a)])
-    with atomic_write(path, "w") as f:
-        f.write(buf.getvalue())
+    write_detections(path, [(root.name, num) for root, num in frames], per_frame)
 
 
 def _frame_names(frames: list[tuple[Path, int]]) -> list[str]:
@@ -418,8 +401,8 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
     res = EvalResult(out, split, metrics, 0, fps, "cpu",
                      torch.get_num_threads(), data=(str(Path(data).resolve()),), points=(str(Path(points).resolve()),),
                      easy=not difficult)
-    _write_eval(out, res, "classical (CFAR points, Doppler gating, BEV clusters)")
     frames_of_items = item_frames(ds)
+    _write_eval(out, res, "classical (CFAR points, Doppler gating, BEV clusters)", frames_of_items)
     _write_detections(out / f"{res.stem}_detections.csv", frames_of_items, found)
     names = _frame_names(frames_of_items)
     for k, b in _shown(ds, show, collate):
@@ -432,9 +415,10 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
     return res
 
 
-def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
+def _write_eval(folder: Path, res: EvalResult, name: str, frames: list[tuple[Path, int]]) -> None:
     """``{res.stem}.json`` / ``.md`` and ``figures/{res.stem}_labels.png`` (what became of the
-    labels at each threshold, :func:`radarpc.viz.plot_label_outcomes`)."""
+    labels at each threshold, :func:`radarpc.viz.plot_label_outcomes`); the json lists ``frames``
+    (root folder name, numSample), the frames of the detections file (:mod:`radarpc.eval.detection_files`)."""
     from radarpc.viz import plot_label_outcomes
 
     m = res.metrics
@@ -444,6 +428,7 @@ def _write_eval(folder: Path, res: EvalResult, name: str) -> None:
            "device": res.device, "threads": res.threads, "precision": res.precision,
            "mirror_average": res.mirror_average, "fast": res.fast, "easy": res.easy,
            "empty_frames": res.empty_frames, "training": res.training}
+    doc["frames"] = {"root": [root.name for root, _ in frames], "numSample": [int(n) for _, n in frames]}
     with atomic_write(folder / f"{res.stem}.json", "w") as f:
         json.dump(doc, f, indent=2)
     thr = ", ".join(f"{t:.1f}" for t in m["thresholds"])
