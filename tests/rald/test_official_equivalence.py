@@ -246,7 +246,8 @@ def test_other_networks_and_damaged_weights_are_refused(tmp_path, pair):
     refused("gen_dopp.pth", two_channels, r"gen_dopp\.pth.*reads 2 channels")
     refused("gen_named.pth", dit_off, r"gen_named\.pth.*kl_d512_m512_l32_d24_edm.*depth 24 \(the weights: 2\)",
             args=EasyDict({"ar_model": {"name": "kl_d512_m512_l32_d24_edm"}}))
-    wrong_dims = dict(dit_off, **{"model.proj_in.weight": torch.zeros(32, 8), "model.proj_out.weight": torch.zeros(8, 32)})
+    wrong_dims = dict(dit_off, **{"model.proj_in.weight": torch.zeros(32, 8),
+                                  "model.proj_out.weight": torch.zeros(8, 32)})
     refused("gen_dims.pth", wrong_dims, r"gen_dims\.pth.*latents have 8 dimensions.*ae\.pth.*4: not a pair")
 
     (tmp_path / "not.pth").write_bytes(b"not a checkpoint")
