@@ -49,8 +49,11 @@ class Occupancy(torch.nn.Module):
         return 0.05 - (q[..., 0] - 0.2).abs() + 0 * self.w
 
 
-def test_config_checks_name_the_field():
+def test_config_checks_name_the_field(tmp_path):
+    from radarpc.config import load_yaml, save_yaml
+
     assert GenerationConfig().sampler() == dict(num_steps=18, sigma_min=0.002, sigma_max=80.0, rho=7.0)
+    assert load_yaml(GenerationConfig, save_yaml(SMALL, tmp_path / "gen.yaml")) == SMALL
     with pytest.raises(ValueError, match="GenerationConfig.chunk must be >= 1"):
         GenerationConfig(chunk=0)
     with pytest.raises(ValueError, match="random_queries must be an integer"):
