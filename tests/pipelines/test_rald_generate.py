@@ -163,7 +163,7 @@ def test_other_settings_or_weights_are_refused_and_empty_decodings_recorded(root
     assert np.load(out / "lab_run2" / "000000.npy").shape == (0, 3)
     # a rerun keeps them and still lists them (no warning: nothing new)
     again = generate_predictions(_job(root, out), ae, dit, model_input=model_input, model=other, progress=False)
-    assert again.empty == res.empty and again.warnings == () and again.n_new == 0
+    assert again.empty == res.empty and again.warnings == () and again.n_new == 0 and again.seconds == {}
 
 
 def test_a_generated_folder_exports_as_ply(whole, tmp_path):
