@@ -192,7 +192,7 @@ def test_plot_coloradar_view_with_prediction(tmp_path, figures):
     assert any("prediction (30): os-cfar (preds)" == t.get_text() for t in fig.axes[1].get_legend().get_texts())
     assert fig._suptitle.get_text().startswith("ColoRadar root 'sim', run lab_run0: radar frame 1")
     # the cube is drawn on its true azimuth bins: edges between the sin-spaced centres
-    edges = viz._azimuth_edges_deg(np.array([-45.0, -15.0, 15.0, 45.0]))
+    edges = viz.angle_edges_deg(np.array([-45.0, -15.0, 15.0, 45.0]))
     assert np.all(np.diff(edges) > 0) and np.allclose(edges[1:-1], np.degrees(np.arcsin(
         0.5 * (np.sin(np.radians([-45.0, -15.0, 15.0])) + np.sin(np.radians([-15.0, 15.0, 45.0]))))))
     with pytest.raises(ValueError, match="no single-chip radar frame"):
@@ -277,3 +277,31 @@ def test_plot_label_outcomes_without_labels_draws_no_share(tmp_path, figures):
     assert len(ax.patches) == 0 and ax.get_title() == "no labels"
     assert "no labels in these frames" in ax.texts[0].get_text()
     np.testing.assert_allclose([p.get_height() for p in ax_fp.patches], [1.5, 0.5])
+
+
+def test_plot_cloud_comparison_draws_the_cube_the_truth_and_each_method(tmp_path, figures):
+    from radarpc.eval.comparison import comparison_view
+
+    rng = np.random.default_rng(0)
+    cube = rng.uniform(0, 30, size=(16, 8, 2))
+    truth = rng.uniform(-5, 5, size=(300, 3)) + [7, 0, 0]
+    clouds = {"rald": truth[:200] + 0.1, "os-cfar": truth[:20], "empty": np.zeros((0, 3))}
+    view = comparison_view(cube, np.arange(16) * 1.0, np.linspace(-60, 60, 8), [-70.0, 0.0], truth, clouds,
+                           run="lab_run2", scene="lab", frame=1, lidar_index=2, split="test",
+                           notes={"rald": "CD 0.100 m"}, max_points=100)
+    out = viz.plot_cloud_comparison(view, tmp_path / "lab.png")
+    assert out == tmp_path / "lab.png" and _png_size(out) == (int(4.2 * 5 * 100), 840)
+    fig = figures[-1]
+    panels = [a for a in fig.axes if a.get_label() != "<colorbar>"]
+    assert len(panels) == 10 and sum(a.get_label() == "<colorbar>" for a in fig.axes) == 2
+    titles = [a.get_title() for a in panels[:5]]
+    assert titles == ["radar cube (single chip)", "LiDAR truth (in the frustum)", "rald (CD 0.100 m)", "os-cfar", "empty"]
+    texts = [t.get_text() for t in panels[2].get_legend().get_texts()]
+    assert "rald: 200 points, 100 drawn" in texts and "LiDAR truth" in texts
+    assert "empty: no point (empty)" in [t.get_text() for t in panels[4].get_legend().get_texts()]
+    for ax in panels[2:5] + panels[7:]:                          # a method over the truth: two scatters
+        _legend_matches_scatters(ax)
+    # the truth panel draws the subset's bird's-eye (y, x) and range-elevation coordinates
+    np.testing.assert_allclose(panels[1].collections[0].get_offsets(), view.truth.xy[:, ::-1])
+    np.testing.assert_allclose(panels[6].collections[0].get_offsets(), view.truth.range_elevation)
+    assert fig._suptitle.get_text().startswith("scene lab (test split): run lab_run2, radar frame 1, LiDAR scan 2")

@@ -6,7 +6,9 @@ atomically (:func:`radarpc.io.atomic_write`); they compute nothing of radar or d
 dataset (the learning curves read the runs' ``log.csv``). ``radarpc show`` draws a RADIal frame
 (:func:`plot_frame_view`), a ColoRadar frame with its LiDAR and optionally a method's predicted
 cloud (:func:`plot_coloradar_view`), or the OS-CFAR tuning search of a prediction folder
-(:func:`plot_oscfar_tuning`). Figures are built on matplotlib's object API
+(:func:`plot_oscfar_tuning`); ``radarpc evaluate-points --figures`` draws a frame of each scene
+with the truth and every method's cloud side by side (:func:`plot_cloud_comparison`, the view
+computed by :func:`radarpc.eval.comparison.comparison_view`). Figures are built on matplotlib's object API
 (:class:`matplotlib.figure.Figure`, saved through the Agg canvas), so that neither pyplot's figure
 registry nor the global backend is touched. :mod:`radarpc.pipelines.frames` computes the inputs of
 the frame figures from a dataset root (and optionally a point store or a prediction folder);
@@ -25,6 +27,7 @@ import torch
 from radarpc.boxes import BOX_LENGTH_M, BOX_WIDTH_M
 from radarpc.data.radial import LabelTable
 from radarpc.data.summary import ColoRadarView, FrameView, RadialSummary, TuningTable
+from radarpc.eval.comparison import ComparisonView, angle_edges_deg, range_edges
 from radarpc.io import atomic_write
 from radarpc.points import PointCloudBatch
 from radarpc.sensors.radial import DDMARadarConfig
@@ -47,6 +50,7 @@ __all__ = [
     "plot_coloradar_info",
     "plot_coloradar_view",
     "plot_oscfar_tuning",
+    "plot_cloud_comparison",
 ]
 
 COLOR_BY = ("velocity", "amplitude")
@@ -324,23 +328,6 @@ PRED_COLOR = "tab:red"
 FRUSTUM_COLOR = "tab:green"
 
 
-def _azimuth_edges_deg(az_deg: np.ndarray) -> np.ndarray:
-    """Bin edges (deg) of sin-spaced azimuth bins: midpoints in ``sin(az)``, the outer edges half a
-    step beyond the end bins (clipped to +-90 deg)."""
-    s = np.sin(np.radians(np.asarray(az_deg, dtype=np.float64)))
-    if s.size < 2:
-        return np.degrees(np.arcsin(np.clip(np.r_[s - 0.5, s + 0.5], -1, 1)))
-    mid = 0.5 * (s[1:] + s[:-1])
-    e = np.r_[s[0] - (mid[0] - s[0]), mid, s[-1] + (s[-1] - mid[-1])]
-    return np.degrees(np.arcsin(np.clip(e, -1.0, 1.0)))
-
-
-def _range_edges(r: np.ndarray) -> np.ndarray:
-    r = np.asarray(r, dtype=np.float64)
-    step = float(r[1] - r[0]) if r.size > 1 else 1.0
-    return np.r_[r - 0.5 * step, r[-1] + 0.5 * step]
-
-
 def _frustum_bev(ax, fov) -> None:
     a = np.radians(np.linspace(*fov.azimuth_deg, 181))
     r = fov.max_range_m
@@ -367,7 +354,7 @@ def _lidar_bev(ax, view: ColoRadarView, lim: float) -> None:
 def _cube_panel(fig, ax, view: ColoRadarView) -> None:
     """The single-chip cube, max over elevation (dB), on its true (sin-spaced) azimuth bins."""
     img, rr, az = view.cube_db, view.cube_range_m, view.cube_azimuth_deg
-    im = ax.pcolormesh(_azimuth_edges_deg(az), _range_edges(rr), img, cmap="magma", shading="flat")
+    im = ax.pcolormesh(angle_edges_deg(az), range_edges(rr), img, cmap="magma", shading="flat")
     ax.set_xlim(ax.get_xlim()[::-1])                           # left (+azimuth) on the left, as in the BEV
     ax.set(xlabel="azimuth [deg] (left +; sin-spaced FFT bins)", ylabel="range [m]",
            title=f"single-chip cube, frame {view.radar_index}: max over elevation")
@@ -436,6 +423,81 @@ def plot_coloradar_view(view: ColoRadarView, out: str | os.PathLike) -> Path:
     dt = "" if not np.isfinite(view.lidar_dt_s) else f" ({1e3 * view.lidar_dt_s:+.0f} ms)"
     fig.suptitle(f"ColoRadar root '{view.root_name}', run {view.run}: radar frame {view.radar_index}, "
                  f"paired LiDAR scan {view.lidar_index}{dt}", fontsize=13)
+    fig.tight_layout()
+    save_figure(fig, out, dpi=100)
+    return out
+
+
+# ---- methods side by side ------------------------------------------------------------------------
+METHOD_COLORS = ("tab:red", "tab:orange", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
+"""Colours of the methods' clouds, in the order given."""
+
+
+def _cloud_label(c) -> str:
+    drawn = f", {c.n_drawn:,} drawn" if c.n_drawn < c.n_points else ""
+    return f"{c.name}: {c.n_points:,} points{drawn}" if c.n_points else f"{c.name}: no point (empty)"
+
+
+def plot_cloud_comparison(view: ComparisonView, out: str | os.PathLike) -> Path:
+    """One frame, methods side by side (atomic; 4.2 in per column x 8.4 in at 100 dpi).
+
+    Columns: the radar cube, the LiDAR truth, then each method of ``view.methods``; top row the
+    bird's-eye view (x forward up, y left on the left, metres; the cube as its intensity, max over
+    elevation, on its range-azimuth cells), bottom row range against elevation (the cube's max over
+    azimuth). A method's panels show the truth in light grey beneath its cloud; every panel of a
+    row shares the axes, the frustum is outlined, the cube's panels carry dB colour bars.
+    """
+    out = Path(out)
+    n_col = 2 + len(view.methods)
+    fig = _figure((4.2 * n_col, 8.4))
+    axes = fig.subplots(2, n_col, sharex="row", sharey="row", squeeze=False)
+    fov = view.fov
+    lim = fov.max_range_m + 0.5
+    a = np.radians(np.linspace(*fov.azimuth_deg, 181))
+    frustum_xy = (np.r_[0, fov.max_range_m * np.sin(a), 0], np.r_[0, fov.max_range_m * np.cos(a), 0])
+    e0, e1 = fov.elevation_deg
+
+    def frame_panels(k: int, title: str) -> None:
+        top, bottom = axes[0, k], axes[1, k]
+        top.plot(*frustum_xy, "-", color=FRUSTUM_COLOR, lw=1.0, label="frustum")
+        top.set(xlim=(lim, -lim), ylim=(-0.05 * lim, lim), aspect="equal", title=title)
+        bottom.plot([0, fov.max_range_m, np.nan, 0, fov.max_range_m], [e0, e0, np.nan, e1, e1], "-",
+                    color=FRUSTUM_COLOR, lw=1.0, label="frustum")
+        bottom.set(xlim=(0, lim), ylim=(e0 - 5, e1 + 5))
+        if k == 0:
+            top.set_ylabel("x [m] (forward)")
+            bottom.set_ylabel("elevation [deg] (up +)")
+        top.set_xlabel("y [m] (left +)")
+        bottom.set_xlabel("range [m]")
+
+    # the radar cube
+    im = axes[0, 0].pcolormesh(view.bev_y, view.bev_x, view.bev_db, cmap="magma", shading="flat")
+    fig.colorbar(im, ax=axes[0, 0], label="intensity [dB], max over elevation", shrink=0.8)
+    im = axes[1, 0].pcolormesh(view.re_range, view.re_elevation, view.re_db.T, cmap="magma", shading="flat")
+    fig.colorbar(im, ax=axes[1, 0], label="intensity [dB], max over azimuth", shrink=0.8)
+    frame_panels(0, "radar cube (single chip)")
+    axes[1, 0].set_title("range-elevation")
+
+    # the truth, then each method over the truth in grey
+    t = view.truth
+    axes[0, 1].scatter(t.xy[:, 1], t.xy[:, 0], s=0.5, c=LIDAR_INSIDE_COLOR, label=_cloud_label(t))
+    axes[1, 1].scatter(t.range_elevation[:, 0], t.range_elevation[:, 1], s=0.5, c=LIDAR_INSIDE_COLOR,
+                       label=_cloud_label(t))
+    frame_panels(1, "LiDAR truth (in the frustum)")
+    for k, c in enumerate(view.methods):
+        col = METHOD_COLORS[k % len(METHOD_COLORS)]
+        top, bottom = axes[0, 2 + k], axes[1, 2 + k]
+        top.scatter(t.xy[:, 1], t.xy[:, 0], s=0.3, c=LIDAR_OUTSIDE_COLOR, label="LiDAR truth")
+        bottom.scatter(t.range_elevation[:, 0], t.range_elevation[:, 1], s=0.3, c=LIDAR_OUTSIDE_COLOR,
+                       label="LiDAR truth")
+        top.scatter(c.xy[:, 1], c.xy[:, 0], s=0.8, c=col, label=_cloud_label(c))
+        bottom.scatter(c.range_elevation[:, 0], c.range_elevation[:, 1], s=0.8, c=col, label=_cloud_label(c))
+        frame_panels(2 + k, c.name + (f" ({c.note})" if c.note else ""))
+    for ax in axes[:, 1:].ravel():
+        ax.legend(loc="lower left", fontsize=7, markerscale=8, framealpha=0.85)
+    split = f" ({view.split} split)" if view.split else ""
+    fig.suptitle(f"scene {view.scene}{split}: run {view.run}, radar frame {view.frame}, LiDAR scan "
+                 f"{view.lidar_index}; top: bird's-eye view, bottom: range-elevation", fontsize=11)
     fig.tight_layout()
     save_figure(fig, out, dpi=100)
     return out

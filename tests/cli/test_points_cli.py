@@ -150,3 +150,44 @@ def test_baseline_never_mixes_roots_or_splits_in_one_folder(root, tmp_path, caps
     afile.write_text("hi")
     assert main(["baseline", "os-cfar", str(root), "--out", str(afile), "--quick-tune"]) == 2
     assert "exists and is not a folder" in capsys.readouterr().err
+
+
+def test_evaluate_points_side_by_side_with_figures(root, tmp_path, capsys):
+    from PIL import Image
+
+    from radarpc.eval.predictions import prediction_path, write_index
+
+    ds = ColoRadar(root, "test", cube_size=None)
+    exact, shifted = tmp_path / "exact", tmp_path / "shifted"
+    for folder, method, shift in ((exact, "lidar", 0.0), (shifted, "lidar-shifted", 0.5)):
+        frames = []
+        for i in range(len(ds)):
+            k, ri, _ = ds.index[i]
+            path = prediction_path(folder, ds.runs[k].name, ri)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            np.save(path, ds.lidar_points(i) + np.float32([shift, 0, 0]))
+            frames.append({"run": ds.runs[k].name, "frame": ri})
+        write_index(folder, method, root, "test", frames)
+    out = tmp_path / "cmp"
+    capsys.readouterr()
+    assert main(["evaluate-points", str(exact), str(shifted), "--data", str(root), "--split", "test",
+                 "--emd-points", "64", "--figures", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    a = json.loads((exact / "metrics.json").read_text())
+    b = json.loads((shifted / "metrics.json").read_text())
+    assert a["overall"]["chamfer_mean"] == 0.0 and b["overall"]["chamfer_mean"] > 0.1      # the truth scores 0
+    table = (out / "comparison.md").read_text()
+    assert table in printed and "lidar: CD mean" in table and "lidar-shifted: EMD median" in table
+    row = [ln for ln in table.splitlines() if ln.startswith("| hallway |")][0].strip("| ").split(" | ")
+    s = b["scenes"][0]
+    assert row[:3] == ["hallway", str(len(ds)), "0.000"]
+    assert row[6:] == [f"{s['chamfer_mean']:.3f}", f"{s['chamfer_median']:.3f}", f"{s['emd_mean']:.3f}",
+                         f"{s['emd_median']:.3f}"]
+    summary = json.loads((out / "comparison.json").read_text())
+    assert [m["name"] for m in summary["methods"]] == ["lidar", "lidar-shifted"] and summary["split"] == "test"
+    with Image.open(out / "figures" / "hallway.png") as im:
+        assert im.format == "PNG" and im.size == (int(4.2 * 4 * 100), 840)
+    assert f"wrote {out / 'figures' / 'hallway.png'}" in printed
+    # the same folder twice is refused
+    assert main(["evaluate-points", str(exact), str(exact), "--data", str(root), "--split", "test"]) == 2
+    assert "given twice" in capsys.readouterr().err

@@ -5,12 +5,16 @@
     PRED_DIR/
       {run}/{frame:06d}.npy   float32 (N, 3) points in the single-chip radar frame, one per paired
                               radar frame of the split (frame = index of the ADC frame in its run)
-      index.json              {"method", "root", "split", "frames": [one entry per frame]}
+      index.json              {"method", "root", "split", the method's settings (RaLD: "generation",
+                              "guide", "model", "empty_frames"), "frames": [one entry per frame]}
       config.yaml             the method's parameters (OS-CFAR: radarpc.rald.oscfar_baseline)
       tuning.json             the tuning search, when the parameters were tuned
+      generation.json         RaLD: the generation's key (radarpc.pipelines.rald_generate)
+      generation.csv          RaLD: per frame, points, empty flag, query counts, seconds per stage
       metrics.json, metrics.md   written by ``radarpc evaluate-points``
 
-Writers: :mod:`radarpc.pipelines.oscfar` (and any later method); reader: ``radarpc evaluate-points``
+Writers: :mod:`radarpc.pipelines.oscfar` and :mod:`radarpc.pipelines.rald_generate`, through the
+shared loop :func:`radarpc.pipelines.predictions.fill_predictions`; reader: ``radarpc evaluate-points``
 through :func:`prediction_pairs`, which refuses a folder whose ``index.json`` names another root
 or split (:func:`check_index`).
 """
@@ -19,7 +23,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Iterator, Mapping, Sequence
 
 from radarpc.io import DataFileError, atomic_write, load_array
 
@@ -34,11 +38,19 @@ def prediction_path(out: str | os.PathLike, run: str, frame: int) -> Path:
 
 
 def write_index(out: str | os.PathLike, method: str, root: str | os.PathLike, split: str,
-                frames: Sequence[dict]) -> None:
-    """Write ``out/index.json`` atomically; ``root`` is stored resolved (see :func:`check_index`)."""
+                frames: Sequence[dict], extra: Mapping[str, object] | None = None) -> None:
+    """Write ``out/index.json`` atomically; ``root`` is stored resolved (see :func:`check_index`).
+
+    ``extra`` adds keys (a method's settings, e.g. RaLD's ``generation``) before ``frames``.
+    """
+    doc = {"method": method, "root": str(Path(root).resolve()), "split": split}
+    clash = sorted(set(extra or {}) & {*doc, "frames"})
+    if clash:
+        raise ValueError(f"index.json extra keys {clash} would replace the layout's own")
+    doc.update(dict(extra or {}))
+    doc["frames"] = list(frames)
     with atomic_write(Path(out) / INDEX_FILE, "w") as f:
-        json.dump({"method": method, "root": str(Path(root).resolve()), "split": split,
-                   "frames": list(frames)}, f, indent=1)
+        json.dump(doc, f, indent=1)
 
 
 def check_index(pred_dir: str | os.PathLike, data: str | os.PathLike, split: str) -> None:

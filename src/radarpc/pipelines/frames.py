@@ -5,7 +5,10 @@ from a point store): the RD spectrum, the CFAR envelope and peaks, the points an
 vehicles of :class:`radarpc.data.summary.FrameView`, for :func:`radarpc.viz.plot_frame_view`.
 :func:`coloradar_view_with_prediction` reads a ColoRadar radar frame with its paired LiDAR scan
 (:func:`radarpc.data.summary.coloradar_frame_view`) and adds a prediction folder's cloud of that
-frame, for :func:`radarpc.viz.plot_coloradar_view`.
+frame, for :func:`radarpc.viz.plot_coloradar_view`. :func:`scene_frames` picks one frame per scene
+of a ColoRadar split and :func:`comparison_views` reads, for each, the radar cube, the LiDAR truth
+and every prediction folder's cloud (:func:`radarpc.eval.comparison.comparison_view`), for
+:func:`radarpc.viz.plot_cloud_comparison`.
 """
 from __future__ import annotations
 
@@ -13,6 +16,7 @@ import json
 import os
 from dataclasses import replace
 from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 import torch
@@ -24,11 +28,14 @@ from radarpc.data.radial_format import LABEL_TENSOR_COLUMNS
 from radarpc.data.summary import ColoRadarView, FrameView, coloradar_frame_view
 from radarpc.dsp.ddma import rx_magnitude_sum
 from radarpc.dsp.sparse_rd import encoded_cells
-from radarpc.eval.predictions import INDEX_FILE, load_prediction
+from radarpc.data.coloradar import ColoRadar
+from radarpc.eval.comparison import ComparisonView, comparison_view
+from radarpc.eval.predictions import INDEX_FILE, load_prediction, prediction_path
+from radarpc.io import load_array
 from radarpc.machine import check_device
 from radarpc.pipelines.pointclouds import ConvertSettings, build_point_cloud, calibrate_tau
 
-__all__ = ["frame_view", "coloradar_view_with_prediction"]
+__all__ = ["frame_view", "coloradar_view_with_prediction", "scene_frames", "comparison_views"]
 
 
 def frame_view(root: str | os.PathLike, frame: int, settings: ConvertSettings | None = None, *,
@@ -125,3 +132,54 @@ def _prediction_method(pred: str | os.PathLike) -> str:
         return str(json.loads((Path(pred) / INDEX_FILE).read_text()).get("method", ""))
     except (OSError, ValueError, AttributeError):
         return ""
+
+
+def scene_frames(ds: ColoRadar) -> dict[str, int]:
+    """One item of a ColoRadar split per scene, ``{scene: item index}`` (scenes sorted): the middle
+    item of the scene's first run in the split."""
+    first: dict[str, list[int]] = {}
+    for i, (k, _, _) in enumerate(ds.index):
+        run = ds.runs[k]
+        items = first.setdefault(run.scene, [])
+        if not items or ds.runs[ds.index[items[0]][0]].name == run.name:
+            items.append(i)
+    return {scene: items[len(items) // 2] for scene, items in sorted(first.items())}
+
+
+def comparison_views(root: str | os.PathLike, split: str, preds: Mapping[str, str | os.PathLike], *,
+                     notes: Mapping[str, Mapping[tuple[str, int], str]] | None = None,
+                     max_points: int = 50_000) -> list[ComparisonView]:
+    """The comparison figure's view of one frame per scene (:func:`scene_frames`) of a ColoRadar split.
+
+    Parameters
+    ----------
+    root, split
+        The dataset and split the predictions were made on.
+    preds : mapping of str to path-like
+        Method name -> prediction folder (:mod:`radarpc.eval.predictions`), in the order to draw.
+    notes : mapping, optional
+        Method name -> ``{(run, frame): note}`` (e.g. the frame's Chamfer distance).
+    max_points : int
+        Points drawn per cloud at most.
+
+    Raises
+    ------
+    radarpc.io.DataFileError
+        A folder lacks a frame's cloud, or holds a malformed one (an empty cloud is drawn as such).
+    """
+    ds = ColoRadar(root, split, cube_size=None)
+    if len(ds) == 0:
+        raise ValueError(f"split {split!r} of {root} has no paired radar/LiDAR frame")
+    views = []
+    for scene, i in scene_frames(ds).items():
+        k, ri, li = ds.index[i]
+        run = ds.runs[k]
+        cube = ds.cube(i)
+        clouds = {name: load_array(prediction_path(folder, run.name, ri), shape=(None, 3), complex_=False)
+                  for name, folder in preds.items()}
+        frame_notes = {name: n.get((run.name, int(ri)), "") for name, n in (notes or {}).items()}
+        views.append(comparison_view(
+            cube.intensity_db.cpu().numpy(), cube.range_m.cpu().numpy(), np.degrees(cube.azimuth_rad.cpu().numpy()),
+            np.degrees(cube.elevation_rad.cpu().numpy()), ds.lidar_points(i), clouds, run=run.name, scene=scene,
+            frame=ri, lidar_index=li, fov=ds.fov, split=split, notes=frame_notes, max_points=max_points))
+    return views

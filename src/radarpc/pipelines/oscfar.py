@@ -11,7 +11,8 @@ Ownership and resume: the folder is locked for the whole job (:func:`radarpc.run
 a second writer is refused) and temp files of a killed job are removed. ``config.yaml`` is the
 run's key: a rerun keeps it (unless a config is given or ``retune``) and keeps the frames already
 written with it; a rerun with another config rewrites every frame. Every file is written
-atomically, so an interrupted job resumes to the same files.
+atomically, so an interrupted job resumes to the same files (the frame loop is
+:func:`radarpc.pipelines.predictions.fill_predictions`, shared with RaLD's generation).
 """
 from __future__ import annotations
 
@@ -26,8 +27,9 @@ import numpy as np
 import yaml
 
 from radarpc.data.coloradar import ColoRadar
-from radarpc.eval.predictions import INDEX_FILE, prediction_path, write_index
-from radarpc.io import atomic_write, load_array, save_npy_atomic
+from radarpc.eval.predictions import INDEX_FILE
+from radarpc.io import atomic_write
+from radarpc.pipelines.predictions import fill_predictions
 from radarpc.rald.oscfar_baseline import (
     CubeAxes,
     OSCFARConfig,
@@ -170,8 +172,6 @@ def predict_oscfar(job: OSCFARJob, *, progress: bool = True,
     PermissionError
         The prediction folder cannot be written.
     """
-    from tqdm import tqdm
-
     out = Path(job.out)
     cfg_path = out / "config.yaml"
     ds = ColoRadar(job.root, job.split, cube_size=None)
@@ -190,21 +190,8 @@ def predict_oscfar(job: OSCFARJob, *, progress: bool = True,
                         tune_split=job.tune_split, how=how)
         if on_config is not None:
             on_config(cfg, how)
-        index = []
-        n_new = 0
-        for i in tqdm(range(len(ds)), desc=f"OS-CFAR {job.split}", unit="frame", disable=not progress):
-            k, ri, li = ds.index[i]
-            run = ds.runs[k]
-            path = prediction_path(out, run.name, ri)
-            if same and path.is_file():
-                pts = load_array(path, shape=(None, 3))   # resume: keep a valid earlier result
-            else:
-                pts = detect_points(ds.cube(i).intensity_db, axes, cfg).cpu().numpy().astype(np.float32)
-                save_npy_atomic(path, pts)
-                n_new += 1
-            index.append({"run": run.name, "scene": run.scene, "frame": int(ri), "lidar_index": int(li),
-                          "lidar_file": str(run.lidar_path(li)), "radar_time": float(run.radar_timestamps[ri]),
-                          "lidar_time": float(run.lidar_timestamps[li]),
-                          "file": str(path.relative_to(out)), "n_points": int(pts.shape[0])})
-        write_index(out, "os-cfar", job.root, job.split, index)
-    return OSCFARRun(cfg, how, len(index), n_new)
+        res = fill_predictions(
+            out, ds, lambda i: detect_points(ds.cube(i).intensity_db, axes, cfg).cpu().numpy(),
+            keep=lambda i, path: same, method="os-cfar", root=job.root, split=job.split,
+            progress=progress, desc=f"OS-CFAR {job.split}")
+    return OSCFARRun(cfg, how, res.n_frames, res.n_new)

@@ -1,4 +1,5 @@
-"""RaLD: frustum (or Cartesian voxel) occupancy, latent diffusion models and baselines for dense radar point clouds."""
+"""RaLD: frustum (or Cartesian voxel) occupancy, generation from the latent diffusion models, and baselines
+for dense radar point clouds."""
 from radarpc.rald.frustum import (
     RALD_CELL,
     RALD_GRID,
@@ -37,6 +38,17 @@ from radarpc.rald.oscfar_baseline import (
     detect_points,
     tune_oscfar,
 )
+from radarpc.rald.guide import GUIDE_SOURCES, GuideConfig, guide_points, peak_points
+from radarpc.rald.generate import (
+    GeneratedCloud,
+    GenerationConfig,
+    cfar_guided_queries,
+    decode_occupied,
+    frame_seed,
+    generate_cloud,
+    generate_clouds,
+    refine,
+)
 
 __all__ = [
     "RALD_CELL",
@@ -71,4 +83,16 @@ __all__ = [
     "TuningResult",
     "detect_points",
     "tune_oscfar",
+    "GUIDE_SOURCES",
+    "GuideConfig",
+    "guide_points",
+    "peak_points",
+    "GeneratedCloud",
+    "GenerationConfig",
+    "cfar_guided_queries",
+    "decode_occupied",
+    "frame_seed",
+    "generate_cloud",
+    "generate_clouds",
+    "refine",
 ]
