@@ -699,7 +699,7 @@ def plot_density_curves(panels: list[DensityPanel], out: str | os.PathLike, *, t
             stats = curve.statistics
             mean = np.array([s.mean for s in stats])
             std = np.array([np.nan if s.std is None else s.std for s in stats])
-            label = curve.label + ("" if curve.auc is None else f" (AUC {curve.auc:.3f})")
+            label = curve.label + ("" if curve.auc is None else f" (AUC_norm {curve.auc:.3f})")
             ax.plot(x, mean, marker="o", color=c, label=label)
             if np.isfinite(std).any():
                 ax.fill_between(x, mean - std, mean + std, color=c, alpha=0.18, lw=0)
@@ -720,7 +720,8 @@ def plot_density_curves(panels: list[DensityPanel], out: str | os.PathLike, *, t
         ax.grid(alpha=0.3, which="both")
         if panel.curves or panel.references:
             ax.legend(fontsize=8, loc="lower right")
-    fig.suptitle(title)
+    fig.suptitle(f"{title}\nline: mean over runs (seeds), band: +-1 standard deviation, dots: each run; "
+                 f"dashed: density-free references", fontsize=10)
     if footer:
         fig.text(0.01, 0.005, footer, fontsize=6.5, color="0.35", ha="left", va="bottom")
     fig.tight_layout(rect=(0, 0.04 if footer else 0, 1, 1))

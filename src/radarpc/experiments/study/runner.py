@@ -37,7 +37,7 @@ from radarpc.experiments.study.grid import Grid, GridRun
 from radarpc.experiments.study.inputs import StudyInputs
 from radarpc.experiments.study.results import ROW_FORMAT, check_rows, read_rows, run_key, write_row
 from radarpc.io import atomic_write
-from radarpc.runs import OutputLock, check_writable
+from radarpc.runs import OutputLock, RunMismatchError, check_writable
 from radarpc.training.checkpoint import software_record
 from radarpc.training.loop import BEST_WEIGHTS, LOG_CSV
 
@@ -219,6 +219,10 @@ def _train_and_score(grid: Grid, run: GridRun, out: Path, inputs: StudyInputs, d
     try:
         train_runs(cfg, data, folder, points=points, runs=1, device=device, progress=progress, log=log,
                    on_step=step_hook)
+    except RunMismatchError as e:
+        raise RunMismatchError(f"{head}: its run folder {folder} holds a run of other settings or inputs (the "
+                               f"inputs are named by their paths: another --cache?): {e}. Give the --cache it "
+                               f"started with, or remove the folder to train the run again") from None
     except _TimeLimitReached as stop:
         cut_at = int(stop.args[0])
         log(f"{head}: stopped at the time limit of {grid.budget.time_limit_min:g} min, at step {cut_at}")
