@@ -27,9 +27,9 @@ from __future__ import annotations
 import argparse
 import shlex
 
-__all__ = ["add_parser", "run", "command_line"]
+from radarpc.cli.options import STUDY_KINDS
 
-KINDS = ("density-sweep", "ablation")          # radarpc.experiments.study.config.STUDY_KINDS
+__all__ = ["add_parser", "run", "command_line"]
 
 
 def command_line(args: argparse.Namespace) -> str:
@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
 def add_parser(sub) -> None:
     p = sub.add_parser("experiment", help="run a study: density sweep or ablations (resumable)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("kind", choices=KINDS, help="the study: density-sweep or ablation")
+    p.add_argument("kind", choices=STUDY_KINDS, help="the study: density-sweep or ablation")
     p.add_argument("config", help="study YAML (see configs/study/)")
     p.add_argument("--out", required=True, help="study output: run folders, result rows, study.json")
     p.add_argument("--cache", default=None, metavar="DIR",
