@@ -23,7 +23,7 @@ from radarpc.experiments.study.config import Budget, DataSpec, SimulateSpec, loa
 from radarpc.experiments.study.grid import Arm, Grid, GridRun, study_grid
 from radarpc.experiments.study.inputs import DONE_SUFFIX, StudyInputs
 from radarpc.experiments.study.report import write_report
-from radarpc.experiments.study.results import read_rows
+from radarpc.experiments.study.results import plain_json, read_rows
 from radarpc.experiments.study.runner import run_grid
 from radarpc.data.pointstore import PointStore
 from radarpc.runs import read_json
@@ -271,3 +271,65 @@ def test_dropped_cubes_are_simulated_again_when_needed(tmp_path):
     assert not (root / "radar_FFT").exists()                          # dropped again once made
     fresh = StudyInputs(more, tmp_path / "cache2", progress=False, log=lambda s: None).root(0, cubes=True)
     assert (fresh / "radar_FFT" / cube.name).read_bytes() == original
+
+
+def _narrow(variant: str) -> dict:
+    """A tiny experiment (1 step of batch 2, the narrowest pillar model): the study's machinery,
+    not what the model learns."""
+    overrides = ({"pfn_channels": 4, "num_filters": [4, 4, 4], "num_upsample_filters": [4, 2, 2],
+                  "detection_widths": [4, 4], "freespace_widths": [4, 4]} if variant == "pillars-tiny" else {})
+    return {"name": variant, "model": {"variant": variant, "overrides": overrides},
+            "train": {"epochs": 1, "batch_size": 2, "eval_batch_size": 4, "num_workers": 0, "precision": "fp32"}}
+
+
+def test_two_arms_of_one_run_train_once(tiny_city_root, tmp_path):
+    from radarpc.config import from_dict
+    from radarpc.experiments.study.config import AblationConfig
+
+    cfg = from_dict(AblationConfig, {
+        "name": "twins", "sensor": "tiny", "data": {"roots": [str(tiny_city_root)]}, "densities": [0.05],
+        "budget": {"max_steps": 1}, "evaluation": {"fps_frames": 0},
+        "axes": {"model": {"experiment": _narrow("pillars-tiny")}, "arms": ["+Ae+d"]},
+        "enrichments": {"model": {"experiment": _narrow("pillars-tiny")}, "arms": ["none"]}})
+    logs: list[str] = []
+    outcome = run_grid(study_grid(cfg), tmp_path / "out", progress=False, log=logs.append)
+    assert outcome.trained == ["density-050/axes-Ae-d/seed0"] and outcome.reused == ["density-050/enrich-none/seed0"]
+    assert any("the same run as density-050/axes-Ae-d/seed0" in line for line in logs)
+    rows = read_rows(tmp_path / "out")
+    twin = rows["density-050/enrich-none/seed0"]
+    assert twin["same_as"] == "density-050/axes-Ae-d/seed0" and twin["arm"]["group"] == "enrichments"
+    assert twin["metrics"] == rows["density-050/axes-Ae-d/seed0"]["metrics"]
+    assert not (tmp_path / "out" / "density-050" / "enrich-none").exists()
+    # and the rerun finds both finished; the report marks the twin
+    again = run_grid(study_grid(cfg), tmp_path / "out", progress=False, log=lambda s: None)
+    assert again.trained == [] and len(again.reused) == 2
+    text = write_report(tmp_path / "out", log=lambda s: None).read_text()
+    assert "| `density-050/enrich-none/seed0` (= `density-050/axes-Ae-d/seed0`) |" in text
+    assert "## point axes (seed Fig. 5)" in text and "## spectral enrichments (seed Fig. 6)" in text
+
+
+def test_a_sparse_rd_fftradnet_run(radial_s_city_root, tmp_path):
+    """The sparse-RD arm trains an FFTRadNet on the cache's masked root (the dense benchmark is the
+    same code on the roots themselves: its key and data are checked in the grid tests)."""
+    from radarpc.config import from_dict
+    from radarpc.experiments.study.config import AblationConfig
+
+    cfg = from_dict(AblationConfig, {
+        "name": "rd", "sensor": "radial-s", "data": {"roots": [str(radial_s_city_root)]}, "densities": [0.1],
+        "budget": {"max_steps": 1}, "evaluation": {"fps_frames": 0},
+        "rd_comparison": {"points": {"experiment": _narrow("pillars-tiny"), "name": "sp"},
+                          "sparse_rd": {"experiment": _narrow("fftradnet-tiny"), "name": "srd"}}})
+    full = study_grid(cfg)
+    grid = dataclasses.replace(full, runs=tuple(r for r in full.runs if r.arm.input == "sparse-rd"))
+    out = tmp_path / "out"
+    outcome = run_grid(grid, out, progress=False, log=lambda s: None)
+    assert outcome.trained == ["density-100/srd/seed0"]
+    srd = read_json(out / "density-100" / "srd" / "seed0" / "run.json")
+    sparse_root = Path(srd["data"])
+    assert sparse_root.parent == out / "cache" / "sparse-rd" and (sparse_root / "sparse_rd.json").is_file()
+    row = read_rows(out)["density-100/srd/seed0"]
+    assert row["inputs"][0]["tau"] == read_json(sparse_root / "sparse_rd.json")["tau"]
+    assert row["key"]["input"] == "sparse-rd" and row["key"]["conversion"]["density"] == 0.1
+    assert row["metrics"] == plain_json(read_json(out / "density-100" / "srd" / "seed0" / "eval_test.json")["metrics"])
+    dense = [r for r in full.runs if r.arm.input == "dense"]
+    assert dense == []                                  # no dense arm given: none in the grid

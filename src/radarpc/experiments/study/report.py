@@ -13,7 +13,8 @@ sparse-RD ablations):
   dense reference's;
 * freespace mIoU the same way (the seed's Table 1);
 * what the runs read: the achieved density and the calibrated tau per arm and density;
-* every run: its scores, steps, training time, whether its time limit cut it, its commit;
+* every run: its scores, steps, training time, whether its time limit cut it, its commit (a run
+  that is the same as another's, ``same_as``, is marked);
 * a figure of F1 and freespace mIoU against density (log axis), mean, spread and every run, the
   dense reference as a horizontal line.
 
@@ -203,7 +204,8 @@ def _runs_table(rows: list[dict]) -> list[str]:
         m, t, e = r["metrics"], r.get("training", {}), r.get("evaluation", {})
         commit = (r.get("software") or {}).get("commit") or "-"
         fps = e.get("fps_batch1")
-        lines.append(f"| `{r['run']}` | {_num(m.get('f1_fixed'))} | {_num(m.get('f1'))} | "
+        run = f"`{r['run']}`" + (f" (= `{r['same_as']}`)" if r.get("same_as") else "")
+        lines.append(f"| {run} | {_num(m.get('f1_fixed'))} | {_num(m.get('f1'))} | "
                      f"{_num(m.get('freespace_miou'))} | {t.get('weights_epoch', '-')}, {t.get('weights_step', '-')} | "
                      f"{(t.get('train_time_s') or 0) / 60:.1f} | {'yes' if t.get('cut_at_time_limit') else 'no'} | "
                      f"{'-' if fps is None else f'{fps:.3g}'} | `{commit[:10]}` |")
