@@ -189,10 +189,14 @@ def _inputs_table(g: GroupResults) -> list[str]:
             if not recs:
                 cells.append("-")
                 continue
-            text = (_pct(sum(dens) / len(dens)) if dens else "n/a")
-            text += f", tau {min(taus):.3g}" + (f"-{max(taus):.3g}" if len(taus) > 1 and max(taus) != min(taus) else "") \
-                if taus else ", tau per frame"
-            cells.append(text)
+            density = _pct(sum(dens) / len(dens)) if dens else "n/a"
+            if not taus:
+                tau = "tau per frame"
+            elif max(taus) == min(taus):
+                tau = f"tau {taus[0]:.3g}"
+            else:                                          # one tau per root
+                tau = f"tau {min(taus):.3g}-{max(taus):.3g}"
+            cells.append(f"{density}, {tau}")
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 

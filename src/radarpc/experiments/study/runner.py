@@ -146,7 +146,7 @@ def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress
     outcome = StudyOutcome(out, [])
     # runs of two arms that build the same model on the same input (the axis arm +Ae+d and the
     # enrichment arm "none") have the same key: the second takes the first's result
-    by_key = {_key_text(row["key"]): row for row in finished.values()}
+    by_key = {_key_text(run_key(grid, r)): finished[r.id] for r in grid.runs if r.id in finished}
     for k, run in enumerate(grid.runs, 1):
         head = f"[{k}/{n}] {run.id}"
         if run.id in finished:
@@ -165,7 +165,7 @@ def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress
             outcome.reused.append(run.id)
             continue
         row = _train_and_score(grid, run, out, inputs, device, progress, log, head, command, config_file, on_step)
-        by_key[_key_text(row["key"])] = row
+        by_key[_key_text(run_key(grid, run))] = row
         outcome.rows.append(row)
         outcome.trained.append(run.id)
     log(f"study {grid.name!r}: all {n} runs finished ({len(outcome.trained)} trained now, {len(outcome.reused)} "
