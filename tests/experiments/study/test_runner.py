@@ -305,7 +305,8 @@ def test_two_arms_of_one_run_train_once(tiny_city_root, tmp_path):
     assert again.trained == [] and len(again.reused) == 2
     text = write_report(tmp_path / "out", log=lambda s: None).read_text()
     assert "| `density-050/enrich-none/seed0` (= `density-050/axes-Ae-d/seed0`) |" in text
-    assert "## point axes (seed Fig. 5)" in text and "## spectral enrichments (seed Fig. 6)" in text
+    assert "## point axes (the spectral point-cloud paper's Fig. 5)" in text
+    assert "## spectral enrichments (the paper's Fig. 6)" in text
 
 
 def test_a_sparse_rd_fftradnet_run(radial_s_city_root, tmp_path):

@@ -43,9 +43,9 @@ __all__ = ["ArmResults", "GroupResults", "collect", "write_report", "REPORT_MD",
 REPORT_MD = "report.md"
 GROUP_TITLES = {
     "models": "models against density",
-    "axes": "point axes (seed Fig. 5)",
-    "enrichments": "spectral enrichments (seed Fig. 6)",
-    "rd-comparison": "spectral points against sparse RD (seed Fig. 7)",
+    "axes": "point axes (the spectral point-cloud paper's Fig. 5)",
+    "enrichments": "spectral enrichments (the paper's Fig. 6)",
+    "rd-comparison": "spectral points against sparse RD (the paper's Fig. 7)",
 }
 _METRICS = {"f1_fixed": "F1 @ 0.2", "freespace_miou": "freespace mIoU"}
 
@@ -290,13 +290,13 @@ def write_report(runs: str | os.PathLike, out: str | os.PathLike | None = None, 
              + " (the resolved config is at the end)",
              "- commits of the code that trained and scored the runs: " + ", ".join(f"`{c}`" for c in commits), "",
              f"Scores: RADIal's metrics of each run's best-validation weights on the {'/'.join(splits)} split at IoU "
-             f"0.5; **F1 @ 0.2** is F1 at the one confidence threshold 0.2, the seed's density-sweep protocol"
+             f"0.5; **F1 @ 0.2** is F1 at the one confidence threshold 0.2, the spectral point-cloud paper's density-sweep protocol"
              + (", in RADIal's easy mode (Difficult labels dropped)" if easy == [True] else
                 "" if easy == [False] else ", easy mode as each run's experiment trains") + ". "
              "A cell is the mean ± sample standard deviation over seeds (the number of runs). Density: the target "
              "fraction of RD cells the input encodes, |S(tau)| / (N_r N_D) (|S*(tau)| with an RD-neighbourhood "
              "enrichment). AUC_norm: the trapezoid area under the mean curve over the density interval every arm "
-             "spans, divided by its length (density on a linear scale, as the seed: `radarpc.eval.curves`), i.e. the "
+             "spans, divided by its length (density on a linear scale, as the paper's: `radarpc.eval.curves`), i.e. the "
              "mean score over the sweep; Δ AUC is the average gain over the group's first arm.", ""]
     for g in collect(rows):
         name = g.group
