@@ -165,7 +165,7 @@ def _metric_table(g: GroupResults, metric: str) -> list[str]:
         cells.append("-" if curve.auc is None else f"{curve.auc:.3f}")
         if first is not None and len(g.curves) > 1:
             cells.append("-" if curve.auc is None or first_auc is None
-                         else ("0 (reference arm)" if arm is first else f"{curve.auc - first_auc:+.3f}"))
+                         else ("0 (baseline)" if arm is first else f"{curve.auc - first_auc:+.3f}"))
         if ref_mean is not None:
             reach = [d for d, s in zip(curve.density, curve.statistics) if s.mean >= ref_mean]
             cells.append(_pct(reach[0]) if reach else "not reached")
