@@ -22,7 +22,8 @@ Size mapping (the README's sizes take minutes to hours; the commands are otherwi
 Skipped, each for a stated reason: ``pip install`` (the suite runs in an installed environment and
 must not touch the network), ``python -m pytest`` (this suite itself), ``radarpc demo``
 (``tests/cli/test_demo.py`` runs it at tiny sizes; the README's sizes take minutes), ``radarpc train``,
-``radarpc evaluate`` and ``torchrun`` (``tests/training`` runs them on tiny models) and the Python
+``radarpc evaluate`` and ``torchrun`` (``tests/training`` runs them on tiny models), ``radarpc experiment``
+and ``radarpc report`` (``tests/experiments/study`` runs tiny studies and reports them) and the Python
 block that converts the real ``CalibrationTable.npy`` (it needs RADIal's download, which this
 repository cannot ship). Any other command is an error here, so a new kind of README line gets a
 mapping instead of going untested.
@@ -46,6 +47,10 @@ SKIPPED = {
                      "the shipped configs train for minutes to days",
     "radarpc evaluate": "tests/experiments/radial_detection/test_experiment.py evaluates a tiny run through this command",
     "torchrun": "starts several processes (GPUs); tests/training/test_loop.py runs a 2-process gloo job",
+    "radarpc experiment": "tests/experiments/study runs tiny studies through this command (configs/study/tiny-*.yaml); "
+                          "the shipped studies train for hours",
+    "radarpc report": "tests/experiments/study/test_report.py reports result rows through this command; the README's "
+                      "runs folders come from the studies above",
 }
 # A Python block holding one of these needs real data.
 NEEDS_REAL_DATA = {

@@ -28,6 +28,7 @@ from radarpc.boxes import BOX_LENGTH_M, BOX_WIDTH_M
 from radarpc.data.radial import LabelTable
 from radarpc.data.summary import ColoRadarView, FrameView, RadialSummary, TuningTable
 from radarpc.eval.comparison import ComparisonView, angle_edges_deg, range_edges
+from radarpc.eval.curves import DensityCurve, seed_statistics
 from radarpc.io import atomic_write
 from radarpc.points import PointCloudBatch
 from radarpc.sensors.radial import DDMARadarConfig
@@ -51,6 +52,8 @@ __all__ = [
     "plot_coloradar_view",
     "plot_oscfar_tuning",
     "plot_cloud_comparison",
+    "DensityPanel",
+    "plot_density_curves",
 ]
 
 COLOR_BY = ("velocity", "amplitude")
@@ -91,13 +94,14 @@ def figure_format(out: str | os.PathLike) -> str:
     return suffix.lower().removeprefix(".")
 
 
-def save_figure(fig: "Figure", out: str | os.PathLike, dpi: int) -> None:
+def save_figure(fig: "Figure", out: str | os.PathLike, dpi: int, metadata: dict[str, str] | None = None) -> None:
     """Write ``fig`` at ``out`` in the format its suffix names (:func:`figure_format`: PNG for
     ``.png``, PDF for ``.pdf``, ...), atomically (temp file + rename): a reader never sees half
-    a figure, and two writers never mix one."""
+    a figure, and two writers never mix one. ``metadata`` is stored in the file (PNG text chunks
+    such as ``"Description"``; matplotlib's ``savefig(metadata=...)``)."""
     fmt = figure_format(out)
     with atomic_write(out, "wb") as f:
-        fig.savefig(f, format=fmt, dpi=dpi)
+        fig.savefig(f, format=fmt, dpi=dpi, metadata=metadata)
 
 
 # ---- one frame: RD + CFAR + BEV points -----------------------------------------------------------
@@ -701,3 +705,93 @@ def plot_label_outcomes(metrics: dict, out: str | os.PathLike, title: str = "") 
     fig.tight_layout()
     save_figure(fig, out, dpi=90)
     return out
+
+
+# ---- studies: scores against density ------------------------------------------------------------
+@dataclass(frozen=True)
+class DensityPanel:
+    """One panel of :func:`plot_density_curves`: curves of a score against density and
+    density-free references (a dense model), each with the score of every run (seed).
+
+    Attributes
+    ----------
+    ylabel, title : str
+    curves : tuple of DensityCurve
+        Drawn as the mean over runs with a band of +-1 sample standard deviation and every run
+        as a dot; the legend gives each curve's normalized AUC when it has one.
+    references : tuple of (str, tuple of float)
+        ``(label, run scores)``: a horizontal line at the mean, a band of +-1 standard deviation.
+    """
+
+    ylabel: str
+    title: str
+    curves: tuple[DensityCurve, ...]
+    references: tuple[tuple[str, tuple[float, ...]], ...] = ()
+
+
+def plot_density_curves(panels: list[DensityPanel], out: str | os.PathLike, *, title: str,
+                        footer: str = "", metadata: dict[str, str] | None = None) -> Path:
+    """Scores against data density (in percent of RD cells, on a log axis), one panel each: the
+    mean over runs, its spread, every run, and the references as horizontal lines.
+
+    Parameters
+    ----------
+    panels : list of DensityPanel
+    out : path-like
+        The figure to write (its suffix names the format; folders are created).
+    title : str
+        The figure's title.
+    footer : str
+        Small text under the panels (what made the figure).
+    metadata : dict, optional
+        Stored in the file (:func:`save_figure`).
+    """
+    if not panels:
+        raise ValueError("plot_density_curves: no panel to draw")
+    out = Path(out)
+    figure_format(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig = _figure((6.4 * len(panels), 4.8))
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    colours = [f"C{k}" for k in range(10)]
+    for ax, panel in zip(axes, panels):
+        for k, curve in enumerate(panel.curves):
+            c = colours[k % len(colours)]
+            x = 100 * np.asarray(curve.density, dtype=float)
+            stats = curve.statistics
+            mean = np.array([s.mean for s in stats])
+            std = np.array([np.nan if s.std is None else s.std for s in stats])
+            label = curve.label + ("" if curve.auc is None else f" (AUC_norm {curve.auc:.3f})")
+            ax.plot(x, mean, marker="o", color=c, label=label)
+            if np.isfinite(std).any():
+                ax.fill_between(x, mean - std, mean + std, color=c, alpha=0.18, lw=0)
+            for xi, runs in zip(x, curve.runs):
+                ax.scatter(np.full(len(runs), xi), runs, s=10, color=c, alpha=0.6, lw=0)
+        for k, (label, runs) in enumerate(panel.references):
+            c = colours[(len(panel.curves) + k) % len(colours)]
+            s = seed_statistics(runs)
+            ax.axhline(s.mean, color=c, ls="--", label=f"{label} ({s.mean:.3f})")
+            if s.std is not None:
+                ax.axhspan(s.mean - s.std, s.mean + s.std, color=c, alpha=0.12, lw=0)
+        ax.set_xscale("log")
+        ticks = sorted({100 * d for curve in panel.curves for d in curve.density})
+        if ticks:                                  # the measured densities, in percent
+            ax.set_xticks(ticks, [f"{t:.3g}" for t in ticks])
+            ax.xaxis.set_minor_formatter(_no_labels())
+        ax.set(xlabel="data density |S| / (N_r N_D) [%] (log scale)", ylabel=panel.ylabel, title=panel.title)
+        ax.grid(alpha=0.3, which="both")
+        if panel.curves or panel.references:
+            ax.legend(fontsize=8, loc="lower right")
+    fig.suptitle(f"{title}\nline: mean over runs (seeds), band: +-1 standard deviation, dots: each run; "
+                 f"dashed: density-free references", fontsize=10)
+    if footer:
+        fig.text(0.01, 0.005, footer, fontsize=6.5, color="0.35", ha="left", va="bottom")
+    fig.tight_layout(rect=(0, 0.04 if footer else 0, 1, 1))
+    save_figure(fig, out, dpi=110, metadata=metadata)
+    return out
+
+
+def _no_labels():
+    from matplotlib.ticker import NullFormatter
+
+    return NullFormatter()

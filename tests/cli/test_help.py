@@ -36,6 +36,7 @@ def test_help_choices_match_the_library():
     from radarpc.dsp.beamform import BEAMFORMING_MODES
     from radarpc.dsp.ddma import ENVELOPES
     from radarpc.dsp.pointcloud import CFAR_PRESETS
+    from radarpc.experiments.study.config import STUDY_KINDS
     from radarpc.sensors.radial import RADIAL_SENSORS
     from radarpc.sim.indoor import SCENE_KINDS
     from radarpc.viz import COLOR_BY
@@ -48,6 +49,7 @@ def test_help_choices_match_the_library():
     assert options.COLOR_BY == COLOR_BY
     assert options.DEFAULT_WAIT_S == DEFAULT_WAIT_S
     assert options.MODEL_NAMES == tuple(MODELS)
+    assert options.STUDY_KINDS == tuple(STUDY_KINDS)
 
 
 def test_every_help_is_plain_text_with_defaults():

@@ -7,7 +7,7 @@ these copies are checked against them by ``tests/cli/test_help.py``.
 from __future__ import annotations
 
 __all__ = ["RADIAL_SENSOR_NAMES", "SCENE_KINDS", "CFAR_PRESET_NAMES", "BEAMFORMING_MODES", "ENVELOPES",
-           "COLOR_BY", "DEFAULT_WAIT_S", "MODEL_NAMES", "plain_text"]
+           "COLOR_BY", "DEFAULT_WAIT_S", "MODEL_NAMES", "STUDY_KINDS", "plain_text"]
 
 RADIAL_SENSOR_NAMES = ("radial", "radial-s", "tiny")       # radarpc.sensors.radial.RADIAL_SENSORS
 SCENE_KINDS = ("hallway", "lab", "classroom", "large_room", "outdoor")   # radarpc.sim.indoor.SCENE_KINDS
@@ -19,6 +19,7 @@ DEFAULT_WAIT_S = 7200.0                                    # radarpc.distributed
 MODEL_NAMES = ("fftradnet", "fftradnet-s", "fftradnet-tiny", "pointpillars", "spectralpillars",
                "pointpillars-s", "spectralpillars-s", "pillars-tiny", "rald-ae", "rald-ae-s", "rald-ae-tiny",
                "rald-dit", "rald-dit-d12", "rald-dit-d18", "rald-dit-s", "rald-dit-tiny")   # radarpc.models.MODELS
+STUDY_KINDS = ("density-sweep", "ablation")                # radarpc.experiments.study.config.STUDY_KINDS
 
 
 def plain_text(text: str | None) -> str | None:

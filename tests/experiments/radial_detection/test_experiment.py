@@ -676,8 +676,7 @@ def test_shown_frames_spread_over_the_split():
     assert _shown(items, 2, lambda batch: batch) == [(0, [0]), (9, [9])]
 
 
-def test_evaluate_refuses_what_is_not_the_runs_own_and_says_when_unfinished(root, store, tmp_path, capsys,
-                                                                           monkeypatch):
+def test_evaluate_refuses_what_is_not_the_runs_own_and_says_when_unfinished(root, store, tmp_path, capsys):
     """A run killed in epoch 1 of 2 is scored with a warning and says so in its outputs; weights
     copied in from another run, non-finite weights and a folder in place of the weights are refused
     with one line naming the file."""
@@ -692,12 +691,8 @@ def test_evaluate_refuses_what_is_not_the_runs_own_and_says_when_unfinished(root
             raise KeyboardInterrupt
 
     run = tmp_path / "run"
-    import radarpc.experiments.radial_detection.train as train_module
-
-    fitted = train_module.fit
-    with monkeypatch.context() as m, pytest.raises(KeyboardInterrupt):
-        m.setattr(train_module, "fit", lambda *a, **k: fitted(*a, **k, on_step=kill))
-        train_runs(cfg, root, run, points=store, progress=False, log=lambda s: None)
+    with pytest.raises(KeyboardInterrupt):
+        train_runs(cfg, root, run, points=store, progress=False, log=lambda s: None, on_step=kill)
     assert main(["evaluate", str(run), "--split", "test", "--fps-frames", "1"]) == 0
     out = capsys.readouterr().out
     assert "warning: the run has not finished" in out and "from epoch 0" in out

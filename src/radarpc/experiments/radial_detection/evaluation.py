@@ -194,7 +194,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
                  points: DataPaths | None = None, device: str | None = None, show: int = 0,
                  fps_frames: int = 20, batch_size: int = 4, precision: str = "fp32", mirror_average: bool = False,
                  fast: bool = False, easy: bool | None = None, empty_frames: bool = True, progress: bool = True,
-                 log: Callable[[str], None] = print) -> list[EvalResult]:
+                 log: Callable[[str], None] = print, timed: bool = True) -> list[EvalResult]:
     """Score the best weights of every run in ``run`` on ``split`` (see the module docstring).
 
     ``data`` / ``points`` override the roots and stores stored with the run (a moved dataset, or
@@ -214,7 +214,8 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     (the default) follows the run's config: every label, or easy mode for a run trained with
     ``difficult: false``. ``empty_frames=False`` also leaves out the frames without a vehicle to
     score, as RADIal's loader does in its easy mode (what its ``3-Evaluation.py`` scores by
-    default), into ``eval_{split}[...]_vehicle_frames.*``.
+    default), into ``eval_{split}[...]_vehicle_frames.*``. ``timed=False`` skips the frames/s timing
+    (the result's rate is NaN): the scores alone, when the time of ``fps_frames`` timed sweeps matters.
     """
     if precision not in EVAL_PRECISIONS:
         raise ValueError(f"precision must be one of {EVAL_PRECISIONS}, got {precision!r}")
@@ -233,8 +234,8 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     for folder in folders:
         with locked_output(folder, "run folder"):       # not while the run trains or another evaluation writes
             remove_temp_files(folder, recursive=False)  # what a killed evaluation left half-written
-            results.append(_evaluate_folder(folder, split, data, points, dev, show, fps_frames, batch_size,
-                                            precision, mirror_average, fast, easy, empty_frames, log))
+            results.append(_evaluate_folder(folder, split, data, points, dev, show, fps_frames if timed else 0,
+                                            batch_size, precision, mirror_average, fast, easy, empty_frames, log))
     if len(results) > 1:
         rows = [{"run": k, **{m: (r.metrics.get(m) if r.metrics.get(m) is not None else math.nan)
                               for m in SUMMARY_METRICS}} for k, r in enumerate(results)]
@@ -289,7 +290,7 @@ def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, 
             f"(in this mode): recall and F1 mean nothing here")
     single = DataLoader(ds, batch_size=1, shuffle=False, collate_fn=collate)
     frames = []
-    for b in single:
+    for b in single if fps_frames > 0 else ():          # 0: not timed
         frames.append(b.to(dev))
         if len(frames) >= fps_frames:
             break

@@ -61,11 +61,14 @@ def run_folders(out: str | os.PathLike) -> list[Path]:
 def train_runs(cfg: ExperimentConfig, data: DataPaths, out: str | os.PathLike, *,
                points: DataPaths | None = None, runs: int = 1, device: str | None = None,
                overwrite: bool = False, progress: bool = True,
-               log: Callable[[str], None] = print) -> list[FitResult]:
+               log: Callable[[str], None] = print,
+               on_step: Callable[[int], None] | None = None) -> list[FitResult]:
     """Train ``runs`` seeds of ``cfg`` into ``out`` (see the module docstring); resumable.
 
     ``data`` is a RADIal root or several, ``points`` their point stores (pillar models), one per
-    root: the training and validation frames of every root are used together.
+    root: the training and validation frames of every root are used together. ``on_step`` is
+    given the global step after each optimizer step of every run (:func:`~radarpc.training.loop.fit`;
+    a study stops a run at its time limit through it).
     """
     if runs < 1:
         raise ValueError(f"runs must be >= 1, got {runs}")
@@ -78,7 +81,7 @@ def train_runs(cfg: ExperimentConfig, data: DataPaths, out: str | os.PathLike, *
         if task.preloaded_bytes:
             log(f"{folder}: point frames preloaded in memory, {task.preloaded_bytes / 2**30:.2f} GiB")
         res = fit(task, run_cfg.train, folder, run_key(run_cfg, data, points), device=device,
-                  overwrite=overwrite, progress=progress, log=log, extra_outputs=(CONFIG_YAML,),
+                  overwrite=overwrite, progress=progress, log=log, extra_outputs=(CONFIG_YAML,), on_step=on_step,
                   canonical_key=functools.partial(canonical_key, num_workers=run_cfg.train.num_workers))
         if not (folder / CONFIG_YAML).is_file():
             save_yaml(run_cfg, folder / CONFIG_YAML)

@@ -1,0 +1,90 @@
+"""``radarpc experiment {density-sweep,ablation} CONFIG --out DIR``: a study of the spectral
+point-cloud paper, resumable.
+
+::
+
+    radarpc experiment density-sweep configs/study/density-sweep.yaml --out runs/sweep
+    radarpc experiment ablation configs/study/ablation.yaml --out runs/axes --cache runs/sweep/cache
+    radarpc experiment density-sweep configs/study/density-sweep.yaml --out runs/sweep --plan
+
+The config names the data (roots, or simulations made once into the cache), the sensor, the
+densities, the models (detection experiment configs with overrides and enrichments), the seeds
+and the budget of each run (see ``configs/study/``). For every run not finished yet the study
+makes its inputs (point stores or sparse-RD roots at the run's density, one CFAR threshold tau per
+root calibrated for the target density; cached in ``--cache``, default ``OUT/cache``, and reused
+by content), trains it in ``OUT/density-XXX/MODEL/seedN`` (``OUT/dense/...`` for the dense
+reference), scores its best-validation weights on the test split (F1 at IoU 0.5 and confidence
+0.2, freespace mIoU) and writes its result row ``OUT/results/RUN.json`` (metrics, config, commit,
+density, tau, times; no weights). A run whose row is present is finished and never trained again;
+commit ``OUT/results/`` and the study resumes on another machine. Run the same command again after
+an interruption: finished runs are reused (it says so), a killed run resumes from its last
+checkpoint. A row made with another config of the same run is refused, naming what differs.
+``--plan`` lists the runs and which are finished, and does nothing else. ``radarpc report OUT``
+makes the tables and figures.
+"""
+from __future__ import annotations
+
+import argparse
+import shlex
+
+from radarpc.cli.options import STUDY_KINDS
+
+__all__ = ["add_parser", "run", "command_line"]
+
+
+def command_line(args: argparse.Namespace) -> str:
+    """The command as a user would type it again (recorded in every result row)."""
+    argv = ["radarpc", "experiment", args.kind, str(args.config), "--out", str(args.out)]
+    if args.cache is not None:
+        argv += ["--cache", str(args.cache)]
+    if args.device is not None:
+        argv += ["--device", args.device]
+    return shlex.join(argv)
+
+
+def run(args: argparse.Namespace) -> int:
+    import sys
+
+    from radarpc.experiments.study.config import load_study
+    from radarpc.experiments.study.grid import study_grid
+    from radarpc.experiments.study.results import check_rows, read_rows
+    from radarpc.experiments.study.runner import run_grid
+    from radarpc.machine import check_device
+
+    cfg = load_study(args.config, args.kind, notice=lambda s: print(s, file=sys.stderr))
+    grid = study_grid(cfg)
+    if args.plan:
+        import json
+
+        from radarpc.experiments.study.results import run_key
+
+        finished = check_rows(grid, args.out, read_rows(args.out))
+        print(f"study {grid.name!r} ({grid.kind}): {len(grid.runs)} runs, {len(finished)} finished")
+        first: dict[str, str] = {}
+        for k, r in enumerate(grid.runs, 1):
+            twin = first.setdefault(json.dumps(run_key(grid, r), sort_keys=True), r.id)
+            state = ("finished" if r.id in finished else
+                     f"the same run as {twin}, trained once" if twin != r.id else "to train")
+            print(f"[{k}/{len(grid.runs)}] {r.id}: {r.arm.label}, {r.arm.input}"
+                  + (f" +{'+'.join(r.arm.enrich)}" if r.arm.enrich else "") + f" -- {state}")
+        return 0
+    if args.device is not None:
+        check_device(args.device, "--device")
+    run_grid(grid, args.out, cache=args.cache, device=args.device, progress=not args.no_progress,
+             command=command_line(args), config_file=str(args.config))
+    return 0
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("experiment", help="run a study: density sweep or ablations (resumable)",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("kind", choices=STUDY_KINDS, help="the study: density-sweep or ablation")
+    p.add_argument("config", help="study YAML (see configs/study/)")
+    p.add_argument("--out", required=True, help="study output: run folders, result rows, study.json")
+    p.add_argument("--cache", default=None, metavar="DIR",
+                   help="simulated roots, point stores and sparse-RD roots (default OUT/cache); share one "
+                        "between studies of the same data")
+    p.add_argument("--device", default=None, help="torch device (default: a GPU when there is one, else the CPU)")
+    p.add_argument("--plan", action="store_true", help="list the runs and which are finished; change nothing")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)

@@ -1,0 +1,38 @@
+"""``radarpc report RUNS``: Markdown tables and PNG figures of a study's finished runs.
+
+::
+
+    radarpc report runs/sweep
+    radarpc report runs/axes --out docs/results/study-axes
+
+Reads the result rows ``RUNS/results/*.json`` (the rows alone are enough: no weights, no run
+folders) and writes ``report.md`` and ``figures/GROUP.png`` into ``--out`` (default
+``RUNS/report``): per arm and density the mean and standard deviation over seeds of F1 at IoU 0.5
+and confidence 0.2 and of freespace mIoU, each curve's normalized AUC (the mean over the density
+interval, ``radarpc.eval.curves``) and its gain over the group's first arm, where it reaches the
+dense reference, the achieved densities and CFAR thresholds, and every run; figures of the scores
+against density (log axis) with their spread and the dense reference as a line. The report and its
+figures name the study command, config file and commits that produced them.
+"""
+from __future__ import annotations
+
+import argparse
+import shlex
+
+__all__ = ["add_parser", "run"]
+
+
+def run(args: argparse.Namespace) -> int:
+    from radarpc.experiments.study.report import write_report
+
+    argv = ["radarpc", "report", str(args.runs)] + (["--out", str(args.out)] if args.out is not None else [])
+    write_report(args.runs, args.out, command=shlex.join(argv))
+    return 0
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("report", help="tables and figures of a study's finished runs",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("runs", help="a study output (radarpc experiment --out) or its results/ folder")
+    p.add_argument("--out", default=None, help="where to write report.md and figures/ (default RUNS/report)")
+    p.set_defaults(func=run)

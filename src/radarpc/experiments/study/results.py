@@ -1,0 +1,161 @@
+"""Result rows: one JSON file per finished run of a study, ``OUT/results/RUN.json``.
+
+A row holds what a run measured (RADIal's metrics of its best-validation weights on the
+evaluation split, the frames/s of its model), what it read (per root: the CFAR threshold tau and
+the achieved density), how it trained (epochs, steps, time, whether the time limit cut it), the
+study config, the command and the software (radarpc version, git commit, torch) -- and not its
+weights. Rows are small and portable (no machine paths in what identifies a run), so that the
+``results/`` folder can be committed and a study resumed on another machine: **a run is finished
+when its row is present with a matching key**, and a finished run is never trained again.
+
+The key (:func:`run_key`) is what makes a run this run: the resolved experiment (the budget's
+length and the seed applied), the input kind, the density and the conversion settings, the sensor
+and the data (the simulations, or the roots' folder names), the evaluation split, the time limit.
+A row whose key differs from the config's is refused, with the fields that differ
+(:func:`check_rows`): remove the row (and its run folder) to train that run again.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+from radarpc.config import to_dict
+from radarpc.experiments.radial_detection.config import canonical_key
+from radarpc.experiments.study.grid import Grid, GridRun
+from radarpc.io import DataFileError, atomic_write
+
+__all__ = ["ROW_FORMAT", "RESULTS_DIR", "run_key", "data_identity", "plain_json", "write_row", "read_rows",
+           "key_differences", "check_rows"]
+
+ROW_FORMAT = "radarpc study result row 1"
+"""The ``format`` every row states; a row of another format is refused."""
+RESULTS_DIR = "results"
+"""The rows' folder under a study's output."""
+_REQUIRED = ("format", "run", "study", "arm", "density", "seed", "key", "metrics")
+
+
+def data_identity(grid: Grid) -> dict:
+    """The study's data as a run key names it, the same on every machine: the sensor and the
+    simulations, or the roots' folder names (not their paths)."""
+    if grid.data.simulate:
+        return {"sensor": grid.sensor, "simulate": [to_dict(s) for s in grid.data.simulate]}
+    return {"sensor": grid.sensor, "roots": [Path(r).name for r in grid.data.roots]}
+
+
+def run_key(grid: Grid, run: GridRun) -> dict:
+    """What identifies ``run`` of ``grid`` (see the module docstring)."""
+    conversion = None
+    if run.arm.input != "dense":
+        conversion = grid.conversion.settings(run.density, run.arm.enrich).output_key()
+        conversion.pop("beamforming")              # every mode gives the same points
+    return plain_json({"input": run.arm.input, "experiment": to_dict(run.experiment(grid.budget)),
+                       "density": run.density, "conversion": conversion, "data": data_identity(grid),
+                       "evaluation": {"split": grid.evaluation.split, "weights": "best validation"},
+                       "time_limit_min": grid.budget.time_limit_min})
+
+
+def plain_json(value: Any) -> Any:
+    """``value`` as strict JSON types: NaN and infinities become None (a row is read anywhere)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): plain_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain_json(v) for v in value]
+    return value
+
+
+def write_row(out: str | os.PathLike, run: GridRun, row: dict) -> Path:
+    """Write ``row`` as ``out/results/RUN.json``, atomically; returns the path."""
+    path = Path(out) / RESULTS_DIR / run.row_name
+    with atomic_write(path, "w") as f:
+        json.dump(plain_json(row), f, indent=1, allow_nan=False)
+        f.write("\n")
+    return path
+
+
+def read_rows(out: str | os.PathLike) -> dict[str, dict]:
+    """The result rows of a study output (or of a ``results`` folder), by run id.
+
+    Raises
+    ------
+    DataFileError
+        A row that is not valid JSON, not a result row, or of another format, or two rows of one run.
+    """
+    out = Path(out)
+    folder = out if out.name == RESULTS_DIR and not (out / RESULTS_DIR).is_dir() else out / RESULTS_DIR
+    rows: dict[str, dict] = {}
+    if not folder.is_dir():
+        return rows
+    for path in sorted(folder.glob("*.json")):
+        try:
+            row = json.loads(path.read_text(encoding="utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise DataFileError(path, f"not a result row (invalid JSON: {e})") from None
+        if not isinstance(row, dict) or any(k not in row for k in _REQUIRED):
+            raise DataFileError(path, f"not a study result row (needs {', '.join(_REQUIRED)})")
+        if row["format"] != ROW_FORMAT:
+            raise DataFileError(path, f"a result row of format {row['format']!r}; this radarpc reads {ROW_FORMAT!r}")
+        if row["run"] in rows:
+            raise DataFileError(path, f"a second row of run {row['run']!r}")
+        if path.name != row["run"].replace("/", "__") + ".json":
+            raise DataFileError(path, f"holds run {row['run']!r}, whose row is named "
+                                      f"{row['run'].replace('/', '__')}.json")
+        rows[row["run"]] = row
+    return rows
+
+
+def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(d, dict) and d:
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            out.update(_flat(v, f"{prefix}{k}."))
+        return out
+    return {prefix.rstrip("."): d}
+
+
+def _readable(stored: dict, num_workers: int) -> dict:
+    """A stored key read through today's config types: experiment fields added since take their
+    defaults, and the loader's worker count (which does not change what a run computes) is ours."""
+    return plain_json(canonical_key(stored, num_workers=num_workers))
+
+
+def key_differences(stored: dict, key: dict) -> list[str]:
+    """``"field: stored -> config"`` for every dotted field where the stored key differs from ``key``."""
+    have = _flat(_readable(stored, key["experiment"]["train"]["num_workers"]))
+    want = _flat(key)
+    return [f"{k}: {have.get(k, '(missing)')!r} in the row, {want.get(k, '(missing)')!r} in the config"
+            for k in sorted(set(have) | set(want)) if have.get(k) != want.get(k)]
+
+
+def check_rows(grid: Grid, out: str | os.PathLike, rows: dict[str, dict]) -> dict[str, dict]:
+    """The rows of ``grid``'s runs that are finished (present with a matching key), by run id.
+
+    Raises
+    ------
+    ValueError
+        A row of a run of the grid holds another key: every such run is named with its first
+        differing fields, and what to do.
+    """
+    finished, bad = {}, []
+    for run in grid.runs:
+        row = rows.get(run.id)
+        if row is None:
+            continue
+        diff = key_differences(row["key"], run_key(grid, run))
+        if diff:
+            more = f" (and {len(diff) - 3} more)" if len(diff) > 3 else ""
+            bad.append(f"{run.id}: {'; '.join(diff[:3])}{more}")
+        else:
+            finished[run.id] = row
+    if bad:
+        rows_dir = Path(out) / RESULTS_DIR
+        raise ValueError(f"{rows_dir}: {len(bad)} result row(s) were made by another configuration of the same run, "
+                         f"so the study cannot resume them: " + " | ".join(bad[:5])
+                         + (f" | ... {len(bad) - 5} more" if len(bad) > 5 else "")
+                         + f". Remove those rows (and their run folders) to train them again with this config, or "
+                         f"give another --out")
+    return finished

@@ -1,0 +1,336 @@
+"""A study's runs on the session's tiny city root: a finished run is reused and not trained again,
+a killed study ends as an uninterrupted one, the result rows alone resume it elsewhere, a row of
+another config is refused, the time limit stops a run, and the inputs are made once and cached.
+
+The tiny sweep trains ``pillars-tiny`` for 2 epochs of 1 step (3 training frames, batch 2) at two
+densities; its scores mean nothing, but its weights and rows are compared exactly.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+import yaml
+
+from radarpc.cli import main
+from radarpc.experiments.radial_detection.config import experiment_from_dict
+from radarpc.experiments.study.config import Budget, DataSpec, SimulateSpec, load_density_sweep
+from radarpc.experiments.study.grid import Arm, Grid, GridRun, study_grid
+from radarpc.experiments.study.inputs import DONE_SUFFIX, StudyInputs
+from radarpc.experiments.study.report import write_report
+from radarpc.experiments.study.results import plain_json, read_rows
+from radarpc.experiments.study.runner import run_grid
+from radarpc.data.pointstore import PointStore
+from radarpc.runs import read_json
+from radarpc.training.checkpoint import load_weights
+
+CONFIGS = Path(__file__).parents[3] / "configs" / "study"
+RUN1, RUN2 = "density-050/pillars-tiny/seed0", "density-200/pillars-tiny/seed0"
+
+
+def tiny_sweep(root: Path, densities=(0.05, 0.2), **changes):
+    """The shipped tiny sweep on ``root`` (the session's tiny city root: the same frames as its
+    simulation spec), 2 epochs of 1 step."""
+    cfg = load_density_sweep(CONFIGS / "tiny-sweep.yaml")
+    return dataclasses.replace(cfg, data=DataSpec(roots=(str(root),)), densities=tuple(densities),
+                               budget=Budget(epochs=2), **changes)
+
+
+def _weights(path: Path) -> dict[str, torch.Tensor]:
+    return load_weights(path)[0]
+
+
+def _tables(report: Path) -> list[str]:
+    """The report's score and input tables (the lines between the first table and the runs table)."""
+    text = report.read_text()
+    body = text[text.index("### F1 @ 0.2"):text.index("### runs")]
+    return [line for line in body.splitlines() if line.startswith("|")]
+
+
+@pytest.fixture(scope="module")
+def sweep(tiny_city_root, tmp_path_factory):
+    """The tiny sweep finished in two commands: the density 0.05 alone, then both densities
+    (through ``radarpc experiment``)."""
+    base = tmp_path_factory.mktemp("sweep")
+    out = base / "out"
+    logs1: list[str] = []
+    run_grid(study_grid(tiny_sweep(tiny_city_root, (0.05,))), out, progress=False, log=logs1.append)
+    first = out / RUN1
+    before = {p.relative_to(first): p.stat().st_mtime_ns for p in first.rglob("*") if p.is_file()}
+    d = yaml.safe_load((CONFIGS / "tiny-sweep.yaml").read_text())
+    d.update(data={"roots": [str(tiny_city_root)]}, budget={"epochs": 2})
+    config = base / "sweep.yaml"
+    config.write_text(yaml.safe_dump(d))
+    return SimpleNamespace(out=out, base=base, config=config, logs1=logs1, before=before, root=tiny_city_root)
+
+
+@pytest.fixture(scope="module")
+def finished(sweep):
+    """The second command of :func:`sweep`, its stdout."""
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = main(["experiment", "density-sweep", str(sweep.config), "--out", str(sweep.out), "--no-progress"])
+    assert code == 0
+    return buf.getvalue()
+
+
+def test_a_finished_run_is_reused_and_not_trained_again(sweep, finished):
+    assert f"[1/1] {RUN1}: training pillars-tiny" in "\n".join(sweep.logs1)
+    assert f"[1/2] {RUN1}: finished earlier, result row reused" in finished
+    assert f"[2/2] {RUN2}: training pillars-tiny" in finished
+    assert "1 trained now, 1 reused" in finished
+    first = sweep.out / RUN1
+    after = {p.relative_to(first): p.stat().st_mtime_ns for p in first.rglob("*") if p.is_file()}
+    assert after == sweep.before                           # not a file of the finished run touched
+    rows = read_rows(sweep.out)
+    assert sorted(rows) == [RUN1, RUN2]
+    row = rows[RUN2]
+    # what a row records: the command, the config file, the commit, density and tau, metrics, times
+    assert row["command"] == (f"radarpc experiment density-sweep {sweep.config} --out {sweep.out}")
+    assert row["study"]["config_file"] == str(sweep.config) and row["study"]["kind"] == "density-sweep"
+    assert set(row["software"]) == {"radarpc", "commit", "torch"}
+    assert row["density"] == 0.2 and row["seed"] == 0 and row["arm"]["name"] == "pillars-tiny"
+    store = PointStore(next((sweep.out / "cache" / "points").glob("*-200-plain-*.parquet")))
+    assert row["inputs"] == [{"root": sweep.root.name, "tau": store.metadata.tau,
+                              "achieved_density": store.metadata.achieved_density,
+                              "peak_density": store.metadata.peak_density, "seconds": row["inputs"][0]["seconds"]}]
+    assert 0.15 < row["inputs"][0]["achieved_density"] < 0.25           # per-dataset tau for the target 0.2
+    evaluation = read_json(sweep.out / RUN2 / "eval_test.json")
+    assert row["metrics"]["f1_fixed"] == evaluation["metrics"]["f1_fixed"]
+    assert row["metrics"]["freespace_miou"] == pytest.approx(evaluation["metrics"]["freespace_miou"], abs=0)
+    assert row["training"]["steps_done"] == 2 and row["training"]["finished"] is True
+    assert row["training"]["cut_at_time_limit"] is False and row["evaluation"]["split"] == "test"
+    assert row["evaluation"]["fps_batch1"] is None                     # fps_frames 0: not timed
+    assert experiment_from_dict(row["key"]["experiment"]).train.epochs == 2
+    assert "weights" not in json.dumps(row["key"]) or "best validation" in json.dumps(row["key"])
+    assert not list((sweep.out / "results").glob("*.safetensors"))
+
+
+def test_a_killed_study_ends_as_an_uninterrupted_one(sweep, finished, tmp_path):
+    grid = study_grid(tiny_sweep(sweep.root))
+    out = tmp_path / "killed"
+    # the study killed in its second run: its first finished (as in the fixture), the second not
+    (out / "results").mkdir(parents=True)
+    shutil.copy(sweep.out / "results" / (RUN1.replace("/", "__") + ".json"), out / "results")
+    shutil.copytree(sweep.out / RUN1, out / RUN1)
+
+    def kill(run: GridRun, step: int) -> None:
+        if run.id == RUN2 and step == 2:                  # the last step, after the epoch-0 checkpoint
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_grid(grid, out, progress=False, log=lambda s: None, on_step=kill, cache=sweep.out / "cache")
+    assert sorted(read_rows(out)) == [RUN1]               # the killed run has no row
+    logs: list[str] = []
+    outcome = run_grid(grid, out, progress=False, log=logs.append, cache=sweep.out / "cache")
+    assert outcome.trained == [RUN2] and outcome.reused == [RUN1]
+    assert any("resuming at epoch 1, step 1 of 2" in line for line in logs)
+    for run in (RUN1, RUN2):
+        a, b = _weights(sweep.out / run / "best.safetensors"), _weights(out / run / "best.safetensors")
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+        assert read_rows(out)[run]["metrics"] == read_rows(sweep.out)[run]["metrics"]
+    assert _tables(write_report(out, log=lambda s: None)) == _tables(write_report(sweep.out, log=lambda s: None))
+
+
+def test_the_rows_alone_resume_the_study_elsewhere(sweep, finished, tmp_path):
+    out = tmp_path / "elsewhere"
+    shutil.copytree(sweep.out / "results", out / "results")
+    called = []
+    outcome = run_grid(study_grid(tiny_sweep(sweep.root)), out, progress=False, log=lambda s: None,
+                       on_step=lambda run, step: called.append(run.id))
+    assert outcome.trained == [] and outcome.reused == [RUN1, RUN2] and called == []
+    assert sorted(p.name for p in out.iterdir()) == ["results", "study.json"]     # no input made, no run folder
+    assert _tables(write_report(out, log=lambda s: None)) == _tables(sweep.out / "report" / "report.md") \
+        if (sweep.out / "report" / "report.md").exists() else True
+
+
+def test_a_row_of_another_config_of_the_run_is_refused(sweep, finished, tmp_path, capsys):
+    out = tmp_path / "other"
+    shutil.copytree(sweep.out / "results", out / "results")
+    longer = study_grid(dataclasses.replace(tiny_sweep(sweep.root), budget=Budget(epochs=3)))
+    with pytest.raises(ValueError, match=r"2 result row\(s\) were made by another configuration") as e:
+        run_grid(longer, out, progress=False, log=lambda s: None)
+    assert f"{RUN1}: experiment.train.epochs: 2 in the row, 3 in the config" in str(e.value)
+    assert "Remove those rows" in str(e.value)
+    assert sorted(p.name for p in out.iterdir()) == ["results"]                  # refused before any work
+    # from the command: one line
+    d = yaml.safe_load(sweep.config.read_text())
+    d["budget"] = {"epochs": 3}
+    (tmp_path / "longer.yaml").write_text(yaml.safe_dump(d))
+    assert main(["experiment", "density-sweep", str(tmp_path / "longer.yaml"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("radarpc experiment: error: ") and err.count("\n") == 1
+
+
+def test_the_time_limit_stops_a_run_and_its_row_says_so(sweep, finished, tmp_path, monkeypatch):
+    import radarpc.experiments.study.runner as runner
+
+    clock = iter(range(0, 10**6, 40))               # each reading 40 s later: step 1 at 40 s, step 2 at 80 s
+
+    monkeypatch.setattr(runner, "time", SimpleNamespace(perf_counter=lambda: float(next(clock))))
+    cfg = dataclasses.replace(tiny_sweep(sweep.root, (0.05,)), budget=Budget(epochs=2, time_limit_min=1.0))
+    logs: list[str] = []
+    outcome = run_grid(study_grid(cfg), tmp_path / "cut", progress=False, log=logs.append,
+                       cache=sweep.out / "cache")
+    row = outcome.rows[0]
+    assert any("stopped at the time limit of 1 min, at step 2" in line for line in logs)
+    assert row["training"]["cut_at_time_limit"] is True and row["training"]["finished"] is False
+    assert row["training"]["weights_step"] == 1 and row["key"]["time_limit_min"] == 1.0
+    # a limit reached before the first validation leaves nothing to score: said, not scored
+    clock2 = iter(range(0, 10**6, 100))
+    monkeypatch.setattr(runner, "time", SimpleNamespace(perf_counter=lambda: float(next(clock2))))
+    with pytest.raises(ValueError, match="before its first validation: no weights to score"):
+        run_grid(study_grid(cfg), tmp_path / "cut_early", progress=False, log=lambda s: None,
+                 cache=sweep.out / "cache")
+
+
+def test_a_second_study_on_the_same_output_is_refused(sweep, finished):
+    from radarpc.runs import OutputBusyError, OutputLock
+
+    with OutputLock(sweep.out, "study output"):
+        with pytest.raises(OutputBusyError, match="study output"):
+            run_grid(study_grid(tiny_sweep(sweep.root)), sweep.out, progress=False, log=lambda s: None)
+
+
+def _grid_of(arms: list[Arm], root: Path | None, densities=(0.1,), simulate=None, drop=False) -> Grid:
+    cfg = load_density_sweep(CONFIGS / "tiny-sweep.yaml")
+    data = DataSpec(simulate=simulate, drop_cubes=drop) if simulate else DataSpec(roots=(str(root),))
+    runs = tuple(GridRun(a, None if a.input == "dense" else d, 0) for a in arms for d in densities)
+    return Grid("density-sweep", "inputs", "tiny", data, cfg.conversion, cfg.budget, cfg.evaluation,
+                tuple(densities), tuple(arms), runs, {})
+
+
+def _arm(name: str, input: str, enrich=()) -> Arm:
+    variant = "pillars-tiny" if input == "points" else "fftradnet-tiny"
+    cfg = experiment_from_dict({"name": name, "model": {"variant": variant}, "train": {"epochs": 1}})
+    return Arm(name, name, "models", cfg, input, tuple(enrich))
+
+
+def test_inputs_are_made_once_and_found_by_content(tiny_city_root, tmp_path, monkeypatch):
+    arms = [_arm("pp", "points"), _arm("sp", "points", ("rd3", "sector4")), _arm("srd", "sparse-rd"),
+            _arm("fft", "dense")]
+    grid = _grid_of(arms, tiny_city_root)
+    logs: list[str] = []
+    inputs = StudyInputs(grid, tmp_path / "cache", progress=False, log=logs.append)
+    inputs.prepare(grid.runs)
+    got = {r.arm.name: inputs.for_run(r) for r in grid.runs}
+    data, points, records = got["pp"]
+    assert data == [tiny_city_root] and len(points) == 1 and points[0].suffix == ".parquet"
+    meta = PointStore(points[0]).metadata
+    assert meta.density_mode == "per-dataset" and meta.target_density == 0.1 and meta.enrich == ()
+    assert records[0].tau == meta.tau and records[0].achieved_density == meta.achieved_density
+    assert PointStore(got["sp"][1][0]).metadata.enrich == ("rd3", "sector4")
+    srd_data, srd_points, srd_records = got["srd"]
+    manifest = read_json(srd_data[0] / "sparse_rd.json")
+    assert srd_points is None and manifest["complete"] is True and srd_records[0].tau == manifest["tau"]
+    assert srd_records[0].achieved_density == pytest.approx(manifest["mean_density"])
+    assert got["fft"][0] == [tiny_city_root] and got["fft"][1] is None
+    # a second study on the same cache opens nothing it has: each output reused, and said so
+    import radarpc.pipelines.pointclouds as pointclouds
+    import radarpc.pipelines.sparse_rd as sparse_rd
+
+    def refuse(*a, **k):
+        raise AssertionError("converted again")
+
+    monkeypatch.setattr(pointclouds, "convert_dataset", refuse)
+    monkeypatch.setattr(sparse_rd, "write_sparse_rd", refuse)
+    logs2: list[str] = []
+    again = StudyInputs(grid, tmp_path / "cache", progress=False, log=logs2.append)
+    again.prepare(grid.runs)
+    assert [again.for_run(r)[:2] for r in grid.runs] == [v[:2] for v in got.values()]
+    assert sum(line.startswith("reused point store") for line in logs2) == 2
+    assert sum(line.startswith("reused sparse-RD root") for line in logs2) == 1
+
+
+def test_dropped_cubes_are_simulated_again_when_needed(tmp_path):
+    spec = SimulateSpec(sequences=3, frames_per_sequence=1, seed=5, scenes="city")
+    grid = _grid_of([_arm("pp", "points")], None, densities=(0.1,), simulate=(spec,), drop=True)
+    logs: list[str] = []
+    inputs = StudyInputs(grid, tmp_path / "cache", progress=False, log=logs.append)
+    root = inputs.root(0, cubes=True)
+    cube = next((root / "radar_FFT").glob("fft_*.npy"))
+    original = cube.read_bytes()
+    inputs.prepare(grid.runs)
+    assert not (root / "radar_FFT").exists() and any("deleted the RD cubes" in line for line in logs)
+    assert read_json(root.with_name(root.name + DONE_SUFFIX))["cubes"] is False
+    data, points, _ = inputs.for_run(grid.runs[0])                 # the store is made: no cube needed
+    assert data == [root] and points[0].is_file() and not (root / "radar_FFT").exists()
+    # another density needs the cubes: simulated again, the same bytes
+    more = _grid_of([_arm("pp", "points")], None, densities=(0.2,), simulate=(spec,), drop=True)
+    logs2: list[str] = []
+    StudyInputs(more, tmp_path / "cache", progress=False, log=logs2.append).prepare(more.runs)
+    assert any(line.startswith("simulating again the dropped cubes") for line in logs2)
+    assert not (root / "radar_FFT").exists()                          # dropped again once made
+    fresh = StudyInputs(more, tmp_path / "cache2", progress=False, log=lambda s: None).root(0, cubes=True)
+    assert (fresh / "radar_FFT" / cube.name).read_bytes() == original
+
+
+def _narrow(variant: str) -> dict:
+    """A tiny experiment (1 step of batch 2, the narrowest pillar model): the study's machinery,
+    not what the model learns."""
+    overrides = ({"pfn_channels": 4, "num_filters": [4, 4, 4], "num_upsample_filters": [4, 2, 2],
+                  "detection_widths": [4, 4], "freespace_widths": [4, 4]} if variant == "pillars-tiny" else {})
+    return {"name": variant, "model": {"variant": variant, "overrides": overrides},
+            "train": {"epochs": 1, "batch_size": 2, "eval_batch_size": 4, "num_workers": 0, "precision": "fp32"}}
+
+
+def test_two_arms_of_one_run_train_once(tiny_city_root, tmp_path):
+    from radarpc.config import from_dict
+    from radarpc.experiments.study.config import AblationConfig
+
+    cfg = from_dict(AblationConfig, {
+        "name": "twins", "sensor": "tiny", "data": {"roots": [str(tiny_city_root)]}, "densities": [0.05],
+        "budget": {"max_steps": 1}, "evaluation": {"fps_frames": 0},
+        "axes": {"model": {"experiment": _narrow("pillars-tiny")}, "arms": ["+Ae+d"]},
+        "enrichments": {"model": {"experiment": _narrow("pillars-tiny")}, "arms": ["none"]}})
+    logs: list[str] = []
+    outcome = run_grid(study_grid(cfg), tmp_path / "out", progress=False, log=logs.append)
+    assert outcome.trained == ["density-050/axes-Ae-d/seed0"] and outcome.reused == ["density-050/enrich-none/seed0"]
+    assert any("the same run as density-050/axes-Ae-d/seed0" in line for line in logs)
+    rows = read_rows(tmp_path / "out")
+    twin = rows["density-050/enrich-none/seed0"]
+    assert twin["same_as"] == "density-050/axes-Ae-d/seed0" and twin["arm"]["group"] == "enrichments"
+    assert twin["metrics"] == rows["density-050/axes-Ae-d/seed0"]["metrics"]
+    assert not (tmp_path / "out" / "density-050" / "enrich-none").exists()
+    # and the rerun finds both finished; the report marks the twin
+    again = run_grid(study_grid(cfg), tmp_path / "out", progress=False, log=lambda s: None)
+    assert again.trained == [] and len(again.reused) == 2
+    text = write_report(tmp_path / "out", log=lambda s: None).read_text()
+    assert "| `density-050/enrich-none/seed0` (= `density-050/axes-Ae-d/seed0`) |" in text
+    assert "## point axes (the spectral point-cloud paper's Fig. 5)" in text
+    assert "## spectral enrichments (the paper's Fig. 6)" in text
+
+
+def test_a_sparse_rd_fftradnet_run(radial_s_city_root, tmp_path):
+    """The sparse-RD arm trains an FFTRadNet on the cache's masked root (the dense benchmark is the
+    same code on the roots themselves: its key and data are checked in the grid tests)."""
+    from radarpc.config import from_dict
+    from radarpc.experiments.study.config import AblationConfig
+
+    cfg = from_dict(AblationConfig, {
+        "name": "rd", "sensor": "radial-s", "data": {"roots": [str(radial_s_city_root)]}, "densities": [0.1],
+        "budget": {"max_steps": 1}, "evaluation": {"fps_frames": 0},
+        "rd_comparison": {"points": {"experiment": _narrow("pillars-tiny"), "name": "sp"},
+                          "sparse_rd": {"experiment": _narrow("fftradnet-tiny"), "name": "srd"}}})
+    full = study_grid(cfg)
+    grid = dataclasses.replace(full, runs=tuple(r for r in full.runs if r.arm.input == "sparse-rd"))
+    out = tmp_path / "out"
+    outcome = run_grid(grid, out, progress=False, log=lambda s: None)
+    assert outcome.trained == ["density-100/srd/seed0"]
+    srd = read_json(out / "density-100" / "srd" / "seed0" / "run.json")
+    sparse_root = Path(srd["data"])
+    assert sparse_root.parent == out / "cache" / "sparse-rd" and (sparse_root / "sparse_rd.json").is_file()
+    row = read_rows(out)["density-100/srd/seed0"]
+    assert row["inputs"][0]["tau"] == read_json(sparse_root / "sparse_rd.json")["tau"]
+    assert row["key"]["input"] == "sparse-rd" and row["key"]["conversion"]["density"] == 0.1
+    assert row["metrics"] == plain_json(read_json(out / "density-100" / "srd" / "seed0" / "eval_test.json")["metrics"])
+    dense = [r for r in full.runs if r.arm.input == "dense"]
+    assert dense == []                                  # no dense arm given: none in the grid
