@@ -13,8 +13,9 @@ import torch.nn.functional as F
 from radarpc.data.coloradar import ColoRadar, rald_intensity
 from radarpc.eval.pointsets import chamfer_distance
 from radarpc.experiments.rald.config import AutoencoderExperiment, LidarData
-from radarpc.experiments.rald.task import (AutoencoderBatch, AutoencoderFrames, AutoencoderTask, DiffusionFrames,
-                                           RaldStage2, evaluate_autoencoder, occupancy_scores, resample_points)
+from radarpc.experiments.rald.task import (AutoencoderFrames, AutoencoderTask, DiffusionBatch, DiffusionFrames,
+                                           RaldStage2, evaluate_autoencoder, evaluate_diffusion, occupancy_scores,
+                                           resample_points)
 from radarpc.models import ModelSpec
 from radarpc.rald.frustum import OccupancyGrid, normalize, occupancy_to_points, occupancy_to_polar
 from radarpc.rald.oscfar_baseline import CubeAxes, TuningGrid, tune_oscfar
@@ -177,6 +178,13 @@ def test_stage_2_loss_is_edms_on_a_posterior_sample(colo_root):
     loss.backward()
     assert all(p.grad is None for p in ae.parameters())                  # the target carries no gradient
     assert all(p.grad is not None for p in dit.parameters() if p.requires_grad)
+    # validation: the loss with the noise of the RNG the loop seeds, the same draws every time
+    batches = [DiffusionBatch(radar[:1], points[:1]), DiffusionBatch(radar[1:], points[1:])]
+    scores = []
+    for seed in (3, 3, 4):
+        torch.manual_seed(seed)
+        scores.append(evaluate_diffusion(pair, batches, CPU)["loss"])
+    assert scores[0] == scores[1] != scores[2]
     with pytest.raises(ValueError, match="the diffusion model generates 16 latents of 4, but the autoencoder's are 32 "
                                          "of 8; give the diffusion model overrides n_latents: 32, latent_dim: 8"):
         RaldStage2(ae, ModelSpec("rald-dit-tiny").build())
