@@ -80,6 +80,21 @@ def test_autoencoder_items_against_the_lidar(colo_root):
     assert float(torch.cdist(every.double(), many.double()).min(1).values.max()) == 0.0
 
 
+def test_cartesian_partition_items_against_the_lidar(colo_root):
+    # the seed's voxel ablations: 0.05 m voxels in x, y, z, normalised per axis over the box
+    ds = AutoencoderFrames(colo_root, "train", LidarData(points=100, queries=300, occupied_fraction=0.1,
+                                                         partition="cartesian"), seed=1)
+    xyz = ds.frames.lidar_points(0).astype(np.float64)
+    points, queries, occupied = ds[0]
+    lo, hi, cell = (np.asarray(v) for v in (ds.grid.lo, ds.grid.hi, ds.grid.cell))
+    every = (xyz - (lo + hi) / 2) / ((hi - lo) / 2)
+    assert np.abs(points.double().numpy()[:, None] - every[None]).sum(-1).min(1).max() < 1e-6
+    voxels = set(map(tuple, np.floor((xyz - lo) / cell).astype(int)))
+    q = queries.double().numpy() * (hi - lo) / 2 + (hi + lo) / 2
+    assert [tuple(c) in voxels for c in np.floor((q - lo) / cell).astype(int)] == occupied.tolist()
+    assert int(occupied.sum()) == 30
+
+
 def test_diffusion_items_are_ralds_radar_input_and_stage_1s_points(colo_root):
     data = LidarData(points=200, queries=64)
     ds = DiffusionFrames(colo_root, "val", data, (128, 64, 32), 45.0, seed=2)
