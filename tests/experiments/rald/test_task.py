@@ -246,4 +246,4 @@ def test_autoencoder_overfits_one_frame_beyond_os_cfar(colo_hallway_root):
     axes = CubeAxes.from_radians(cube.range_m, cube.azimuth_rad, cube.elevation_rad)
     grid_search = TuningGrid(windows=((9, 3, 3), (17, 7, 3)), guards=((3, 1, 1), (5, 3, 1)), ranks=(0.5, 0.75))
     oscfar = tune_oscfar([(cube.intensity_db, lidar)], axes, grid_search).best_chamfer
-    assert math.isfinite(cd) and cd < 0.5 * oscfar                      # 0.148 m against 0.440 m here
+    assert math.isfinite(cd) and cd < 0.5 * oscfar                      # 0.148 m against 0.444 m here
