@@ -2,9 +2,11 @@
 the field before any data is read, and stored keys read through the config types."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
+import torch
 
 from radarpc.cli import main
 from radarpc.config import to_dict
@@ -48,6 +50,25 @@ def test_defaults_are_ralds_and_the_grid_is_the_partitions():
     assert LidarData(queries=7, occupied_fraction=0.3).n_occupied == 2            # floor(2.1)
 
 
+def test_model_coordinates_by_hand_and_the_official_convention():
+    # radarpc's: azimuth left-positive, the range over the field of view in whole cells (0 .. 15.9 m)
+    ours = LidarData()
+    left = torch.tensor([[7.95 * math.cos(math.radians(30)), 7.95 * math.sin(math.radians(30)), 0.0]],
+                        dtype=torch.float64)
+    torch.testing.assert_close(ours.to_model(left), torch.tensor([[0.0, 1 / 3, 0.0]], dtype=torch.float64))
+    # the official checkpoints': pc_range to 15.8 m (316 cells), azimuth right-positive
+    official = LidarData(max_range_m=15.8, mirror_azimuth=True)
+    assert official.grid().shape == (316, 720, 80) and official.grid().range_m == (0.0, 15.8)
+    p = left * 7.9 / 7.95                                                  # r = 7.9 m, the official span's centre
+    torch.testing.assert_close(official.to_model(p), torch.tensor([[0.0, -1 / 3, 0.0]], dtype=torch.float64))
+    up = torch.tensor([[15.8 * math.cos(math.radians(20)), 0.0, 15.8 * math.sin(math.radians(20))]],
+                      dtype=torch.float64)                                 # the official grid's far top corner
+    torch.testing.assert_close(official.to_model(up), torch.tensor([[1.0, 0.0, 1.0]], dtype=torch.float64))
+    for d in (ours, official):
+        torch.testing.assert_close(d.to_radar(d.to_model(left)), left)
+    torch.testing.assert_close(official.model_frame(official.model_frame(left)), left)
+
+
 @pytest.mark.parametrize("text, message", [
     (AE.replace("stage: autoencoder\n", ""), "no 'stage'"),
     (AE.replace("autoencoder", "decoder"), "stage must be one of autoencoder, diffusion (the RaLD training stage), "
@@ -61,6 +82,12 @@ def test_defaults_are_ralds_and_the_grid_is_the_partitions():
     (AE + "data: {points: 0}\n", "data.points must be an integer >= 1, got 0"),
     (AE + "data: {queries: 10, occupied_fraction: 0.05}\n", "10 queries x occupied_fraction 0.05 gives 0 occupied"),
     (AE + "data: {occupied_fraction: 1.0}\n", "data.occupied_fraction must be in (0, 1), got 1.0"),
+    (AE + "data: {partition: cartesian, max_range_m: 15.8}\n", "data.max_range_m is the frustum grid's far edge; "
+                                                              "partition 'cartesian' covers the field of view"),
+    (AE + "data: {max_range_m: 15.83}\n", "data: partition 'frustum' with cell None and max_range_m 15.83: "
+                                         "FrustumGrid.range_m span 15.83 is not a whole number of cells of 0.05"),
+    (AE + "data: {max_range_m: -1.0}\n", "data.max_range_m must be a finite range > 0 (metres), got -1.0"),
+    (AE + "data: {mirror_azimuth: 1}\n", "data: mirror_azimuth: expected true or false, got 1"),
     (AE + "data: {partition: octree}\n", "data.partition must be one of ['frustum', 'cartesian'], got 'octree'"),
     (AE + "data: {cell: [0.05, 0.25]}\n", "data: cell: expected a list of 3 values, got 2"),
     (AE + "data: {cell: [0.05, -0.25, 0.5]}\n", "data: partition 'frustum' with cell (0.05, -0.25, 0.5): cell must be 3 "

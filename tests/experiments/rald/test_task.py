@@ -95,6 +95,29 @@ def test_cartesian_partition_items_against_the_lidar(colo_root):
     assert int(occupied.sum()) == 30
 
 
+def test_mirrored_items_are_the_frame_seen_left_right(colo_root):
+    # the official convention: the model's frame mirrored (azimuth right-positive); the same draws
+    # give the same points with their azimuth coordinate negated, and labels of the mirrored frame
+    data = LidarData(points=200, queries=300, occupied_fraction=0.2)
+    plain = AutoencoderFrames(colo_root, "train", data, seed=4)[0]
+    mirrored_ds = AutoencoderFrames(colo_root, "train", LidarData(points=200, queries=300, occupied_fraction=0.2,
+                                                                  mirror_azimuth=True), seed=4)
+    points, queries, occupied = mirrored_ds[0]
+    torch.testing.assert_close(points, plain[0] * torch.tensor([1.0, -1.0, 1.0]), rtol=0, atol=1e-6)
+    xyz = mirrored_ds.frames.lidar_points(0) * np.array([1.0, -1.0, 1.0], dtype=np.float32)
+    grid = mirrored_ds.grid
+    lo, hi = np.asarray(grid.lo), np.asarray(grid.hi)
+    cells = np.floor((queries.double().numpy() * (hi - lo) / 2 + (hi + lo) / 2 - lo) / np.asarray(grid.cell)).astype(int)
+    assert [tuple(c) in _cells_by_hand(grid, xyz) for c in cells] == occupied.tolist()
+    # back to the radar frame: an occupied query lies where the LiDAR is, not in its mirror image
+    back = mirrored_ds.data.to_radar(queries[occupied].double(), grid).numpy()
+    lidar = mirrored_ds.frames.lidar_points(0).astype(np.float64)
+    near = np.linalg.norm(back[:, None] - lidar[None], axis=-1).min(1)
+    dr, da, de = grid.cell                                                # within its cell's diagonal of a point
+    r = grid.range_m[1]
+    assert near.max() <= math.hypot(dr, r * math.radians(da), r * math.radians(de))
+
+
 def test_diffusion_items_are_ralds_radar_input_and_stage_1s_points(colo_root):
     data = LidarData(points=200, queries=64)
     ds = DiffusionFrames(colo_root, "val", data, (128, 64, 32), 45.0, seed=2)

@@ -37,11 +37,13 @@ import os
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+import torch
+
 from radarpc.config import from_dict, load_yaml_mapping, to_dict
 from radarpc.data.coloradar import RALD_MAX_INTENSITY_DB
 from radarpc.models import ModelSpec
 from radarpc.rald.frustum import FrustumGrid
-from radarpc.rald.voxels import PARTITIONS, CartesianGrid, partition_grid
+from radarpc.rald.voxels import PARTITIONS, CartesianGrid, cartesian_points, model_coords, partition_grid
 from radarpc.sensors.coloradar import AWR1843_FOV, RadarFOV
 from radarpc.training.loop import TrainConfig
 
@@ -68,10 +70,18 @@ REQUIRED_SECTIONS = ("name", "stage", "model", "train")
 
 @dataclass(frozen=True)
 class LidarData:
-    """What the autoencoder reads and learns from each frame.
+    """What the autoencoder reads and learns from each frame, and the coordinates it works in.
 
     RaLD's official values are the defaults (``configs/ae/*.yml``: ``num_samples: 10000``,
     ``query_ratio: 0.0625``, view-cone mode with cells of 0.05 m x 0.25 deg x 0.5 deg).
+
+    The model's coordinates: a radar-frame point ``p`` (x forward, y left, z up) is first taken to
+    the model's frame, ``M p`` (:meth:`model_frame`: ``M`` the identity, or with ``mirror_azimuth``
+    the left-right mirror ``y -> -y``, so that azimuth counts positive to the right as in the
+    official code's ``cartesian2polar``), then into the grid's coordinates (polar for frustum cells)
+    and mapped affinely to ``[-1, 1]`` per axis over the grid (:meth:`to_model`). Occupancy, queries
+    and decoded cells all live in the model's frame; :meth:`to_radar` maps model coordinates back
+    to radar-frame metres (``M`` is its own inverse).
     """
 
     points: int = 10_000                 # LiDAR points per frame the encoder reads (resampled, see task.py)
@@ -79,6 +89,10 @@ class LidarData:
     occupied_fraction: float = 0.0625    # floor(queries * this) queries lie in occupied cells, the rest in empty ones
     partition: str = "frustum"           # "frustum" (RaLD's polar cells) or "cartesian" (voxels): PARTITIONS
     cell: tuple[float, float, float] | None = None   # cell size (m, deg, deg or m, m, m); None: the partition's default
+    max_range_m: float | None = None     # frustum grid's far edge; None: the field of view's range in whole cells
+                                         # (15.9 m at 0.05 m); the official checkpoints' pc_range: 15.8
+    mirror_azimuth: bool = False         # model frame mirrored left-right (azimuth positive to the right, the
+                                         # official code's convention); radarpc's frame is left-positive
 
     def __post_init__(self) -> None:
         for k in ("points", "queries"):
@@ -95,10 +109,20 @@ class LidarData:
             raise ValueError(f"data.partition must be one of {list(PARTITIONS)}, got {self.partition!r}")
         if self.cell is not None:
             object.__setattr__(self, "cell", tuple(float(c) for c in self.cell))
+        if self.max_range_m is not None:
+            if self.partition != "frustum":
+                raise ValueError(f"data.max_range_m is the frustum grid's far edge; partition {self.partition!r} "
+                                 f"covers the field of view (leave max_range_m null)")
+            if not (math.isfinite(self.max_range_m) and self.max_range_m > 0):
+                raise ValueError(f"data.max_range_m must be a finite range > 0 (metres), got {self.max_range_m}")
+        if not isinstance(self.mirror_azimuth, bool):
+            raise ValueError(f"data.mirror_azimuth must be true or false, got {self.mirror_azimuth!r}")
         try:
             self.grid()
         except ValueError as e:
-            raise ValueError(f"data: partition {self.partition!r} with cell {self.cell}: {e}") from None
+            raise ValueError(f"data: partition {self.partition!r} with cell {self.cell}"
+                             + (f" and max_range_m {self.max_range_m}" if self.max_range_m is not None else "")
+                             + f": {e}") from None
 
     @property
     def n_occupied(self) -> int:
@@ -107,8 +131,29 @@ class LidarData:
 
     def grid(self, fov: RadarFOV = AWR1843_FOV) -> FrustumGrid | CartesianGrid:
         """The occupancy grid over ``fov``: RaLD's frustum cells or Cartesian voxels
-        (:func:`radarpc.rald.voxels.partition_grid`)."""
-        return partition_grid(self.partition, fov, self.cell)
+        (:func:`radarpc.rald.voxels.partition_grid`), the frustum's range ending at ``max_range_m``
+        when given (a whole number of cells)."""
+        grid = partition_grid(self.partition, fov, self.cell)
+        if self.max_range_m is not None:
+            grid = dataclasses.replace(grid, range_m=(grid.range_m[0], float(self.max_range_m)))
+        return grid
+
+    def model_frame(self, xyz: torch.Tensor) -> torch.Tensor:
+        """Radar-frame points ``(..., 3)`` in the model's frame (the same points, ``y`` negated with
+        ``mirror_azimuth``); also the inverse map."""
+        xyz = torch.as_tensor(xyz)
+        return xyz * xyz.new_tensor((1.0, -1.0, 1.0)) if self.mirror_azimuth else xyz
+
+    def to_model(self, xyz: torch.Tensor, grid: FrustumGrid | CartesianGrid | None = None) -> torch.Tensor:
+        """The model's coordinates ``(..., 3)`` in ``[-1, 1]`` of radar-frame points in metres
+        (:meth:`model_frame`, then :func:`radarpc.rald.voxels.model_coords` on ``grid``, default
+        :meth:`grid`)."""
+        return model_coords(self.grid() if grid is None else grid, self.model_frame(xyz))
+
+    def to_radar(self, u: torch.Tensor, grid: FrustumGrid | CartesianGrid | None = None) -> torch.Tensor:
+        """Radar-frame points in metres of model coordinates ``(..., 3)`` (queries, decoded
+        points): the inverse of :meth:`to_model`."""
+        return self.model_frame(cartesian_points(self.grid() if grid is None else grid, u))
 
 
 @dataclass(frozen=True)

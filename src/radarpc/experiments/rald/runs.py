@@ -19,6 +19,12 @@ state dict; a stage-2 one holds :class:`~radarpc.experiments.rald.task.RaldStage
 frozen autoencoder the diffusion model was trained against travels with it. Both carry the run
 key in their ``info["run"]`` (:func:`radarpc.training.checkpoint.save_weights`).
 
+Coordinates: an autoencoder reads and decodes points in the coordinates its config's ``data``
+describes (:class:`~radarpc.experiments.rald.config.LidarData`): radar-frame metres go in with
+``data.to_model(xyz, run.grid)`` and decoded query coordinates come back with
+``data.to_radar(u, run.grid)`` (the official checkpoints' frame is mirrored left-right and their
+range ends at 15.8 m: ``max_range_m: 15.8``, ``mirror_azimuth: true``).
+
 :func:`load_rald_ae` and :func:`load_rald` check what the detection experiment's ``load_trained``
 does: the folder holds a run of that stage, the weights' run key is the folder's (weights copied in
 from another run are refused), no weight is NaN or infinite, the weights fit the config's model;

@@ -7,11 +7,13 @@ field of view.
 **Stage 1**, :class:`AutoencoderTask` (as RaLD's ``engine_ae.py`` with its dataset's view-cone
 mode):
 
+* the LiDAR points in the model's frame (:meth:`LidarData.model_frame`: the radar frame, mirrored
+  left-right with ``data.mirror_azimuth``);
 * the occupancy of a frame: the cells of the partition's grid (:meth:`LidarData.grid`, RaLD's
   frustum cells or Cartesian voxels) that hold at least one of the frame's LiDAR points, all of
   them (:func:`radarpc.rald.voxels.voxelize_points`);
 * the encoder's input: ``data.points`` of the LiDAR points in the model's coordinates (the grid's
-  coordinates mapped to ``[-1, 1]`` per axis, :func:`radarpc.rald.voxels.model_coords`), drawn
+  coordinates mapped to ``[-1, 1]`` per axis, :meth:`LidarData.to_model`), drawn
   without replacement (RaLD's ``sampling``); a frame with fewer points gives all of them plus
   draws with replacement up to ``data.points`` (RaLD refuses such a frame);
 * the queries: ``n_occ = floor(queries * occupied_fraction)`` in occupied cells (cells drawn
@@ -163,8 +165,9 @@ class _Frames(Dataset):
                 else _generator(self.seed, _VAL_STREAM, 0, i))
 
     def _lidar(self, i: int) -> torch.Tensor:
-        """The frame's LiDAR points ``(M, 3)`` in the radar frame, cropped to the field of view (metres)."""
-        return torch.from_numpy(self.frames.lidar_points(i))
+        """The frame's LiDAR points ``(M, 3)`` cropped to the field of view, in the model's frame
+        (:meth:`LidarData.model_frame`: the radar frame, mirrored with ``mirror_azimuth``), metres."""
+        return self.data.model_frame(torch.from_numpy(self.frames.lidar_points(i)))
 
 
 class AutoencoderFrames(_Frames):
@@ -177,7 +180,7 @@ class AutoencoderFrames(_Frames):
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         g = self._rng(i)
-        xyz = self._lidar(i)                                                  # (M, 3) metres
+        xyz = self._lidar(i)                                                  # (M, 3) metres, model frame
         occ = voxelize_points(self.grid, xyz)                                 # every point's cell
         points = model_coords(self.grid, resample_points(xyz, self.data.points, g)).to(torch.float32)  # (N, 3)
         queries, occupied = sample_queries(occ, self.data.queries, self.data.occupied_fraction, generator=g)
