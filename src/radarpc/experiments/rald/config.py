@@ -160,7 +160,8 @@ class LidarData:
 class RadarInput:
     """How the radar cube becomes the diffusion model's input (:func:`radarpc.data.coloradar.rald_intensity`):
     the intensity clipped to ``[0, max_intensity_db]`` dB and divided by it, then upsampled to the
-    model's ``radar_shape``. RaLD: 45 dB."""
+    model's ``radar_shape``. RaLD: 45 dB. The Doppler channel is not an input: RaLD's diffusion
+    configs read the intensity alone (``use_radar_dopp: false``)."""
 
     max_intensity_db: float = RALD_MAX_INTENSITY_DB
 
