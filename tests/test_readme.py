@@ -43,8 +43,8 @@ SKIPPED = {
     "pip": "installs packages; the suite runs in an installed environment, without network",
     "python -m pytest": "the test suite itself",
     "radarpc demo": "tests/cli/test_demo.py runs the demo at tiny sizes; the README's sizes take minutes",
-    "radarpc train": "tests/experiments/radial_detection/test_experiment.py trains and resumes tiny models through this command; "
-                     "the shipped configs train for minutes to days",
+    "radarpc train": "tests/experiments/radial_detection/test_experiment.py and tests/experiments/rald/test_train.py "
+                     "train and resume tiny models through this command; the shipped configs train for minutes to days",
     "radarpc evaluate": "tests/experiments/radial_detection/test_experiment.py evaluates a tiny run through this command",
     "torchrun": "starts several processes (GPUs); tests/training/test_loop.py runs a 2-process gloo job",
     "radarpc experiment": "tests/experiments/study runs tiny studies through this command (configs/study/tiny-*.yaml); "

@@ -17,6 +17,7 @@ from radarpc.data.coloradar import (
     frustum_mask,
     lidar_to_radar,
     pair_radar_lidar,
+    rald_intensity,
     split_runs,
     upsample_intensity,
 )
@@ -265,6 +266,27 @@ def test_upsample_intensity_is_ralds_angle_upsampling():
     torch.testing.assert_close(up[:, -1, -1], one.intensity_db[:, -1, -1])
     batch = upsample_intensity(torch.stack([one.intensity_db, one.intensity_db + 1]), (128, 64, 32))
     torch.testing.assert_close(batch[1], up + 1)
+
+
+def test_rald_intensity_clips_divides_then_upsamples_by_hand():
+    # RaLD's input: clip to [0, 45] dB, divide by 45, then bilinear (align_corners) angle upsampling.
+    # One range bin, 2 x 2 angles [[-5, 50], [9, 27]] dB -> [[0, 1], [0.2, 0.6]] -> 3 x 3 by hand:
+    db = torch.tensor([[[-5.0, 50.0], [9.0, 27.0]]])                            # (R=1, A=2, E=2)
+    want = torch.tensor([[[0.0, 0.5, 1.0], [0.1, 0.45, 0.8], [0.2, 0.4, 0.6]]])
+    got = rald_intensity(db, (1, 3, 3))
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-6)
+    # the order matters: clipping the upsampled dB would give (-5 + 9) / 2 / 45 at [0, 1, 0], not 0.1
+    assert float(upsample_intensity(db, (1, 3, 3)).clamp(0, 45)[0, 1, 0] / 45) == pytest.approx(2 / 45)
+    # a RadarCube is read through its intensity; the ceiling is a parameter; the default size is RaLD's
+    chip = AWR1843.replace(num_chirps_per_frame=8)
+    x = np.random.default_rng(0).normal(size=(3, 4, 8, 128)) * (1 + 1j)
+    cube = radar_cube(x.astype(np.complex64), chip, n_doppler=8)
+    full = rald_intensity(cube)
+    assert full.shape == (128, 64, 32) and 0.0 <= float(full.min()) and float(full.max()) <= 1.0
+    torch.testing.assert_close(full, upsample_intensity(cube.intensity_db.clamp(0, 45) / 45))
+    torch.testing.assert_close(rald_intensity(db, (1, 2, 2), max_db=9.0), torch.tensor([[[0.0, 1.0], [1.0, 1.0]]]))
+    with pytest.raises(ValueError, match="max_db"):
+        rald_intensity(db, max_db=0.0)
 
 
 def test_cli_simulate_and_info(sim_root, colo_cli_root, tmp_path, capsys, monkeypatch):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from radarpc.dsp.tdm import radar_cube, tdm_spectrum
+from radarpc.dsp.tdm import radar_cube, rald_velocity_bin_width, tdm_spectrum
 from radarpc.sensors.coloradar import AWR1843
 
 
@@ -36,6 +36,42 @@ def test_radar_cube_validation_and_batch():
     assert not spec[..., :6].any() and not spec[..., -6:].any()               # 5 % of 128 bins zeroed
 
 
+def test_velocity_bin_width_rald_and_physical_from_the_sensor_constants():
+    # AWR1843 as ColoRadar records it: 77 GHz start, 100 MHz/us, 10.666 MS/s, 128 samples from 7 us,
+    # idle 110 us, ramp end 19.1 us, 3 Tx, 128 loops. Worked by hand with c = 299,792,458 m/s.
+    c, n = 299_792_458.0, 128
+    # RaLD (dataset_preprocessor/utils/radardsp.py): lambda at the start frequency, chirp time
+    # idle + 128 / f_s + ADC start = 110 + 12.0007 + 7 = 129.0007 us
+    t_rald = 110e-6 + 128 / 10.666e6 + 7e-6
+    rald = 2 * (c / 77e9) / (4 * 3 * t_rald) / n
+    # the sampled sweep's physics: lambda at its centre 77 GHz + 1e14 Hz/s (7 us + 64 / f_s) =
+    # 78.30003 GHz, chirp period idle + ramp end = 129.1 us
+    f_c = 77e9 + 1.00000000377e14 * (7e-6 + 64 / 10.666e6)
+    physical = 2 * (c / f_c) / (4 * 3 * (110e-6 + 19.1e-6)) / n
+    assert rald == pytest.approx(0.03930, abs=5e-6) and physical == pytest.approx(0.03862, abs=5e-6)
+    assert 1 - physical / rald == pytest.approx(0.017, abs=5e-4)                 # "1.7 % smaller"
+    w = AWR1843.waveform
+    assert rald_velocity_bin_width(w, n) == pytest.approx(rald, rel=1e-12)
+    assert w.velocity_bin_width(n) == pytest.approx(physical, rel=1e-12)
+    with pytest.raises(ValueError, match="n_doppler"):
+        rald_velocity_bin_width(w, 0)
+
+
+def test_radar_cube_velocity_axis_is_ralds():
+    # a moving reflector: the cube's Doppler values are multiples of RaLD's bin width, not the
+    # physical one (the cube is RaLD's)
+    from radarpc.sim.coloradar_synth import Scatterers, beat_signal
+    chip = AWR1843.replace(num_chirps_per_frame=16)
+    s = Scatterers(torch.tensor([[5.0, 0.0, 0.0]], dtype=torch.float64), rcs=torch.tensor([1.0]),
+                   phase=torch.tensor([0.0]), velocity=torch.tensor([0.5]))
+    cube = radar_cube(beat_signal(s, chip), chip, n_doppler=16)
+    ri, ai, ei = np.unravel_index(int(cube.intensity_db.argmax()), tuple(cube.intensity_db.shape))
+    v = float(cube.doppler[ri, ai, ei])
+    k = round(v / rald_velocity_bin_width(chip.waveform, 16))
+    assert k != 0 and v == pytest.approx(k * rald_velocity_bin_width(chip.waveform, 16), rel=1e-6)
+    assert v != pytest.approx(k * chip.waveform.velocity_bin_width(16), rel=1e-3)
+
+
 def _reference_cube(adc: np.ndarray, chip) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     # Independent NumPy version of RaLD's single-chip processing (loops, float64), (R, A, E) outputs.
     ntx, nrx, nc, ns = adc.shape
@@ -55,7 +91,9 @@ def _reference_cube(adc: np.ndarray, chip) -> tuple[np.ndarray, np.ndarray, np.n
     p = np.abs(e) ** 2                                              # (E, A, D, R)
     srt = np.sort(p, axis=2)
     valid = srt[:, :, -1] * 0.7 > srt[:, :, -2]
-    vel = (np.argmax(p, axis=2) - nc // 2) * chip.waveform.velocity_bin_width(nc)
+    w = chip.waveform                                               # RaLD's bin width, from its formula
+    t_chirp = w.idle_time + w.num_adc_samples_per_chirp / w.adc_sample_frequency + w.adc_start_time
+    vel = (np.argmax(p, axis=2) - nc // 2) * (299_792_458.0 / w.start_frequency) / (2 * ntx * t_chirp * nc)
     ps = p.sum(2)
     db = 10 * np.log10(ps / (np.quantile(ps, 0.3) + 1e-6) + 1)
     return db.transpose(2, 1, 0), vel.transpose(2, 1, 0), valid.transpose(2, 1, 0)

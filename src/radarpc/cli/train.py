@@ -1,5 +1,6 @@
-"""``radarpc train CONFIG``: train a detector (FFTRadNet, polar PointPillars, SpectralPillars) on a
-RADIal-layout root, with validation every epoch and resume.
+"""radarpc train CONFIG: train a model from an experiment config (resumable, DDP under torchrun):
+a RADIal detector (FFTRadNet, polar PointPillars, SpectralPillars), or a RaLD stage on a
+ColoRadar-layout root.
 
 ::
 
@@ -7,23 +8,33 @@ RADIal-layout root, with validation every epoch and resume.
     radarpc train configs/fftradnet-s.yaml --data data/sim_radial_s --out runs/fft
     torchrun --nproc-per-node 2 -m radarpc train configs/fftradnet.yaml --data data/radial --out runs/fft
     radarpc train configs/spectralpillars-s.yaml --data sim_a sim_b --points pc_a.parquet pc_b.parquet --out runs/sp_ab
+    radarpc train configs/rald-ae-s.yaml --data data/sim_colo --out runs/ae
+    radarpc train configs/rald-s.yaml --data data/sim_colo --ae runs/ae --out runs/rald
 
-Several roots (``--data A B``, with one point store each for the pillar models) train as one
-dataset: the training frames of every root, validated on the validation frames of every root.
-A root's RD cubes may be deleted once converted to its point store: the point models read only
-the stores and each root's labels and freespace.
+What the config is decides the rest. A config with a stage key is a RaLD experiment: stage
+autoencoder trains RaLD's LiDAR occupancy autoencoder (stage 1), stage diffusion its
+radar-conditioned latent diffusion model against a stage-1 run given by --ae RUN, whose
+autoencoder is frozen (stage 2). Both read one ColoRadar-layout root (--data; its runs give the
+train and val splits). A config without a stage key is a detection experiment on RADIal-layout
+roots.
 
-The run folder ``--out`` holds ``config.yaml`` (the resolved config), ``run.json`` (the key: the
-config and the data paths), ``checkpoints/last.safetensors`` (the whole training state, written
-atomically every ``train.checkpoint_every`` steps and each epoch), ``best.safetensors`` (the
-weights of the best validation F1), ``log.csv`` and TensorBoard events in ``tb/`` (when the
-``tensorboard`` package is installed). Run the same command again after an interruption: it
-resumes from the last checkpoint and ends with the same weights as an uninterrupted run. Another
-config in the same folder is refused unless ``--overwrite``, which deletes that run's files and the
-evaluations of its weights (``eval_*``, ``figures/``). ``--runs N`` trains N seeds into
-``OUT/run0 .. OUT/run{N-1}`` and writes ``OUT/summary.md`` with the mean and standard deviation.
-Under ``torchrun`` the run uses DistributedDataParallel (NCCL on GPUs, gloo on CPUs); ``train.batch_size``
-is the global batch. The loop is :mod:`radarpc.training.loop`.
+Detection: several roots (--data A B, with one point store each for the pillar models) train as
+one dataset: the training frames of every root, validated on the validation frames of every root.
+A root's RD cubes may be deleted once converted to its point store: the point models read only the
+stores and each root's labels and freespace. --runs N trains N seeds into OUT/run0 .. OUT/run{N-1}
+and writes OUT/summary.md with the mean and standard deviation.
+
+The run folder --out holds config.yaml (the resolved config), run.json (the key: the config and the
+data paths; for RaLD stage 2 also the stage-1 run's path, key and weights hash),
+checkpoints/last.safetensors (the whole training state, written atomically every
+train.checkpoint_every steps and at each validation), best.safetensors (the weights of the best
+validation train.select_metric; for RaLD stage 2 the diffusion model and the frozen autoencoder),
+log.csv and TensorBoard events in tb/ (when the tensorboard package is installed). Run the same
+command again after an interruption: it resumes from the last checkpoint and ends with the same
+weights as an uninterrupted run. Another config, data or stage-1 run in the same folder is refused
+unless --overwrite, which deletes that run's files and the evaluations of its weights (eval_*,
+figures/). Under torchrun the run uses DistributedDataParallel (NCCL on GPUs, gloo on CPUs);
+train.batch_size is the global batch. The loop is radarpc.training.loop.
 """
 from __future__ import annotations
 
@@ -35,21 +46,41 @@ __all__ = ["add_parser", "run"]
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
     import sys
 
+    from radarpc.config import load_yaml_mapping
+
+    if "stage" in load_yaml_mapping(args.config):
+        return _run_rald(args)
+    if args.ae is not None:
+        raise ValueError(f"--ae names the stage-1 autoencoder run of a RaLD diffusion config (stage: diffusion); "
+                         f"{args.config} is a detection experiment (it has no 'stage')")
+    return _run_detection(args, notice=lambda s: print(s, file=sys.stderr))
+
+
+def _train_changes(args: argparse.Namespace) -> dict:
+    return {k: v for k, v in (("epochs", args.epochs), ("batch_size", args.batch_size),
+                              ("num_workers", args.num_workers), ("seed", args.seed)) if v is not None}
+
+
+def _with_model(cfg, variant: str | None):
+    import dataclasses
+
+    if variant is None or variant == cfg.model.variant:
+        return cfg
+    from radarpc.models import ModelSpec
+
+    # the config's overrides belong to its own variant; another variant starts from its own sizes
+    return dataclasses.replace(cfg, model=ModelSpec(variant))
+
+
+def _run_detection(args: argparse.Namespace, notice) -> int:
     from radarpc.distributed import dist_env
     from radarpc.experiments.radial_detection.config import load_experiment, with_train
     from radarpc.experiments.radial_detection.train import train_runs
 
-    cfg = load_experiment(args.config, notice=lambda s: print(s, file=sys.stderr))
-    if args.model is not None and args.model != cfg.model.variant:
-        from radarpc.models import ModelSpec
-
-        # the config's overrides belong to its own variant; another variant starts from its own sizes
-        cfg = dataclasses.replace(cfg, model=ModelSpec(args.model))
-    changes = {k: v for k, v in (("epochs", args.epochs), ("batch_size", args.batch_size),
-                                 ("num_workers", args.num_workers), ("seed", args.seed)) if v is not None}
+    cfg = _with_model(load_experiment(args.config, notice=notice), args.model)
+    changes = _train_changes(args)
     if changes:
         cfg = with_train(cfg, **changes)
     rank0 = dist_env().rank == 0
@@ -62,19 +93,51 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_rald(args: argparse.Namespace) -> int:
+    import sys
+
+    from radarpc.distributed import dist_env
+    from radarpc.experiments.rald.config import load_experiment, with_train
+    from radarpc.experiments.rald.train import train_rald
+
+    if args.points is not None:
+        raise ValueError(f"--points is a detection experiment's point store; {args.config} is a RaLD experiment, "
+                         f"which reads the ColoRadar root given by --data")
+    if args.runs != 1:
+        raise ValueError(f"--runs {args.runs}: RaLD experiments train one run per folder; train each seed "
+                         f"(--seed) into its own --out")
+    cfg = load_experiment(args.config, notice=lambda s: print(s, file=sys.stderr))
+    cfg = _with_model(cfg, args.model)
+    changes = _train_changes(args)
+    if changes:
+        cfg = with_train(cfg, **changes)
+    rank0 = dist_env().rank == 0
+    r = train_rald(cfg, args.data, args.out, ae=args.ae, device=args.device, overwrite=args.overwrite,
+                   progress=not args.no_progress, log=print if rank0 else (lambda s: None))
+    if rank0:
+        print(f"{r.out}: best validation {cfg.train.select_metric} {r.best_score:.4f} at step {r.best_step} "
+              f"(epoch {r.best_epoch})")
+    return 0
+
+
 def add_parser(sub) -> None:
-    p = sub.add_parser("train", help="train a detector from a config (resumable, DDP under torchrun)",
+    p = sub.add_parser("train", help="train a detector or a RaLD stage from a config (resumable, DDP under torchrun)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("config", help="experiment YAML (see configs/)")
     p.add_argument("--data", required=True, nargs="+", metavar="ROOT",
-                   help="RADIal-layout root (or a sparse-RD root for FFTRadNet); several train together")
+                   help="RADIal-layout root (or a sparse-RD root for FFTRadNet), several train together; for RaLD "
+                        "one ColoRadar-layout root")
     p.add_argument("--points", default=None, nargs="+", metavar="FILE",
                    help="point store made from each --data root, in the same order (pillar models)")
+    p.add_argument("--ae", default=None, metavar="RUN",
+                   help="RaLD stage 2 (stage: diffusion): the stage-1 autoencoder run folder, frozen while the "
+                        "diffusion model trains")
     p.add_argument("--out", required=True, help="run folder")
     p.add_argument("--model", default=None, choices=MODEL_NAMES,
                    help="train this variant of the model registry instead of the config's model.variant "
                         "(without its overrides; see `radarpc models`)")
-    p.add_argument("--runs", type=int, default=1, help="train this many seeds (train.seed, +1, ...) and summarise")
+    p.add_argument("--runs", type=int, default=1,
+                   help="train this many seeds (train.seed, +1, ...) and summarise (detection experiments)")
     p.add_argument("--device", default=None, help="torch device (default: this rank's GPU, else the CPU)")
     p.add_argument("--epochs", type=int, default=None, help="override train.epochs")
     p.add_argument("--batch-size", type=int, default=None, help="override train.batch_size (global)")

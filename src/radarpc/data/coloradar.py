@@ -17,6 +17,8 @@ and on the simulator's output (:mod:`radarpc.sim.coloradar_writer`) alike.
   :func:`radarpc.dsp.tdm.radar_cube` (the single-chip TDM processing lives in the DSP package).
 * :func:`upsample_intensity` -- bilinear (``align_corners=True``) angle upsampling of the
   intensity to the model grid (128 x 64 x 32), as RaLD's dataset does.
+* :func:`rald_intensity` -- the radar input of RaLD's networks: the intensity clipped to
+  ``[0, 45]`` dB and divided by 45, then upsampled (RaLD's dataset, in that order).
 * :class:`ColoRadar` -- torch ``Dataset`` of paired frames of a split; items are
   :class:`ColoRadarItem` (upsampled intensity, cropped LiDAR in the radar frame, metadata).
 
@@ -63,6 +65,8 @@ __all__ = [
     "frustum_mask",
     "crop_to_frustum",
     "upsample_intensity",
+    "RALD_MAX_INTENSITY_DB",
+    "rald_intensity",
     "collate_coloradar",
 ]
 
@@ -485,6 +489,39 @@ def upsample_intensity(intensity: "torch.Tensor | RadarCube", size: tuple[int, i
     y = x.reshape(-1, 1, *x.shape[-3:]).to(torch.float32)
     y = F.interpolate(y, size=tuple(int(s) for s in size), mode="trilinear", align_corners=True)
     return y.reshape(*lead, *size)
+
+
+RALD_MAX_INTENSITY_DB = 45.0
+"""RaLD's intensity normalisation: dB values clipped to ``[0, 45]`` and divided by 45."""
+
+
+def rald_intensity(intensity: "torch.Tensor | RadarCube", size: tuple[int, int, int] = (128, 64, 32), *,
+                   max_db: float = RALD_MAX_INTENSITY_DB) -> torch.Tensor:
+    """RaLD's network input from a radar cube's intensity ``(..., R, A, E)`` in dB.
+
+    As RaLD's ColoRadar dataset (``process_radar_data``: ``norm_intensity``, then ``upsample``)::
+
+        x = clip(I_dB, 0, max_db) / max_db            # on the raw 128 x 8 x 2 cube
+        x = upsample_intensity(x, size)               # then the angles, bilinear, align_corners
+
+    The clipping comes first: upsampling the dB values and clipping afterwards differs wherever
+    neighbouring bins straddle 0 or ``max_db``. Every value is in ``[0, 1]`` (interpolation is a
+    convex combination).
+
+    Parameters
+    ----------
+    intensity : torch.Tensor or RadarCube
+        Intensity in dB (:attr:`RadarCube.intensity_db`).
+    size : (int, int, int)
+        The model's cube (RaLD: 128 x 64 x 32); the range size normally equals the input's.
+    max_db : float
+        The clipping ceiling and divisor (RaLD: 45 dB).
+    """
+    if not (math.isfinite(max_db) and max_db > 0):
+        raise ValueError(f"max_db must be a finite number > 0, got {max_db}")
+    x = intensity.intensity_db if isinstance(intensity, RadarCube) else torch.as_tensor(intensity)
+    x = x.to(torch.float32).clamp(0.0, max_db) / max_db
+    return upsample_intensity(x, size)
 
 
 # ------------------------------------------------------------------------------------------------

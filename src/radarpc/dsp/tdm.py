@@ -16,6 +16,14 @@ The steps, for ADC ``x[t, r, c, n]`` (Tx ``t``, Rx ``r``, chirp loop ``c``, samp
    the velocity of the peak Doppler bin and a validity mask (peak ``(1 - 0.3)`` above the second
    peak).
 
+Velocity axis, RaLD's convention (:func:`rald_velocity_bin_width`): Doppler bin ``k`` (centred)
+is ``k dv`` with ``dv = 2 v_max / n_doppler`` and ``v_max = lambda_0 / (4 N_tx T_c)``, where RaLD
+takes ``lambda_0 = c / f_0`` at the chirp's start frequency and the chirp time ``T_c = idle +
+N_s / f_s + t_adc_start``: 0.03930 m/s on the AWR1843 with 128 Doppler bins. The physical bin
+width of the sampled sweep (:meth:`radarpc.sensors.coloradar.WaveformConfig.velocity_bin_width`:
+wavelength at the sweep centre, ``T_c = idle + ramp end``) is 1.7 % smaller, 0.03862 m/s; the
+cube here is RaLD's, so it uses RaLD's.
+
 The normalisation assumes receiver noise: the 30 % quantile is then the noise floor. On a
 noise-free input (an ideal simulated target) the quantile is floating-point residue of the FFTs,
 which differs between FFT kernels (CPUs), so only ratios of intensities within one cube (and
@@ -32,9 +40,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from radarpc.sensors.coloradar import ColoRadarChipConfig
+from radarpc.sensors.coloradar import SPEED_OF_LIGHT, ColoRadarChipConfig, WaveformConfig
 
-__all__ = ["RadarCube", "tdm_spectrum", "radar_cube"]
+__all__ = ["RadarCube", "tdm_spectrum", "radar_cube", "rald_velocity_bin_width"]
 
 
 @dataclass
@@ -42,7 +50,7 @@ class RadarCube:
     """RaLD radar cube of one frame (or a batch, leading dims first)."""
 
     intensity_db: torch.Tensor   # (..., R, A, E) 10 log10(P / noise + 1)
-    doppler: torch.Tensor        # (..., R, A, E) radial velocity of the peak Doppler bin (m/s)
+    doppler: torch.Tensor        # (..., R, A, E) radial velocity of the peak Doppler bin (m/s, RaLD's bin width)
     valid: torch.Tensor          # (..., R, A, E) bool: peak clearly above the second Doppler peak
     range_m: torch.Tensor        # (R,) bin ranges
     azimuth_rad: torch.Tensor    # (A,) bin azimuths (fftshift order, ascending towards +y)
@@ -51,6 +59,28 @@ class RadarCube:
     def stacked(self) -> torch.Tensor:
         """``(..., R, A, E, 3)`` float32: intensity, Doppler, validity (RaLD's ``RAEIVVmap``)."""
         return torch.stack([self.intensity_db, self.doppler, self.valid.to(self.doppler.dtype)], -1)
+
+
+def rald_velocity_bin_width(waveform: WaveformConfig, n_doppler: int) -> float:
+    """m/s per bin of an ``n_doppler``-point Doppler FFT as RaLD's preprocessing computes it.
+
+    .. math::
+
+        \\Delta v = \\frac{2 v_{max}}{n_{doppler}}, \\quad
+        v_{max} = \\frac{c / f_0}{4 N_{tx} T_c}, \\quad
+        T_c = t_{idle} + \\frac{N_s}{f_s} + t_{adc\\,start}
+
+    with ``f_0`` the chirp's start frequency and ``N_s`` the ADC samples per chirp (RaLD's "ramp
+    time" ``N_s / f_s`` plus the ADC start time, not the configured ramp end). AWR1843, 128 bins:
+    0.03930 m/s (the physical width, :meth:`WaveformConfig.velocity_bin_width`, is 0.03862 m/s).
+    """
+    n = int(n_doppler)
+    if n < 1:
+        raise ValueError(f"n_doppler must be >= 1, got {n_doppler}")
+    w = waveform
+    t_chirp = w.idle_time + w.num_adc_samples_per_chirp / w.adc_sample_frequency + w.adc_start_time
+    v_max = (SPEED_OF_LIGHT / w.start_frequency) / (4 * w.num_tx * t_chirp)
+    return 2 * v_max / n
 
 
 def _virtual_grid(chip: ColoRadarChipConfig) -> tuple[np.ndarray, np.ndarray, int, int]:
@@ -151,7 +181,7 @@ def radar_cube(adc, chip: ColoRadarChipConfig, *, n_range: int = 128, n_doppler:
     power = efft.abs() ** 2
     top2 = torch.topk(power, k=min(2, n_doppler), dim=-2).values                     # (..., E, A, 2, R)
     peak = power.argmax(dim=-2)                                                        # (..., E, A, R)
-    vbin = w.velocity_bin_width(n_doppler)
+    vbin = rald_velocity_bin_width(w, n_doppler)                                      # RaLD's convention
     velocity = (peak - n_doppler // 2).to(torch.float32) * vbin
     if n_doppler > 1:
         valid = top2[..., 0, :] * (1 - noise_quantile) > top2[..., 1, :]

@@ -99,8 +99,10 @@ class ExperimentConfig:
             raise ValueError(f"experiment {self.name!r}: model must be a ModelSpec (variant and overrides), "
                              f"got {type(self.model).__name__}")
         if self.input_kind not in ("rd", "points"):
+            rald = (" (a RaLD experiment config names its stage: autoencoder or diffusion)"
+                    if self.input_kind in ("lidar", "radar") else "")
             raise ValueError(f"experiment {self.name!r}: model {self.model.variant!r} reads {self.input_kind!r} "
-                             f"inputs, not RADIal's RD cubes or spectral points; choose a detection model")
+                             f"inputs, not RADIal's RD cubes or spectral points; choose a detection model{rald}")
         known = validation_metrics(bool(getattr(self.model.config, "freespace", False)))
         if self.train.select_metric not in known:
             raise ValueError(f"train.select_metric {self.train.select_metric!r} is not a validation metric of this "

@@ -1,1 +1,12 @@
-"""RaLD: dense 3-D point clouds from one radar frame by radar-conditioned latent diffusion."""
+"""RaLD: the LiDAR occupancy autoencoder (stage 1) and the radar-conditioned latent diffusion model
+(stage 2), trained on ColoRadar-layout roots through the one training loop.
+
+* :mod:`.config` -- :class:`~.config.AutoencoderExperiment` and :class:`~.config.DiffusionExperiment`
+  (a model of :data:`radarpc.models.MODELS`, the data options, training; ``stage:`` tells them
+  apart) and their strict YAML loading;
+* :mod:`.task` -- datasets, collate, loss and validation of each stage: the tasks the loop trains;
+* :mod:`.train` -- a run of a config in a run folder (stage 2 against a stage-1 run, ``--ae``);
+* :mod:`.runs` -- a trained run's weights loaded and checked (:func:`~.runs.load_rald_ae`,
+  :func:`~.runs.load_rald`);
+* :mod:`.official` -- the official RaLD checkpoints of both stages, read without running pickled code.
+"""

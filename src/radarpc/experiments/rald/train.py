@@ -1,0 +1,119 @@
+"""Train a RaLD stage in a run folder: the autoencoder, or the diffusion model against a stage-1 run.
+
+A run folder has the detection experiment's format: ``run.json`` (the key), ``config.yaml`` (the
+resolved config, readable and reusable), ``checkpoints/last.safetensors``, ``best.safetensors`` and
+``log.csv`` (:func:`radarpc.training.loop.fit`); the keys are :mod:`.runs`' (stage 2's records the
+stage-1 run's path, key and weights hash).
+
+Stage 2 loads the autoencoder from the stage-1 run's ``best.safetensors``
+(:func:`radarpc.experiments.rald.runs.load_rald_ae`: its run key checked, non-finite weights
+refused) and freezes it. Because the stage-1 key and the weights' hash are part of the stage-2
+key, a rerun against another or a retrained stage-1 run is refused (the message names
+``ae.run`` or ``ae.weights_sha256``) instead of resuming with other latents; ``overwrite``
+starts over. A stage-2 ``best.safetensors`` holds both networks (:class:`~.task.RaldStage2`).
+"""
+from __future__ import annotations
+
+import functools
+import os
+from pathlib import Path
+from typing import Callable, Sequence
+
+from radarpc.config import save_yaml
+from radarpc.experiments.rald.config import AutoencoderExperiment, DiffusionExperiment, RaldExperiment, canonical_key
+from radarpc.experiments.rald.runs import ae_reference, autoencoder_run_key, diffusion_run_key, load_rald_ae
+from radarpc.experiments.rald.task import AutoencoderTask, DiffusionTask
+from radarpc.training.loop import FitResult, fit
+
+__all__ = ["CONFIG_YAML", "single_root", "train_autoencoder", "train_diffusion", "train_rald"]
+
+CONFIG_YAML = "config.yaml"
+"""The resolved config a run folder keeps beside its key (``run.json``)."""
+
+
+def single_root(data: str | os.PathLike | Sequence[str | os.PathLike]) -> Path:
+    """The one ColoRadar root of ``data`` (a path, or a sequence holding exactly one).
+
+    Raises
+    ------
+    ValueError
+        No root or several (RaLD experiments read one root; its runs give the splits).
+    """
+    roots = [data] if isinstance(data, (str, os.PathLike)) else list(data)
+    if len(roots) != 1:
+        raise ValueError(f"a RaLD experiment reads one ColoRadar root (its runs give the splits), got "
+                         f"{len(roots)}: {', '.join(map(str, roots)) or 'none'}")
+    return Path(roots[0])
+
+
+def _fit(task, cfg: RaldExperiment, out: Path, key: dict, device, overwrite, progress, log, on_step) -> FitResult:
+    res = fit(task, cfg.train, out, key, device=device, overwrite=overwrite, progress=progress, log=log,
+              extra_outputs=(CONFIG_YAML,), on_step=on_step,
+              canonical_key=functools.partial(canonical_key, num_workers=cfg.train.num_workers))
+    if not (out / CONFIG_YAML).is_file():
+        save_yaml(cfg, out / CONFIG_YAML)
+    return res
+
+
+def train_autoencoder(cfg: AutoencoderExperiment, data: str | os.PathLike, out: str | os.PathLike, *,
+                      device: str | None = None, overwrite: bool = False, progress: bool = True,
+                      log: Callable[[str], None] = print,
+                      on_step: Callable[[int], None] | None = None) -> FitResult:
+    """Train RaLD's autoencoder (stage 1) on the root ``data`` into the run folder ``out``; resumable.
+
+    ``on_step`` is called with the global step after each optimizer step (tests interrupt with it)."""
+    out = Path(out)
+    return _fit(AutoencoderTask(cfg, data), cfg, out, autoencoder_run_key(cfg, data), device, overwrite,
+                progress, log, on_step)
+
+
+def train_diffusion(cfg: DiffusionExperiment, data: str | os.PathLike, ae: str | os.PathLike,
+                    out: str | os.PathLike, *, device: str | None = None, overwrite: bool = False,
+                    progress: bool = True, log: Callable[[str], None] = print,
+                    on_step: Callable[[int], None] | None = None) -> FitResult:
+    """Train RaLD's diffusion model (stage 2) on the root ``data`` against the stage-1 run folder
+    ``ae`` (frozen) into the run folder ``out``; resumable (see the module docstring). ``on_step``
+    as in :func:`train_autoencoder`.
+
+    Raises
+    ------
+    DataFileError, FileNotFoundError
+        ``ae`` is not a stage-1 run with usable best weights.
+    ValueError
+        The diffusion model's latents are not the autoencoder's.
+    RunMismatchError
+        ``out`` holds another run (another config, root or stage-1 run) and ``overwrite`` is False.
+    """
+    out, ae = Path(out), Path(ae)
+    stage1 = load_rald_ae(ae)
+    if stage1.status["finished"] is False:
+        log(f"{ae}: the autoencoder run has not finished (step {stage1.status['steps_done']}); its best weights "
+            f"so far (step {stage1.status['weights_step']}) are the frozen first stage")
+    task = DiffusionTask(cfg, data, stage1.config, stage1.ae)
+    return _fit(task, cfg, out, diffusion_run_key(cfg, data, ae_reference(ae, out)), device, overwrite,
+                progress, log, on_step)
+
+
+def train_rald(cfg: RaldExperiment, data: str | os.PathLike | Sequence[str | os.PathLike],
+               out: str | os.PathLike, *, ae: str | os.PathLike | None = None, device: str | None = None,
+               overwrite: bool = False, progress: bool = True, log: Callable[[str], None] = print) -> FitResult:
+    """Train the stage ``cfg`` names: :func:`train_autoencoder` or :func:`train_diffusion`.
+
+    Raises
+    ------
+    ValueError
+        ``ae`` given to stage 1 (it trains the autoencoder itself), missing for stage 2, or not one
+        root in ``data``.
+    """
+    root = single_root(data)
+    if isinstance(cfg, AutoencoderExperiment):
+        if ae is not None:
+            raise ValueError(f"experiment {cfg.name!r} is stage 1 (stage: autoencoder): it trains the autoencoder "
+                             f"and takes no --ae (that is stage 2's, the autoencoder run it builds on)")
+        return train_autoencoder(cfg, root, out, device=device, overwrite=overwrite, progress=progress, log=log)
+    if ae is None:
+        raise ValueError(f"experiment {cfg.name!r} is stage 2 (stage: diffusion): give the stage-1 autoencoder "
+                         f"run it trains against, --ae RUN (a folder written by `radarpc train` with a "
+                         f"stage: autoencoder config)")
+    return train_diffusion(cfg, root, ae, out, device=device, overwrite=overwrite, progress=progress, log=log)
+
