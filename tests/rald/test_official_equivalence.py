@@ -16,7 +16,6 @@ import importlib
 import importlib.util
 import math
 import os
-import pickle
 import re
 import sys
 import types

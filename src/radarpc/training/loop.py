@@ -85,12 +85,12 @@ from radarpc.distributed import DistEnv, dist_env, rank_device
 from radarpc.io import atomic_write
 from radarpc.machine import cpu_has_native_bf16
 from radarpc.runs import RunFolder
-from radarpc.training.checkpoint import (TrainingState, load_model_state, load_state, save_state, save_weights,
-                                         software_record)
+from radarpc.training.checkpoint import (TrainingState, load_model_state, load_state, read_info, save_state,
+                                         save_weights, software_record)
 
 __all__ = ["PRECISIONS", "SCHEDULES", "SELECT_MODES", "FROZEN_ATTR", "TrainConfig", "Task", "FitResult",
            "epoch_batches", "resolve_precision", "autocast_context", "ema_decay_at", "scheduled_lr",
-           "frozen_submodules", "fit", "LAST_CHECKPOINT", "BEST_WEIGHTS", "LOG_CSV"]
+           "frozen_submodules", "fit", "training_status", "LAST_CHECKPOINT", "BEST_WEIGHTS", "LOG_CSV"]
 
 PRECISIONS: tuple[str, ...] = ("auto", "fp32", "bf16", "fp16")
 SCHEDULES: tuple[str, ...] = ("onecycle", "cosine", "constant")
@@ -732,3 +732,20 @@ def _fit(task: Task, cfg: TrainConfig, out: Path, run_key: dict, software: dict,
         if tb is not None:
             tb.close()
     return result()
+
+
+def training_status(folder: str | os.PathLike) -> dict:
+    """Where a run folder's best weights come from: ``{"weights_epoch", "weights_step", "finished",
+    "epochs_done", "steps_done"}``. ``finished`` is None for weights not trained in this folder (no
+    checkpoint: an imported run), False while the run's last checkpoint says it has steps left (a
+    killed or running run)."""
+    folder = Path(folder)
+    _, best = read_info(folder / BEST_WEIGHTS)
+    status = {"weights_epoch": best.get("epoch"), "weights_step": best.get("step"), "finished": None,
+              "epochs_done": None, "steps_done": None}
+    last = folder / LAST_CHECKPOINT
+    if last.is_file():
+        _, progress = read_info(last)
+        status.update(finished=bool(progress.get("finished")), epochs_done=progress.get("epoch"),
+                      steps_done=progress.get("step"))
+    return status

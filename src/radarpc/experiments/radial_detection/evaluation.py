@@ -39,10 +39,10 @@ from radarpc.boxes import Detections
 from radarpc.models.targets import TargetConfig, decode_detections
 from radarpc.machine import check_device
 from radarpc.runs import check_writable, locked_output, read_json, remove_temp_files
-from radarpc.training.checkpoint import load_model_state, load_weights, read_info
-from radarpc.training.loop import BEST_WEIGHTS, LAST_CHECKPOINT, LOG_CSV, autocast_context
+from radarpc.training.checkpoint import load_model_state, load_weights
+from radarpc.training.loop import BEST_WEIGHTS, LOG_CSV, autocast_context, training_status
 
-__all__ = ["load_trained", "EvalResult", "evaluate_run", "evaluate_classical", "mirror_sectors_of", "training_status",
+__all__ = ["load_trained", "EvalResult", "evaluate_run", "evaluate_classical", "mirror_sectors_of",
            "EVAL_PRECISIONS"]
 
 EVAL_PRECISIONS = ("fp32", "bf16")
@@ -126,22 +126,6 @@ def load_trained(folder: str | os.PathLike, device: torch.device | str = "cpu"
     model = cfg.build_model()
     load_model_state(model, state, best, f"model {cfg.model.variant!r} of {folder / 'run.json'}")
     return cfg, model.to(device).eval(), key
-
-
-def training_status(folder: str | os.PathLike) -> dict:
-    """Where a run's best weights come from: ``{"weights_epoch", "weights_step", "finished",
-    "epochs_done", "steps_done"}``. ``finished`` is None for weights not trained here (imported),
-    False while the run's last checkpoint says it has steps left (a killed or running run)."""
-    folder = Path(folder)
-    _, best = read_info(folder / BEST_WEIGHTS)
-    status = {"weights_epoch": best.get("epoch"), "weights_step": best.get("step"), "finished": None,
-              "epochs_done": None, "steps_done": None}
-    last = folder / LAST_CHECKPOINT
-    if last.is_file():
-        _, progress = read_info(last)
-        status.update(finished=bool(progress.get("finished")), epochs_done=progress.get("epoch"),
-                      steps_done=progress.get("step"))
-    return status
 
 
 def _comparable(key: object) -> object:

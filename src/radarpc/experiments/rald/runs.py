@@ -49,10 +49,10 @@ from radarpc.models.vecset import VecSetAutoencoder
 from radarpc.rald.frustum import FrustumGrid
 from radarpc.rald.voxels import CartesianGrid
 from radarpc.runs import read_json
-from radarpc.training.checkpoint import load_model_state, load_weights, read_info
-from radarpc.training.loop import BEST_WEIGHTS, LAST_CHECKPOINT
+from radarpc.training.checkpoint import load_model_state, load_weights
+from radarpc.training.loop import BEST_WEIGHTS, training_status
 
-__all__ = ["AutoencoderRun", "RaldRun", "load_rald_ae", "load_rald", "training_status", "autoencoder_run_key",
+__all__ = ["AutoencoderRun", "RaldRun", "load_rald_ae", "load_rald", "autoencoder_run_key",
            "diffusion_run_key", "ae_reference", "resolve_ae_dir", "file_sha256", "AE_STATUSES"]
 
 AE_STATUSES = ("same", "changed", "missing")
@@ -110,23 +110,6 @@ def diffusion_run_key(cfg: DiffusionExperiment, data: str | os.PathLike, ae: dic
 
 
 # ---- loading ------------------------------------------------------------------------------------------
-
-def training_status(folder: str | os.PathLike) -> dict:
-    """Where a run's best weights come from: ``{"weights_epoch", "weights_step", "finished",
-    "epochs_done", "steps_done"}``. ``finished`` is None for weights not trained in this folder
-    (no checkpoint: an imported run), False while the run's last checkpoint says it has steps left
-    (a killed or running run)."""
-    folder = Path(folder)
-    _, best = read_info(folder / BEST_WEIGHTS)
-    status = {"weights_epoch": best.get("epoch"), "weights_step": best.get("step"), "finished": None,
-              "epochs_done": None, "steps_done": None}
-    last = folder / LAST_CHECKPOINT
-    if last.is_file():
-        _, progress = read_info(last)
-        status.update(finished=bool(progress.get("finished")), epochs_done=progress.get("epoch"),
-                      steps_done=progress.get("step"))
-    return status
-
 
 def _comparable(key: object) -> object:
     """A run key as two copies of one run compare it: through the config types, without the

@@ -154,8 +154,8 @@ def check_rows(grid: Grid, out: str | os.PathLike, rows: dict[str, dict]) -> dic
     if bad:
         rows_dir = Path(out) / RESULTS_DIR
         raise ValueError(f"{rows_dir}: {len(bad)} result row(s) were made by another configuration of the same run, "
-                         f"so the study cannot resume them: " + " | ".join(bad[:5])
+                         "so the study cannot resume them: " + " | ".join(bad[:5])
                          + (f" | ... {len(bad) - 5} more" if len(bad) > 5 else "")
-                         + f". Remove those rows (and their run folders) to train them again with this config, or "
-                         f"give another --out")
+                         + ". Remove those rows (and their run folders) to train them again with this config, or "
+                         "give another --out")
     return finished

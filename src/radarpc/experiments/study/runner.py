@@ -31,7 +31,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from radarpc.experiments.radial_detection.evaluation import evaluate_run, training_status
+from radarpc.experiments.radial_detection.evaluation import evaluate_run
+from radarpc.training.loop import training_status
 from radarpc.experiments.radial_detection.train import train_runs
 from radarpc.experiments.study.grid import Grid, GridRun
 from radarpc.experiments.study.inputs import StudyInputs
