@@ -146,3 +146,36 @@ def colo_cli_root(tmp_path_factory) -> tuple[Path, str]:
     assert code == 0, f"radarpc {' '.join(COLO_CLI_ARGV)} --out {root} exited with {code}"
     with _read_only(root):
         yield root, out.getvalue()
+
+
+RALD_CONFIGS = Path(__file__).parent / "experiments" / "rald" / "configs"
+"""The tiny RaLD stage configs (``rald-ae-tiny.yaml``, ``rald-tiny.yaml``: 4 steps each)."""
+
+
+def _train_quietly(*argv) -> None:
+    from radarpc.cli import main
+
+    argv = ["train", *map(str, argv), "--no-progress"]
+    with contextlib.redirect_stdout(io.StringIO()):
+        code = main(argv)
+    assert code == 0, f"radarpc {' '.join(argv)} exited with {code}"
+
+
+@pytest.fixture(scope="session")
+def rald_ae_run(colo_root, tmp_path_factory) -> Path:
+    """A finished RaLD stage-1 run (``rald-ae-tiny.yaml``, 4 steps) on ``colo_root``, trained through
+    ``radarpc train``."""
+    out = tmp_path_factory.mktemp("rald_ae") / "ae"
+    _train_quietly(RALD_CONFIGS / "rald-ae-tiny.yaml", "--data", colo_root, "--out", out)
+    with _read_only(out):
+        yield out
+
+
+@pytest.fixture(scope="session")
+def rald_run(colo_root, rald_ae_run, tmp_path_factory) -> Path:
+    """A finished RaLD stage-2 run (``rald-tiny.yaml``, 4 steps) against :func:`rald_ae_run`, trained
+    through ``radarpc train``."""
+    out = tmp_path_factory.mktemp("rald_dit") / "rald"
+    _train_quietly(RALD_CONFIGS / "rald-tiny.yaml", "--data", colo_root, "--ae", rald_ae_run, "--out", out)
+    with _read_only(out):
+        yield out

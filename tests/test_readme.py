@@ -22,7 +22,9 @@ Size mapping (the README's sizes take minutes to hours; the commands are otherwi
 Skipped, each for a stated reason: ``pip install`` (the suite runs in an installed environment and
 must not touch the network), ``python -m pytest`` (this suite itself), ``radarpc demo``
 (``tests/cli/test_demo.py`` runs it at tiny sizes; the README's sizes take minutes), ``radarpc train``,
-``radarpc evaluate`` and ``torchrun`` (``tests/training`` runs them on tiny models), ``radarpc experiment``
+``radarpc evaluate`` and ``torchrun`` (``tests/training`` runs them on tiny models), ``radarpc generate``,
+``radarpc import-rald`` and the ``evaluate-points`` line that scores the generated clouds
+(``tests/cli/test_rald_cli.py`` runs them on tiny runs and official-layout checkpoints), ``radarpc experiment``
 and ``radarpc report`` (``tests/experiments/study`` runs tiny studies and reports them) and the Python
 block that converts the real ``CalibrationTable.npy`` (it needs RADIal's download, which this
 repository cannot ship). Any other command is an error here, so a new kind of README line gets a
@@ -46,6 +48,13 @@ SKIPPED = {
     "radarpc train": "tests/experiments/radial_detection/test_experiment.py and tests/experiments/rald/test_train.py "
                      "train and resume tiny models through this command; the shipped configs train for minutes to days",
     "radarpc evaluate": "tests/experiments/radial_detection/test_experiment.py evaluates a tiny run through this command",
+    "radarpc generate": "generates with the RaLD runs of `radarpc train` and `radarpc import-rald`, which this test "
+                        "skips; tests/cli/test_rald_cli.py generates with tiny runs trained through `radarpc train` "
+                        "and imported through `radarpc import-rald`",
+    "radarpc evaluate-points preds/rald": "scores the clouds of `radarpc generate` above (skipped); "
+                                          "tests/cli/test_rald_cli.py scores tiny generated clouds beside OS-CFAR's",
+    "radarpc import-rald": "needs the official RaLD checkpoints, which this repository cannot ship; "
+                           "tests/cli/test_rald_cli.py imports tiny checkpoints in the official layout",
     "torchrun": "starts several processes (GPUs); tests/training/test_loop.py runs a 2-process gloo job",
     "radarpc experiment": "tests/experiments/study runs tiny studies through this command (configs/study/tiny-*.yaml); "
                           "the shipped studies train for hours",

@@ -36,7 +36,9 @@ def test_help_choices_match_the_library():
     from radarpc.dsp.beamform import BEAMFORMING_MODES
     from radarpc.dsp.ddma import ENVELOPES
     from radarpc.dsp.pointcloud import CFAR_PRESETS
+    from radarpc.experiments.rald.official import WEIGHTS
     from radarpc.experiments.study.config import STUDY_KINDS
+    from radarpc.rald.guide import GUIDE_SOURCES
     from radarpc.sensors.radial import RADIAL_SENSORS
     from radarpc.sim.indoor import SCENE_KINDS
     from radarpc.viz import COLOR_BY
@@ -50,6 +52,8 @@ def test_help_choices_match_the_library():
     assert options.DEFAULT_WAIT_S == DEFAULT_WAIT_S
     assert options.MODEL_NAMES == tuple(MODELS)
     assert options.STUDY_KINDS == tuple(STUDY_KINDS)
+    assert options.GUIDE_SOURCES == GUIDE_SOURCES
+    assert options.OFFICIAL_RALD_WEIGHTS == WEIGHTS
 
 
 def test_every_help_is_plain_text_with_defaults():
@@ -70,7 +74,7 @@ def test_every_help_is_plain_text_with_defaults():
     for opt in ("--sequences", "--frames-per-sequence", "--colo-frames", "--seed", "--device"):
         assert opt in demo
     assert "(default 6" in demo and "(default 16)" in demo and "(default 0)" in demo
-    for name in ("radarpc baseline os-cfar", "radarpc evaluate-points", "radarpc pointcloud"):
+    for name in ("radarpc baseline os-cfar", "radarpc evaluate-points", "radarpc pointcloud", "radarpc generate"):
         split = next(a for a in parsers[name]._actions if "--split" in a.option_strings)
         assert f"default {split.default}" in split.help, name
 

@@ -36,6 +36,9 @@ CASES = [
     (["show", "root", "--frame", "0", "--snr", "3", "--out", "ro/f.png"], "figure ro/f.png"),
     (["info", "root", "--plot", "ro/i.png"], "figure ro/i.png"),
     (["info", "root", "--check", "--no-plot", "--write-skip", "ro/skip.txt"], "skip list ro/skip.txt"),
+    # checked before the run or the checkpoints are read: neither need exist here
+    (["generate", "run", "--data", "root", "--out", "ro/gen"], "prediction folder ro/gen"),
+    (["import-rald", "ae.pth", "gen.pth", "--out", "ro/official"], "imported RaLD run ro/official"),
 ]
 ENTRY = 0                                   # the case that runs as `python -m radarpc`
 

@@ -1,20 +1,24 @@
 """RaLD's generation for a split (radarpc.pipelines.rald_generate): layout, records, resume after a
-kill, empty frames, ownership, PLY export."""
+kill, empty frames, ownership, PLY export, and clouds in the radar frame of the LiDAR truth."""
 from __future__ import annotations
 
 import csv
 import json
+import math
 
 import numpy as np
 import pytest
 import torch
 
 from radarpc.data.coloradar import ColoRadar, upsample_intensity
+from radarpc.experiments.rald.config import LidarData
 from radarpc.models import build_model
 from radarpc.pipelines import rald_generate as job_module
 from radarpc.pipelines.rald_generate import GenerationJob, file_digests, generate_predictions
+from radarpc.rald.frustum import in_frustum
 from radarpc.rald.generate import STAGES, GenerationConfig, frame_seed, generate_cloud
 from radarpc.rald.guide import GuideConfig
+from radarpc.rald.voxels import voxelize_points
 from radarpc.runs import RunMismatchError
 
 CUBE = (16, 8, 8)
@@ -182,3 +186,58 @@ def test_a_generated_folder_exports_as_ply(whole, tmp_path):
         assert f"element vertex {len(pts)}" in lines and [ln for ln in lines if ln.startswith("property")] == [
             "property float x", "property float y", "property float z"]
         np.testing.assert_array_equal(np.frombuffer(body, dtype="<f4").reshape(-1, 3), pts)
+
+
+class PerfectAutoencoder(torch.nn.Module):
+    """A stand-in autoencoder that decodes exactly the occupancy stage 1 trains on: a query is occupied
+    (logit +1, else -1) when its cell of ``grid`` is one of ``cells``, the cells holding the frames'
+    LiDAR points in the model's frame (``voxelize_points(grid, data.model_frame(lidar))``, as
+    radarpc.experiments.rald.task.AutoencoderFrames labels its queries)."""
+
+    def __init__(self, grid, cells: torch.Tensor):
+        super().__init__()
+        self.grid, self.cells = grid, cells
+        self.w = torch.nn.Parameter(torch.zeros(1))
+        self.eval()
+
+    def latent_tokens(self, z):
+        return z
+
+    def occupancy_logits(self, tokens, q):
+        from radarpc.rald.frustum import cell_indices
+
+        index, inside = cell_indices(self.grid, q.to(torch.float64), coords="normalized")
+        return torch.where(inside & torch.isin(index, self.cells), 1.0, -1.0) + 0 * self.w
+
+
+@pytest.mark.parametrize("data", [LidarData(), LidarData(max_range_m=15.8, mirror_azimuth=True)],
+                         ids=["radarpc-frame", "official-frame"])
+def test_clouds_land_on_the_lidar_truth_in_the_radar_frame(root, tmp_path, monkeypatch, data):
+    # The model coordinates of the LiDAR are what stage 1 trains on (LidarData: the model's frame,
+    # mirrored for the official checkpoints, then the grid's normalised polar coordinates). An
+    # autoencoder that decodes exactly those occupied cells, with the guide points placed on the LiDAR
+    # truth itself, must give clouds on the truth that evaluate-points scores them against: in the
+    # radar frame, in metres. A cloud left in the model's frame lands on the mirror image.
+    ds = ColoRadar(root, "test", cube_size=None)
+    grid = data.grid(ds.fov)
+    truth = [ds.lidar_points(i) for i in range(len(ds))]                       # (M, 3) radar frame, metres
+    cells = torch.cat([voxelize_points(grid, data.model_frame(torch.from_numpy(t))).cells for t in truth]).unique()
+    guides = iter(truth)
+    monkeypatch.setattr(job_module, "guide_points", lambda *a, **kw: next(guides))   # called frame by frame, in order
+    _, dit = _models()
+    cfg = GenerationConfig(random_queries=100, guided_queries=4000, refine_queries=8000, chunk=4096, num_steps=2)
+    out = tmp_path / "preds"
+    generate_predictions(_job(root, out, generation=cfg), PerfectAutoencoder(grid, cells), dit,
+                         model_input=model_input, grid=grid, mirror_azimuth=data.mirror_azimuth, model=MODEL,
+                         progress=False)
+    union = torch.from_numpy(np.concatenate(truth)).double()
+    # two points of one cell are at most |dr| + r_max (da + de) apart (chord <= arc, angles in radians)
+    dr, da, de = grid.cell
+    bound = dr + grid.range_m[1] * math.radians(da + de)                      # 0.26 m
+    for e, t in zip(json.loads((out / "index.json").read_text())["frames"], truth):
+        pts = torch.from_numpy(np.load(out / e["file"])).double()
+        in_grid = int(in_frustum(grid, data.model_frame(torch.from_numpy(t).double())).sum())
+        assert len(pts) >= in_grid > 100                                        # every truth point is a guided query
+        assert float(torch.cdist(pts, union).min(dim=1).values.max()) <= bound
+        mirrored = pts * pts.new_tensor((1.0, -1.0, 1.0))
+        assert float(torch.cdist(mirrored, union).min(dim=1).values.max()) > 10 * bound

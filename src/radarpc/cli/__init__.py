@@ -17,10 +17,10 @@ __all__ = ["RESUMABLE_COMMANDS", "build_parser", "main"]
 
 def _command_modules():
     # Imported lazily so that `radarpc --help` stays fast and one broken stage cannot hide the others.
-    from radarpc.cli import (baseline, demo, evaluate, evaluate_points, experiment, export, import_fftradnet, info,
-                             models, pointcloud, report, show, simulate, train)
+    from radarpc.cli import (baseline, demo, evaluate, evaluate_points, experiment, export, generate, import_fftradnet,
+                             import_rald, info, models, pointcloud, report, show, simulate, train)
     return [simulate, info, pointcloud, show, demo, baseline, evaluate_points, export, models, train, evaluate,
-            import_fftradnet, experiment, report]
+            generate, import_fftradnet, import_rald, experiment, report]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -19,7 +19,7 @@ from radarpc import __version__
 __all__ = ["RESUMABLE_COMMANDS", "build_parser", "run_command"]
 
 # Commands that keep finished work and resume it when run again.
-RESUMABLE_COMMANDS = ("simulate", "pointcloud", "demo", "baseline", "export", "train", "experiment")
+RESUMABLE_COMMANDS = ("simulate", "pointcloud", "demo", "baseline", "export", "train", "generate", "experiment")
 
 
 def build_parser(modules: Sequence[ModuleType], description: str | None = None) -> argparse.ArgumentParser:

@@ -6,7 +6,8 @@
       {run}/{frame:06d}.npy   float32 (N, 3) points in the single-chip radar frame, one per paired
                               radar frame of the split (frame = index of the ADC frame in its run)
       index.json              {"method", "root", "split", the method's settings (RaLD: "generation",
-                              "guide", "model", "empty_frames"), "frames": [one entry per frame]}
+                              "guide", "grid", "mirror_azimuth", "model", "empty_frames"),
+                              "frames": [one entry per frame]}
       config.yaml             the method's parameters (OS-CFAR: radarpc.rald.oscfar_baseline)
       tuning.json             the tuning search, when the parameters were tuned
       generation.json         RaLD: the generation's key (radarpc.pipelines.rald_generate)

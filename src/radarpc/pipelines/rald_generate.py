@@ -4,8 +4,9 @@ Fills a prediction folder (:mod:`radarpc.eval.predictions` for the layout) throu
 loop the OS-CFAR baseline shares (:func:`radarpc.pipelines.predictions.fill_predictions`):
 
 * ``generation.json`` -- the job's key: method ``rald``, the dataset root (resolved) and split,
-  the generation and guide configs, the occupancy grid and the caller's model identity (e.g. the
-  run folder and a digest of its weights, :func:`file_digests`);
+  the generation and guide configs, the occupancy grid, whether the model's frame is mirrored
+  (``mirror_azimuth``) and the caller's model identity (e.g. the run folder and a digest of its
+  weights, :func:`file_digests`);
 * ``{run}/{frame:06d}.npy`` -- float32 ``(N, 3)`` Cartesian points in the single-chip radar frame,
   one per paired frame (:func:`radarpc.rald.generate.generate_cloud` of the frame's radar cube,
   guide points and seed :func:`radarpc.rald.generate.frame_seed`);
@@ -106,8 +107,9 @@ def file_digests(paths: Sequence[str | os.PathLike]) -> dict[str, str]:
 
 def generate_predictions(job: GenerationJob, ae: torch.nn.Module, dit: torch.nn.Module, *,
                          model_input: Callable[[RadarCube], torch.Tensor],
-                         grid: FrustumGrid | CartesianGrid = RALD_GRID, model: Mapping[str, object] | None = None,
-                         progress: bool = True, on_warning: Callable[[str], None] | None = None) -> GenerationRun:
+                         grid: FrustumGrid | CartesianGrid = RALD_GRID, mirror_azimuth: bool = False,
+                         model: Mapping[str, object] | None = None, progress: bool = True,
+                         on_warning: Callable[[str], None] | None = None) -> GenerationRun:
     """Run ``job`` (see the module docstring).
 
     Parameters
@@ -121,6 +123,10 @@ def generate_predictions(job: GenerationJob, ae: torch.nn.Module, dit: torch.nn.
         ``model_input(cube)``: the diffusion model's input ``(R, A, E)`` of a frame's RaLD cube.
     grid : FrustumGrid or CartesianGrid
         The occupancy grid the autoencoder was trained on.
+    mirror_azimuth : bool
+        The autoencoder's frame is the radar frame mirrored left-right
+        (:func:`radarpc.rald.generate.generate_clouds`); the clouds are written in the radar frame
+        either way.
     model : mapping, optional
         JSON-able identity of the weights (run folder, :func:`file_digests`), part of the key: other
         weights into the same folder are refused without ``overwrite``.
@@ -144,7 +150,7 @@ def generate_predictions(job: GenerationJob, ae: torch.nn.Module, dit: torch.nn.
     cfg, chip = job.generation, ds.calib.single_chip
     key = {"method": METHOD, "root": str(Path(job.root).resolve()), "split": job.split,
            "generation": to_dict(cfg), "guide": to_dict(job.guide), "grid": grid_key(grid),
-           "model": dict(model or {})}
+           "mirror_azimuth": bool(mirror_azimuth), "model": dict(model or {})}
     ae.eval()
     dit.eval()
     records: list[dict] = []
@@ -155,12 +161,13 @@ def generate_predictions(job: GenerationJob, ae: torch.nn.Module, dit: torch.nn.
         adc = run.adc(ri)
         cube = radar_cube(adc, chip)                                     # RaLD's 128 x 8 x 2 cube
         guide = guide_points(job.guide, adc, chip, cube)                 # (P, 3) Cartesian
-        res = generate_cloud(ae, dit, model_input(cube), guide, cfg, frame_seed(cfg.seed, run.name, ri), grid=grid)
+        res = generate_cloud(ae, dit, model_input(cube), guide, cfg, frame_seed(cfg.seed, run.name, ri), grid=grid,
+                             mirror_azimuth=mirror_azimuth)
         records.append(res.record())
         return FramePrediction(res.points, res.record(), res.warning)
 
     def extra(res: FilledFolder) -> dict:
-        return {**{k: key[k] for k in ("generation", "guide", "grid", "model")},
+        return {**{k: key[k] for k in ("generation", "guide", "grid", "mirror_azimuth", "model")},
                 "empty_frames": [{"run": r, "frame": f} for r, f in res.empty]}
 
     with RunFolder(job.out, {GENERATION_FILE: key}, what="prediction folder").start(overwrite=job.overwrite) as folder:

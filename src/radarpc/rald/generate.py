@@ -23,6 +23,12 @@ code runs it (``engine_generation.py`` ``evaluate``, ``datasets/utils/query_help
 5. the kept queries, denormalised and mapped to Cartesian metres in the radar frame
    (:func:`radarpc.rald.voxels.cartesian_points`: polar for RaLD's frustum grid).
 
+The model's frame: an autoencoder reads points in its own frame, the radar frame itself or, with
+``mirror_azimuth``, the radar frame mirrored left-right (``y -> -y``: azimuth positive to the
+right, the official checkpoints' convention; :class:`radarpc.experiments.rald.config.LidarData`).
+The CFAR points (radar frame) are mirrored into that frame before they become guided queries,
+and the cloud is mirrored back, so that a cloud is always in the radar frame of the LiDAR truth.
+
 Every step works in the grid's own coordinates (polar ``(r, a, e)`` with cells of 0.05 m, 0.25
 deg, 0.5 deg for :data:`~radarpc.rald.frustum.RALD_GRID`; Cartesian metres for a
 :class:`~radarpc.rald.voxels.CartesianGrid`) and hands the decoder normalised coordinates.
@@ -68,6 +74,7 @@ __all__ = [
     "random_queries",
     "spread_queries",
     "cfar_guided_queries",
+    "model_frame",
     "decode_occupied",
     "refine",
     "generate_clouds",
@@ -197,7 +204,7 @@ def _moved_copies(p: torch.Tensor, k: int, grid: Grid, spread: int,
 
 
 def cfar_guided_queries(cfar_points, n: int, grid: Grid = RALD_GRID, generator: torch.Generator | None = None,
-                        *, spread: int = 2) -> torch.Tensor:
+                        *, spread: int = 2, mirror_azimuth: bool = False) -> torch.Tensor:
     """RaLD's CFAR-guided queries: the CFAR points inside the grid, topped up around them.
 
     Parameters
@@ -213,6 +220,9 @@ def cfar_guided_queries(cfar_points, n: int, grid: Grid = RALD_GRID, generator: 
         Draws the moved copies (on the CPU).
     spread : int
         Largest move in cells per axis (official: 2).
+    mirror_azimuth : bool
+        The model's frame is the radar frame mirrored left-right (module docstring): the CFAR
+        points are mirrored (``y -> -y``) before they are placed in the grid.
 
     Returns
     -------
@@ -221,16 +231,24 @@ def cfar_guided_queries(cfar_points, n: int, grid: Grid = RALD_GRID, generator: 
         ``spread`` cells of a CFAR point on every axis and inside the grid. Empty (``(0, 3)``)
         when no CFAR point lies in the grid.
     """
-    q = spread_queries(_cfar_in_grid(cfar_points, grid), int(n), grid, spread, generator)   # (n', 3)
+    q = spread_queries(_cfar_in_grid(cfar_points, grid, mirror_azimuth), int(n), grid, spread, generator)   # (n', 3)
     return normalize(grid, q).to(torch.float32)
 
 
-def _cfar_in_grid(cfar_points, grid: Grid) -> torch.Tensor:
-    """The CFAR points inside the grid, in the grid's coordinates ``(P_in, 3)`` float64 (CPU)."""
+def model_frame(xyz: torch.Tensor, mirror_azimuth: bool) -> torch.Tensor:
+    """Cartesian points ``(..., 3)`` of the radar frame in the model's frame (module docstring):
+    unchanged, or ``y`` negated with ``mirror_azimuth``. The map is its own inverse."""
+    return xyz * xyz.new_tensor((1.0, -1.0, 1.0)) if mirror_azimuth else xyz
+
+
+def _cfar_in_grid(cfar_points, grid: Grid, mirror_azimuth: bool = False) -> torch.Tensor:
+    """The CFAR points inside the grid, in the grid's coordinates ``(P_in, 3)`` float64 (CPU), taken
+    to the model's frame first (:func:`model_frame`)."""
     pts = cfar_points if isinstance(cfar_points, torch.Tensor) else torch.from_numpy(np.asarray(cfar_points))
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"cfar_points must be (P, 3) Cartesian points, got shape {tuple(pts.shape)}")
-    g = grid_coords(grid, pts.detach().cpu().to(torch.float64))                   # (P, 3)
+    pts = model_frame(pts.detach().cpu().to(torch.float64), mirror_azimuth)
+    g = grid_coords(grid, pts)                                                    # (P, 3)
     return g[in_frustum(grid, g, coords="polar")]                                 # "polar": the grid's own coordinates
 
 
@@ -408,7 +426,8 @@ def _check_frames(cubes: torch.Tensor, cfar_points: Sequence, seeds: Sequence[in
 
 @torch.no_grad()
 def generate_clouds(ae, dit, cubes: torch.Tensor, cfar_points: Sequence, cfg: GenerationConfig,
-                    seeds: Sequence[int], *, grid: Grid = RALD_GRID) -> list[GeneratedCloud]:
+                    seeds: Sequence[int], *, grid: Grid = RALD_GRID,
+                    mirror_azimuth: bool = False) -> list[GeneratedCloud]:
     """Clouds of a batch of frames (see the module docstring): one sampler run for the batch, then
     each frame's decoding and refinement.
 
@@ -429,6 +448,9 @@ def generate_clouds(ae, dit, cubes: torch.Tensor, cfar_points: Sequence, cfg: Ge
         does not depend on the other frames of the batch.
     grid : FrustumGrid or CartesianGrid
         The occupancy grid the autoencoder was trained on (default RaLD's frustum grid).
+    mirror_azimuth : bool
+        The autoencoder's frame is the radar frame mirrored left-right (module docstring; the
+        official checkpoints'): CFAR points go in mirrored, the clouds come out in the radar frame.
 
     Returns
     -------
@@ -456,19 +478,19 @@ def generate_clouds(ae, dit, cubes: torch.Tensor, cfar_points: Sequence, cfg: Ge
 
     out = []
     for i in range(b):
-        out.append(_decode_frame(ae, latents[i:i + 1], cfar_points[i], cfg, int(seeds[i]), grid))
+        out.append(_decode_frame(ae, latents[i:i + 1], cfar_points[i], cfg, int(seeds[i]), grid, mirror_azimuth))
         out[-1].seconds = {"condition": (t1 - t0) / b, "sampler": (t2 - t1) / b, **out[-1].seconds}
     return out
 
 
 def _decode_frame(ae, latents: torch.Tensor, cfar_points, cfg: GenerationConfig, seed: int,
-                  grid: Grid) -> GeneratedCloud:
+                  grid: Grid, mirror_azimuth: bool) -> GeneratedCloud:
     dev = _device(ae)
     gen = _query_generator(seed)
     _sync(dev)
     t0 = time.perf_counter()
     q_random = random_queries(cfg.random_queries, gen)                                    # (n_r, 3)
-    seeds = _cfar_in_grid(cfar_points, grid)                                              # (P_in, 3)
+    seeds = _cfar_in_grid(cfar_points, grid, mirror_azimuth)                              # (P_in, 3) model frame
     q_guided = normalize(grid, spread_queries(seeds, cfg.guided_queries, grid, cfg.guided_spread,
                                               gen)).to(torch.float32)                    # (n_g, 3)
     tokens = ae.latent_tokens(latents.to(dev))                                            # (1, M, C)
@@ -480,7 +502,8 @@ def _decode_frame(ae, latents: torch.Tensor, cfar_points, cfg: GenerationConfig,
                                    rounds=cfg.refine_rounds, chunk=cfg.chunk, generator=gen, tokens=tokens)
     _sync(dev)
     t2 = time.perf_counter()
-    points = cartesian_points(grid, occ.to(torch.float64)).to(torch.float32).numpy()      # (N, 3)
+    xyz = model_frame(cartesian_points(grid, occ.to(torch.float64)), mirror_azimuth)     # (N, 3) radar frame
+    points = xyz.to(torch.float32).numpy()
     return GeneratedCloud(points=np.ascontiguousarray(points, dtype=np.float32),
                           seconds={"decoding": t1 - t0, "refinement": t2 - t1},
                           n_queries={"random": int(q_random.shape[0]), "guided": int(q_guided.shape[0]),
@@ -489,7 +512,7 @@ def _decode_frame(ae, latents: torch.Tensor, cfar_points, cfg: GenerationConfig,
 
 
 def generate_cloud(ae, dit, cube: torch.Tensor, cfar_points, cfg: GenerationConfig, seed: int, *,
-                   grid: Grid = RALD_GRID) -> GeneratedCloud:
+                   grid: Grid = RALD_GRID, mirror_azimuth: bool = False) -> GeneratedCloud:
     """One frame's cloud (:func:`generate_clouds` of a batch of one).
 
     Parameters
@@ -500,6 +523,8 @@ def generate_cloud(ae, dit, cube: torch.Tensor, cfar_points, cfg: GenerationConf
         Cartesian CFAR points of the frame.
     seed : int
         The frame's seed (:func:`frame_seed`).
+    grid, mirror_azimuth
+        As :func:`generate_clouds`.
     """
     x = cube if cube.ndim == 4 else cube[None]
-    return generate_clouds(ae, dit, x, [cfar_points], cfg, [int(seed)], grid=grid)[0]
+    return generate_clouds(ae, dit, x, [cfar_points], cfg, [int(seed)], grid=grid, mirror_azimuth=mirror_azimuth)[0]

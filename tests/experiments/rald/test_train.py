@@ -34,19 +34,9 @@ def _train(*args: str) -> int:
 
 
 @pytest.fixture(scope="module")
-def ae_run(colo_root, tmp_path_factory) -> Path:
-    """A finished stage-1 run of the tiny autoencoder on ``colo_root`` (read-only for the tests)."""
-    out = tmp_path_factory.mktemp("rald_ae") / "ae"
-    assert _train(AE_YAML, "--data", colo_root, "--out", out) == 0
-    return out
-
-
-@pytest.fixture(scope="module")
-def rald_run(colo_root, ae_run, tmp_path_factory) -> Path:
-    """A finished stage-2 run of the tiny diffusion model against :func:`ae_run` (read-only)."""
-    out = tmp_path_factory.mktemp("rald_dit") / "rald"
-    assert _train(DIT_YAML, "--data", colo_root, "--ae", ae_run, "--out", out) == 0
-    return out
+def ae_run(rald_ae_run) -> Path:
+    """A finished stage-1 run of the tiny autoencoder on ``colo_root`` (the session's, read-only)."""
+    return rald_ae_run
 
 
 def _weights(path: Path, prefix: str = "") -> dict[str, torch.Tensor]:

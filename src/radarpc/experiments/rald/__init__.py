@@ -8,5 +8,7 @@
 * :mod:`.train` -- a run of a config in a run folder (stage 2 against a stage-1 run, ``--ae``);
 * :mod:`.runs` -- a trained run's weights loaded and checked (:func:`~.runs.load_rald_ae`,
   :func:`~.runs.load_rald`);
-* :mod:`.official` -- the official RaLD checkpoints of both stages, read without running pickled code.
+* :mod:`.official` -- the official RaLD checkpoints of both stages, read without running pickled code,
+  and written as a run folder (``radarpc import-rald``);
+* :mod:`.generation` -- a stage-2 run's clouds of a ColoRadar split (``radarpc generate``).
 """

@@ -26,7 +26,20 @@ against a network name in ``args`` where there is one, rename the keys
 check the result against the radarpc model of that config key by key and shape by shape, so that
 the state dict of another network, or of the other stage, is refused before any weight is used.
 
-:func:`read_official_rald` reads both stages' files: what ``radarpc import-rald`` calls.
+:func:`read_official_rald` reads both stages' files, :func:`import_official_rald` writes them as
+a RaLD run folder (what ``radarpc import-rald`` calls).
+
+**As a run.** :func:`import_official_rald` writes ``OUT/ae``, a stage-1 run folder, and ``OUT``, a
+stage-2 run folder against it, in the format :mod:`radarpc.experiments.rald.runs` loads
+(:func:`~radarpc.experiments.rald.runs.load_rald`): ``run.json``, ``config.yaml`` and
+``best.safetensors`` each. The stage-1 config's ``data`` is the official one,
+:data:`OFFICIAL_LIDAR_DATA`: the official code normalises range over its ``pc_range`` of
+0..15.8 m and takes azimuth as ``-atan2(y, x)`` (right positive), so the autoencoder reads and
+decodes points in the radar frame mirrored left-right over a grid ending at 15.8 m; the
+generation maps its clouds back to radarpc's radar frame. Both keys hold ``"imported"``: each
+official file (resolved path), its SHA-256, the weights taken from it (``"model_ema"``,
+``"model"`` or ``"state dict"``), its epoch and args, and the choice asked for (``"ema"`` or
+``"model"``).
 
 **Which weights.** ``weights="ema"`` (the default) takes ``model_ema`` where the file has it and
 ``model`` otherwise; ``weights="model"`` always takes ``model``. The official evaluation
@@ -37,6 +50,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import math
 import os
 import pickle
@@ -49,12 +63,20 @@ from typing import Any
 
 import torch
 
-from radarpc.io import DataFileError
+from radarpc.config import save_yaml, to_dict
+from radarpc.experiments.rald.config import AutoencoderExperiment, DiffusionExperiment, LidarData
+from radarpc.experiments.rald.runs import ae_reference, autoencoder_run_key, diffusion_run_key
+from radarpc.experiments.rald.task import RaldStage2
+from radarpc.experiments.rald.train import CONFIG_YAML
+from radarpc.io import DataFileError, atomic_write
 from radarpc.models import ModelSpec
 from radarpc.models.latent_dit import LatentDiT, LatentDiTConfig
 from radarpc.models.latent_dit import official_key as dit_official_key
 from radarpc.models.vecset import VecSetAEConfig, VecSetAutoencoder
 from radarpc.models.vecset import official_key as ae_official_key
+from radarpc.runs import RunFolder, check_writable
+from radarpc.training.checkpoint import save_weights
+from radarpc.training.loop import BEST_WEIGHTS, TrainConfig
 
 __all__ = [
     "OFFICIAL_HEADS",
@@ -66,6 +88,9 @@ __all__ = [
     "convert_official_autoencoder",
     "convert_official_diffusion",
     "read_official_rald",
+    "OFFICIAL_LIDAR_DATA",
+    "AE_FOLDER",
+    "import_official_rald",
 ]
 
 OFFICIAL_HEADS = 8
@@ -559,3 +584,96 @@ def read_official_rald(ae_path: str | os.PathLike, gen_path: str | os.PathLike, 
                                          f"autoencoder's ({ae_ck.path}) have {ae_spec.config.latent_dim}: not a pair")
     info = {"autoencoder": _info(ae_ck, ae_state), "diffusion": _info(gen_ck, dit_state)}
     return OfficialRaLD(ae_state=ae_state, ae_spec=ae_spec, dit_state=dit_state, dit_spec=dit_spec, info=info)
+
+
+# ---- as a run folder --------------------------------------------------------------------------
+
+OFFICIAL_LIDAR_DATA = LidarData(max_range_m=15.8, mirror_azimuth=True)
+"""The official autoencoder's data (``configs/ae/*.yml``): 10,000 points and queries per frame,
+6.25 % occupied, frustum cells of 0.05 m x 0.25 deg x 0.5 deg over ``pc_range`` 0..15.8 m,
++-90 deg, +-20 deg, in the official frame, whose azimuth is ``-atan2(y, x)`` (right positive)."""
+
+AE_FOLDER = "ae"
+"""The stage-1 run folder inside an imported run folder."""
+
+_SELECT = TrainConfig(select_metric="loss", select_mode="min")   # the stages' validation metric (no training here)
+
+
+def _provenance(info: Mapping[str, Any]) -> dict:
+    return {"file": str(Path(info["file"]).resolve()), "sha256": info["sha256"], "weights": info["weights"],
+            "epoch": info["epoch"], "args": info["args"]}
+
+
+def import_official_rald(ae_path: str | os.PathLike, gen_path: str | os.PathLike, out: str | os.PathLike, *,
+                         weights: str = "ema", data: str | os.PathLike | None = None, overwrite: bool = False,
+                         ae_heads: int = OFFICIAL_HEADS, dit_heads: int = OFFICIAL_HEADS) -> Path:
+    """Write the official checkpoints as a RaLD run folder ``out`` (stage 2) with ``out/ae`` (stage 1).
+
+    See the module docstring ("As a run"). ``load_rald(out)`` then gives the official models, and
+    ``radarpc generate out`` their clouds.
+
+    Parameters
+    ----------
+    ae_path, gen_path : path-like
+        The official autoencoder and generation checkpoints (:func:`read_official_rald`).
+    out : path-like
+        The run folder.
+    weights : {"ema", "model"}
+        ``"ema"``: each file's ``model_ema`` where it has one (the default), ``"model"``: ``model``.
+    data : path-like, optional
+        A ColoRadar root the keys name as the run's data (what ``radarpc generate`` reads when not
+        given ``--data``); None: the keys name no root.
+    overwrite : bool
+        Replace a folder that holds anything else (another run, another import).
+    ae_heads, dit_heads : int
+        Attention heads (:data:`OFFICIAL_HEADS`).
+
+    Returns
+    -------
+    Path of the run folder.
+
+    Raises
+    ------
+    DataFileError
+        A checkpoint is unreadable or not an official network of its stage (:func:`read_official_rald`).
+    FileNotFoundError, ValueError
+        ``data`` is not a ColoRadar root.
+    RunMismatchError
+        ``out`` holds anything but this import, and ``overwrite`` is False.
+    PermissionError
+        ``out`` cannot be written (checked first).
+    """
+    if weights not in WEIGHTS:
+        raise ValueError(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
+    check_writable(out, "imported RaLD run")                 # before the checkpoints are read
+    if data is not None:
+        from radarpc.data.coloradar import ColoRadar
+
+        ColoRadar(data, "all", cube_size=None)              # a ColoRadar root, or the reader's error naming it
+    official = read_official_rald(ae_path, gen_path, weights=weights, ae_heads=ae_heads, dit_heads=dit_heads)
+    ae_cfg = AutoencoderExperiment(name="rald-official-ae", model=official.ae_spec, data=OFFICIAL_LIDAR_DATA,
+                                   train=_SELECT)
+    dit_cfg = DiffusionExperiment(name="rald-official", model=official.dit_spec, train=_SELECT)
+    ae_prov, dit_prov = (_provenance(official.info[k]) for k in ("autoencoder", "diffusion"))
+    ae_key = autoencoder_run_key(ae_cfg, data) | {"imported": {"weights": weights, "autoencoder": ae_prov}}
+    imported = {"weights": weights, "autoencoder": ae_prov, "diffusion": dit_prov}
+    # what identifies the import before the stage-1 weights (whose hash the full key holds) exist
+    head = {"experiment": to_dict(dit_cfg), "data": ae_key["data"], "imported": imported}
+    out = Path(out)
+    ae_dir = out / AE_FOLDER
+    ae, dit = official.build()
+    with RunFolder(out, {"run.json": head}, what="imported RaLD run", indent=2,
+                   owned=("run.json", str(BEST_WEIGHTS), CONFIG_YAML, AE_FOLDER)
+                   ).start(overwrite=overwrite, resume=False) as run:
+        ae_dir.mkdir()
+        save_weights(ae_dir / BEST_WEIGHTS, ae.state_dict(),
+                     {"run": ae_key, "epoch": None, "precision": "fp32", "weights": "official"})
+        save_yaml(ae_cfg, ae_dir / CONFIG_YAML)
+        with atomic_write(ae_dir / "run.json", "w") as f:
+            json.dump(ae_key, f, indent=2)
+        key = diffusion_run_key(dit_cfg, data, ae_reference(ae_dir, out)) | {"imported": imported}
+        save_weights(out / BEST_WEIGHTS, RaldStage2(ae, dit).state_dict(),
+                     {"run": key, "epoch": None, "precision": "fp32", "weights": "official"})
+        save_yaml(dit_cfg, out / CONFIG_YAML)
+        run.write_manifest("run.json", key)                  # last: the folder is a stage-2 run from here on
+    return out

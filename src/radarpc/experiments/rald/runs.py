@@ -13,6 +13,10 @@ A RaLD run folder has the detection experiment's format (:func:`radarpc.training
   ``OUT/ae`` and ``OUT`` with ``"path": "ae"``), else absolute; a relative path is read against the
   stage-2 folder (:func:`resolve_ae_dir`).
 
+An imported run (:func:`radarpc.experiments.rald.official.import_official_rald`) has the same keys
+plus ``"imported"`` (the official files, their SHA-256 and which weights were taken); its
+``"data"`` is the root given to the import, or None (the weights were trained elsewhere).
+
 Weights: a stage-1 ``best.safetensors`` holds the :class:`~radarpc.models.vecset.VecSetAutoencoder`'s
 state dict; a stage-2 one holds :class:`~radarpc.experiments.rald.task.RaldStage2`'s, i.e.
 ``autoencoder.<key>`` and ``dit.<key>`` (:class:`~radarpc.models.latent_dit.LatentDiT`): the
@@ -61,9 +65,14 @@ AE_STATUSES = ("same", "changed", "missing")
 
 # ---- keys ---------------------------------------------------------------------------------------------
 
-def autoencoder_run_key(cfg: AutoencoderExperiment, data: str | os.PathLike) -> dict:
-    """Stage 1's run key: the whole config and the absolute path of its root."""
-    return {"experiment": to_dict(cfg), "data": str(Path(data).resolve())}
+def _root(data: str | os.PathLike | None) -> str | None:
+    return None if data is None else str(Path(data).resolve())
+
+
+def autoencoder_run_key(cfg: AutoencoderExperiment, data: str | os.PathLike | None) -> dict:
+    """Stage 1's run key: the whole config and the absolute path of its root (None: an imported
+    run that names no root)."""
+    return {"experiment": to_dict(cfg), "data": _root(data)}
 
 
 def file_sha256(path: str | os.PathLike) -> str:
@@ -104,9 +113,10 @@ def resolve_ae_dir(run_dir: str | os.PathLike, path: str) -> Path:
     return p if p.is_absolute() else Path(run_dir) / p
 
 
-def diffusion_run_key(cfg: DiffusionExperiment, data: str | os.PathLike, ae: dict) -> dict:
-    """Stage 2's run key: the config, the absolute root and the stage-1 reference (:func:`ae_reference`)."""
-    return {"experiment": to_dict(cfg), "data": str(Path(data).resolve()), "ae": ae}
+def diffusion_run_key(cfg: DiffusionExperiment, data: str | os.PathLike | None, ae: dict) -> dict:
+    """Stage 2's run key: the config, the absolute root (None: an imported run that names no root)
+    and the stage-1 reference (:func:`ae_reference`)."""
+    return {"experiment": to_dict(cfg), "data": _root(data), "ae": ae}
 
 
 # ---- loading ------------------------------------------------------------------------------------------

@@ -1,0 +1,147 @@
+"""A RaLD run's generation for a ColoRadar split: the run's models, input and coordinates handed to
+:func:`radarpc.pipelines.rald_generate.generate_predictions` (what ``radarpc generate`` calls).
+
+From the stage-2 run (:func:`radarpc.experiments.rald.runs.load_rald`: trained, or imported from the
+official checkpoints) the generation takes
+
+* the models: the diffusion model and the autoencoder stored with it (the one it was trained on);
+* the model's input: the frame's RaLD cube as the run's training read it, intensity clipped to
+  ``[0, radar.max_intensity_db]`` dB, divided by it and upsampled to the model's ``radar_shape``
+  (:func:`radarpc.data.coloradar.rald_intensity`, as :class:`~radarpc.experiments.rald.task.DiffusionFrames`);
+* the coordinates: the stage-1 config's grid (:meth:`LidarData.grid`) and frame (``mirror_azimuth``),
+  so that the decoded queries map back to radar-frame metres by the inverse of the map the
+  training applied to the LiDAR (:meth:`LidarData.to_radar` of :meth:`LidarData.to_model`);
+* the identity in the folder's key: the run folder (resolved) and the SHA-256 of its
+  ``best.safetensors`` (both networks), so that clouds of other weights are never mixed in.
+
+:class:`GenerateConfig` is the YAML of ``radarpc generate --config``: the generation and its guide
+points, each section optional (the official values by default).
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from radarpc.config import load_yaml
+from radarpc.data.coloradar import rald_intensity
+from radarpc.experiments.rald.runs import RaldRun, load_rald
+from radarpc.pipelines.rald_generate import GenerationJob, GenerationRun, file_digests, generate_predictions
+from radarpc.rald.generate import GenerationConfig
+from radarpc.rald.guide import GuideConfig
+from radarpc.training.loop import BEST_WEIGHTS
+
+__all__ = ["GenerateConfig", "load_generate_config", "with_generation", "run_root", "model_input", "generate_run"]
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    """How a run generates: the generation (query counts, sampler, seed) and where the guided
+    queries start. Sections left out of a YAML take the official values."""
+
+    generation: GenerationConfig = field(default_factory=GenerationConfig)
+    guide: GuideConfig = field(default_factory=GuideConfig)
+
+
+def load_generate_config(path: str | os.PathLike) -> GenerateConfig:
+    """Read a :class:`GenerateConfig` YAML strictly (:func:`radarpc.config.load_yaml`: unknown keys,
+    wrong types and bad values name the file and the field)."""
+    return load_yaml(GenerateConfig, path)
+
+
+def with_generation(config: GenerateConfig, *, guide: str | None = None, **changes) -> GenerateConfig:
+    """``config`` with fields of its :class:`~radarpc.rald.generate.GenerationConfig` replaced
+    (``changes``, checked by it) and, with ``guide``, another guide source."""
+    gen = dataclasses.replace(config.generation, **changes) if changes else config.generation
+    src = dataclasses.replace(config.guide, source=guide) if guide is not None else config.guide
+    return GenerateConfig(generation=gen, guide=src)
+
+
+def run_root(run: RaldRun) -> Path | None:
+    """The ColoRadar root the run's key names (trained on, or given to the import), or None."""
+    data = run.key.get("data")
+    return Path(data) if isinstance(data, str) else None
+
+
+def model_input(run: RaldRun) -> Callable:
+    """``cube -> (R, A, E)`` tensor: the diffusion model's input of a frame's RaLD cube, as the run's
+    stage-2 training reads it (module docstring)."""
+    shape, max_db = run.dit.cfg.radar_shape, run.config.radar.max_intensity_db
+    return lambda cube: rald_intensity(cube, shape, max_db=max_db)
+
+
+def generate_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, data: str | os.PathLike | None = None,
+                 split: str = "test", config: GenerateConfig = GenerateConfig(), device: str | None = None,
+                 allow_unfinished: bool = False, overwrite: bool = False, progress: bool = True,
+                 on_warning: Callable[[str], None] | None = None,
+                 notice: Callable[[str], None] | None = None) -> GenerationRun:
+    """Generate one cloud per paired frame of ``split`` with the stage-2 run ``run_dir`` into the
+    prediction folder ``out`` (resumable: :func:`~radarpc.pipelines.rald_generate.generate_predictions`).
+
+    Parameters
+    ----------
+    run_dir : path-like
+        A stage-2 run folder (``radarpc train`` with a diffusion config, or ``radarpc import-rald``).
+    out : path-like
+        The prediction folder.
+    data : path-like, optional
+        The ColoRadar root; default the root the run's key names.
+    split : str
+    config : GenerateConfig
+    device : str, optional
+        Default: a GPU if any, else the CPU.
+    allow_unfinished : bool
+        Generate with the best weights of a run that has not finished (refused otherwise).
+    overwrite : bool
+        Replace a folder that holds anything but this generation.
+    progress : bool
+    on_warning : callable, optional
+        Each empty frame's warning line, as it happens.
+    notice : callable, optional
+        One-line notices: the stage-1 folder the run names has changed or is missing (the
+        autoencoder stored with the run is used either way), an unfinished run generating.
+
+    Raises
+    ------
+    FileNotFoundError, DataFileError
+        ``run_dir`` is not a loadable stage-2 run (:func:`~radarpc.experiments.rald.runs.load_rald`).
+    ValueError
+        An unfinished run without ``allow_unfinished``; no ``data`` for a run that names no root;
+        a split without paired frames.
+    RunMismatchError
+        ``out`` holds anything else, without ``overwrite``.
+    PermissionError
+        ``out`` cannot be written (checked first).
+    """
+    from radarpc.machine import check_device
+    from radarpc.runs import check_writable
+
+    check_writable(out, "prediction folder")                 # before the models are read
+    dev = check_device(device, "--device") if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    run_dir = Path(run_dir)
+    run = load_rald(run_dir, device=dev)
+    say = notice or (lambda s: None)
+    if run.finished is False:
+        where = f"step {run.status['steps_done']}, best weights of step {run.status['weights_step']}"
+        if not allow_unfinished:
+            raise ValueError(f"{run_dir}: the diffusion run has not finished ({where}); finish it with the same "
+                             f"`radarpc train` command, or pass --allow-unfinished to generate with its best weights "
+                             f"so far")
+        say(f"{run_dir}: the diffusion run has not finished ({where}); generating with its best weights so far")
+    if run.ae_status != "same":
+        what = "holds another run or other weights now" if run.ae_status == "changed" else "holds no run any more"
+        say(f"{run_dir}: its stage-1 folder {run.ae_dir} {what}; the autoencoder stored with the run (the one the "
+            f"diffusion model was trained on) is used")
+    if data is None:
+        data = run_root(run)
+        if data is None:
+            raise ValueError(f"{run_dir}: the run names no ColoRadar root (an import without --data); give --data ROOT")
+    job = GenerationJob(data, out, split, generation=config.generation, guide=config.guide, overwrite=overwrite)
+    identity = {"run": str(run_dir.resolve()), "weights": file_digests([run_dir / BEST_WEIGHTS])}
+    return generate_predictions(job, run.ae, run.dit, model_input=model_input(run), grid=run.grid,
+                                mirror_azimuth=run.ae_config.data.mirror_azimuth, model=identity,
+                                progress=progress, on_warning=on_warning)
