@@ -83,7 +83,7 @@ import torch  # noqa: E402
 from radarpc.dsp import SpectralPointCloud  # noqa: E402
 from radarpc.machine import cpu_has_native_bf16, cpu_model  # noqa: E402
 from radarpc.models.complexity import time_interleaved  # noqa: E402
-from radarpc.models import fftradnet as fft  # noqa: E402
+from radarpc.models.fftradnet import fftradnet, fftradnet_s, fftradnet_tiny  # noqa: E402
 from radarpc.models import pillars  # noqa: E402
 from radarpc.models.fast.batchnorm import fuse_for_inference  # noqa: E402
 from radarpc.models.fast import fast_inference  # noqa: E402
@@ -94,11 +94,11 @@ from radarpc.sim.radial_writer import SimulatedRADIal  # noqa: E402
 from radarpc.training.loop import autocast_context  # noqa: E402
 
 SIZES = {   # sensor, FFTRadNet factory, {pillar model: (factory, enrichments of its point clouds)}
-    "full": (RADIAL, fft.fftradnet, {"pointpillars": (pillars.polar_pointpillars, ()),
+    "full": (RADIAL, fftradnet, {"pointpillars": (pillars.polar_pointpillars, ()),
                                      "spectralpillars": (pillars.spectralpillars, ("rd3", "sector32"))}),
-    "s": (RADIAL_S, fft.fftradnet_s, {"pointpillars-s": (pillars.polar_pointpillars_s, ()),
+    "s": (RADIAL_S, fftradnet_s, {"pointpillars-s": (pillars.polar_pointpillars_s, ()),
                                       "spectralpillars-s": (pillars.spectralpillars_s, ("rd3", "sector32"))}),
-    "tiny": (RADIAL_S, fft.fftradnet_tiny, {"pillars-tiny": (pillars.pillars_tiny, ())}),
+    "tiny": (RADIAL_S, fftradnet_tiny, {"pillars-tiny": (pillars.pillars_tiny, ())}),
 }
 
 
