@@ -19,7 +19,7 @@ DEFAULT_WAIT_S = 7200.0                                    # radarpc.distributed
 MODEL_NAMES = ("fftradnet", "fftradnet-s", "fftradnet-tiny", "pointpillars", "spectralpillars",
                "pointpillars-s", "spectralpillars-s", "pillars-tiny", "rald-ae", "rald-ae-s", "rald-ae-tiny",
                "rald-dit", "rald-dit-d12", "rald-dit-d18", "rald-dit-s", "rald-dit-tiny")   # radarpc.models.MODELS
-STUDY_KINDS = ("density-sweep", "ablation")                # radarpc.experiments.study.config.STUDY_KINDS
+STUDY_KINDS = ("density-sweep", "ablation", "fps")         # radarpc.experiments.study.config.STUDY_KINDS
 
 
 def plain_text(text: str | None) -> str | None:
