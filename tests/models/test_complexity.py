@@ -100,8 +100,11 @@ def test_peak_memory_sees_a_tensor_allocated_inside_the_block():
         del x
     mem = probe.memory
     assert mem.method in MEMORY_METHODS
-    if mem.method == "rss-peak-reset":                 # Linux: the peak is reset at the start, so exact up to pages
-        assert n <= mem.working_bytes < n + 32 * 2 ** 20
+    if mem.method == "rss-peak-reset":
+        # Linux: the peak is reset at the start, so the tensor's pages count whole; the resident set
+        # also holds file-backed pages (shared libraries) the kernel may drop meanwhile, hence the
+        # few MiB of slack below, and the allocator's own pages above
+        assert n - 4 * 2 ** 20 <= mem.working_bytes < n + 32 * 2 ** 20
         assert mem.peak_bytes == mem.baseline_bytes + mem.working_bytes
     with PeakMemory("cpu") as idle:
         pass

@@ -312,8 +312,8 @@ def write_fps_report(runs: str | os.PathLike, out: str | os.PathLike | None = No
                   f"models as dotted lines. Made by `{made.made_by}` from the rows of `{made.commands[0]}`, commit(s) "
                   f"{', '.join(f'`{c[:10]}`' for c in made.commits)}.*", ""]
     lines += ["## working memory of one inference (MB)", "",
-              "What the timed sweeps needed above the process's memory once warmed up (weights, frames and runtime "
-              "are in that baseline): " + "; ".join(f"`{k}`: {MEMORY_METHODS.get(k, k)}" for k in methods)
+              "What the timed sweeps needed above the process's memory once warmed up (weights, frames, runtime and "
+              "buffers kept between passes are in that baseline): " + "; ".join(f"`{k}`: {MEMORY_METHODS.get(k, k)}" for k in methods)
               + ". The last column is the process's highest peak over the row (runtime, weights and frames included).",
               ""] + _memory_table(models, modes) + [""]
     lines += ["## rows", ""] + _rows_table(rows) + [""]
