@@ -71,7 +71,7 @@ import torch
 
 from radarpc.machine import cpu_has_native_bf16, cpu_model
 from radarpc.models.fast.batchnorm import randomise_batchnorm_
-from radarpc.models.complexity import conv_gmac
+from radarpc.models.complexity import conv_gmac, time_interleaved
 from radarpc.experiments.radial_detection.official import official_to_radarpc
 from radarpc.models.fast.batchnorm import fuse_for_inference
 from radarpc.models.fftradnet import fftradnet
@@ -271,20 +271,16 @@ def main(argv: list[str] | None = None) -> None:
         if unknown:
             raise SystemExit(f"--only: unknown methods {sorted(unknown)}; choose from {sorted(methods)}")
         methods = {k: f for k, f in methods.items() if k == "official" or k in a.only}
-    times: dict[str, list[float]] = {k: [] for k in methods}
-    cpu: dict[str, list[float]] = {k: [] for k in methods}
     first, outs = {}, {}
     with torch.inference_mode():
-        for k, f in methods.items():                               # warm-up (and compile)
+        for k, f in methods.items():                               # warm-up (and compile), outputs kept
             t = time.perf_counter()
             outs[k] = f()
             first[k] = time.perf_counter() - t
-        for _ in range(a.repeats):
-            for k, f in methods.items():
-                t, c = time.perf_counter(), time.process_time()
-                f()
-                times[k].append(time.perf_counter() - t)
-                cpu[k].append(time.process_time() - c)
+        timed = time_interleaved({k: (lambda f: lambda i: f())(f) for k, f in methods.items()}, 1, a.repeats,
+                                 warmup=0)
+    times = {k: list(t.wall_s) for k, t in timed.items()}
+    cpu = {k: list(t.cpu_s) for k, t in timed.items()}
     ref_det, ref_fs = outs["official"]
     match = {}
     for k, (det, fs) in outs.items():

@@ -82,7 +82,8 @@ import torch  # noqa: E402
 
 from radarpc.dsp import SpectralPointCloud  # noqa: E402
 from radarpc.machine import cpu_has_native_bf16, cpu_model  # noqa: E402
-from radarpc.models import fftradnet as fft  # noqa: E402
+from radarpc.models.complexity import time_interleaved  # noqa: E402
+from radarpc.models.fftradnet import fftradnet, fftradnet_s, fftradnet_tiny  # noqa: E402
 from radarpc.models import pillars  # noqa: E402
 from radarpc.models.fast.batchnorm import fuse_for_inference  # noqa: E402
 from radarpc.models.fast import fast_inference  # noqa: E402
@@ -93,11 +94,11 @@ from radarpc.sim.radial_writer import SimulatedRADIal  # noqa: E402
 from radarpc.training.loop import autocast_context  # noqa: E402
 
 SIZES = {   # sensor, FFTRadNet factory, {pillar model: (factory, enrichments of its point clouds)}
-    "full": (RADIAL, fft.fftradnet, {"pointpillars": (pillars.polar_pointpillars, ()),
+    "full": (RADIAL, fftradnet, {"pointpillars": (pillars.polar_pointpillars, ()),
                                      "spectralpillars": (pillars.spectralpillars, ("rd3", "sector32"))}),
-    "s": (RADIAL_S, fft.fftradnet_s, {"pointpillars-s": (pillars.polar_pointpillars_s, ()),
+    "s": (RADIAL_S, fftradnet_s, {"pointpillars-s": (pillars.polar_pointpillars_s, ()),
                                       "spectralpillars-s": (pillars.spectralpillars_s, ("rd3", "sector32"))}),
-    "tiny": (RADIAL_S, fft.fftradnet_tiny, {"pillars-tiny": (pillars.pillars_tiny, ())}),
+    "tiny": (RADIAL_S, fftradnet_tiny, {"pillars-tiny": (pillars.pillars_tiny, ())}),
 }
 
 
@@ -114,21 +115,6 @@ def _bf16_autocast(model: torch.nn.Module) -> Callable[[object], object]:
         with autocast_context("bf16", torch.device("cpu")):
             return model(x)
     return run
-
-
-def time_interleaved(methods: dict[str, Callable[[int], object]], n_frames: int,
-                     repeats: int) -> dict[str, list[float]]:
-    """Seconds per frame of each method, one list entry per pass; every pass runs each method over
-    all frames in turn (after one warm-up pass)."""
-    times: dict[str, list[float]] = {k: [] for k in methods}
-    for rep in range(repeats + 1):
-        for name, fn in methods.items():
-            t0 = time.perf_counter()
-            for i in range(n_frames):
-                fn(i)
-            if rep:
-                times[name].append((time.perf_counter() - t0) / n_frames)
-    return times
 
 
 def part_times(model: pillars.PointPillars, cloud, repeats: int) -> dict[str, float]:
@@ -214,7 +200,8 @@ def main(args: argparse.Namespace) -> None:
 
     load_before = os.getloadavg()[0]
     with torch.no_grad():
-        times = time_interleaved(methods, args.frames, args.repeats)
+        # one warm-up pass, then the timed passes, the methods interleaved
+        times = {k: list(t.wall_s) for k, t in time_interleaved(methods, args.frames, args.repeats).items()}
     speed = {}
     for name, t in times.items():
         best, med = min(t), statistics.median(t)

@@ -45,3 +45,26 @@ def test_cpu_has_native_bf16_reads_the_flags_line():
     assert cpu_has_native_bf16(head + "flags\t\t: fpu avx2 avx512f avx512_bf16 avx512_vnni\n")
     assert cpu_has_native_bf16(head + "flags\t\t: fpu avx2 amx_tile amx_bf16\n")
     assert not cpu_has_native_bf16("")
+
+
+def test_isa_flags_reads_x86_and_arm_cpuinfo():
+    from radarpc.machine import cpu_has_native_bf16, cpu_flags, isa_flags
+
+    x86 = ("processor\t: 0\nmodel name\t: Some CPU\nflags\t\t: fpu sse4_2 avx avx2 fma f16c\n\n"
+           "processor\t: 1\nflags\t\t: fpu sse4_2 avx avx2 fma f16c avx512f\n")
+    assert cpu_flags(x86) == {"fpu", "sse4_2", "avx", "avx2", "fma", "f16c", "avx512f"}   # every processor's
+    assert isa_flags(x86) == ["sse4_2", "avx", "avx2", "fma", "f16c", "avx512f"]        # ISA_FLAGS order
+    assert isa_flags("processor\t: 0\nFeatures\t: fp asimd evtstrm sve\n") == ["asimd", "sve"]
+    assert isa_flags("") == []
+    assert not cpu_has_native_bf16(x86) and cpu_has_native_bf16("flags\t: avx512f amx_bf16\n")
+
+
+def test_machine_record_names_the_cpu_and_threads():
+    from radarpc.machine import cpu_model, isa_flags, load_average, machine_record
+
+    rec = machine_record()
+    assert rec["cpu"] == cpu_model() and rec["isa"] == isa_flags()
+    assert rec["torch_threads"] == torch.get_num_threads()
+    assert 1 <= rec["usable_cpus"] <= rec["logical_cpus"]
+    load = load_average()
+    assert load is None or (len(load) == 3 and min(load) >= 0)

@@ -6,7 +6,12 @@ import os
 import platform
 from pathlib import Path
 
-__all__ = ["check_device", "cpu_has_native_bf16", "cpu_model", "numeric_libraries", "physical_memory_bytes"]
+__all__ = ["check_device", "cpu_has_native_bf16", "cpu_model", "cpu_flags", "isa_flags", "ISA_FLAGS", "load_average",
+           "machine_record", "numeric_libraries", "physical_memory_bytes"]
+
+ISA_FLAGS = ("sse4_2", "avx", "avx2", "fma", "f16c", "avx_vnni", "avx512f", "avx512bw", "avx512vl", "avx512_vnni",
+             "avx512_bf16", "avx512_fp16", "amx_tile", "amx_bf16", "amx_int8", "asimd", "sve", "sve2")
+"""The vector instruction sets a timing depends on, as ``/proc/cpuinfo`` names them (x86 and Arm)."""
 
 
 def cpu_model() -> str:
@@ -40,16 +45,59 @@ def cpu_has_native_bf16(cpuinfo: str | None = None) -> bool:
     cpuinfo : str, optional
         The text of ``/proc/cpuinfo``; read from the file when not given (False if unreadable).
     """
+    return bool(cpu_flags(cpuinfo) & {"avx512_bf16", "amx_bf16"})
+
+
+def cpu_flags(cpuinfo: str | None = None) -> frozenset[str]:
+    """The CPU's feature flags: the ``flags`` lines (x86) or ``Features`` lines (Arm) of
+    ``/proc/cpuinfo``, every processor's together (empty where the file cannot be read).
+
+    Parameters
+    ----------
+    cpuinfo : str, optional
+        The text of ``/proc/cpuinfo``; read from the file when not given.
+    """
     if cpuinfo is None:
         try:
             cpuinfo = Path("/proc/cpuinfo").read_text(errors="replace")
         except OSError:
-            return False
-    flags = set()
+            return frozenset()
+    flags: set[str] = set()
     for line in cpuinfo.splitlines():
-        if line.startswith("flags"):
+        key = line.split(":", 1)[0].strip()
+        if key in ("flags", "Features") and ":" in line:
             flags.update(line.split(":", 1)[1].split())
-    return bool(flags & {"avx512_bf16", "amx_bf16"})
+    return frozenset(flags)
+
+
+def isa_flags(cpuinfo: str | None = None) -> list[str]:
+    """The vector instruction sets of :data:`ISA_FLAGS` the CPU has, in that order (e.g.
+    ``["sse4_2", "avx", "avx2", "fma", "f16c"]`` on an AVX2 machine without AVX-512)."""
+    flags = cpu_flags(cpuinfo)
+    return [f for f in ISA_FLAGS if f in flags]
+
+
+def load_average() -> list[float] | None:
+    """The system's load average over 1, 5 and 15 minutes (None where the system does not tell)."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except (AttributeError, OSError):
+        return None
+
+
+def machine_record() -> dict:
+    """What a timing ran on: the CPU model, the logical CPUs of the machine and those this process
+    may run on, the vector instruction sets (:func:`isa_flags`), torch's CPU kernel level and
+    thread count, and the physical memory."""
+    import torch
+
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        usable = os.cpu_count()
+    return {"cpu": cpu_model(), "logical_cpus": os.cpu_count(), "usable_cpus": usable, "isa": isa_flags(),
+            "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(), "torch_threads": torch.get_num_threads(),
+            "memory_bytes": physical_memory_bytes()}
 
 
 def numeric_libraries() -> dict[str, str]:

@@ -54,6 +54,9 @@ __all__ = [
     "plot_cloud_comparison",
     "DensityPanel",
     "plot_density_curves",
+    "RateCurve",
+    "RatePanel",
+    "plot_rate_curves",
 ]
 
 COLOR_BY = ("velocity", "amplitude")
@@ -795,3 +798,110 @@ def _no_labels():
     from matplotlib.ticker import NullFormatter
 
     return NullFormatter()
+
+
+def _plain_log_labels():
+    """Labels of a log axis as plain numbers (minor ticks labelled only on short spans, as matplotlib's)."""
+    from matplotlib.ticker import LogFormatter
+
+    return LogFormatter(labelOnlyBase=False, minor_thresholds=(1.5, 0.5))
+
+
+# ---- studies: frames/s against density ----------------------------------------------------------
+@dataclass(frozen=True)
+class RateCurve:
+    """A model's frames/s against density: the median of the timed sweeps at each density and
+    their lowest and highest (:class:`radarpc.models.complexity.Rate`).
+
+    Attributes
+    ----------
+    label : str
+    density : tuple of float
+        Densities (fractions of RD cells), increasing.
+    median, low, high : tuple of float
+        Frames/s at each density.
+    dashed : bool
+        Drawn dashed (e.g. the extraction included) rather than solid.
+    """
+
+    label: str
+    density: tuple[float, ...]
+    median: tuple[float, ...]
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+    dashed: bool = False
+
+    def __post_init__(self) -> None:
+        n = len(self.density)
+        if not (len(self.median) == len(self.low) == len(self.high) == n):
+            raise ValueError(f"curve {self.label!r}: {n} densities, {len(self.median)} medians, {len(self.low)} "
+                             f"lows and {len(self.high)} highs")
+
+
+@dataclass(frozen=True)
+class RatePanel:
+    """One panel of :func:`plot_rate_curves`: rate curves and density-free references (a dense
+    model: ``(label, median, low, high)``, a horizontal line with its range as a band)."""
+
+    title: str
+    curves: tuple[RateCurve, ...]
+    references: tuple[tuple[str, float, float, float], ...] = ()
+    ylabel: str = "frames/s at batch 1 (log scale)"
+
+
+def plot_rate_curves(panels: list[RatePanel], out: str | os.PathLike, *, title: str, footer: str = "",
+                     metadata: dict[str, str] | None = None) -> Path:
+    """Frames/s against data density (both axes logarithmic), one panel each: each curve's median
+    with the range of its sweeps as error bars, the references as horizontal lines.
+
+    Parameters
+    ----------
+    panels : list of RatePanel
+    out : path-like
+        The figure to write (its suffix names the format; folders are created).
+    title, footer : str
+        The figure's title and the small text under it (what made the figure).
+    metadata : dict, optional
+        Stored in the file (:func:`save_figure`).
+    """
+    if not panels:
+        raise ValueError("plot_rate_curves: no panel to draw")
+    out = Path(out)
+    figure_format(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig = _figure((6.4 * len(panels), 4.8))
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    colours = [f"C{k}" for k in range(10)]
+    for ax, panel in zip(axes, panels):
+        named: dict[str, str] = {}                      # one colour per model, solid and dashed alike
+        for curve in panel.curves:
+            base = curve.label.split(" + ")[0]
+            c = named.setdefault(base, colours[len(named) % len(colours)])
+            x = 100 * np.asarray(curve.density, dtype=float)
+            med = np.asarray(curve.median, dtype=float)
+            err = np.stack([med - np.asarray(curve.low, dtype=float), np.asarray(curve.high, dtype=float) - med])
+            ax.errorbar(x, med, yerr=np.clip(err, 0, None), marker="o", ms=4, capsize=3, color=c,
+                        ls="--" if curve.dashed else "-", label=curve.label)
+        for k, (label, med, low, high) in enumerate(panel.references):
+            c = colours[(len(named) + k) % len(colours)]
+            ax.axhline(med, color=c, ls=":", label=f"{label} ({med:.3g})")
+            ax.axhspan(low, high, color=c, alpha=0.12, lw=0)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(_plain_log_labels())      # 60, not 6 x 10^1
+        ax.yaxis.set_minor_formatter(_plain_log_labels())
+        ticks = sorted({100 * d for curve in panel.curves for d in curve.density})
+        if ticks:
+            ax.set_xticks(ticks, [f"{t:.3g}" for t in ticks])
+            ax.xaxis.set_minor_formatter(_no_labels())
+        ax.set(xlabel="data density |S| / (N_r N_D) [%] (log scale)", ylabel=panel.ylabel, title=panel.title)
+        ax.grid(alpha=0.3, which="both")
+        if panel.curves or panel.references:
+            ax.legend(fontsize=7, loc="best")
+    fig.suptitle(f"{title}\nline: median of the timed sweeps, bars: their range; solid: network alone, dashed: "
+                 f"with extraction; dotted: density-free references", fontsize=10)
+    if footer:
+        fig.text(0.01, 0.005, footer, fontsize=6.5, color="0.35", ha="left", va="bottom")
+    fig.tight_layout(rect=(0, 0.04 if footer else 0, 1, 1))
+    save_figure(fig, out, dpi=110, metadata=metadata)
+    return out

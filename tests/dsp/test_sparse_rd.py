@@ -8,7 +8,7 @@ import torch
 from radarpc.dsp.ddma import replica_bins
 from radarpc.dsp.density import density_of_mask
 from radarpc.dsp.pointcloud import SpectralPointCloud
-from radarpc.dsp.sparse_rd import encoded_cells, sparse_rd, sparse_rd_mask
+from radarpc.dsp.sparse_rd import encoded_cells, encoded_sparse_rd, sparse_rd, sparse_rd_mask
 from radarpc.sensors.radial import RADIAL_S, TINY
 from radarpc.sim.radial_calibration import make_calibration
 from radarpc.sim.rd import Scatterers, synthesize_rd
@@ -107,3 +107,21 @@ def test_single_frame_and_bad_input():
         sparse_rd(rd.real, s)
     with pytest.raises(ValueError, match="mask_full"):
         sparse_rd(rd, s[:, :, :5])
+
+
+@pytest.mark.parametrize("enrich", [(), ("rd3",)], ids=["S", "S*"])
+def test_encoded_sparse_rd_keeps_the_cells_the_cloud_encodes(enrich):
+    cfg = TINY
+    g = torch.Generator().manual_seed(2)
+    sc = Scatterers(torch.tensor([8.0, 15.0]), torch.tensor([-10.0, 20.0]), torch.zeros(2),
+                    torch.tensor([2.0, -5.0]), torch.tensor([10.0, 10.0]))
+    rd = synthesize_rd(cfg, [sc, sc], noise=True, generator=g)
+    spc = SpectralPointCloud(cfg, make_calibration(cfg), density=0.05, enrich=enrich)
+    sparse, mask, enc = encoded_sparse_rd(spc, rd)
+    clouds = spc(rd)
+    for b in range(2):                       # the set each frame's cloud encodes, from its points alone
+        assert torch.equal(mask[b], encoded_cells(clouds.frame(b), cfg))
+    assert torch.equal(sparse, torch.where(mask[..., None], rd, torch.zeros((), dtype=rd.dtype)))
+    assert torch.equal(enc.kept, spc.encode(rd).kept)
+    one, one_mask, _ = encoded_sparse_rd(spc, rd[0])                 # one frame without a batch axis
+    assert one.shape == (1, *cfg.rd_shape) and torch.equal(one_mask[0], mask[0])

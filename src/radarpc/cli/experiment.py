@@ -1,4 +1,4 @@
-"""``radarpc experiment {density-sweep,ablation} CONFIG --out DIR``: a study of the spectral
+"""``radarpc experiment {density-sweep,ablation,fps} CONFIG --out DIR``: a study of the spectral
 point-cloud paper, resumable.
 
 ::
@@ -6,6 +6,7 @@ point-cloud paper, resumable.
     radarpc experiment density-sweep configs/study/density-sweep.yaml --out runs/sweep
     radarpc experiment ablation configs/study/ablation.yaml --out runs/axes --cache runs/sweep/cache
     radarpc experiment density-sweep configs/study/density-sweep.yaml --out runs/sweep --plan
+    radarpc experiment fps configs/study/fps.yaml --out runs/fps
 
 The config names the data (roots, or simulations made once into the cache), the sensor, the
 densities, the models (detection experiment configs with overrides and enrichments), the seeds
@@ -21,6 +22,16 @@ an interruption: finished runs are reused (it says so), a killed run resumes fro
 checkpoint. A row made with another config of the same run is refused, naming what differs.
 ``--plan`` lists the runs and which are finished, and does nothing else. ``radarpc report OUT``
 makes the tables and figures.
+
+``fps`` times instead of training (the paper's Table 2): every model of the config at every
+density (a dense FFTRadNet once), at batch 1, the network alone and with the extraction from the
+RD cube (spectral points, or the sparse-RD masking), plain and ``fast_inference``, each row in a
+fresh process with the config's thread count after warm-up passes: frames/s as the median and
+range of timed sweeps, the parameters and the working memory of one inference (peak resident set
+above the warmed-up process's on a CPU, ``torch.cuda.max_memory_allocated`` on a GPU). Each row
+records the machine (CPU, instruction sets, threads, load average at its start and end); a
+finished row is never timed again unless ``--overwrite`` (which times every row again), and a row
+of another config or machine is refused.
 """
 from __future__ import annotations
 
@@ -39,6 +50,8 @@ def command_line(args: argparse.Namespace) -> str:
         argv += ["--cache", str(args.cache)]
     if args.device is not None:
         argv += ["--device", args.device]
+    if getattr(args, "overwrite", False):
+        argv.append("--overwrite")
     return shlex.join(argv)
 
 
@@ -52,6 +65,11 @@ def run(args: argparse.Namespace) -> int:
     from radarpc.machine import check_device
 
     cfg = load_study(args.config, args.kind, notice=lambda s: print(s, file=sys.stderr))
+    if args.kind == "fps":
+        return _run_fps(cfg, args)
+    if args.overwrite:
+        raise ValueError(f"--overwrite applies to the fps study; a {args.kind} run whose row is present is finished "
+                         f"(remove its row and run folder to train it again)")
     grid = study_grid(cfg)
     if args.plan:
         import json
@@ -75,16 +93,45 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_fps(cfg, args: argparse.Namespace) -> int:
+    from radarpc.experiments.study.fps import fps_plan, run_fps
+    from radarpc.machine import check_device
+
+    if args.plan:
+        import torch
+
+        from radarpc.experiments.study.fps import FPS_REQUIRED, FPS_ROW_FORMAT
+        from radarpc.experiments.study.results import read_rows
+
+        plan = fps_plan(cfg)
+        rows = read_rows(args.out, row_format=FPS_ROW_FORMAT, required=FPS_REQUIRED)
+        device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+        print(f"FPS study {cfg.name!r}: {len(plan.measurements)} rows, {sum(m.id in rows for m in plan.measurements)} "
+              f"with a row in {args.out} (checked against this config and machine when the study runs); device {device}")
+        for k, m in enumerate(plan.measurements, 1):
+            print(f"[{k}/{len(plan.measurements)}] {m.id}: {m.model.spec.variant} on {m.model.input}, sensor {m.sensor}"
+                  + (f" +{'+'.join(m.model.enrich)}" if m.model.enrich else "")
+                  + f" -- {'row present' if m.id in rows else 'to time'}")
+        return 0
+    if args.device is not None:
+        check_device(args.device, "--device")
+    run_fps(cfg, args.out, cache=args.cache, device=args.device, overwrite=args.overwrite,
+            progress=not args.no_progress, command=command_line(args), config_file=str(args.config))
+    return 0
+
+
 def add_parser(sub) -> None:
-    p = sub.add_parser("experiment", help="run a study: density sweep or ablations (resumable)",
+    p = sub.add_parser("experiment", help="run a study: density sweep, ablations or FPS table (resumable)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("kind", choices=STUDY_KINDS, help="the study: density-sweep or ablation")
+    p.add_argument("kind", choices=STUDY_KINDS, help="the study: density-sweep, ablation or fps")
     p.add_argument("config", help="study YAML (see configs/study/)")
-    p.add_argument("--out", required=True, help="study output: run folders, result rows, study.json")
+    p.add_argument("--out", required=True, help="study output: run folders (training studies), result rows, study.json")
     p.add_argument("--cache", default=None, metavar="DIR",
                    help="simulated roots, point stores and sparse-RD roots (default OUT/cache); share one "
                         "between studies of the same data")
     p.add_argument("--device", default=None, help="torch device (default: a GPU when there is one, else the CPU)")
     p.add_argument("--plan", action="store_true", help="list the runs and which are finished; change nothing")
+    p.add_argument("--overwrite", action="store_true",
+                   help="fps only: time every row again, replacing rows of this or another config")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=run)

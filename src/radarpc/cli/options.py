@@ -20,7 +20,7 @@ DEFAULT_WAIT_S = 7200.0                                    # radarpc.distributed
 MODEL_NAMES = ("fftradnet", "fftradnet-s", "fftradnet-tiny", "pointpillars", "spectralpillars",
                "pointpillars-s", "spectralpillars-s", "pillars-tiny", "rald-ae", "rald-ae-s", "rald-ae-tiny",
                "rald-dit", "rald-dit-d12", "rald-dit-d18", "rald-dit-s", "rald-dit-tiny")   # radarpc.models.MODELS
-STUDY_KINDS = ("density-sweep", "ablation")                # radarpc.experiments.study.config.STUDY_KINDS
+STUDY_KINDS = ("density-sweep", "ablation", "fps")         # radarpc.experiments.study.config.STUDY_KINDS
 GUIDE_SOURCES = ("peaks", "os-cfar", "none")               # radarpc.rald.guide.GUIDE_SOURCES
 OFFICIAL_RALD_WEIGHTS = ("ema", "model")                   # radarpc.experiments.rald.official.WEIGHTS
 

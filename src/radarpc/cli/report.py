@@ -12,7 +12,10 @@ and confidence 0.2 and of freespace mIoU, each curve's normalized AUC (the mean 
 interval, ``radarpc.eval.curves``) and its gain over the group's first arm, where it reaches the
 dense reference, the achieved densities and CFAR thresholds, and every run; figures of the scores
 against density (log axis) with their spread and the dense reference as a line. The report and its
-figures name the study command, config file and commits that produced them.
+figures name the study command, config file and commits that produced them. The output of
+``radarpc experiment fps`` gets the FPS report instead: frames/s per model and density (median and
+range, network alone and with extraction, plain and fast), against the dense model, the working
+memory, the machine and every row's load, and ``figures/fps.png`` (frames/s against density).
 """
 from __future__ import annotations
 
@@ -31,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("report", help="tables and figures of a study's finished runs",
+    p = sub.add_parser("report", help="tables and figures of a study's finished runs (or of an FPS study's rows)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("runs", help="a study output (radarpc experiment --out) or its results/ folder")
     p.add_argument("--out", default=None, help="where to write report.md and figures/ (default RUNS/report)")

@@ -5,7 +5,8 @@ the peak's resolved Tx-0 Doppler bin (see :mod:`radarpc.dsp.ddma`). ``|S(tau)| =
 
 The mask of a point cloud with the RD-neighbourhood enrichment ``rdN`` is ``S*(tau)``: pass
 ``P*(tau)`` (``SpectralPointCloud.encode(rd).kept``) with its ``d0`` (``EncodedSet.tx0_doppler()``),
-the set the cloud encodes and the one :func:`radarpc.pipelines.sparse_rd.write_sparse_rd` writes.
+the set the cloud encodes and the one :func:`radarpc.pipelines.sparse_rd.write_sparse_rd` writes;
+:func:`encoded_sparse_rd` does the three steps (detection, mask, masking) on cubes.
 :func:`encoded_cells` gives that set from a one-frame cloud alone (its points' cells and ``d0``).
 """
 from __future__ import annotations
@@ -13,10 +14,11 @@ from __future__ import annotations
 import torch
 
 from radarpc.dsp.ddma import check_rd, replica_bins, resolve_tx0_doppler, rx_magnitude_sum
+from radarpc.dsp.pointcloud import EncodedSet, SpectralPointCloud
 from radarpc.points import PointCloudBatch
 from radarpc.sensors.radial import DDMARadarConfig
 
-__all__ = ["sparse_rd_mask", "sparse_rd", "encoded_cells"]
+__all__ = ["sparse_rd_mask", "sparse_rd", "encoded_sparse_rd", "encoded_cells"]
 
 
 def sparse_rd_mask(mask_consolidated: torch.Tensor, cfg: DDMARadarConfig,
@@ -82,6 +84,30 @@ def sparse_rd(rd: torch.Tensor, mask_full: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"mask_full must be bool with shape {tuple(x.shape[:3])} (B, Nr, Nd) of rd, "
                          f"got {m.dtype} {tuple(mask_full.shape)}")
     return torch.where(m.unsqueeze(-1), x, torch.zeros((), dtype=x.dtype, device=x.device))
+
+
+@torch.no_grad()
+def encoded_sparse_rd(spc: SpectralPointCloud, rd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, EncodedSet]:
+    """RD cubes masked to the set ``spc``'s point clouds of them encode.
+
+    ``spc.encode(rd)`` (CFAR, threshold, ``P*(tau)`` with ``rdN``), then :func:`sparse_rd_mask` of
+    its kept cells and their ``d0``, then :func:`sparse_rd`: what sparse-RD FFTRadNet reads at the
+    density ``spc`` is set to.
+
+    Parameters
+    ----------
+    spc : SpectralPointCloud
+    rd : Tensor, complex, ``(B, Nr, Nd, Nrx)`` or ``(Nr, Nd, Nrx)``
+
+    Returns
+    -------
+    sparse : Tensor, complex, ``(B, Nr, Nd, Nrx)``
+    mask_full : BoolTensor, ``(B, Nr, Nd)``
+    encoded : EncodedSet
+    """
+    enc = spc.encode(rd)
+    mask_full = sparse_rd_mask(enc.kept, spc.sensor, enc.tx0_doppler())
+    return sparse_rd(rd, mask_full), mask_full, enc
 
 
 def encoded_cells(cloud: PointCloudBatch, cfg: DDMARadarConfig) -> torch.Tensor:

@@ -29,7 +29,7 @@ from radarpc import __version__
 from radarpc.data.radial_format import (LABEL_COLUMNS, SPARSE_RD_MANIFEST, freespace_path, save_calibration,
                                         save_fft_npz, stored_fft_path)
 from radarpc.distributed import DistEnv, rank_device
-from radarpc.dsp.sparse_rd import sparse_rd, sparse_rd_mask
+from radarpc.dsp.sparse_rd import encoded_sparse_rd
 from radarpc.io import DataFileError, atomic_write
 from radarpc.pipelines.pointclouds import (ConvertSettings, build_point_cloud, calibrate_tau,
                                            calibration_source_of, check_dsp_settings)
@@ -244,9 +244,8 @@ def _write_locked(ds: Any, source_id: str, out_root: Path, settings: ConvertSett
     written: list[float] = []
     with torch.no_grad():
         for pos, rd in it:                                                 # rd: (B, Nr, Nd, Nrx)
-            enc = spc.encode(rd)                                           # the point cloud's detection
-            mask_full = sparse_rd_mask(enc.kept, ds.sensor, enc.tx0_doppler())   # (B, Nr, Nd) bool
-            sparse = sparse_rd(rd, mask_full)                              # (B, Nr, Nd, Nrx)
+            # the point cloud's detection, its full-grid set (B, Nr, Nd) and the masked cubes (B, Nr, Nd, Nrx)
+            sparse, mask_full, enc = encoded_sparse_rd(spc, rd)
             dens = mask_full.double().mean(dim=(1, 2)).cpu()               # (B,) encoded-set density
             peak = enc.peaks.flatten(1).double().sum(1).cpu() * ds.sensor.n_tx / (
                 ds.sensor.n_range * ds.sensor.n_doppler)                   # (B,) |S(tau)| / (Nr ND)

@@ -19,7 +19,7 @@ from radarpc.sensors.radial import radial_sensor
 
 CONFIGS = Path(__file__).parents[3] / "configs" / "study"
 KIND = {"density-sweep": "density-sweep", "ablation": "ablation", "rd-comparison": "ablation",
-        "tiny-sweep": "density-sweep", "tiny-ablation": "ablation"}
+        "tiny-sweep": "density-sweep", "tiny-ablation": "ablation", "fps": "fps", "tiny-fps": "fps"}
 
 
 def test_every_shipped_study_config_is_listed_here():
@@ -29,6 +29,12 @@ def test_every_shipped_study_config_is_listed_here():
 @pytest.mark.parametrize("name", sorted(KIND))
 def test_shipped_study_configs_load_and_expand(name):
     cfg = load_study(CONFIGS / f"{name}.yaml", KIND[name])
+    if KIND[name] == "fps":                             # rows to time, not runs to train (tests/experiments/study/test_fps.py)
+        from radarpc.experiments.study.fps import fps_plan
+
+        ids = [m.id for m in fps_plan(cfg).measurements]
+        assert cfg.name == name and len(set(ids)) == len(ids)
+        return
     grid = study_grid(cfg)
     assert grid.name == cfg.name == name and grid.kind == KIND[name]
     assert len({r.id for r in grid.runs}) == len(grid.runs)          # one folder per run

@@ -14,8 +14,6 @@ import functools
 import json
 import math
 import os
-import statistics
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -38,6 +36,7 @@ from radarpc.models.mirror import MirrorAveraged
 from radarpc.boxes import Detections
 from radarpc.models.targets import TargetConfig, decode_detections
 from radarpc.machine import check_device
+from radarpc.models.complexity import Rate, frames_per_second
 from radarpc.runs import check_writable, locked_output, read_json, remove_temp_files
 from radarpc.training.checkpoint import load_model_state, load_weights
 from radarpc.training.loop import BEST_WEIGHTS, LOG_CSV, autocast_context, training_status
@@ -134,44 +133,6 @@ def _comparable(key: object) -> object:
     if not isinstance(key, dict):
         return key
     return {k: v for k, v in canonical_key(key, num_workers=0).items() if k != "software"}
-
-
-@dataclass(frozen=True)
-class Rate:
-    """Batch-1 frames/s measured in ``repeats`` timed sweeps over the same frames, after warm-up."""
-
-    median: float
-    low: float
-    high: float
-    repeats: int
-
-    def text(self) -> str:
-        """``"12.3 frames/s (11.9-12.8 over 5 sweeps)"``, three significant digits (0.047 stays 0.047)."""
-        if math.isnan(self.median):
-            return "n/a frames/s (no frames)"
-        return f"{self.median:.3g} frames/s ({self.low:.3g}-{self.high:.3g} over {self.repeats} sweeps)"
-
-
-def _fps(run_frame: Callable[[object], object], frames: list, device: torch.device, repeats: int = 5,
-         warmup: int = 2) -> Rate:
-    """Batch-1 frames/s of ``run_frame`` over ``frames``: ``warmup`` untimed passes over the first
-    frame (first-call compilation and allocation), then ``repeats`` timed sweeps over all of them
-    (their median, lowest and highest rate: the spread says how steady the machine was)."""
-    if not frames:
-        return Rate(math.nan, math.nan, math.nan, 0)
-    rates = []
-    for _ in range(warmup):
-        run_frame(frames[0])
-    for _ in range(repeats):
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        t0 = time.perf_counter()
-        for b in frames:
-            run_frame(b)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        rates.append(len(frames) / max(time.perf_counter() - t0, 1e-12))
-    return Rate(float(statistics.median(rates)), min(rates), max(rates), repeats)
 
 
 def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths | None = None,
@@ -279,7 +240,7 @@ def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, 
         if len(frames) >= fps_frames:
             break
     with torch.inference_mode(), autocast_context(precision, dev):
-        fps = _fps(lambda b: model(b.inputs), frames, dev)
+        fps = frames_per_second(lambda b: model(b.inputs), frames, dev)
     res = EvalResult(folder, split, metrics, n_params, fps, str(dev), torch.get_num_threads(), precision,
                      data=tuple(str(r) for r, _ in scored),
                      points=None if stores is None else tuple(str(p) for _, p in scored),
@@ -382,7 +343,7 @@ def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: 
     metrics = det.compute().to_dict()
     metrics["freespace_miou"] = None
     frames = [b for _, b in zip(range(fps_frames), DataLoader(ds, batch_size=1, shuffle=False, collate_fn=collate))]
-    fps = _fps(lambda b: classical_detect(b.inputs, cfg), frames, torch.device("cpu"))
+    fps = frames_per_second(lambda b: classical_detect(b.inputs, cfg), frames, torch.device("cpu"))
     res = EvalResult(out, split, metrics, 0, fps, "cpu",
                      torch.get_num_threads(), data=(str(Path(data).resolve()),), points=(str(Path(points).resolve()),),
                      easy=not difficult)

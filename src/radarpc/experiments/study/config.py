@@ -25,6 +25,24 @@ experiment itself as a mapping. Unknown keys, values of the wrong type and bad v
 refused with the file and the field named, as every radarpc config.
 
 What a config means as runs is :mod:`radarpc.experiments.study.grid`'s.
+
+The FPS study (:class:`FPSConfig`, the paper's Table 2) names models by registry variant and
+overrides (or a training run folder, whose weights it loads), each with its input: points,
+sparse RD at each density, or dense RD cubes; and how they are timed::
+
+    name: fps
+    sensor: radial
+    data:
+      simulate: [{sequences: 3, frames_per_sequence: 8, seed: 0}]
+    densities: [0.007, 0.016, 0.057, 0.19, 0.564]
+    models:
+      - {name: fftradnet, variant: fftradnet, input: dense}
+      - {name: sparse-rd-fftradnet, variant: fftradnet, input: sparse-rd}
+      - {name: spectralpillars, variant: spectralpillars, enrich: [rd3, sector32]}
+      - {name: spectralpillars-s-on-radial-s, variant: spectralpillars-s, sensor: radial-s, enrich: [rd3, sector32]}
+    timing: {frames: 8, repeats: 5, warmup: 2, threads: 2, modes: [plain, fast]}
+
+What it measures is :mod:`radarpc.experiments.study.fps`'s.
 """
 from __future__ import annotations
 
@@ -37,14 +55,17 @@ from typing import Any, Callable
 
 from radarpc.config import from_dict, load_yaml_mapping, to_dict
 from radarpc.dsp.density import check_density
-from radarpc.experiments.radial_detection.config import ExperimentConfig, load_experiment, with_train
+from radarpc.experiments.radial_detection.config import (ExperimentConfig, experiment_from_dict, load_experiment,
+                                                         with_train)
+from radarpc.io import DataFileError
+from radarpc.models import ModelSpec
 from radarpc.pipelines.pointclouds import ConvertSettings
 from radarpc.sensors.radial import DDMARadarConfig, radial_sensor
 
 __all__ = ["SimulateSpec", "DataSpec", "ConversionSpec", "Budget", "EvaluationSpec", "ModelEntry",
            "DensitySweepConfig", "AxesSection", "EnrichmentSection", "RDComparisonSection", "AblationConfig",
-           "AXIS_ARMS", "AXIS_FEATURES", "ENRICHMENT_ARMS", "STUDY_KINDS", "load_density_sweep", "load_ablation",
-           "load_study"]
+           "AXIS_ARMS", "AXIS_FEATURES", "ENRICHMENT_ARMS", "TimingSpec", "FPSModel", "FPSConfig", "FPS_INPUTS",
+           "FPS_MODES", "STUDY_KINDS", "TRAINING_KINDS", "load_density_sweep", "load_ablation", "load_fps", "load_study"]
 
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,63}")
 
@@ -459,15 +480,205 @@ class AblationConfig(_Common):
     __hash__ = None
 
 
-STUDY_KINDS: dict[str, type] = {"density-sweep": DensitySweepConfig, "ablation": AblationConfig}
+FPS_INPUTS = ("points", "sparse-rd", "dense")
+"""What an FPS model reads: point clouds at each density (pillar models), RD cubes masked to the
+detected set at each density (``sparse-rd``), or the whole cubes (``dense``, no density)."""
+FPS_MODES = ("plain", "fast")
+"""How a model runs: as built (eval mode), or :func:`radarpc.models.fast.fast_inference`'s copy."""
+
+
+@dataclass(frozen=True)
+class TimingSpec:
+    """How every measurement of the FPS study is timed: batch 1, ``warmup`` untimed passes over
+    the first frame, then ``repeats`` timed sweeps over the first ``frames`` frames of ``split``
+    (the median sweep and the range in the table), each in a fresh process with ``threads`` torch
+    threads, in each of ``modes``."""
+
+    frames: int = 20                         # frames of the split timed (all of them when it has fewer)
+    split: str = "test"
+    repeats: int = 5                         # timed sweeps over the frames
+    warmup: int = 2                          # untimed passes first (compilation, first allocations)
+    threads: int | None = None               # torch (and OpenMP / BLAS) threads; None: torch's default
+    modes: tuple[str, ...] = FPS_MODES
+    detections_only: bool = False            # drop the freespace head (both heads run by default, as trained)
+
+    def __post_init__(self) -> None:
+        _positive_int(self.frames, "timing.frames")
+        _positive_int(self.repeats, "timing.repeats")
+        _positive_int(self.warmup, "timing.warmup", 0)
+        if self.threads is not None:
+            _positive_int(self.threads, "timing.threads")
+        if self.split not in ("train", "val", "test", "all"):
+            raise ValueError(f"timing.split must be one of train, val, test, all; got {self.split!r}")
+        modes = tuple(self.modes)
+        if not modes or any(m not in FPS_MODES for m in modes) or len(set(modes)) != len(modes):
+            raise ValueError(f"timing.modes: each once, from {list(FPS_MODES)}; got {list(modes)}")
+        object.__setattr__(self, "modes", modes)
+        if not isinstance(self.detections_only, bool):
+            raise ValueError(f"timing.detections_only must be true or false, got {self.detections_only!r}")
+
+
+def _run_model(run: str) -> ModelSpec:
+    """The model a training run folder trained (its ``run.json``), after checking it has best weights."""
+    from radarpc.runs import read_json
+    from radarpc.training.loop import BEST_WEIGHTS
+
+    folder = Path(run)
+    key = read_json(folder / "run.json")
+    if not isinstance(key, dict) or not isinstance(key.get("experiment"), dict):
+        raise DataFileError(folder / "run.json", "is missing or not a detection training run's key (run: a "
+                                                 "folder of `radarpc train`)")
+    if not (folder / BEST_WEIGHTS).is_file():
+        raise FileNotFoundError(f"run: {folder} has no {BEST_WEIGHTS} (the run has not validated yet)")
+    return experiment_from_dict(key["experiment"], where=str(folder / "run.json")).model
+
+
+@dataclass(frozen=True)
+class FPSModel:
+    """A model of the FPS study: a registry variant with overrides (random weights: the speed does
+    not depend on them), or the model and best weights of a training run folder (``run``), on one
+    input kind.
+
+    ``input`` defaults to ``points`` for a pillar model and ``dense`` for an FFTRadNet (give
+    ``sparse-rd`` for the cubes masked to the detected set at each density). ``enrich`` names the
+    point clouds' enrichments (the store a pillar model reads, and the extraction timed with it),
+    or, for sparse RD, those of the set the mask keeps (``rdN``: ``S*(tau)``). ``sensor`` (default
+    the study's) is the radar whose cubes and points it reads."""
+
+    name: str = ""                           # row and legend name; default the variant
+    variant: str | None = None               # a key of radarpc.models.MODELS
+    overrides: dict = field(default_factory=dict)
+    run: str | None = None                   # a training run folder instead of variant and overrides
+    input: str | None = None                 # points, sparse-rd or dense
+    enrich: tuple[str, ...] = ()
+    sensor: str | None = None                # default the study's sensor
+
+    __hash__ = None          # holds a dict
+
+    def __post_init__(self) -> None:
+        if (self.variant is None) == (self.run is None):
+            raise ValueError("a model needs exactly one of variant (a registry name, with overrides) and run (a "
+                             f"training run folder), got {'both' if self.variant else 'neither'}")
+        if not isinstance(self.overrides, dict):
+            raise ValueError(f"overrides must be a mapping of model config fields, got {type(self.overrides).__name__}")
+        if self.run is not None and self.overrides:
+            raise ValueError(f"run {self.run}: a run's model is the one it trained; drop overrides "
+                             f"{sorted(self.overrides)}")
+        spec = ModelSpec(self.variant, self.overrides) if self.variant is not None else _run_model(self.run)
+        object.__setattr__(self, "_spec", spec)
+        object.__setattr__(self, "name", self.name or spec.variant)
+        _check_name(self.name, "model name")
+        if spec.input_kind not in ("points", "rd"):
+            raise ValueError(f"model {self.name!r}: the FPS study times the detection models (points or RD cubes); "
+                             f"{spec.variant!r} reads {spec.input_kind}")
+        kind = self.input or ("points" if spec.input_kind == "points" else "dense")
+        if kind not in FPS_INPUTS:
+            raise ValueError(f"model {self.name!r}: input must be one of {list(FPS_INPUTS)}, got {kind!r}")
+        if (kind == "points") != (spec.input_kind == "points"):
+            raise ValueError(f"model {self.name!r}: {spec.variant!r} reads "
+                             f"{'point clouds' if spec.input_kind == 'points' else 'RD cubes'}; input {kind!r} "
+                             f"needs {'a pillar model' if kind == 'points' else 'an FFTRadNet'}")
+        object.__setattr__(self, "input", kind)
+        pc = ConvertSettings(density=0.05, enrich=tuple(self.enrich)).point_cloud_config()
+        object.__setattr__(self, "enrich", pc.enrich)
+        if kind == "dense" and self.enrich:
+            raise ValueError(f"model {self.name!r}: dense input reads whole cubes; drop enrich {list(self.enrich)}")
+        if kind == "points":
+            c = spec.config
+            if "sector" in c.features and (pc.sectors is None or pc.sectors[0] * pc.sectors[1] != c.n_sector):
+                raise ValueError(f"model {self.name!r}: its features read a {c.n_sector}-wide 'sector' descriptor; "
+                                 f"enrich needs sectorA or sectorAxE with A x E = {c.n_sector} (e.g. "
+                                 f"sector{c.n_sector}), got {list(self.enrich)}")
+            if "rd_patch" in c.features and (pc.patch is None or pc.patch ** 2 != c.n_patch):
+                raise ValueError(f"model {self.name!r}: its features read a {c.n_patch}-wide 'rd_patch'; enrich "
+                                 f"needs rdN or patchN with N x N = {c.n_patch}, got {list(self.enrich)}")
+        if self.sensor is not None:
+            _check_sensor(self.sensor)
+
+    @property
+    def spec(self) -> ModelSpec:
+        """The model: the variant with its overrides, or the run's."""
+        return self._spec
+
+
+@dataclass(frozen=True)
+class FPSConfig:
+    """The FPS study (the paper's Table 2): batch-1 frames/s of every model at every density (a
+    dense model once), with and without point extraction, in each timing mode; parameters and the
+    memory of one inference. The data gives the frames timed and the inputs made from them (point
+    stores and sparse-RD roots at each density, one CFAR threshold per root calibrated on its
+    training split as the density sweep's)."""
+
+    name: str
+    sensor: str
+    data: DataSpec
+    densities: tuple[float, ...]
+    models: tuple[FPSModel, ...] = ()
+    conversion: ConversionSpec = field(default_factory=ConversionSpec)
+    timing: TimingSpec = field(default_factory=TimingSpec)
+
+    __hash__ = None
+
+    def __post_init__(self) -> None:
+        _check_name(self.name, "study name")
+        _check_sensor(self.sensor)
+        if not self.models:
+            raise ValueError("models: give at least one model to time")
+        if self.data.drop_cubes:
+            raise ValueError("data.drop_cubes: the FPS study times point extraction from the RD cubes, so it keeps "
+                             "them; drop data.drop_cubes")
+        n_roots = len(self.data.roots or self.data.simulate)
+        if n_roots != 1:
+            raise ValueError(f"data: the FPS study times the frames of one root; give one root or one simulation, got "
+                             f"{n_roots}")
+        sensors = {}
+        for k, m in enumerate(self.models):
+            sensor = m.sensor or self.sensor
+            if self.data.roots and sensor != self.sensor:
+                raise ValueError(f"models[{k}] ({m.name}): sensor {sensor!r}, but data.roots are of the study's "
+                                 f"sensor {self.sensor!r} (models of another sensor need simulated data)")
+            sensors[sensor] = radial_sensor(sensor)
+            if m.input != "points":
+                c = m.spec.config
+                if (c.n_range, c.n_doppler, c.n_rx) != sensors[sensor].rd_shape:
+                    raise ValueError(f"models[{k}] ({m.name}): {m.spec.variant!r} reads ({c.n_range}, {c.n_doppler}, "
+                                     f"{c.n_rx}) cubes, sensor {sensor!r} makes {sensors[sensor].rd_shape}; pick the "
+                                     f"variant of this sensor (fftradnet-s for radial-s) or set the model's sensor")
+        densities = None
+        for sensor in sensors.values():
+            densities = _check_densities(tuple(self.densities), sensor)
+        object.__setattr__(self, "densities", densities)
+        _check_unique([m.name for m in self.models], "models")
+
+    def sensor_of(self, model: FPSModel) -> str:
+        """The sensor ``model`` reads."""
+        return model.sensor or self.sensor
+
+
+STUDY_KINDS: dict[str, type] = {"density-sweep": DensitySweepConfig, "ablation": AblationConfig, "fps": FPSConfig}
 """The study kinds (the ``radarpc experiment`` subcommands) and their config types."""
+TRAINING_KINDS = ("density-sweep", "ablation")
+"""The kinds whose runs train (a grid of :mod:`radarpc.experiments.study.grid`); ``fps`` times."""
 
 # where model entries sit in each kind's YAML: (section, key) pairs, a key of None for a list
 _ENTRY_PLACES = {
     "density-sweep": [("models", None), ("reference", "")],
     "ablation": [("axes", "model"), ("enrichments", "model"), ("rd_comparison", "points"),
                  ("rd_comparison", "sparse_rd"), ("rd_comparison", "dense")],
+    "fps": [],
 }
+
+
+def _resolve_runs(models: Any, base: Path) -> Any:
+    """The FPS models with their ``run`` folders resolved relative to ``base`` (the study file's folder)."""
+    if not isinstance(models, list):
+        return models
+    out = []
+    for m in models:
+        if isinstance(m, dict) and isinstance(m.get("run"), str) and not Path(m["run"]).is_absolute():
+            m = {**m, "run": str(base / m["run"])}
+        out.append(m)
+    return out
 
 
 def _inline_experiment(entry: Any, base: Path, where: str) -> Any:
@@ -488,7 +699,8 @@ def _inline_experiment(entry: Any, base: Path, where: str) -> Any:
 def load_study(path: str | os.PathLike, kind: str, *, notice: Callable[[str], None] | None = None):
     """Read a study config of ``kind`` (a key of :data:`STUDY_KINDS`) from YAML, strictly.
 
-    Experiment paths are resolved relative to the file and their experiments loaded whole.
+    Experiment paths (and an FPS model's run folder) are resolved relative to the file and their
+    experiments loaded whole.
 
     Raises
     ------
@@ -512,8 +724,10 @@ def load_study(path: str | os.PathLike, kind: str, *, notice: Callable[[str], No
             d[section] = _inline_experiment(d[section], base, f"{path}: {section}")
         elif isinstance(d[section], dict) and key in d[section]:
             d[section] = {**d[section], key: _inline_experiment(d[section][key], base, f"{path}: {section}.{key}")}
+    if kind == "fps" and "models" in d:
+        d["models"] = _resolve_runs(d["models"], base)
     cfg = from_dict(STUDY_KINDS[kind], d, where=str(path))
-    if notice is not None and "budget" not in d:
+    if notice is not None and kind in TRAINING_KINDS and "budget" not in d:
         notice(f"{path}: no budget given, so every run trains as long as its experiment says")
     return cfg
 
@@ -526,3 +740,8 @@ def load_density_sweep(path: str | os.PathLike, **kw) -> DensitySweepConfig:
 def load_ablation(path: str | os.PathLike, **kw) -> AblationConfig:
     """:func:`load_study` of an ablation."""
     return load_study(path, "ablation", **kw)
+
+
+def load_fps(path: str | os.PathLike, **kw) -> FPSConfig:
+    """:func:`load_study` of an FPS study."""
+    return load_study(path, "fps", **kw)

@@ -19,6 +19,8 @@ is completed by its own resumable writer.
 :meth:`StudyInputs.prepare` makes the inputs of the runs to train root by root, so that with
 ``data.drop_cubes`` a simulated root's cubes are deleted once its inputs exist (the disk then holds
 one root's cubes at a time); a later input that needs them simulates them again, the same frames.
+The FPS study makes its inputs with the same class, from an :class:`InputsSpec` (the sensor, data
+and conversion of one sensor's models) and :meth:`StudyInputs.input_of`.
 """
 from __future__ import annotations
 
@@ -34,13 +36,13 @@ from typing import Callable, Iterable
 
 from radarpc.config import to_dict
 from radarpc.data.radial import root_sensor
-from radarpc.experiments.study.config import SimulateSpec
+from radarpc.experiments.study.config import ConversionSpec, DataSpec, SimulateSpec
 from radarpc.experiments.study.grid import Grid, GridRun, density_folder
 from radarpc.io import DataFileError, atomic_write
 from radarpc.runs import read_json
 from radarpc.sensors.radial import radial_sensor
 
-__all__ = ["InputRecord", "StudyInputs", "content_hash", "DONE_SUFFIX"]
+__all__ = ["InputRecord", "InputsSpec", "Need", "StudyInputs", "content_hash", "DONE_SUFFIX"]
 
 DONE_SUFFIX = ".done.json"
 """The record written beside a finished cached output."""
@@ -113,7 +115,18 @@ def _tau_text(tau: float | None) -> str:
     return "per frame" if tau is None else f"{tau:.4g}"
 
 
-_Need = tuple[str, float, tuple[str, ...]]          # (input kind, density, enrichments) of a run
+Need = tuple[str, float, tuple[str, ...]]
+"""What a run reads besides its root: ``(input kind, density, enrichments)``, the kind ``"points"``
+(a point store) or ``"sparse-rd"`` (a sparse-RD root)."""
+
+
+@dataclass(frozen=True)
+class InputsSpec:
+    """What :class:`StudyInputs` makes inputs from (a :class:`Grid` carries the same three fields)."""
+
+    sensor: str
+    data: DataSpec
+    conversion: ConversionSpec
 
 
 class StudyInputs:
@@ -121,7 +134,8 @@ class StudyInputs:
 
     Parameters
     ----------
-    grid : Grid
+    grid : Grid or InputsSpec
+        The sensor, data and conversion settings.
     cache : path-like
         Folder of the simulated roots, stores and sparse-RD roots (may be shared between studies).
     device : str, optional
@@ -132,7 +146,7 @@ class StudyInputs:
         Where one-line messages go.
     """
 
-    def __init__(self, grid: Grid, cache: str | os.PathLike, *, device: str | None = None, progress: bool = True,
+    def __init__(self, grid: Grid | InputsSpec, cache: str | os.PathLike, *, device: str | None = None, progress: bool = True,
                  log: Callable[[str], None] = print) -> None:
         self.grid = grid
         self.cache = Path(cache)
@@ -141,7 +155,7 @@ class StudyInputs:
         self.log = log
         self.sensor = radial_sensor(grid.sensor)
         self._announced: set[Path] = set()
-        self._made: dict[tuple[int, _Need], tuple[Path, InputRecord]] = {}
+        self._made: dict[tuple[int, Need], tuple[Path, InputRecord]] = {}
 
     # ---- roots ------------------------------------------------------------------------------------
     @property
@@ -210,7 +224,7 @@ class StudyInputs:
 
     # ---- the inputs of runs ----------------------------------------------------------------------
     @staticmethod
-    def _need(run: GridRun) -> _Need | None:
+    def _need(run: GridRun) -> Need | None:
         return None if run.arm.input == "dense" else (run.arm.input, float(run.density), run.arm.enrich)
 
     def prepare(self, runs: Iterable[GridRun]) -> None:
@@ -226,7 +240,7 @@ class StudyInputs:
                  f"({self.n_roots} roots)")
         for k in range(self.n_roots):
             for need in needs:
-                self._input(k, need)
+                self.input_of(k, need)
             if dense:
                 self.root(k, cubes=True)
             elif self.grid.data.drop_cubes:
@@ -239,13 +253,15 @@ class StudyInputs:
         if need is None:
             roots = [self.root(k, cubes=True) for k in range(self.n_roots)]
             return roots, None, [InputRecord(r.name, str(r), None, None, None, True, 0.0) for r in roots]
-        made = [self._input(k, need) for k in range(self.n_roots)]
+        made = [self.input_of(k, need) for k in range(self.n_roots)]
         roots = [self.root(k, cubes=False) for k in range(self.n_roots)]
         paths = [p for p, _ in made]
         records = [rec for _, rec in made]
         return (roots, paths, records) if need[0] == "points" else (paths, None, records)
 
-    def _input(self, k: int, need: _Need) -> tuple[Path, InputRecord]:
+    def input_of(self, k: int, need: Need) -> tuple[Path, InputRecord]:
+        """Root ``k``'s point store or sparse-RD root for ``need``, made now unless the cache (or this
+        object) holds it, and its record."""
         got = self._made.get((k, need))
         if got is None:
             kind, density, enrich = need

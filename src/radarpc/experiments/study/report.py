@@ -20,23 +20,24 @@ sparse-RD ablations):
 
 Everything says what made it: the study command and config file of the rows, the commits of the
 code that trained them (and of this report), the report command; the figures carry the same in a
-footer and in their metadata. The study config itself ends the report.
+footer and in their metadata (:mod:`radarpc.experiments.study.provenance`). The study config
+itself ends the report. The rows of an FPS study make the FPS report instead
+(:func:`radarpc.experiments.study.fps_report.write_fps_report`).
 """
 from __future__ import annotations
 
-import datetime as _dt
 import os
-import shlex
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 from radarpc.eval.curves import DensityCurve, normalized_auc, seed_statistics
+from radarpc.experiments.study.fps import FPS_ROW_FORMAT
 from radarpc.experiments.study.grid import GROUPS
-from radarpc.experiments.study.results import RESULTS_DIR, read_rows
+from radarpc.experiments.study.provenance import provenance
+from radarpc.experiments.study.results import RESULTS_DIR, read_rows, rows_format
 from radarpc.io import atomic_write
-from radarpc.training.checkpoint import software_record
 
 __all__ = ["ArmResults", "GroupResults", "collect", "write_report", "REPORT_MD", "GROUP_TITLES"]
 
@@ -220,22 +221,6 @@ def _num(x) -> str:
     return "-" if x is None else f"{x:.3f}"
 
 
-def _provenance(rows: dict[str, dict]) -> tuple[list[str], list[str], list[str], dict]:
-    """The study commands, config files and commits of the rows (most common first), and the
-    study config of the latest row."""
-    def ranked(values):
-        counts: dict = defaultdict(int)
-        for v in values:
-            counts[v] += 1
-        return sorted(counts, key=lambda v: (-counts[v], str(v)))
-
-    commands = ranked(r.get("command") or "(not recorded: the library was called directly)" for r in rows.values())
-    files = ranked(r["study"].get("config_file") or "(not recorded)" for r in rows.values())
-    commits = ranked((r.get("software") or {}).get("commit") or "unknown" for r in rows.values())
-    latest = max(rows.values(), key=lambda r: (r.get("times") or {}).get("finished_at") or "")
-    return commands, files, commits, latest["study"].get("config", {})
-
-
 def write_report(runs: str | os.PathLike, out: str | os.PathLike | None = None, *, command: str | None = None,
                  log: Callable[[str], None] = print) -> Path:
     """Write ``report.md`` and the figures of the study output ``runs`` (see the module docstring).
@@ -259,36 +244,26 @@ def write_report(runs: str | os.PathLike, out: str | os.PathLike | None = None, 
     FileNotFoundError
         No result row in ``runs``.
     """
-    import yaml
-
     from radarpc.viz import DensityPanel, plot_density_curves
 
     runs = Path(runs)
+    if rows_format(runs) == FPS_ROW_FORMAT:
+        from radarpc.experiments.study.fps_report import write_fps_report
+
+        return write_fps_report(runs, out, command=command, log=log)
     rows = read_rows(runs)
     if not rows:
         raise FileNotFoundError(f"{runs}: no result rows (no {RESULTS_DIR}/*.json); run `radarpc experiment ...` "
                                 f"first, or give the study's output folder")
     base = runs.parent if runs.name == RESULTS_DIR and not (runs / RESULTS_DIR).is_dir() else runs
     out = Path(out) if out is not None else base / "report"
-    commands, files, commits, config = _provenance(rows)
-    own_commit = software_record().get("commit") or "unknown"
-    made_by = command or f"radarpc report {shlex.quote(str(runs))}"
-    studies = sorted({f"{r['study']['name']} ({r['study']['kind']})" for r in rows.values()})
+    made = provenance(rows, base / RESULTS_DIR, runs, command)
+    made_by, commands, commits, studies = made.made_by, made.commands, made.commits, made.studies
+    footer, metadata = made.footer, made.metadata
     splits = sorted({(r.get("evaluation") or {}).get("split", "?") for r in rows.values()})
     easy = sorted({(r.get("evaluation") or {}).get("easy") for r in rows.values()}, key=str)
-    footer = (f"{made_by} | study: {commands[0]} | runs' commit {', '.join(c[:10] for c in commits)} "
-              f"| report's commit {own_commit[:10]}")
-    metadata = {"Title": ", ".join(studies), "Description": f"made by: {made_by}; study command(s): "
-                f"{' ; '.join(commands)}; config file(s): {', '.join(files)}; commits of the runs: {', '.join(commits)}; "
-                f"commit of the report: {own_commit}", "Software": "radarpc"}
 
-    lines = [f"# Study {', '.join(studies)}", "",
-             f"Made by `{made_by}` on {_dt.datetime.now(_dt.timezone.utc).strftime('%Y-%m-%d %H:%M')} UTC from "
-             f"{len(rows)} result rows in `{base / RESULTS_DIR}` (code at commit `{own_commit[:10]}`).", "",
-             "- study command" + ("s" if len(commands) > 1 else "") + ": " + "; ".join(f"`{c}`" for c in commands),
-             "- config file" + ("s" if len(files) > 1 else "") + ": " + ", ".join(f"`{f}`" for f in files)
-             + " (the resolved config is at the end)",
-             "- commits of the code that trained and scored the runs: " + ", ".join(f"`{c}`" for c in commits), "",
+    lines = made.header(f"Study {', '.join(studies)}", "trained and scored the runs") + [
              f"Scores: RADIal's metrics of each run's best-validation weights on the {'/'.join(splits)} split at IoU "
              f"0.5; **F1 @ 0.2** is F1 at the one confidence threshold 0.2, the spectral point-cloud paper's density-sweep protocol"
              + (", in RADIal's easy mode (Difficult labels dropped)" if easy == [True] else
@@ -328,8 +303,7 @@ def write_report(runs: str | os.PathLike, out: str | os.PathLike | None = None, 
         group_rows = [r for a in g.arms for d in sorted(a.rows, key=lambda x: -1 if x is None else x)
                       for r in a.rows[d]]
         lines += ["### runs", ""] + _runs_table(group_rows) + [""]
-    lines += ["## the study config", "", "<details><summary>resolved config of the latest run</summary>", "",
-              "```yaml", yaml.safe_dump(config, sort_keys=False).rstrip(), "```", "", "</details>", ""]
+    lines += made.config_section()
     path = out / REPORT_MD
     with atomic_write(path, "w") as f:
         f.write("\n".join(lines))

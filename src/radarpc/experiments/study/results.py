@@ -27,14 +27,15 @@ from radarpc.experiments.radial_detection.config import canonical_key
 from radarpc.experiments.study.grid import Grid, GridRun
 from radarpc.io import DataFileError, atomic_write
 
-__all__ = ["ROW_FORMAT", "RESULTS_DIR", "run_key", "data_identity", "plain_json", "write_row", "read_rows",
-           "key_differences", "check_rows"]
+__all__ = ["ROW_FORMAT", "RESULTS_DIR", "REQUIRED_FIELDS", "run_key", "data_identity", "plain_json", "write_row",
+           "write_named_row", "read_rows", "rows_format", "flat_differences", "key_differences", "check_rows"]
 
 ROW_FORMAT = "radarpc study result row 1"
 """The ``format`` every row states; a row of another format is refused."""
 RESULTS_DIR = "results"
 """The rows' folder under a study's output."""
-_REQUIRED = ("format", "run", "study", "arm", "density", "seed", "key", "metrics")
+REQUIRED_FIELDS = ("format", "run", "study", "arm", "density", "seed", "key", "metrics")
+"""What every row of :data:`ROW_FORMAT` holds."""
 
 
 def data_identity(grid: Grid) -> dict:
@@ -70,23 +71,49 @@ def plain_json(value: Any) -> Any:
 
 def write_row(out: str | os.PathLike, run: GridRun, row: dict) -> Path:
     """Write ``row`` as ``out/results/RUN.json``, atomically; returns the path."""
-    path = Path(out) / RESULTS_DIR / run.row_name
+    return write_named_row(out, run.row_name, row)
+
+
+def write_named_row(out: str | os.PathLike, name: str, row: dict) -> Path:
+    """Write ``row`` as ``out/results/NAME``, atomically (strict JSON: :func:`plain_json`); returns the path."""
+    path = Path(out) / RESULTS_DIR / name
     with atomic_write(path, "w") as f:
         json.dump(plain_json(row), f, indent=1, allow_nan=False)
         f.write("\n")
     return path
 
 
-def read_rows(out: str | os.PathLike) -> dict[str, dict]:
+def _rows_folder(out: Path) -> Path:
+    return out if out.name == RESULTS_DIR and not (out / RESULTS_DIR).is_dir() else out / RESULTS_DIR
+
+
+def rows_format(out: str | os.PathLike) -> str | None:
+    """The ``format`` the rows of a study output (or of a ``results`` folder) state, None without
+    rows; the study kind's reader checks them (a row of another format is refused there)."""
+    folder = _rows_folder(Path(out))
+    for path in sorted(folder.glob("*.json")) if folder.is_dir() else ():
+        try:
+            row = json.loads(path.read_text(encoding="utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            continue
+        if isinstance(row, dict) and isinstance(row.get("format"), str):
+            return row["format"]
+    return None
+
+
+def read_rows(out: str | os.PathLike, *, row_format: str = ROW_FORMAT,
+              required: tuple[str, ...] = REQUIRED_FIELDS) -> dict[str, dict]:
     """The result rows of a study output (or of a ``results`` folder), by run id.
+
+    ``row_format`` and ``required``: the format the rows must state and the fields each must hold
+    (the training studies' by default; the FPS study passes its own).
 
     Raises
     ------
     DataFileError
         A row that is not valid JSON, not a result row, or of another format, or two rows of one run.
     """
-    out = Path(out)
-    folder = out if out.name == RESULTS_DIR and not (out / RESULTS_DIR).is_dir() else out / RESULTS_DIR
+    folder = _rows_folder(Path(out))
     rows: dict[str, dict] = {}
     if not folder.is_dir():
         return rows
@@ -95,10 +122,11 @@ def read_rows(out: str | os.PathLike) -> dict[str, dict]:
             row = json.loads(path.read_text(encoding="utf-8"))
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
             raise DataFileError(path, f"not a result row (invalid JSON: {e})") from None
-        if not isinstance(row, dict) or any(k not in row for k in _REQUIRED):
-            raise DataFileError(path, f"not a study result row (needs {', '.join(_REQUIRED)})")
-        if row["format"] != ROW_FORMAT:
-            raise DataFileError(path, f"a result row of format {row['format']!r}; this radarpc reads {ROW_FORMAT!r}")
+        if not isinstance(row, dict) or any(k not in row for k in required):
+            raise DataFileError(path, f"not a study result row of format {row_format!r} (needs {', '.join(required)})")
+        if row["format"] != row_format:
+            raise DataFileError(path, f"a result row of format {row['format']!r}; this study reads {row_format!r} "
+                                      f"(rows of two study kinds in one output? give each study its own --out)")
         if row["run"] in rows:
             raise DataFileError(path, f"a second row of run {row['run']!r}")
         if path.name != row["run"].replace("/", "__") + ".json":
@@ -123,12 +151,16 @@ def _readable(stored: dict, num_workers: int) -> dict:
     return plain_json(canonical_key(stored, num_workers=num_workers))
 
 
-def key_differences(stored: dict, key: dict) -> list[str]:
-    """``"field: stored -> config"`` for every dotted field where the stored key differs from ``key``."""
-    have = _flat(_readable(stored, key["experiment"]["train"]["num_workers"]))
-    want = _flat(key)
+def flat_differences(stored: dict, key: dict) -> list[str]:
+    """``"field: stored in the row, wanted in the config"`` for every dotted field where two keys differ."""
+    have, want = _flat(plain_json(stored)), _flat(plain_json(key))
     return [f"{k}: {have.get(k, '(missing)')!r} in the row, {want.get(k, '(missing)')!r} in the config"
             for k in sorted(set(have) | set(want)) if have.get(k) != want.get(k)]
+
+
+def key_differences(stored: dict, key: dict) -> list[str]:
+    """:func:`flat_differences` of a training run's stored key, read through today's config types."""
+    return flat_differences(_readable(stored, key["experiment"]["train"]["num_workers"]), key)
 
 
 def check_rows(grid: Grid, out: str | os.PathLike, rows: dict[str, dict]) -> dict[str, dict]:
