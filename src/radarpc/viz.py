@@ -777,16 +777,26 @@ def plot_density_curves(panels: list[DensityPanel], out: str | os.PathLike, *, t
             if s.std is not None:
                 ax.axhspan(s.mean - s.std, s.mean + s.std, color=c, alpha=0.12, lw=0)
         ax.set_xscale("log")
-        ticks = sorted({100 * d for curve in panel.curves for d in curve.density})
-        if ticks:                                  # the measured densities, in percent
-            ax.set_xticks(ticks, [f"{t:.3g}" for t in ticks])
-            ax.xaxis.set_minor_formatter(_no_labels())
-        ax.set(xlabel="data density |S| / (N_r N_D) [%] (log scale)", ylabel=panel.ylabel, title=panel.title)
-        ax.grid(alpha=0.3, which="both")
+        _density_axis(ax, panel)
         if panel.curves or panel.references:
             ax.legend(fontsize=8, loc="lower right")
     fig.suptitle(f"{title}\nline: mean over runs (seeds), band: +-1 standard deviation, dots: each run; "
                  f"dashed: density-free references", fontsize=10)
+    return _save_with_footer(fig, out, footer, metadata)
+
+
+def _density_axis(ax, panel) -> None:
+    """A log density axis ticked at the measured densities (in percent), titled and gridded."""
+    ticks = sorted({100 * d for curve in panel.curves for d in curve.density})
+    if ticks:
+        ax.set_xticks(ticks, [f"{t:.3g}" for t in ticks])
+        ax.xaxis.set_minor_formatter(_no_labels())
+    ax.set(xlabel="data density |S| / (N_r N_D) [%] (log scale)", ylabel=panel.ylabel, title=panel.title)
+    ax.grid(alpha=0.3, which="both")
+
+
+def _save_with_footer(fig, out, footer: str | None, metadata) -> Path:
+    """Write ``fig`` with ``footer`` (the provenance line) in small print under it."""
     if footer:
         fig.text(0.01, 0.005, footer, fontsize=6.5, color="0.35", ha="left", va="bottom")
     fig.tight_layout(rect=(0, 0.04 if footer else 0, 1, 1))
@@ -890,18 +900,9 @@ def plot_rate_curves(panels: list[RatePanel], out: str | os.PathLike, *, title: 
         ax.set_yscale("log")
         ax.yaxis.set_major_formatter(_plain_log_labels())      # 60, not 6 x 10^1
         ax.yaxis.set_minor_formatter(_plain_log_labels())
-        ticks = sorted({100 * d for curve in panel.curves for d in curve.density})
-        if ticks:
-            ax.set_xticks(ticks, [f"{t:.3g}" for t in ticks])
-            ax.xaxis.set_minor_formatter(_no_labels())
-        ax.set(xlabel="data density |S| / (N_r N_D) [%] (log scale)", ylabel=panel.ylabel, title=panel.title)
-        ax.grid(alpha=0.3, which="both")
+        _density_axis(ax, panel)
         if panel.curves or panel.references:
             ax.legend(fontsize=7, loc="best")
     fig.suptitle(f"{title}\nline: median of the timed sweeps, bars: their range; solid: network alone, dashed: "
                  f"with extraction; dotted: density-free references", fontsize=10)
-    if footer:
-        fig.text(0.01, 0.005, footer, fontsize=6.5, color="0.35", ha="left", va="bottom")
-    fig.tight_layout(rect=(0, 0.04 if footer else 0, 1, 1))
-    save_figure(fig, out, dpi=110, metadata=metadata)
-    return out
+    return _save_with_footer(fig, out, footer, metadata)
