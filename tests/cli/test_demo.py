@@ -30,12 +30,12 @@ STEP_NAMES = ("simulate RADIal", "check RADIal", "point clouds at 2 %", "point c
               "OS-CFAR baseline", "Chamfer / EMD")
 
 
-def _demo(out: Path) -> tuple[float, str]:
-    """Seconds and stdout of ``radarpc demo --tiny --out OUT`` (exit code 0 checked)."""
+def _demo(out: Path, *flags: str) -> tuple[float, str]:
+    """Seconds and stdout of ``radarpc demo --tiny --out OUT FLAGS`` (exit code 0 checked)."""
     buf = io.StringIO()
     t0 = time.perf_counter()
     with contextlib.redirect_stdout(buf):
-        code = main(["demo", "--tiny", "--out", str(out), "--no-progress"])
+        code = main(["demo", "--tiny", "--out", str(out), *flags])
     seconds = time.perf_counter() - t0
     assert code == 0, buf.getvalue()[-3000:]
     return seconds, buf.getvalue()
@@ -48,15 +48,15 @@ def _mtimes(out: Path) -> dict[str, int]:
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     """The tiny demo run once; run again after losing the record of its 15th step (as if killed
-    before it could write it); then run a third time, unchanged."""
+    before it could write it); then run a third time, with progress bars (which write nothing)."""
     out = tmp_path_factory.mktemp("demo") / "demo"
     threads = torch.get_num_threads()
     torch.set_num_threads(1)            # tiny models on 2 shared cores: a second thread only contends
     try:
-        seconds, stdout = _demo(out)
+        seconds, stdout = _demo(out, "--no-progress")
         report = (out / "REPORT.md").read_text()
         (out / STEPS_DIR / "classical-200.json").unlink()
-        _, stdout_resumed = _demo(out)
+        _, stdout_resumed = _demo(out, "--no-progress")
         report_resumed = (out / "REPORT.md").read_text()
         before = _mtimes(out)
         _, stdout_rerun = _demo(out)

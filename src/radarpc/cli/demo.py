@@ -34,10 +34,14 @@ from pathlib import Path
 from typing import Callable
 
 __all__ = ["DemoConfig", "TINY_SIZES", "DemoStep", "DemoPaths", "DemoStepFailed", "figure_frame", "fftradnet_spec",
-           "experiment_configs", "run_demo", "add_parser", "STEPS_DIR"]
+           "experiment_configs", "run_demo", "add_parser", "STEPS_DIR", "DISPLAY_FLAGS"]
 
 STEPS_DIR = "steps"
 """Folder of the demo output holding one record per finished step."""
+
+DISPLAY_FLAGS = frozenset({"--no-progress", "--quiet"})
+"""Options of the steps' commands that change what they print, not what they write: a rerun with or
+without them reuses a finished step."""
 
 
 @dataclass(frozen=True)
@@ -471,9 +475,13 @@ def _record_path(paths: DemoPaths, step: DemoStep) -> Path:
     return paths.out / STEPS_DIR / f"{step.slug}.json"
 
 
+def _without_display(argv: list[str]) -> list[str]:
+    return [a for a in argv if a not in DISPLAY_FLAGS]
+
+
 def _finished_record(paths: DemoPaths, step: DemoStep) -> dict | None:
-    """The record of ``step`` when it finished with this command and settings and its outputs are
-    there; else None."""
+    """The record of ``step`` when it finished with this command (:data:`DISPLAY_FLAGS` aside) and
+    settings and its outputs are there; else None."""
     from radarpc.runs import read_json
 
     path = _record_path(paths, step)
@@ -483,7 +491,10 @@ def _finished_record(paths: DemoPaths, step: DemoStep) -> dict | None:
         rec = read_json(path)
     except ValueError:
         return None
-    if not isinstance(rec, dict) or rec.get("argv") != step.argv or rec.get("key") != json.loads(json.dumps(step.key)):
+    if not isinstance(rec, dict) or not isinstance(rec.get("argv"), list):
+        return None
+    if _without_display(rec["argv"]) != _without_display(step.argv) or \
+            rec.get("key") != json.loads(json.dumps(step.key)):
         return None
     return rec if all(p.exists() for p in step.outputs) else None
 

@@ -13,6 +13,7 @@ import csv
 import json
 import math
 import os
+import shlex
 from pathlib import Path
 
 __all__ = ["write_report", "SEED_DETECTION", "SEED_SWEEP", "SEED_MIOU", "SEED_COLORADAR"]
@@ -216,7 +217,7 @@ def write_report(cfg, paths, steps: list, *, device: str, frame: int, frame_note
           f"{_num(s.record.get('load_1min'), 2)} |" for k, s in enumerate(steps, 1)]
     L += ["", "What each did and why:", ""]
     for k, s in enumerate(steps, 1):
-        L += [f"{k}. **{s.name}**: {s.why}", f"   `{s.command}`"]
+        L += [f"{k}. **{s.name}**: {s.why}", f"   `radarpc {shlex.join(s.record['argv'])}`"]   # as it ran
 
     # ---- part 1 ----
     sp_cfg, fft_cfg = configs["spectralpillars"], configs["fftradnet"]
