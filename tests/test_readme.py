@@ -20,8 +20,8 @@ Size mapping (the README's sizes take minutes to hours; the commands are otherwi
 ============================  ==========================================================================
 
 Skipped, each for a stated reason: ``pip install`` (the suite runs in an installed environment and
-must not touch the network), ``python -m pytest`` (this suite itself), ``radarpc demo``
-(``tests/cli/test_demo.py`` runs it at tiny sizes; the README's sizes take minutes), ``radarpc train``,
+must not touch the network), ``python -m pytest`` (this suite itself), ``radarpc demo`` and
+``radarpc demo --tiny`` (``tests/cli/test_demo.py`` runs the second; the first takes minutes), ``radarpc train``,
 ``radarpc evaluate`` and ``torchrun`` (``tests/training`` runs them on tiny models), ``radarpc generate``,
 ``radarpc import-rald`` and the ``evaluate-points`` line that scores the generated clouds
 (``tests/cli/test_rald_cli.py`` runs them on tiny runs and official-layout checkpoints), ``radarpc experiment``
@@ -44,7 +44,7 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 SKIPPED = {
     "pip": "installs packages; the suite runs in an installed environment, without network",
     "python -m pytest": "the test suite itself",
-    "radarpc demo": "tests/cli/test_demo.py runs the demo at tiny sizes; the README's sizes take minutes",
+    "radarpc demo": "tests/cli/test_demo.py runs `radarpc demo --tiny` end to end; the full demo takes minutes",
     "radarpc train": "tests/experiments/radial_detection/test_experiment.py and tests/experiments/rald/test_train.py "
                      "train and resume tiny models through this command; the shipped configs train for minutes to days",
     "radarpc evaluate": "tests/experiments/radial_detection/test_experiment.py evaluates a tiny run through this command",

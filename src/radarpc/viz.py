@@ -603,9 +603,10 @@ def plot_detection_frame(batch, detections, probability: torch.Tensor | None, ou
         im = ax_ra.imshow(probability.numpy(), origin="lower", aspect="auto", vmin=0, vmax=1, cmap="magma",
                           extent=(-w / 2 * 0.8, w / 2 * 0.8, 0, range_max_m))
         ax_ra.scatter(a_lab, r_lab, marker="o", s=40, facecolors="none", edgecolors="tab:green", label="labels")
+        ax_ra.invert_xaxis()                        # left of the car on the left, as in the bird's-eye view
         ax_ra.set(xlabel="azimuth [deg] (left +)", ylabel="range [m]", title="predicted vehicle probability")
         ax_ra.legend(loc="upper right", fontsize=8)
-        fig.colorbar(im, ax=ax_ra)
+        fig.colorbar(im, ax=ax_ra, label="predicted vehicle probability")
     if title:
         fig.suptitle(title)
     fig.tight_layout()

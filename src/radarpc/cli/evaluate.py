@@ -14,7 +14,8 @@ with ``--data`` / ``--points`` that is not the run's own goes to ``RUN/eval_{spl
 instead (the roots' folder names, and the stores' file names when a root of the run is scored with
 another store), so the run's own scores stay. ``--show K`` draws K frames spread evenly over
 the split, first and last included (``RUN/figures/eval_{split}_{item}.png``): points or nothing in
-bird's-eye view with the label and predicted boxes, and the predicted probability map.
+bird's-eye view with the label and predicted boxes, and the predicted probability map;
+``--show-frames N ...`` draws the frames of these numSample values the same way.
 ``RUN/figures/learning_curve.png`` always (validation F1 and training loss per epoch, from
 ``log.csv``), and ``RUN/figures/eval_{split}_labels.png``: per threshold, the labels matched,
 missed with a detection within 3 m (a box in the wrong place) and missed with nothing near, and
@@ -41,8 +42,11 @@ __all__ = ["add_parser", "run"]
 def run(args: argparse.Namespace) -> int:
     from radarpc.experiments.radial_detection.evaluation import evaluate_run
 
+    if args.fps_frames < 0:
+        raise ValueError(f"fps-frames must be an integer >= 0 (0: no timing), got {args.fps_frames}")
     evaluate_run(args.run, args.split, data=args.data, points=args.points, device=args.device,
-                 show=args.show, fps_frames=args.fps_frames, precision=args.precision,
+                 show=args.show, show_frames=tuple(args.show_frames), fps_frames=max(args.fps_frames, 1),
+                 timed=args.fps_frames > 0, precision=args.precision,
                  mirror_average=args.mirror_average, fast=args.fast,
                  easy=None if args.difficult is None else not args.difficult,
                  empty_frames=not args.drop_empty_frames)
@@ -60,7 +64,10 @@ def add_parser(sub) -> None:
                    help="point store of each root (default: those the run was trained on)")
     p.add_argument("--device", default=None, help="torch device (default: a GPU if any, else the CPU)")
     p.add_argument("--show", type=int, default=0, metavar="K", help="draw K frames spread evenly over the split")
-    p.add_argument("--fps-frames", type=int, default=20, help="frames timed for frames/s (default 20)")
+    p.add_argument("--show-frames", type=int, nargs="+", default=(), metavar="N",
+                   help="draw these frames of the split (RADIal numSample), as --show draws its frames")
+    p.add_argument("--fps-frames", type=int, default=20,
+                   help="frames timed for frames/s (default 20; 0: no timing, frames/s n/a)")
     p.add_argument("--precision", default="fp32", choices=("fp32", "bf16"),
                    help="fp32 (default) or bf16 autocast; bf16 writes eval_{split}_bf16.*")
     p.add_argument("--mirror-average", action="store_true",

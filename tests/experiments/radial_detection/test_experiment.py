@@ -762,11 +762,12 @@ def test_train_and_evaluate_bad_input_is_one_line(root, store, tmp_path, capsys)
     assert main(["train", str(pp), "--data", str(root), "--points", str(store), *out, "--num-workers", "1"]) == 0
     assert "already finished" in capsys.readouterr().out
     run = str(tmp_path / "run")
-    for flag, value in (("--fps-frames", "0"), ("--fps-frames", "-5"), ("--show", "-1")):
+    for flag, value in (("--fps-frames", "-5"), ("--show", "-1"), ("--show-frames", "-2")):
         one_line(["evaluate", run, flag, value], f"{flag[2:]} must be an integer >= ")
     one_line(["evaluate", run, "--device", "gpu0"], "--device 'gpu0' is not a torch device")
     # a killed evaluation's half-written file is cleared by the next one
     stale = tmp_path / "run" / ".eval_test.json.x1y2.tmp"
     stale.write_text("{")
-    assert main(["evaluate", run, "--fps-frames", "1"]) == 0
+    assert main(["evaluate", run, "--fps-frames", "0"]) == 0            # 0: scored, not timed
     assert not stale.exists()
+    assert np.isnan(json.loads((tmp_path / "run" / "eval_test.json").read_text())["fps_batch1"])

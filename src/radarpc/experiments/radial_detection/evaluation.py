@@ -16,7 +16,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import torch
 from torch.utils.data import DataLoader
@@ -139,7 +139,8 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
                  points: DataPaths | None = None, device: str | None = None, show: int = 0,
                  fps_frames: int = 20, batch_size: int = 4, precision: str = "fp32", mirror_average: bool = False,
                  fast: bool = False, easy: bool | None = None, empty_frames: bool = True, progress: bool = True,
-                 log: Callable[[str], None] = print, timed: bool = True) -> list[EvalResult]:
+                 log: Callable[[str], None] = print, timed: bool = True,
+                 show_frames: Sequence[int] = ()) -> list[EvalResult]:
     """Score the best weights of every run in ``run`` on ``split`` (see the module docstring).
 
     ``data`` / ``points`` override the roots and stores stored with the run (a moved dataset, or
@@ -161,13 +162,16 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
     score, as RADIal's loader does in its easy mode (what its ``3-Evaluation.py`` scores by
     default), into ``eval_{split}[...]_vehicle_frames.*``. ``timed=False`` skips the frames/s timing
     (the result's rate is NaN): the scores alone, when the time of ``fps_frames`` timed sweeps matters.
+    ``show_frames`` draws these frames (RADIal numSample) of the split besides the ``show`` spread
+    over it, as :func:`_shown` draws them (``figures/{stem}_frame{numSample:06d}.png``).
     """
     if precision not in EVAL_PRECISIONS:
         raise ValueError(f"precision must be one of {EVAL_PRECISIONS}, got {precision!r}")
     if fast and precision != "fp32":
         raise ValueError(f"fast inference is float32 only (the Winograd transforms and the products per frequency "
                          f"need its precision), got {precision!r}")
-    for name, value, low in (("fps_frames", fps_frames, 1), ("batch_size", batch_size, 1), ("show", show, 0)):
+    for name, value, low in (("fps_frames", fps_frames, 1), ("batch_size", batch_size, 1), ("show", show, 0),
+                             *(("show_frames", n, 0) for n in show_frames)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{name.replace('_', '-')} must be an integer >= {low}, got {value!r}")
     dev = check_device(device, "--device") if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -180,7 +184,8 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
         with locked_output(folder, "run folder"):       # not while the run trains or another evaluation writes
             remove_temp_files(folder, recursive=False)  # what a killed evaluation left half-written
             results.append(_evaluate_folder(folder, split, data, points, dev, show, fps_frames if timed else 0,
-                                            batch_size, precision, mirror_average, fast, easy, empty_frames, log))
+                                            batch_size, precision, mirror_average, fast, easy, empty_frames, log,
+                                            tuple(show_frames)))
     if len(results) > 1:
         rows = [{"run": k, **{m: (r.metrics.get(m) if r.metrics.get(m) is not None else math.nan)
                               for m in SUMMARY_METRICS}} for k, r in enumerate(results)]
@@ -192,7 +197,7 @@ def evaluate_run(run: str | os.PathLike, split: str = "test", *, data: DataPaths
 
 def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, show: int, fps_frames: int,
                      batch_size: int, precision: str, mirror_average: bool, fast: bool, easy: bool | None,
-                     empty_frames: bool, log: Callable[[str], None]) -> EvalResult:
+                     empty_frames: bool, log: Callable[[str], None], show_frames: tuple[int, ...] = ()) -> EvalResult:
     """:func:`evaluate_run` for one run folder (its lock held)."""
     from radarpc.viz import plot_detection_frame, plot_learning_curves
 
@@ -218,6 +223,8 @@ def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, 
     run_easy = (not cfg.difficult) if easy is None else easy   # by default as the run was trained
     ds = detection_dataset(dataclasses.replace(cfg, difficult=not run_easy), roots, stores, split,
                            empty_frames=empty_frames)
+    frames_of_items = item_frames(ds)
+    drawn = _frame_items(frames_of_items, show_frames, split)     # a frame not in the split fails before scoring
     if mirror_average:
         model = MirrorAveraged(model, cfg.targets, sectors=mirror_sectors_of(ds))
     scored = _resolved(data_pairs(roots, stores))
@@ -246,15 +253,15 @@ def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, 
                      points=None if stores is None else tuple(str(p) for _, p in scored),
                      scored_on=_scored_on(scored, own), mirror_average=mirror_average, fast=fast, easy=run_easy,
                      empty_frames=empty_frames, training=status)
-    frames_of_items = item_frames(ds)
     _write_eval(folder, res, cfg.name, frames_of_items)
     _write_detections(folder / f"{res.stem}_detections.csv", frames_of_items, found)
     if (folder / LOG_CSV).is_file():
         plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
-    if show:
+    shown = _shown(ds, show, collate) + [(i, collate([ds[i]])) for i in drawn]
+    if shown:
         with torch.inference_mode(), autocast_context(precision, dev):
             names = _frame_names(frames_of_items)
-            for k, b in _shown(ds, show, collate):
+            for k, b in shown:
                 b = b.to(dev)
                 out = model(b.inputs)
                 dets = decode_detections(out.detection.float(), cfg.targets, threshold=FIXED_THRESHOLD)
@@ -315,6 +322,25 @@ def _shown(ds, k: int, collate) -> list[tuple[int, DetectionBatch]]:
     k = min(k, n)                                   # more asked than there are: each item once
     picks = sorted({round(i * (n - 1) / max(k - 1, 1)) for i in range(k)})
     return [(i, collate([ds[i]])) for i in picks]
+
+
+def _frame_items(frames: list[tuple[Path, int]], numbers: Sequence[int], split: str) -> list[int]:
+    """The items whose numSample is one of ``numbers`` (``frames``: :func:`item_frames`), in the order
+    given; every item of a number when several roots hold it.
+
+    Raises
+    ------
+    ValueError
+        A number is not a frame of the split.
+    """
+    picked = []
+    for n in dict.fromkeys(numbers):
+        items = [i for i, (_, num) in enumerate(frames) if num == n]
+        if not items:
+            raise ValueError(f"frame {n} (numSample) is not among the {len(frames)} frames of the {split} split "
+                             f"scored here; choose one of them to draw")
+        picked += items
+    return picked
 
 
 def evaluate_classical(points: str | os.PathLike, data: str | os.PathLike, out: str | os.PathLike,
