@@ -1,5 +1,9 @@
 """Density of peak sets and the density controller (per frame, per dataset, on S(tau) and, with the
-RD-neighbourhood enrichment, on S*(tau)) on simulated frames."""
+RD-neighbourhood enrichment, on S*(tau)) on simulated frames.
+
+The point clouds here beamform with the exact beamformer: every mode gives the same points, and
+the subspace one (what "auto" picks on most CPUs) factorises the dictionary anew in each
+``SpectralPointCloud``, which costs more than these tests' frames."""
 from __future__ import annotations
 
 import numpy as np
@@ -46,7 +50,7 @@ def test_density_of_mask_hand_worked():
 @pytest.mark.parametrize("target", [0.007, 0.057, 0.3])
 def test_per_frame_controller_hits_target(target):
     cfg = RADIAL_S
-    spc = SpectralPointCloud(cfg, make_calibration(cfg), density=target)
+    spc = SpectralPointCloud(cfg, make_calibration(cfg), density=target, beamforming="exact")
     clouds = spc(_frames(cfg, 3))
     assert np.all(np.abs(clouds.density.numpy() / target - 1) < 0.10), clouds.density
     # the thresholds are real SNR thresholds: re-thresholding with them gives the same peak set
@@ -59,14 +63,15 @@ def test_per_dataset_controller_hits_mean_target():
     cfg = RADIAL_S
     target = 0.057
     rd = _frames(cfg, 4, seed=1)
-    spc = SpectralPointCloud(cfg, make_calibration(cfg), density=target, density_mode="per-dataset")
+    calib = make_calibration(cfg)
+    spc = SpectralPointCloud(cfg, calib, density=target, density_mode="per-dataset", beamforming="exact")
     clouds = spc(rd)
     assert torch.unique(clouds.tau).numel() == 1
     assert abs(float(clouds.density.mean()) / target - 1) < 0.10
     # calibrate on a "training split", reuse the single tau as a fixed threshold
     tau = spc.calibrate_tau([rd[:2], rd[2:]])
     assert tau == pytest.approx(float(clouds.tau[0]))
-    fixed = SpectralPointCloud(cfg, make_calibration(cfg), tau=tau)(rd)
+    fixed = SpectralPointCloud(cfg, calib, tau=tau, beamforming="exact")(rd)
     torch.testing.assert_close(fixed.density, clouds.density)
 
 
@@ -91,7 +96,8 @@ def test_density_decreases_as_tau_grows():
     cfg = RADIAL_S
     rd = _frames(cfg, 2, seed=2)
     calib = make_calibration(cfg)
-    dens = [SpectralPointCloud(cfg, calib, tau=t)(rd).density.numpy() for t in (0.5, 1.0, 1.585, 3.0, 10.0, 100.0)]
+    dens = [SpectralPointCloud(cfg, calib, tau=t, beamforming="exact")(rd).density.numpy()
+            for t in (0.5, 1.0, 1.585, 3.0, 10.0, 100.0)]
     dens = np.stack(dens)                                           # (n_tau, B)
     assert np.all(np.diff(dens, axis=0) <= 0) and dens[0].min() > dens[-1].max()
 
@@ -194,7 +200,7 @@ def test_enriched_controller_hand_worked_ties():
 def test_enriched_per_frame_controller_hits_target(sim_frames, n):
     rd, calib, snr = sim_frames
     cfg, target = RADIAL_S, 0.2
-    spc = SpectralPointCloud(cfg, calib, density=target, enrich=(f"rd{n}",))
+    spc = SpectralPointCloud(cfg, calib, density=target, enrich=(f"rd{n}",), beamforming="exact")
     clouds = spc(rd)
     # the target applies to the encoded set S*(tau): within 10 % on every frame
     assert np.all(np.abs(clouds.density.numpy() / target - 1) < 0.10), clouds.density
@@ -235,7 +241,7 @@ def test_enriched_per_dataset_controller_hits_mean_target(sim_frames, n):
     fixed = SpectralPointCloud(cfg, calib, tau=tau, enrich=(f"rd{n}", "sector8"))(rd)
     torch.testing.assert_close(fixed.density, clouds.density)
     # without rdN the same target applies to S(tau): a lower tau, more CFAR peaks
-    plain = SpectralPointCloud(cfg, calib, density=target, density_mode="per-dataset")(rd)
+    plain = SpectralPointCloud(cfg, calib, density=target, density_mode="per-dataset", beamforming="exact")(rd)
     assert float(plain.tau[0]) < tau and abs(float(plain.density.mean()) / target - 1) < 0.10
 
 
@@ -243,8 +249,8 @@ def test_enriched_per_dataset_controller_hits_mean_target(sim_frames, n):
 def test_enriched_density_monotone_in_tau(sim_frames, n):
     rd, calib, snr = sim_frames
     taus = (0.5, 1.0, 1.585, 3.0, 10.0, 100.0, 1e4)
-    dens = np.stack([SpectralPointCloud(RADIAL_S, calib, tau=t, enrich=(f"rd{n}",))(rd[:2]).density.numpy()
-                     for t in taus])                                 # (n_tau, 2)
+    dens = np.stack([SpectralPointCloud(RADIAL_S, calib, tau=t, enrich=(f"rd{n}",), beamforming="exact")(rd[:2])
+                     .density.numpy() for t in taus])                # (n_tau, 2)
     assert np.all(np.diff(dens, axis=0) <= 0) and dens[0].min() > dens[-1].max()
     # the same on a fine sweep through the independent dilation
     grid = np.quantile(snr.numpy(), np.linspace(0, 1, 200))
