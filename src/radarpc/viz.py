@@ -750,13 +750,7 @@ def plot_density_curves(panels: list[DensityPanel], out: str | os.PathLike, *, t
     metadata : dict, optional
         Stored in the file (:func:`save_figure`).
     """
-    if not panels:
-        raise ValueError("plot_density_curves: no panel to draw")
-    out = Path(out)
-    figure_format(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig = _figure((6.4 * len(panels), 4.8))
-    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    out, fig, axes = _panel_figure(out, len(panels), "plot_density_curves")
     colours = [f"C{k}" for k in range(10)]
     for ax, panel in zip(axes, panels):
         for k, curve in enumerate(panel.curves):
@@ -784,6 +778,17 @@ def plot_density_curves(panels: list[DensityPanel], out: str | os.PathLike, *, t
     fig.suptitle(f"{title}\nline: mean over runs (seeds), band: +-1 standard deviation, dots: each run; "
                  f"dashed: density-free references", fontsize=10)
     return _save_with_footer(fig, out, footer, metadata)
+
+
+def _panel_figure(out, n_panels: int, what: str):
+    """``(out, figure, axes)`` for ``n_panels`` side by side, ``out`` checked and its folder made."""
+    if not n_panels:
+        raise ValueError(f"{what}: no panel to draw")
+    out = Path(out)
+    figure_format(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig = _figure((6.4 * n_panels, 4.8))
+    return out, fig, fig.subplots(1, n_panels, squeeze=False)[0]
 
 
 def _density_axis(ax, panel) -> None:
@@ -875,13 +880,7 @@ def plot_rate_curves(panels: list[RatePanel], out: str | os.PathLike, *, title: 
     metadata : dict, optional
         Stored in the file (:func:`save_figure`).
     """
-    if not panels:
-        raise ValueError("plot_rate_curves: no panel to draw")
-    out = Path(out)
-    figure_format(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig = _figure((6.4 * len(panels), 4.8))
-    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    out, fig, axes = _panel_figure(out, len(panels), "plot_rate_curves")
     colours = [f"C{k}" for k in range(10)]
     for ax, panel in zip(axes, panels):
         named: dict[str, str] = {}                      # one colour per model, solid and dashed alike

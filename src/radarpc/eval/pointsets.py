@@ -53,7 +53,6 @@ from pathlib import Path
 from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
-import ot
 import torch
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
@@ -281,6 +280,8 @@ def _wasserstein1(p: np.ndarray, g: np.ndarray) -> float:
     a = np.full(p.shape[0], 1.0 / p.shape[0])
     b = np.full(g.shape[0], 1.0 / g.shape[0])
     # network simplex; the iteration cap is far above what 2048 x 2048 problems need
+    import ot            # POT takes ~2 s to import; only EMD needs it
+
     return float(ot.emd2(a, b, cost, numItermax=50 * (p.shape[0] + g.shape[0]) ** 2 + 100_000))
 
 
