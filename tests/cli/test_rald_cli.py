@@ -121,6 +121,27 @@ def test_a_killed_generation_resumes_to_the_same_files(generated, rald_run, colo
             == json.loads((generated[0] / "index.json").read_text())["frames"])
 
 
+def test_every_generates_and_predicts_a_subset(generated, rald_run, colo_root, tmp_path, capsys):
+    # the test run's two paired frames: --every 2 keeps the first, the same file the full job wrote
+    out = tmp_path / "every2"
+    assert _generate(rald_run, colo_root, out, "--every", "2") == 0
+    assert capsys.readouterr().out.splitlines()[-1].startswith("wrote 1 new point cloud (1 frame")
+    first = json.loads((generated[0] / "index.json").read_text())["frames"][0]
+    index = json.loads((out / "index.json").read_text())
+    assert index["every"] == 2 and [e["file"] for e in index["frames"]] == [first["file"]]
+    assert (out / first["file"]).read_bytes() == (generated[0] / first["file"]).read_bytes()
+    assert json.loads((out / "generation.json").read_text())["every"] == 2
+    # another subset into the same folder is another job: refused without --overwrite
+    assert _generate(rald_run, colo_root, out) == 2
+    capsys.readouterr()
+    oscfar = tmp_path / "oscfar"
+    assert main(["baseline", "os-cfar", str(colo_root), "--split", "test", "--every", "2", "--out", str(oscfar),
+                 "--quick-tune", "--max-tune-frames", "2"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == f"wrote 1 new point cloud (1 frame) to {oscfar}"
+    index = json.loads((oscfar / "index.json").read_text())
+    assert index["every"] == 2 and [e["file"] for e in index["frames"]] == [first["file"]]
+
+
 def test_generated_and_oscfar_clouds_side_by_side(generated, colo_root, tmp_path, capsys):
     gen = tmp_path / "rald"
     shutil.copytree(generated[0], gen)

@@ -118,6 +118,20 @@ def test_dataset_items_and_splits(sim_root):
     assert inten.shape == (2, 128, 64, 32) and offset.tolist() == [it.points.shape[0], 2 * it.points.shape[0]]
 
 
+def test_every_keeps_every_kth_paired_frame_of_each_run(sim_root):
+    full = ColoRadar(sim_root, "all", cube_size=None)
+    for k in (1, 2, 3):
+        ds = ColoRadar(sim_root, "all", cube_size=None, every=k)
+        assert ds.every == k
+        # per run: the paired frames at positions 0, k, 2k, ... of the full list
+        want = [e for r in range(len(full.runs)) for e in [x for x in full.index if x[0] == r][::k]]
+        assert ds.index == want
+    assert len(ColoRadar(sim_root, "all", cube_size=None, every=2)) == len(full.runs)   # 2 frames a run
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match=r"every must be a positive integer \(1 keeps every frame\), got"):
+            ColoRadar(sim_root, "all", every=bad)
+
+
 def test_split_rule_and_rald_lists():
     names = [f"lab_run{k}" for k in range(5)] + ["hall_run0", "hall_run1", "solo_run0"]
     assert split_runs(names, "test") == ["hall_run1", "lab_run4"]

@@ -48,7 +48,7 @@ def run_oscfar(args: argparse.Namespace) -> int:
     from radarpc.cli.text import plural
     from radarpc.pipelines.oscfar import OSCFARJob, predict_oscfar
 
-    job = OSCFARJob(root=args.root, out=args.out, split=args.split, tune_split=args.tune_split,
+    job = OSCFARJob(root=args.root, out=args.out, split=args.split, every=args.every, tune_split=args.tune_split,
                     max_tune_frames=args.max_tune_frames, config=args.config, retune=args.retune,
                     quick_tune=args.quick_tune, overwrite=args.overwrite)
     res = predict_oscfar(job, on_config=lambda cfg, how: print(f"OS-CFAR config {how}: {cfg}"))
@@ -64,6 +64,8 @@ def add_parser(sub) -> None:
                          description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     q.add_argument("root", help="ColoRadar root (real or simulated)")
     q.add_argument("--split", default="test", choices=("train", "val", "test", "all"), help="split whose paired frames are predicted (default test)")
+    q.add_argument("--every", type=int, default=1, metavar="K",
+                   help="predict every K-th paired frame of each run (default 1: all)")
     q.add_argument("--out", required=True, help="prediction folder")
     q.add_argument("--tune-split", default="val", choices=("train", "val", "test", "all"),
                    help="split whose frames tune the parameters (default val)")

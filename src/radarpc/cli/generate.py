@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_generate_config(args.config) if args.config else GenerateConfig()
     changes = {field: getattr(args, opt) for opt, field in _GENERATION_OPTIONS if getattr(args, opt) is not None}
     config = with_generation(config, guide=args.guide, **changes)
-    res = generate_run(args.run, args.out, data=args.data, split=args.split, config=config, device=args.device,
+    res = generate_run(args.run, args.out, data=args.data, split=args.split, every=args.every, config=config, device=args.device,
                        allow_unfinished=args.allow_unfinished, overwrite=args.overwrite,
                        progress=not args.no_progress,
                        on_warning=lambda s: print(f"warning: {s}", file=sys.stderr),
@@ -75,6 +75,9 @@ def add_parser(sub) -> None:
                    help="ColoRadar root (default: the root the run was trained on, or given to import-rald)")
     p.add_argument("--split", default="test", choices=("train", "val", "test", "all"),
                    help="split whose paired frames are generated (default test)")
+    p.add_argument("--every", type=int, default=1, metavar="K",
+                   help="generate every K-th paired frame of each run (default 1: all); radarpc evaluate-points "
+                        "scores the frames the folder lists")
     p.add_argument("--out", required=True, help="prediction folder")
     p.add_argument("--config", default=None, metavar="YAML",
                    help="generation settings (generation and guide sections; default the official values)")

@@ -556,6 +556,9 @@ class ColoRadar(torch.utils.data.Dataset):
         Frustum for the LiDAR crop.
     max_dt : float, optional
         Pairing tolerance (default half the LiDAR period).
+    every : int
+        Keep every ``every``-th paired frame of each run (its 1st, ``every + 1``-th, ...): an
+        evenly spread subset of a split for jobs too slow to run on every frame (1: all frames).
 
     Raises
     ------
@@ -568,7 +571,9 @@ class ColoRadar(torch.utils.data.Dataset):
 
     def __init__(self, root: str | os.PathLike, split: str = "train", *, runs: Sequence[str] | None = None,
                  cube_size: tuple[int, int, int] | None = (128, 64, 32), fov: RadarFOV = AWR1843_FOV,
-                 max_dt: float | None = None):
+                 max_dt: float | None = None, every: int = 1):
+        if isinstance(every, bool) or int(every) != every or every < 1:
+            raise ValueError(f"every must be a positive integer (1 keeps every frame), got {every!r}")
         self.root = Path(root)
         self.calib = load_calib(find_calib(self.root))
         names = split_runs(find_runs(self.root), split)
@@ -580,13 +585,14 @@ class ColoRadar(torch.utils.data.Dataset):
         self.split = split
         self.cube_size = cube_size
         self.fov = fov
+        self.every = int(every)
         self.runs = [ColoRadarRun(self.root / n, self.calib) for n in names]
         for run in self.runs:
             run.check_poses()
             run.check_counts()
         index = []
         for k, run in enumerate(self.runs):
-            for ri, li in pair_radar_lidar(run, max_dt=max_dt):
+            for ri, li in pair_radar_lidar(run, max_dt=max_dt)[::self.every]:
                 index.append((k, int(ri), int(li)))
         self.index = index
 

@@ -55,6 +55,7 @@ class OSCFARJob:
     root: str | os.PathLike                 # ColoRadar root (real or simulated)
     out: str | os.PathLike                  # prediction folder
     split: str = "test"                     # frames to predict
+    every: int = 1                          # every k-th paired frame of each run
     tune_split: str = "val"                 # split whose frames tune the parameters
     max_tune_frames: int = 32               # evenly spaced frames of the tuning split in the search
     config: str | os.PathLike | None = None  # use this config.yaml instead of tuning
@@ -174,7 +175,7 @@ def predict_oscfar(job: OSCFARJob, *, progress: bool = True,
     """
     out = Path(job.out)
     cfg_path = out / "config.yaml"
-    ds = ColoRadar(job.root, job.split, cube_size=None)
+    ds = ColoRadar(job.root, job.split, cube_size=None, every=job.every)
     if len(ds) == 0:
         raise ValueError(f"split {job.split!r} of {job.root} has no paired radar/LiDAR frame")
     if out.exists() and not out.is_dir():
@@ -193,5 +194,6 @@ def predict_oscfar(job: OSCFARJob, *, progress: bool = True,
         res = fill_predictions(
             out, ds, lambda i: detect_points(ds.cube(i).intensity_db, axes, cfg).cpu().numpy(),
             keep=lambda i, path: same, method="os-cfar", root=job.root, split=job.split,
+            index_extra={"every": job.every},
             progress=progress, desc=f"OS-CFAR {job.split}")
     return OSCFARRun(cfg, how, res.n_frames, res.n_new)

@@ -66,6 +66,7 @@ class GenerationJob:
     root: str | os.PathLike                                      # ColoRadar root (real or simulated)
     out: str | os.PathLike                                       # prediction folder
     split: str = "test"                                          # frames to generate
+    every: int = 1                                               # every k-th paired frame of each run
     generation: GenerationConfig = field(default_factory=GenerationConfig)
     guide: GuideConfig = field(default_factory=GuideConfig)
     overwrite: bool = False                                      # replace a folder holding anything else
@@ -144,12 +145,12 @@ def generate_predictions(job: GenerationJob, ae: torch.nn.Module, dit: torch.nn.
     radarpc.runs.OutputBusyError
         Another process writes the folder.
     """
-    ds = ColoRadar(job.root, job.split, cube_size=None)
+    ds = ColoRadar(job.root, job.split, cube_size=None, every=job.every)
     if len(ds) == 0:
         raise ValueError(f"split {job.split!r} of {job.root} has no paired radar/LiDAR frame")
     cfg, chip = job.generation, ds.calib.single_chip
     key = {"method": METHOD, "root": str(Path(job.root).resolve()), "split": job.split,
-           "generation": to_dict(cfg), "guide": to_dict(job.guide), "grid": grid_key(grid),
+           "every": ds.every, "generation": to_dict(cfg), "guide": to_dict(job.guide), "grid": grid_key(grid),
            "mirror_azimuth": bool(mirror_azimuth), "model": dict(model or {})}
     ae.eval()
     dit.eval()
@@ -167,7 +168,7 @@ def generate_predictions(job: GenerationJob, ae: torch.nn.Module, dit: torch.nn.
         return FramePrediction(res.points, res.record(), res.warning)
 
     def extra(res: FilledFolder) -> dict:
-        return {**{k: key[k] for k in ("generation", "guide", "grid", "mirror_azimuth", "model")},
+        return {**{k: key[k] for k in ("every", "generation", "guide", "grid", "mirror_azimuth", "model")},
                 "empty_frames": [{"run": r, "frame": f} for r, f in res.empty]}
 
     with RunFolder(job.out, {GENERATION_FILE: key}, what="prediction folder").start(overwrite=job.overwrite) as folder:

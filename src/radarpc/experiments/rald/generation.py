@@ -75,7 +75,8 @@ def model_input(run: RaldRun) -> Callable:
 
 
 def generate_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, data: str | os.PathLike | None = None,
-                 split: str = "test", config: GenerateConfig = GenerateConfig(), device: str | None = None,
+                 split: str = "test", every: int = 1, config: GenerateConfig = GenerateConfig(),
+                 device: str | None = None,
                  allow_unfinished: bool = False, overwrite: bool = False, progress: bool = True,
                  on_warning: Callable[[str], None] | None = None,
                  notice: Callable[[str], None] | None = None) -> GenerationRun:
@@ -91,6 +92,9 @@ def generate_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, data: st
     data : path-like, optional
         The ColoRadar root; default the root the run's key names.
     split : str
+    every : int
+        Generate every ``every``-th paired frame of each run (1: all; see
+        :class:`~radarpc.data.coloradar.ColoRadar`).
     config : GenerateConfig
     device : str, optional
         Default: a GPU if any, else the CPU.
@@ -140,7 +144,7 @@ def generate_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, data: st
         data = run_root(run)
         if data is None:
             raise ValueError(f"{run_dir}: the run names no ColoRadar root (an import without --data); give --data ROOT")
-    job = GenerationJob(data, out, split, generation=config.generation, guide=config.guide, overwrite=overwrite)
+    job = GenerationJob(data, out, split, every, generation=config.generation, guide=config.guide, overwrite=overwrite)
     identity = {"run": str(run_dir.resolve()), "weights": file_digests([run_dir / BEST_WEIGHTS])}
     return generate_predictions(job, run.ae, run.dit, model_input=model_input(run), grid=run.grid,
                                 mirror_azimuth=run.ae_config.data.mirror_azimuth, model=identity,
