@@ -240,7 +240,7 @@ def test_evaluate_points_scores_the_listed_frames_and_compares_common_ones(root,
     capsys.readouterr()
     assert main(["evaluate-points", str(full), str(sub), *base, "--out", str(tmp_path / "cmp")]) == 2
     err = capsys.readouterr().err
-    assert "list different frames (every lists 2, every-2nd lists 1; 1 are listed by all" in err
+    assert "list different frames (every lists 2, every-2nd lists 1, 1 in common; e.g. run" in err
     assert f"frame {ds.index[0][1]} only by every" in err and "--common-frames" in err
     assert not (full / "metrics.json").exists() and not (sub / "metrics.json").exists()
     # --common-frames: compared over the common frame; each metrics.json covers its own frames
@@ -253,6 +253,9 @@ def test_evaluate_points_scores_the_listed_frames_and_compares_common_ones(root,
     full_frame = json.loads((full / "metrics.json").read_text())["frames"][1]
     assert cmp["methods"][0]["overall"]["chamfer_mean"] == full_frame["chamfer"]
     assert (tmp_path / "cmp" / "comparison.md").read_text().startswith("Compared over the 1 frames every folder lists")
+    first = _folder(tmp_path / "first", root, ds, "first", [0])
+    assert main(["evaluate-points", str(first), str(sub), *base, "--common-frames"]) == 2
+    assert "have no frame in common: first lists 1, every-2nd lists 1" in capsys.readouterr().err
     # an index listing a frame the split lacks
     bad = _folder(tmp_path / "bad", root, ds, "bad", [0])
     doc = json.loads((bad / "index.json").read_text())
@@ -261,6 +264,8 @@ def test_evaluate_points_scores_the_listed_frames_and_compares_common_ones(root,
     assert main(["evaluate-points", str(bad), *base]) == 2
     assert "lists run 'hallway_run0' frame 0, which is not a paired radar/LiDAR frame of split 'test'" in \
         capsys.readouterr().err
+    assert main(["evaluate-points", str(bad), *base, "--force"]) == 0                  # --force: the split's frames
+    assert [f["frame"] for f in json.loads((bad / "metrics.json").read_text())["frames"]] == [ds.index[0][1]]
 
 
 def test_evaluate_points_counts_empty_predictions_and_compares_over_frames_all_scored(root, tmp_path, capsys):

@@ -28,7 +28,8 @@ is an error, and so is an empty LiDAR truth.
 Each ``PRED_DIR/index.json`` (written by ``radarpc baseline`` or ``radarpc generate``) must name the
 same ``--data`` root and ``--split``, so that predictions are never scored against another
 dataset's LiDAR; ``--force`` skips that check (e.g. for hand-made prediction folders; a folder
-without an index is then scored on every paired frame of the split). Prints a per-scene Markdown
+without an index is then scored on every paired frame of the split, and frames an index lists
+outside the split are left out). Prints a per-scene Markdown
 table per folder and writes ``PRED_DIR/metrics.json`` (per frame, per scene, overall) and
 ``metrics.md``, always over that folder's own frames.
 

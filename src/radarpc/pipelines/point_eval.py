@@ -5,7 +5,7 @@ For each folder (:mod:`radarpc.eval.predictions`): its ``index.json`` must name 
 and split (unless ``force``), and the frames scored are exactly those it lists
 (:func:`radarpc.eval.predictions.index_frames`: every paired frame of the split, or a subset such
 as every K-th); each must be a paired frame of the split. With ``force`` a folder without an index
-is scored on every paired frame of the split. Every listed frame's cloud is scored against the
+is scored on every paired frame of the split, and an index's frames outside the split are left out. Every listed frame's cloud is scored against the
 reader's LiDAR cropped to the frustum (:func:`radarpc.eval.pointsets.evaluate_clouds`); an empty
 cloud is counted, not scored (``empty``), a missing or malformed one is an error, and so is an
 empty ground truth. The report is written into the folder (``metrics.json``, ``metrics.md``),
@@ -84,27 +84,31 @@ def _file_name(scene: str) -> str:
 
 def folder_items(folder: str | os.PathLike, ds: ColoRadar, *, force: bool = False) -> list[int]:
     """The items of ``ds`` (a ColoRadar split) that a prediction folder holds, in the split's order:
-    the frames its ``index.json`` lists; with ``force`` and no index, every item.
+    the frames its ``index.json`` lists. With ``force``: every item when there is no index, and
+    the listed frames that are frames of the split when the index was made on another split or root.
 
     Raises
     ------
     radarpc.io.DataFileError
         The index is missing (without ``force``) or malformed (:func:`radarpc.eval.predictions.index_frames`).
     ValueError
-        The index lists no frame, or a frame that is not a paired frame of the split.
+        The index lists no frame of the split, or (without ``force``) a frame that is not a paired
+        frame of the split.
     """
     folder = Path(folder)
     if force and not (folder / INDEX_FILE).is_file():
         return list(range(len(ds)))
     keys = index_frames(folder)
-    if not keys:
-        raise ValueError(f"{folder / INDEX_FILE} lists no frame")
     item_of = {(ds.runs[k].name, int(ri)): i for i, (k, ri, _) in enumerate(ds.index)}
-    for run, frame in keys:
-        if (run, frame) not in item_of:
-            raise ValueError(f"{folder / INDEX_FILE} lists run {run!r} frame {frame}, which is not a paired "
-                             f"radar/LiDAR frame of split {ds.split!r} of {ds.root}")
-    return sorted(item_of[k] for k in keys)
+    outside = [k for k in keys if k not in item_of]
+    if outside and not force:
+        run, frame = outside[0]
+        raise ValueError(f"{folder / INDEX_FILE} lists run {run!r} frame {frame}, which is not a paired "
+                         f"radar/LiDAR frame of split {ds.split!r} of {ds.root}")
+    items = sorted(item_of[k] for k in keys if k in item_of)
+    if not items:
+        raise ValueError(f"{folder / INDEX_FILE} lists no frame of split {ds.split!r} of {ds.root}")
+    return items
 
 
 def _key(ds: ColoRadar, i: int) -> tuple[str, int]:
@@ -117,7 +121,7 @@ def _differ_message(ds: ColoRadar, names: list[str], items: dict[str, list[int]]
     odd = next(i for n in names for i in items[n] if i not in common)
     owners = [n for n in names if odd in set(items[n])]
     run, frame = _key(ds, odd)
-    return (f"the prediction folders list different frames ({counts}; {len(common)} are listed by all; e.g. run "
+    return (f"the prediction folders list different frames ({counts}, {len(common)} in common; e.g. run "
             f"{run!r} frame {frame} only by {', '.join(owners)}): pass --common-frames to compare them over the "
             f"frames every folder lists, or evaluate the folders one at a time")
 
