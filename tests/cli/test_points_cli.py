@@ -246,13 +246,13 @@ def test_evaluate_points_scores_the_listed_frames_and_compares_common_ones(root,
     # --common-frames: compared over the common frame; each metrics.json covers its own frames
     assert main(["evaluate-points", str(full), str(sub), *base, "--out", str(tmp_path / "cmp"), "--common-frames"]) == 0
     out = capsys.readouterr().out
-    assert "## side by side (1 frames)" in out
+    assert "## side by side (1 frame)" in out
     assert len(json.loads((full / "metrics.json").read_text())["frames"]) == 2
     cmp = json.loads((tmp_path / "cmp" / "comparison.json").read_text())
     assert cmp["n_frames"] == 1 and cmp["frames"].startswith("common") and cmp["methods"][0]["overall"]["n_frames"] == 1
     full_frame = json.loads((full / "metrics.json").read_text())["frames"][1]
     assert cmp["methods"][0]["overall"]["chamfer_mean"] == full_frame["chamfer"]
-    assert (tmp_path / "cmp" / "comparison.md").read_text().startswith("Compared over the 1 frames every folder lists")
+    assert (tmp_path / "cmp" / "comparison.md").read_text().startswith("Compared over the 1 frame every folder lists")
     first = _folder(tmp_path / "first", root, ds, "first", [0])
     assert main(["evaluate-points", str(first), str(sub), *base, "--common-frames"]) == 2
     assert "have no frame in common: first lists 1, every-2nd lists 1" in capsys.readouterr().err
@@ -280,7 +280,7 @@ def test_evaluate_points_counts_empty_predictions_and_compares_over_frames_all_s
     assert f["overall"]["empty"] == 1 and f["overall"]["n_frames"] == 2 and g["overall"]["empty"] == 0
     assert f["overall"]["chamfer_mean"] == f["frames"][1]["chamfer"]                     # over the scored frame
     table = (tmp_path / "cmp" / "comparison.md").read_text()
-    assert "| hallway | fails | 2 | 1 |" in table and "Over the 1 frames every method scored:" in table
+    assert "| hallway | fails | 2 | 1 |" in table and "Over the 1 frame every method scored:" in table
     cmp = json.loads((tmp_path / "cmp" / "comparison.json").read_text())
     common = cmp["common_scored"]
     assert common["n_frames"] == 1 and common["frames"] == [{"run": ds.runs[0].name, "frame": ds.index[1][1]}]

@@ -66,7 +66,8 @@ def run_evaluate_points(args: argparse.Namespace) -> int:
         print(report.to_markdown(), end="")
         print(f"wrote {folder / 'metrics.json'} and {folder / 'metrics.md'}")
     if res.comparison is not None:
-        print(f"\n## side by side ({len(res.compared)} frames)\n\n{res.comparison.read_text()}", end="")
+        n = len(res.compared)
+        print(f"\n## side by side ({n} frame{'' if n == 1 else 's'})\n\n{res.comparison.read_text()}", end="")
         print(f"wrote {res.comparison} and {res.comparison.with_suffix('.json')}")
     for path in res.figures:
         print(f"wrote {path}")

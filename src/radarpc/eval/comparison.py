@@ -76,6 +76,10 @@ def _m(x: float | None) -> str:
     return "-" if x is None else f"{x:.3f}"
 
 
+def _count(n: int) -> str:
+    return f"{n} frame" if n == 1 else f"{n} frames"
+
+
 def common_scored_frames(reports: Mapping[str, PointSetReport]) -> set[tuple[str, int]] | None:
     """``(run, frame)`` of the frames every method scored, or None when every method scored the
     same frames (then the main table already compares like with like)."""
@@ -119,7 +123,7 @@ def comparison_markdown(reports: Mapping[str, PointSetReport]) -> str:
     common = common_scored_frames(reports)
     if common is not None:
         lines += ["", f"The methods differ in which frames they scored (an empty prediction is counted, not scored). "
-                      f"Over the {len(common)} frames every method scored:", ""]
+                      f"Over the {_count(len(common))} every method scored:", ""]
         if common:
             lines += _table({n: r.subset(common) for n, r in reports.items()}, with_empty=False)
         else:

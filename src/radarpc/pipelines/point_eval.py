@@ -184,7 +184,8 @@ def evaluate_folders(folders: Sequence[str | os.PathLike], data: str | os.PathLi
     comparison = None
     if len(paths) > 1:
         comparison = dest / "comparison.md"
-        scope = (f"Compared over the {len(compared)} frames every folder lists (--common-frames).\n\n"
+        scope = (f"Compared over the {len(compared)} frame{'' if len(compared) == 1 else 's'} every folder lists "
+                 "(--common-frames).\n\n"
                  if differ else "")
         with atomic_write(comparison, "w") as f:
             f.write(scope + comparison_markdown(shown))
