@@ -305,3 +305,33 @@ def test_plot_cloud_comparison_draws_the_cube_the_truth_and_each_method(tmp_path
     np.testing.assert_allclose(panels[1].collections[0].get_offsets(), view.truth.xy[:, ::-1])
     np.testing.assert_allclose(panels[6].collections[0].get_offsets(), view.truth.range_elevation)
     assert fig._suptitle.get_text().startswith("scene lab (test split): run lab_run2, radar frame 1, LiDAR scan 2")
+
+
+def test_plot_cdfs_draws_a_step_curve_per_method_and_panel(tmp_path, monkeypatch):
+    from radarpc.eval.comparison import CDFCurve, CDFPanel
+
+    saved = []
+    save = viz.save_figure
+    monkeypatch.setattr(viz, "save_figure", lambda fig, out, dpi, metadata=None: (saved.append(fig),
+                                                                                   save(fig, out, dpi, metadata)))
+    full = CDFCurve("os-cfar", np.array([1.0, 2.0]), np.array([0.5, 1.0]), 2, 0)
+    part = CDFCurve("rald", np.array([0.25]), np.array([0.5]), 2, 1)
+    nothing = CDFCurve("rald", np.zeros(0), np.zeros(0), 1, 1)
+    panels = [CDFPanel("scene lab", (part, full)), CDFPanel("all scenes", (nothing, full))]
+    out = viz.plot_cdfs(panels, tmp_path / "f" / "cdf.png", title="CDF of the per-frame Chamfer distance",
+                        xlabel="Chamfer distance [m]", footer="made by a test")
+    assert out == tmp_path / "f" / "cdf.png" and _png_size(out) == (int(6.4 * 2 * 110), int(4.8 * 110))
+    ax0, ax1 = saved[-1].axes
+    assert ax0.get_title() == "scene lab" and ax0.get_xlabel() == "Chamfer distance [m]"
+    assert ax0.get_ylabel().startswith("fraction of frames")
+    assert [t.get_text() for t in ax0.get_legend().get_texts()] == ["rald (2 frames, 1 empty)", "os-cfar (2 frames)"]
+    # the steps: from 0 up at each score, held to the panel's largest score; rald ends at its scored half
+    r, o = ax0.get_lines()
+    np.testing.assert_array_equal(r.get_xdata(), [0.25, 0.25, 2.0])
+    np.testing.assert_array_equal(r.get_ydata(), [0.0, 0.5, 0.5])
+    np.testing.assert_array_equal(o.get_xdata(), [1.0, 1.0, 2.0, 2.0])
+    np.testing.assert_array_equal(o.get_ydata(), [0.0, 0.5, 1.0, 1.0])
+    assert r.get_color() == ax1.get_lines()[0].get_color() != o.get_color()        # a colour per method
+    np.testing.assert_array_equal(ax1.get_lines()[0].get_ydata(), [0.0, 0.0])       # nothing scored: flat at 0
+    with pytest.raises(ValueError, match="no panel"):
+        viz.plot_cdfs([], tmp_path / "x.png", title="t", xlabel="x")

@@ -8,7 +8,9 @@ dataset (the learning curves read the runs' ``log.csv``). ``radarpc show`` draws
 cloud (:func:`plot_coloradar_view`), or the OS-CFAR tuning search of a prediction folder
 (:func:`plot_oscfar_tuning`); ``radarpc evaluate-points --figures`` draws a frame of each scene
 with the truth and every method's cloud side by side (:func:`plot_cloud_comparison`, the view
-computed by :func:`radarpc.eval.comparison.comparison_view`). Figures are built on matplotlib's object API
+computed by :func:`radarpc.eval.comparison.comparison_view`) and the empirical CDFs of the
+per-frame Chamfer distance and EMD (:func:`plot_cdfs`, the curves computed by
+:func:`radarpc.eval.comparison.cdf_panels`). Figures are built on matplotlib's object API
 (:class:`matplotlib.figure.Figure`, saved through the Agg canvas), so that neither pyplot's figure
 registry nor the global backend is touched. :mod:`radarpc.pipelines.frames` computes the inputs of
 the frame figures from a dataset root (and optionally a point store or a prediction folder);
@@ -27,7 +29,7 @@ import torch
 from radarpc.boxes import BOX_LENGTH_M, BOX_WIDTH_M
 from radarpc.data.radial import LabelTable
 from radarpc.data.summary import ColoRadarView, FrameView, RadialSummary, TuningTable
-from radarpc.eval.comparison import ComparisonView, angle_edges_deg, range_edges
+from radarpc.eval.comparison import CDFPanel, ComparisonView, angle_edges_deg, range_edges
 from radarpc.eval.curves import DensityCurve, seed_statistics
 from radarpc.io import atomic_write
 from radarpc.points import PointCloudBatch
@@ -52,6 +54,7 @@ __all__ = [
     "plot_coloradar_view",
     "plot_oscfar_tuning",
     "plot_cloud_comparison",
+    "plot_cdfs",
     "DensityPanel",
     "plot_density_curves",
     "RateCurve",
@@ -508,6 +511,52 @@ def plot_cloud_comparison(view: ComparisonView, out: str | os.PathLike) -> Path:
     fig.tight_layout()
     save_figure(fig, out, dpi=100)
     return out
+
+
+def plot_cdfs(panels: list[CDFPanel], out: str | os.PathLike, *, title: str, xlabel: str, footer: str = "",
+              metadata: dict[str, str] | None = None) -> Path:
+    """Empirical CDFs of a per-frame score, one panel each (a scene, or all frames), one curve per
+    method, as the seed's Figs. 6-7: a step at every frame's score; the curve of a method with
+    empty predictions ends below 1 (those frames are never reached), which its legend says.
+
+    Parameters
+    ----------
+    panels : list of CDFPanel
+        From :func:`radarpc.eval.comparison.cdf_panels`.
+    out : path-like
+        The figure to write (its suffix names the format; folders are created).
+    title : str
+        The figure's title.
+    xlabel : str
+        The score's axis label, with its unit (e.g. ``"Chamfer distance [m]"``).
+    footer : str
+        Small text under the panels (what made the figure).
+    metadata : dict, optional
+        Stored in the file (:func:`save_figure`).
+    """
+    out, fig, axes = _panel_figure(out, len(panels), "plot_cdfs")
+    names = list(dict.fromkeys(c.label for panel in panels for c in panel.curves))
+    colour = {n: f"C{k % 10}" for k, n in enumerate(names)}           # one colour per method in every panel
+    for k, (ax, panel) in enumerate(zip(axes, panels)):
+        right = max((float(c.x[-1]) for c in panel.curves if c.x.size), default=1.0)
+        for c in panel.curves:
+            empty = f", {c.n_empty} empty" if c.n_empty else ""
+            label = f"{c.label} ({c.n_frames} frames{empty})"
+            if c.x.size == 0:                                        # nothing scored: a flat line at 0
+                ax.plot([0.0, right], [0.0, 0.0], color=colour[c.label], label=label)
+                continue
+            x = np.r_[c.x[0], c.x, right]
+            p = np.r_[0.0, c.p, c.p[-1]]
+            ax.step(x, p, where="post", color=colour[c.label], label=label)
+        ax.set(xlim=(0.0, 1.02 * right), ylim=(0.0, 1.02), xlabel=xlabel, title=panel.title)
+        if k == 0:
+            ax.set_ylabel("fraction of frames with a score <= x (CDF)")
+        ax.grid(alpha=0.3)
+        if panel.curves:
+            ax.legend(fontsize=8, loc="lower right")
+    fig.suptitle(f"{title}\nempirical CDF over the frames; a frame whose prediction is empty counts as never "
+                 f"reached (the curve ends at the scored fraction)", fontsize=10)
+    return _save_with_footer(fig, out, footer, metadata)
 
 
 # ---- OS-CFAR tuning ------------------------------------------------------------------------------

@@ -86,7 +86,7 @@ def test_report_names_every_figure_and_each_is_a_readable_png(demo):
     named = set(re.findall(r"^- `([^`]+\.png)`: ", section, re.M))
     drawn = {p.relative_to(demo.out).as_posix() for p in demo.out.rglob("*.png")
              if p.relative_to(demo.out).parts[0] not in DATA_ROOTS}
-    assert named == drawn and len(drawn) == 16
+    assert named == drawn and len(drawn) == 19
     linked = set(re.findall(r"!\[[^]]*\]\(([^)]+)\)", demo.report))
     assert linked <= named and {"frame.png", "f1_density.png", "preds/oscfar/figures/hallway.png"} <= linked
     for name in named:

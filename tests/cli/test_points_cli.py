@@ -6,7 +6,7 @@ import pytest
 
 from radarpc.cli import main
 from radarpc.data.coloradar import ColoRadar
-from radarpc.eval.pointsets import chamfer_distance, earth_movers_distance
+from radarpc.eval.pointsets import chamfer_distance, earth_movers_distance, earth_movers_distance_equal
 from radarpc.rald.oscfar_baseline import load_config
 
 
@@ -75,14 +75,18 @@ def test_evaluate_points_names_a_missing_or_bad_prediction(root, tmp_path, capsy
     assert main(force) == 2
     err = capsys.readouterr().err
     assert str(missing) in err and "missing" in err
-    np.save(missing, np.zeros((0, 3), np.float32))
-    assert main(force) == 2
-    err = capsys.readouterr().err
-    assert str(missing) in err and "empty" in err
     np.save(missing, np.zeros((4, 2), np.float32))
     assert main(force) == 2
     assert "expected shape *x3" in capsys.readouterr().err
     assert not (pred / "metrics.json").exists()
+    # an empty cloud is counted, not scored
+    np.save(missing, np.zeros((0, 3), np.float32))
+    assert main(force + ["--emd-points", "16"]) == 0
+    metrics = json.loads((pred / "metrics.json").read_text())
+    assert metrics["overall"]["n_frames"] == 2 and metrics["overall"]["empty"] == 1
+    assert [f["empty"] for f in metrics["frames"]] == [False, True] and metrics["frames"][1]["chamfer"] is None
+    assert metrics["overall"]["chamfer_mean"] == metrics["frames"][0]["chamfer"]
+    assert metrics["extra"]["frames_from"] == "split (no index, --force)"
 
 
 def test_baseline_with_given_config_and_bad_split(root, tmp_path, capsys):
@@ -177,17 +181,108 @@ def test_evaluate_points_side_by_side_with_figures(root, tmp_path, capsys):
     b = json.loads((shifted / "metrics.json").read_text())
     assert a["overall"]["chamfer_mean"] == 0.0 and b["overall"]["chamfer_mean"] > 0.1      # the truth scores 0
     table = (out / "comparison.md").read_text()
-    assert table in printed and "lidar: CD mean" in table and "lidar-shifted: EMD median" in table
-    row = [ln for ln in table.splitlines() if ln.startswith("| hallway |")][0].strip("| ").split(" | ")
+    assert table in printed and "| scene | method | frames | empty | CD mean |" in table and "EMD_equal median" in table
+    row = [ln for ln in table.splitlines() if ln.startswith("| hallway | lidar-shifted |")][0].strip("| ").split(" | ")
     s = b["scenes"][0]
-    assert row[:3] == ["hallway", str(len(ds)), "0.000"]
-    assert row[6:] == [f"{s['chamfer_mean']:.3f}", f"{s['chamfer_median']:.3f}", f"{s['emd_mean']:.3f}",
-                         f"{s['emd_median']:.3f}"]
+    assert row[:4] == ["hallway", "lidar-shifted", str(len(ds)), "0"]
+    assert row[4:] == [f"{s[k]:.3f}" for k in ("chamfer_mean", "chamfer_median", "emd_mean", "emd_median",
+                                                 "emd_equal_mean", "emd_equal_median")]
+    assert "| hallway | lidar | 2 | 0 | 0.000 |" in table
+    # EMD_equal: the per-frame numbers are the metric function's on the files
+    for i, f in enumerate(b["frames"]):
+        gt = ds.lidar_points(i)
+        assert f["emd_equal"] == pytest.approx(earth_movers_distance_equal(gt + np.float32([0.5, 0, 0]), gt, n=64))
     summary = json.loads((out / "comparison.json").read_text())
     assert [m["name"] for m in summary["methods"]] == ["lidar", "lidar-shifted"] and summary["split"] == "test"
+    assert summary["n_frames"] == len(ds) and summary["common_scored"] is None
     with Image.open(out / "figures" / "hallway.png") as im:
         assert im.format == "PNG" and im.size == (int(4.2 * 4 * 100), 840)
+    for name in ("cdf_chamfer.png", "cdf_emd.png", "cdf_emd_equal.png"):
+        with Image.open(out / "figures" / name) as im:
+            im.load()
+            assert im.format == "PNG" and im.size == (int(6.4 * 110), int(4.8 * 110))    # one scene: one panel
+        assert f"wrote {out / 'figures' / name}" in printed
     assert f"wrote {out / 'figures' / 'hallway.png'}" in printed
     # the same folder twice is refused
     assert main(["evaluate-points", str(exact), str(exact), "--data", str(root), "--split", "test"]) == 2
     assert "given twice" in capsys.readouterr().err
+
+
+def _folder(folder, root, ds, method, items, *, shift=0.0, empty=()):
+    """A prediction folder of the LiDAR truth (shifted in x) for the split's items ``items``, with an
+    index listing exactly those; the items in ``empty`` get a cloud without a point."""
+    from radarpc.eval.predictions import prediction_path, write_index
+
+    frames = []
+    for i in items:
+        k, ri, _ = ds.index[i]
+        path = prediction_path(folder, ds.runs[k].name, ri)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        pts = np.zeros((0, 3), np.float32) if i in empty else ds.lidar_points(i) + np.float32([shift, 0, 0])
+        np.save(path, pts)
+        frames.append({"run": ds.runs[k].name, "frame": ri, "n_points": len(pts), "empty": len(pts) == 0})
+    write_index(folder, method, root, "test", frames)
+    return folder
+
+
+def test_evaluate_points_scores_the_listed_frames_and_compares_common_ones(root, tmp_path, capsys):
+    ds = ColoRadar(root, "test", cube_size=None)
+    assert len(ds) == 2
+    full = _folder(tmp_path / "full", root, ds, "every", [0, 1], shift=0.2)
+    sub = _folder(tmp_path / "sub", root, ds, "every-2nd", [1], shift=0.4)
+    base = ["--data", str(root), "--split", "test", "--emd-points", "16"]
+    # a subset folder alone: exactly its listed frame (no file of the other frame is needed)
+    assert main(["evaluate-points", str(sub), *base]) == 0
+    m = json.loads((sub / "metrics.json").read_text())
+    assert [(f["run"], f["frame"]) for f in m["frames"]] == [(ds.runs[0].name, ds.index[1][1])]
+    # different frame sets: refused before any scoring, with how they differ
+    (sub / "metrics.json").unlink()
+    capsys.readouterr()
+    assert main(["evaluate-points", str(full), str(sub), *base, "--out", str(tmp_path / "cmp")]) == 2
+    err = capsys.readouterr().err
+    assert "list different frames (every lists 2, every-2nd lists 1, 1 in common; e.g. run" in err
+    assert f"frame {ds.index[0][1]} only by every" in err and "--common-frames" in err
+    assert not (full / "metrics.json").exists() and not (sub / "metrics.json").exists()
+    # --common-frames: compared over the common frame; each metrics.json covers its own frames
+    assert main(["evaluate-points", str(full), str(sub), *base, "--out", str(tmp_path / "cmp"), "--common-frames"]) == 0
+    out = capsys.readouterr().out
+    assert "## side by side (1 frame)" in out
+    assert len(json.loads((full / "metrics.json").read_text())["frames"]) == 2
+    cmp = json.loads((tmp_path / "cmp" / "comparison.json").read_text())
+    assert cmp["n_frames"] == 1 and cmp["frames"].startswith("common") and cmp["methods"][0]["overall"]["n_frames"] == 1
+    full_frame = json.loads((full / "metrics.json").read_text())["frames"][1]
+    assert cmp["methods"][0]["overall"]["chamfer_mean"] == full_frame["chamfer"]
+    assert (tmp_path / "cmp" / "comparison.md").read_text().startswith("Compared over the 1 frame every folder lists")
+    first = _folder(tmp_path / "first", root, ds, "first", [0])
+    assert main(["evaluate-points", str(first), str(sub), *base, "--common-frames"]) == 2
+    assert "have no frame in common: first lists 1, every-2nd lists 1" in capsys.readouterr().err
+    # an index listing a frame the split lacks
+    bad = _folder(tmp_path / "bad", root, ds, "bad", [0])
+    doc = json.loads((bad / "index.json").read_text())
+    doc["frames"].append({"run": "hallway_run0", "frame": 0})
+    (bad / "index.json").write_text(json.dumps(doc))
+    assert main(["evaluate-points", str(bad), *base]) == 2
+    assert "lists run 'hallway_run0' frame 0, which is not a paired radar/LiDAR frame of split 'test'" in \
+        capsys.readouterr().err
+    assert main(["evaluate-points", str(bad), *base, "--force"]) == 0                  # --force: the split's frames
+    assert [f["frame"] for f in json.loads((bad / "metrics.json").read_text())["frames"]] == [ds.index[0][1]]
+
+
+def test_evaluate_points_counts_empty_predictions_and_compares_over_frames_all_scored(root, tmp_path, capsys):
+    ds = ColoRadar(root, "test", cube_size=None)
+    good = _folder(tmp_path / "good", root, ds, "good", [0, 1], shift=0.3)
+    fails = _folder(tmp_path / "fails", root, ds, "fails", [0, 1], shift=0.1, empty={0})
+    capsys.readouterr()
+    assert main(["evaluate-points", str(good), str(fails), "--data", str(root), "--split", "test",
+                 "--emd-points", "16", "--out", str(tmp_path / "cmp")]) == 0
+    f = json.loads((fails / "metrics.json").read_text())
+    g = json.loads((good / "metrics.json").read_text())
+    assert f["overall"]["empty"] == 1 and f["overall"]["n_frames"] == 2 and g["overall"]["empty"] == 0
+    assert f["overall"]["chamfer_mean"] == f["frames"][1]["chamfer"]                     # over the scored frame
+    table = (tmp_path / "cmp" / "comparison.md").read_text()
+    assert "| hallway | fails | 2 | 1 |" in table and "Over the 1 frame every method scored:" in table
+    cmp = json.loads((tmp_path / "cmp" / "comparison.json").read_text())
+    common = cmp["common_scored"]
+    assert common["n_frames"] == 1 and common["frames"] == [{"run": ds.runs[0].name, "frame": ds.index[1][1]}]
+    assert common["methods"][0]["overall"]["chamfer_mean"] == g["frames"][1]["chamfer"]
+    assert common["methods"][1]["overall"]["chamfer_mean"] == f["frames"][1]["chamfer"]

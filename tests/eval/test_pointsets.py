@@ -13,6 +13,8 @@ from radarpc.eval.pointsets import (
     chamfer_distance_batch,
     earth_movers_distance,
     earth_movers_distance_batch,
+    earth_movers_distance_equal,
+    emd_resample,
     emd_subset,
     evaluate_clouds,
 )
@@ -228,9 +230,109 @@ def test_evaluate_clouds_per_scene_tables(tmp_path):
     md = (tmp_path / "m.md").read_text()
     assert "| hall | 2 |" in md and "**all**" in md and "gt 40, pred 40" in md and "Wasserstein-1" in md
     assert d["frames"][0]["emd_gt_k"] == 40 and d["frames"][0]["emd_pred_k"] == 40
-    with pytest.raises(ValueError, match="run 'lab_0' frame 0: pred cloud is empty"):
-        evaluate_clouds([CloudPair("lab_0", 0, np.zeros((0, 3)), gt)], {"lab_0": "lab"})
+    with pytest.raises(ValueError, match=r"run 'lab_0' frame 0: pred cloud must have shape \(N, 3\)"):
+        evaluate_clouds([CloudPair("lab_0", 0, np.zeros((4, 2)), gt)], {"lab_0": "lab"})
     with pytest.raises(ValueError, match="no scene"):
         evaluate_clouds(pairs, {"hall_1": "hall"})
     with pytest.raises(ValueError, match="no frames"):
         evaluate_clouds([], {})
+
+
+# ---- the equal-size EMD ---------------------------------------------------------------------------
+
+def test_emd_resample_sizes_and_draws():
+    rng = np.random.default_rng(3)
+    big, small = rng.normal(size=(50, 3)), rng.normal(size=(7, 3))
+    # more than n: n distinct points of the cloud, without replacement, the subset of emd_subset
+    r = emd_resample(big, 20, 5)
+    assert r.shape == (20, 3) and len(np.unique(r, axis=0)) == 20
+    np.testing.assert_array_equal(r, emd_subset(big, 20, 5))
+    # fewer than n: every point at least once, exactly n rows, the rest repeats of its points
+    r = emd_resample(small, 30, 5)
+    assert r.shape == (30, 3)
+    rows = {tuple(x) for x in r}
+    assert rows == {tuple(x) for x in small}
+    # exactly n: the cloud itself; the draw is keyed by the point set, not its order, and seeded
+    np.testing.assert_array_equal(emd_resample(small, 7), emd_subset(small, 7))
+    np.testing.assert_array_equal(emd_resample(small[::-1].copy(), 30, 5), r)
+    assert not np.array_equal(emd_resample(small, 30, 6), r)
+
+
+def test_emd_equal_hand_worked_on_a_line():
+    # 3 vs 3 points on the x axis, n = 3: no resampling; on a line the optimal one-to-one
+    # assignment matches sorted orders: |0 - 0.5| + |1 - 2| + |5 - 4| = 2.5, mean 2.5 / 3
+    p = [[0.0, 0, 0], [5.0, 0, 0], [1.0, 0, 0]]
+    g = [[4.0, 0, 0], [0.5, 0, 0], [2.0, 0, 0]]
+    assert earth_movers_distance_equal(p, g, n=3) == pytest.approx(2.5 / 3, rel=1e-12)
+    # one predicted point resampled to n copies: the mean distance to the n truth points
+    assert earth_movers_distance_equal([[0.0, 0, 0]], [[1.0, 0, 0], [3.0, 0, 0]], n=2) == pytest.approx(2.0)
+    # {0, 10} resampled to 4 against {0, 1, 2, 3}: sorted matching of whatever the draw repeated
+    p2 = np.array([[0.0, 0, 0], [10.0, 0, 0]])
+    g2 = np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0], [3.0, 0, 0]])
+    xs = np.sort(emd_resample(p2, 4, 0, name="pred")[:, 0])
+    assert set(xs[:1]) == {0.0} and xs[-1] == 10.0                        # both points present
+    expected = np.abs(xs - np.array([0.0, 1.0, 2.0, 3.0])).mean()
+    assert earth_movers_distance_equal(p2, g2, n=4, seed=0) == pytest.approx(expected, rel=1e-12)
+    # the unequal-size EMD of the same pair: half the mass at 0 takes {0, 1}, half at 10 {2, 3}
+    assert earth_movers_distance(p2, g2, n=4) == pytest.approx((0 + 1 + 8 + 7) / 4)
+
+
+@pytest.mark.parametrize("sizes", [(5, 40), (40, 5), (12, 12), (60, 80)])
+def test_emd_equal_is_the_assignment_of_the_resampled_clouds(sizes):
+    rng = np.random.default_rng(sum(sizes))
+    p, g = rng.normal(size=(sizes[0], 3)), rng.normal(size=(sizes[1], 3)) + 0.7
+    n = 32
+    got = earth_movers_distance_equal(p, g, n=n, seed=4)
+    ref = _brute_emd(emd_resample(p, n, 4, name="pred"), emd_resample(g, n, 4))   # scipy's assignment
+    assert got == pytest.approx(ref, rel=1e-9)
+    if min(sizes) >= n:                                                 # both drawn without replacement
+        assert got == earth_movers_distance(p, g, n=n, seed=4)
+    emd = earth_movers_distance_batch([p, g], [g, p], n=n, seed=4, equal_size=True)
+    assert emd[0] == got and emd[1] == pytest.approx(earth_movers_distance_equal(g, p, n=n, seed=4))
+
+
+@pytest.mark.parametrize("size", [1, 9, 32, 100])
+def test_emd_equal_of_a_cloud_to_itself_is_zero(size):
+    # <= n points: both resampled to the same multiset; more: the same keyed subset
+    c = np.random.default_rng(size).uniform(-3, 3, (size, 3))
+    assert earth_movers_distance_equal(c, c[::-1].copy(), n=32) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_emd_equal_refuses_bad_input():
+    with pytest.raises(ValueError, match="pred cloud is empty"):
+        earth_movers_distance_equal(np.zeros((0, 3)), np.ones((2, 3)))
+    with pytest.raises(ValueError, match="resample size"):
+        earth_movers_distance_equal(np.ones((2, 3)), np.ones((2, 3)), n=0)
+
+
+# ---- empty predictions: counted, not scored --------------------------------------------------------
+
+def test_evaluate_clouds_counts_empty_predictions(tmp_path):
+    rng = np.random.default_rng(1)
+    gt = rng.uniform(0, 5, (30, 3))
+    pairs = [CloudPair("hall_1", 0, gt + [0.2, 0, 0], gt), CloudPair("hall_1", 1, np.zeros((0, 3)), gt),
+             CloudPair("lab_0", 0, np.zeros((0, 3), np.float32), gt), CloudPair("hall_1", 2, gt[:10], gt)]
+    rep = evaluate_clouds(pairs, {"hall_1": "hall", "lab_0": "lab"}, emd_points=16, batch_size=3)
+    assert [f.empty for f in rep.frames] == [False, True, True, False]
+    assert rep.frames[1].chamfer is None and rep.frames[1].emd is None and rep.frames[1].emd_equal is None
+    assert rep.frames[3].emd_equal == pytest.approx(earth_movers_distance_equal(gt[:10], gt, n=16))
+    assert rep.frames[3].emd == pytest.approx(earth_movers_distance(gt[:10], gt, n=16))
+    hall, lab = rep.scenes
+    assert (hall.n_frames, hall.empty, hall.n_scored) == (3, 1, 2)
+    cds = [chamfer_distance(gt + [0.2, 0, 0], gt), chamfer_distance(gt[:10], gt)]
+    assert hall.chamfer_mean == pytest.approx(np.mean(cds)) and hall.chamfer_median == pytest.approx(np.median(cds))
+    assert (lab.n_frames, lab.empty, lab.chamfer_mean, lab.emd_equal_mean) == (1, 1, None, None)
+    assert (rep.overall.n_frames, rep.overall.empty) == (4, 2)
+    assert rep.scored_keys == {("hall_1", 0), ("hall_1", 2)}
+    rep.write(tmp_path / "m.json", tmp_path / "m.md")
+    d = json.loads((tmp_path / "m.json").read_text())
+    assert d["overall"]["empty"] == 2 and d["frames"][1]["empty"] and d["frames"][1]["chamfer"] is None
+    md = (tmp_path / "m.md").read_text()
+    assert "| lab | 1 | 1 | - | - | - | - | - | - |" in md and "| hall | 3 | 1 |" in md and "EMD_equal" in md
+    # a subset recomputes the summaries
+    sub = rep.subset({("hall_1", 0), ("lab_0", 0)})
+    assert sub.overall.n_frames == 2 and sub.overall.empty == 1 and sub.overall.chamfer_mean == pytest.approx(cds[0])
+    # an empty ground truth is still an error naming run and frame, with an empty prediction too
+    for pred in (gt, np.zeros((0, 3))):
+        with pytest.raises(ValueError, match="run 'lab_0' frame 4: gt cloud is empty"):
+            evaluate_clouds([CloudPair("lab_0", 4, pred, np.zeros((0, 3)))], {"lab_0": "lab"})

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from radarpc.eval.predictions import check_index, load_prediction, prediction_path, write_index
+from radarpc.eval.predictions import check_index, index_frames, load_prediction, prediction_path, write_index
 from radarpc.io import DataFileError
 
 
@@ -37,5 +37,25 @@ def test_load_prediction_names_bad_files(tmp_path):
     np.save(path, np.zeros((0, 3), np.float32))
     with pytest.raises(DataFileError, match="empty"):
         load_prediction(tmp_path, "r_run0", 3)
+    assert load_prediction(tmp_path, "r_run0", 3, allow_empty=True).shape == (0, 3)
     np.save(path, np.arange(6, dtype=np.float32).reshape(2, 3))
     np.testing.assert_array_equal(load_prediction(tmp_path, "r_run0", 3), [[0, 1, 2], [3, 4, 5]])
+
+
+def test_index_frames_lists_the_frames_and_names_bad_entries(tmp_path):
+    write_index(tmp_path, "m", tmp_path, "test", [{"run": "b_run1", "frame": 9, "empty": True}, {"run": "a_run0", "frame": 2}])
+    assert index_frames(tmp_path) == [("b_run1", 9), ("a_run0", 2)]                    # the index's order
+    for frames, match in (([{"run": "a", "frame": 1}, {"run": "a", "frame": 1}], "lists run 'a' frame 1 twice"),
+                          ([{"run": "a", "frame": "1"}], r"frames\[0\] must hold a string 'run' and an integer"),
+                          ([{"frame": 1}], r"frames\[0\]"), ({"a": 1}, "'frames' must be a list")):
+        write_index(tmp_path, "m", tmp_path, "test", [])
+        doc = json.loads((tmp_path / "index.json").read_text())
+        doc["frames"] = frames
+        (tmp_path / "index.json").write_text(json.dumps(doc))
+        with pytest.raises(DataFileError, match=match):
+            index_frames(tmp_path)
+    (tmp_path / "index.json").write_text("{}")
+    with pytest.raises(DataFileError, match="'frames' list"):
+        index_frames(tmp_path)
+    with pytest.raises(DataFileError, match="missing"):
+        index_frames(tmp_path / "none")

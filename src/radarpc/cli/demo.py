@@ -448,9 +448,14 @@ def _coloradar_steps(cfg: DemoConfig, paths: DemoPaths, device: str) -> list[Dem
                  ["evaluate-points", str(preds), "--data", str(colo), "--split", "test", "--figures"],
                  "Scores each OS-CFAR cloud against the LiDAR points inside the radar's field of view.",
                  outputs=[preds / "metrics.json"],
-                 figures=[(preds / "figures" / f"{s}.png",
-                           f"a {s} test frame: the radar cube, the LiDAR truth and the OS-CFAR cloud, from above "
-                           f"(top) and as range against elevation (bottom)") for s in scenes]),
+                 figures=[*((preds / "figures" / f"{s}.png",
+                             f"a {s} test frame: the radar cube, the LiDAR truth and the OS-CFAR cloud, from above "
+                             f"(top) and as range against elevation (bottom)") for s in scenes),
+                          *((preds / "figures" / f"cdf_{m}.png",
+                             f"the empirical CDF of the per-frame {what} of the OS-CFAR clouds, a panel per scene "
+                             f"and one of all test frames (as RaLD's Figs. 6-7)")
+                            for m, what in (("chamfer", "Chamfer distance"), ("emd", "EMD"),
+                                            ("emd_equal", "equal-size EMD")))]),
     ]
 
 

@@ -12,10 +12,12 @@ from radarpc.eval.pointsets import (
     chamfer_distance_batch,
     earth_movers_distance,
     earth_movers_distance_batch,
+    earth_movers_distance_equal,
+    emd_resample,
     emd_subset,
     evaluate_clouds,
 )
-from radarpc.eval.predictions import check_index, prediction_pairs, prediction_path
+from radarpc.eval.predictions import check_index, index_frames, prediction_pairs, prediction_path
 
 __all__ = [
     "EMD_POINTS",
@@ -29,9 +31,12 @@ __all__ = [
     "chamfer_distance_batch",
     "earth_movers_distance",
     "earth_movers_distance_batch",
+    "earth_movers_distance_equal",
+    "emd_resample",
     "emd_subset",
     "evaluate_clouds",
     "check_index",
+    "index_frames",
     "prediction_pairs",
     "prediction_path",
 ]

@@ -1,9 +1,18 @@
-"""Methods side by side: the per-scene table of several prediction folders' scores, and what the
-comparison figure of one frame draws (computed here, drawn by :func:`radarpc.viz.plot_cloud_comparison`).
+"""Methods side by side: the per-scene table of several prediction folders' scores, the
+empirical CDFs of their per-frame scores, and what the comparison figure of one frame draws
+(computed here, drawn by :func:`radarpc.viz.plot_cloud_comparison` and :func:`radarpc.viz.plot_cdfs`).
 
-Table (:func:`comparison_markdown`, :func:`comparison_dict`): one row per scene and ``all``, one
-column group per method (CD mean and median, EMD mean and median, metres), from the methods'
-:class:`~radarpc.eval.pointsets.PointSetReport` of the same frames.
+Table (:func:`comparison_markdown`, :func:`comparison_dict`): one row per scene (and ``all``) and
+method: frames, empty predictions, CD, EMD and EMD_equal mean and median (metres), from the
+methods' :class:`~radarpc.eval.pointsets.PointSetReport` of the same frames. An empty prediction
+is counted, not scored; when the methods differ in which frames they scored, a second table gives
+the same over the frames *every* method scored (:func:`common_scored_frames`), so that no method
+gains by failing on the hard frames.
+
+CDFs (:func:`empirical_cdf`, :func:`cdf_panels`), as the seed's Figs. 6-7: per panel (each scene,
+and all frames when there are several scenes) one curve per method, the fraction of the frames
+whose score is at most ``x``. A frame whose prediction is empty counts in the denominator and
+never below any ``x``: such a method's curve ends below 1, at its scored fraction.
 
 Figure (:func:`comparison_view`): one radar frame, in two rows that share their axes across the
 columns:
@@ -21,17 +30,23 @@ random subset of that many (a fixed seed; the view says how many of how many are
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Mapping
 
 import numpy as np
 
-from radarpc.eval.pointsets import PointSetReport
+from radarpc.eval.pointsets import PointSetReport, metric_note
 from radarpc.sensors.coloradar import AWR1843_FOV, RadarFOV
 
 __all__ = [
+    "CDF_METRICS",
     "comparison_markdown",
     "comparison_dict",
+    "common_scored_frames",
+    "empirical_cdf",
+    "CDFCurve",
+    "CDFPanel",
+    "cdf_panels",
     "angle_edges_deg",
     "range_edges",
     "CloudView",
@@ -39,6 +54,9 @@ __all__ = [
     "cloud_view",
     "comparison_view",
 ]
+
+CDF_METRICS = {"chamfer": "Chamfer distance", "emd": "EMD", "emd_equal": "EMD_equal"}
+"""The per-frame scores :func:`cdf_panels` takes (FrameMetrics field -> name in titles)."""
 
 
 # ---- the table ----------------------------------------------------------------------------------
@@ -54,41 +72,150 @@ def _summary(report: PointSetReport, scene: str):
     return next((s for s in report.scenes if s.scene == scene), None)
 
 
+def _m(x: float | None) -> str:
+    return "-" if x is None else f"{x:.3f}"
+
+
+def _count(n: int) -> str:
+    return f"{n} frame" if n == 1 else f"{n} frames"
+
+
+def common_scored_frames(reports: Mapping[str, PointSetReport]) -> set[tuple[str, int]] | None:
+    """``(run, frame)`` of the frames every method scored, or None when every method scored the
+    same frames (then the main table already compares like with like)."""
+    scored = [r.scored_keys for r in reports.values()]
+    if all(k == scored[0] for k in scored):
+        return None
+    return set.intersection(*scored) if scored else set()
+
+
+def _table(reports: Mapping[str, PointSetReport], *, with_empty: bool) -> list[str]:
+    head = "| scene | method | frames | " + ("empty | " if with_empty else "") + \
+        "CD mean | CD median | EMD mean | EMD median | EMD_equal mean | EMD_equal median |"
+    lines = [head, "|---|---|---:|" + ("---:|" if with_empty else "") + "---:|" * 6]
+    for scene in [*_scenes(reports), "all"]:
+        label = "**all**" if scene == "all" else scene
+        for name, r in reports.items():
+            s = _summary(r, scene)
+            if s is None:
+                cells = ["0", *(["-"] if with_empty else []), *["-"] * 6]
+            else:
+                cells = [str(s.n_frames), *([str(s.empty)] if with_empty else []),
+                         _m(s.chamfer_mean), _m(s.chamfer_median), _m(s.emd_mean), _m(s.emd_median),
+                         _m(s.emd_equal_mean), _m(s.emd_equal_median)]
+            lines.append(f"| {label} | {name} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def comparison_markdown(reports: Mapping[str, PointSetReport]) -> str:
-    """A Markdown table of several methods' scores per scene: rows the scenes and ``all``, a group
-    of four columns per method (CD mean, CD median, EMD mean, EMD median; metres), then the number
-    of frames (``a/b/...`` where the methods' counts differ; a scene a method lacks shows ``-``)."""
+    """Markdown tables of several methods' scores per scene (metres).
+
+    The first table: a row per scene (scenes sorted, then ``all``) and method (in the order
+    given): frames, empty predictions, CD, EMD and EMD_equal mean and median over the frames the
+    method scored (``-`` where it scored none, a scene a method lacks shows 0 frames). When the
+    methods scored different frames (:func:`common_scored_frames`), a second table gives the same
+    over the frames every method scored.
+    """
     if not reports:
         raise ValueError("comparison_markdown needs at least one method's report")
-    names = list(reports)
-    head = "| scene | frames | " + " | ".join(f"{n}: CD mean | {n}: CD median | {n}: EMD mean | {n}: EMD median"
-                                             for n in names) + " |"
-    lines = [head, "|---|---:|" + "---:|" * (4 * len(names))]
-    for scene in [*_scenes(reports), "all"]:
-        sums = [_summary(reports[n], scene) for n in names]
-        counts = {s.n_frames if s is not None else 0 for s in sums}
-        frames = str(counts.pop()) if len(counts) == 1 else "/".join(str(s.n_frames if s else 0) for s in sums)
-        cells = []
-        for s in sums:
-            cells += (["-"] * 4 if s is None else
-                      [f"{s.chamfer_mean:.3f}", f"{s.chamfer_median:.3f}", f"{s.emd_mean:.3f}", f"{s.emd_median:.3f}"])
-        label = "**all**" if scene == "all" else scene
-        lines.append(f"| {label} | {frames} | " + " | ".join(cells) + " |")
     first = next(iter(reports.values()))
-    lines += ["", f"CD: RaLD's non-squared Chamfer distance (m). EMD: exact Wasserstein-1 between random subsets of "
-                  f"min({first.emd_points}, |cloud|) points, seed {first.emd_seed} (m). Same frames for every method."]
+    lines = _table(reports, with_empty=True)
+    common = common_scored_frames(reports)
+    if common is not None:
+        lines += ["", f"The methods differ in which frames they scored (an empty prediction is counted, not scored). "
+                      f"Over the {_count(len(common))} every method scored:", ""]
+        if common:
+            lines += _table({n: r.subset(common) for n, r in reports.items()}, with_empty=False)
+        else:
+            lines.append("(no frame was scored by every method)")
+    lines += ["", metric_note(first.emd_points, first.emd_seed)]
     return "\n".join(lines) + "\n"
 
 
 def comparison_dict(reports: Mapping[str, PointSetReport], folders: Mapping[str, str] | None = None) -> dict:
     """The same as a JSON-able dict: per method its folder (if given) and its per-scene and overall
-    summaries."""
-    from dataclasses import asdict
+    summaries; when the methods scored different frames, ``common_scored``: the number of frames
+    every method scored and each method's summaries over them (else ``common_scored`` is None)."""
+    common = common_scored_frames(reports)
+    out = {"methods": [{"name": n, **({"folder": str(folders[n])} if folders and n in folders else {}),
+                        "emd_points": r.emd_points, "emd_seed": r.emd_seed,
+                        "overall": asdict(r.overall), "scenes": [asdict(s) for s in r.scenes]}
+                       for n, r in reports.items()],
+           "common_scored": None}
+    if common is not None:
+        subs = {n: r.subset(common) for n, r in reports.items()}
+        out["common_scored"] = {
+            "n_frames": len(common),
+            "frames": [{"run": run, "frame": frame} for run, frame in sorted(common)],
+            "methods": [{"name": n, "overall": asdict(r.overall), "scenes": [asdict(s) for s in r.scenes]}
+                        for n, r in subs.items()]}
+    return out
 
-    return {"methods": [{"name": n, **({"folder": str(folders[n])} if folders and n in folders else {}),
-                         "emd_points": r.emd_points, "emd_seed": r.emd_seed,
-                         "overall": asdict(r.overall), "scenes": [asdict(s) for s in r.scenes]}
-                        for n, r in reports.items()]}
+
+# ---- the CDFs -----------------------------------------------------------------------------------
+
+def empirical_cdf(values) -> tuple[np.ndarray, np.ndarray]:
+    """The empirical CDF of per-frame scores: ``(x, F)`` with ``x`` the distinct finite values in
+    increasing order and ``F[i]`` the fraction of *all* the values that are ``<= x[i]``.
+
+    A NaN or infinite value (a frame not scored: an empty prediction) counts in the denominator
+    and is never ``<= x``, so ``F`` ends at the scored fraction.
+
+    Examples
+    --------
+    >>> x, F = empirical_cdf([0.3, 0.1, float("nan"), 0.3])
+    >>> x.tolist(), F.tolist()
+    ([0.1, 0.3], [0.25, 0.75])
+    """
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    if v.size == 0:
+        raise ValueError("empirical_cdf needs at least one value")
+    finite = np.sort(v[np.isfinite(v)])
+    x, counts = np.unique(finite, return_counts=True)
+    return x, np.cumsum(counts) / float(v.size)
+
+
+@dataclass(frozen=True)
+class CDFCurve:
+    """One method's curve in one panel of the CDF figure."""
+
+    label: str            # the method
+    x: np.ndarray         # (K,) distinct scores, increasing (m)
+    p: np.ndarray         # (K,) fraction of the panel's frames with score <= x
+    n_frames: int         # frames of the panel (the denominator)
+    n_empty: int          # of which the prediction was empty (never reached)
+
+
+@dataclass(frozen=True)
+class CDFPanel:
+    """One panel of the CDF figure: a scene (or ``all``) and a curve per method."""
+
+    title: str
+    curves: tuple[CDFCurve, ...]
+
+
+def cdf_panels(reports: Mapping[str, PointSetReport], metric: str) -> list[CDFPanel]:
+    """The CDF figure's panels for one per-frame score (``metric``: a key of :data:`CDF_METRICS`):
+    a panel per scene (sorted), then ``all`` when there are several scenes; in each, a curve per
+    method (in the order given) over that method's frames of the scene (:func:`empirical_cdf`;
+    empty predictions count as never reached)."""
+    if metric not in CDF_METRICS:
+        raise ValueError(f"metric must be one of {sorted(CDF_METRICS)}, got {metric!r}")
+    if not reports:
+        raise ValueError("cdf_panels needs at least one method's report")
+    scenes = _scenes(reports)
+    panels = []
+    for scene in scenes + (["all"] if len(scenes) > 1 else []):
+        curves = []
+        for name, r in reports.items():
+            frames = [f for f in r.frames if scene == "all" or f.scene == scene]
+            if not frames:
+                continue
+            vals = [np.nan if getattr(f, metric) is None else getattr(f, metric) for f in frames]
+            x, p = empirical_cdf(vals)
+            curves.append(CDFCurve(name, x, p, len(frames), sum(f.empty for f in frames)))
+        panels.append(CDFPanel("all scenes" if scene == "all" else f"scene {scene}", tuple(curves)))
+    return panels
 
 
 # ---- the figure ---------------------------------------------------------------------------------

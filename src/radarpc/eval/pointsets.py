@@ -36,6 +36,28 @@ different 2048-point draws of the same dense cloud are not identical, so the EMD
 floor of a few decimetres on 30k-point LiDAR scans; compare methods only at the same ``n`` and
 ``seed``.
 
+Equal-size EMD (``emd_equal``), the form common in point-cloud generation papers, reported beside
+the EMD above: both clouds are resampled to exactly ``n`` points (:func:`emd_resample`)::
+
+    C^n = n points of C drawn without replacement        when |C| >= n (the draw of emd_subset)
+    C^n = every point of C once, plus n - |C| points of C
+          drawn uniformly with replacement                when |C| <  n
+    EMD_equal(P, G) = min_{sigma a permutation of 1..n}  1/n sum_i |p^n_i - g^n_sigma(i)|
+
+the exact W1 between the two resampled clouds, i.e. the mean distance of the optimal one-to-one
+assignment (computed by the network simplex on the distinct points weighted by their
+multiplicities, which is the same optimum; the tests check it against
+:func:`scipy.optimize.linear_sum_assignment` on the resampled clouds). The draws are keyed like
+:func:`emd_subset` (``(seed, point set)``), so the ground-truth draw is the same for every method,
+and a cloud against itself scores exactly 0. When both clouds have at least ``n`` points the
+two EMDs solve the same problem and are equal; they differ when a cloud is smaller than ``n``
+(a sparse radar prediction), where ``emd_equal`` weights each of its points ``n / |C|`` times.
+
+Frames whose prediction is empty (a method that found nothing: an empty RaLD decoding, an OS-CFAR
+frame without detection) are *counted, not scored* by :func:`evaluate_clouds`: the frame is kept
+with ``n_pred = 0`` and no distance, each summary counts them (``empty``), and the means and
+medians run over the scored frames. The distance functions themselves refuse an empty cloud.
+
 Batched API: :func:`chamfer_distance_batch` and :func:`earth_movers_distance_batch` score lists of
 (prediction, ground truth) pairs, or concatenated clouds with Pointcept ``offsets``, in a thread
 pool. The KD-tree queries release the GIL, so Chamfer pairs run in parallel; POT's network
@@ -66,13 +88,17 @@ __all__ = [
     "chamfer_distance_batch",
     "ChamferTarget",
     "emd_subset",
+    "emd_resample",
     "earth_movers_distance",
+    "earth_movers_distance_equal",
     "earth_movers_distance_batch",
     "CloudPair",
     "FrameMetrics",
     "SceneSummary",
     "PointSetReport",
     "evaluate_clouds",
+    "summarize_frames",
+    "metric_note",
 ]
 
 EMD_POINTS = 2048   # default subset size of the EMD
@@ -274,11 +300,48 @@ def emd_subset(cloud, n: int = EMD_POINTS, seed: int = EMD_SEED, *, name: str = 
     return a[np.sort(rng.choice(a.shape[0], int(n), replace=False))]
 
 
-def _wasserstein1(p: np.ndarray, g: np.ndarray) -> float:
-    """Exact W1 between the uniform empirical distributions of ``p`` (k, 3) and ``g`` (m, 3)."""
+def _resampled(cloud, n: int, seed: int, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """The equal-size resampling of :func:`emd_resample` as its distinct rows ``(K, 3)`` (canonical
+    order) and their multiplicities ``(K,)``, which sum to ``n``."""
+    if int(n) != n or n < 1:
+        raise ValueError(f"EMD resample size n must be a positive integer, got {n}")
+    a = emd_subset(cloud, n, seed, name=name)                       # (min(n, N), 3), canonical order
+    counts = np.ones(a.shape[0], dtype=np.int64)
+    if a.shape[0] < n:                                              # the whole cloud: top it up
+        rng = np.random.default_rng([int(seed), zlib.crc32(a.tobytes())])
+        counts += np.bincount(rng.integers(0, a.shape[0], size=int(n) - a.shape[0]), minlength=a.shape[0])
+    return a, counts
+
+
+def emd_resample(cloud, n: int = EMD_POINTS, seed: int = EMD_SEED, *, name: str = "gt") -> np.ndarray:
+    """A cloud resampled to exactly ``n`` points, float64 ``(n, 3)``, for the equal-size EMD.
+
+    With ``N >= n`` points: ``n`` of them drawn *without* replacement, the subset of
+    :func:`emd_subset`. With ``N < n``: every point once, in lexicographic order, followed by
+    ``n - N`` points drawn uniformly *with* replacement by
+    ``numpy.random.default_rng([seed, crc32(sorted cloud)])``. The draw depends only on the
+    seed and the point set, so a ground-truth frame yields the same resampled cloud for every
+    method, and a cloud (in any point order) yields the same as itself. ``name`` labels the cloud
+    in error messages.
+
+    Examples
+    --------
+    >>> emd_resample([[1.0, 0, 0], [0.0, 0, 0]], n=2)        # N == n: the cloud, sorted
+    array([[0., 0., 0.],
+           [1., 0., 0.]])
+    >>> emd_resample([[0.0, 0, 0]], n=3).shape               # one point, three times
+    (3, 3)
+    """
+    pts, counts = _resampled(cloud, n, seed, name)
+    return np.repeat(pts, counts, axis=0)
+
+
+def _wasserstein1(p: np.ndarray, g: np.ndarray, a: np.ndarray | None = None, b: np.ndarray | None = None) -> float:
+    """Exact W1 between ``p`` (k, 3) and ``g`` (m, 3) carrying masses ``a`` (k,) and ``b`` (m,),
+    each summing to 1 (default uniform)."""
     cost = cdist(p, g)                                              # (k, m) Euclidean
-    a = np.full(p.shape[0], 1.0 / p.shape[0])
-    b = np.full(g.shape[0], 1.0 / g.shape[0])
+    a = np.full(p.shape[0], 1.0 / p.shape[0]) if a is None else a
+    b = np.full(g.shape[0], 1.0 / g.shape[0]) if b is None else b
     # network simplex; the iteration cap is far above what 2048 x 2048 problems need
     import ot            # POT takes ~2 s to import; only EMD needs it
 
@@ -323,9 +386,51 @@ def earth_movers_distance(pred, gt, *, n: int = EMD_POINTS, seed: int = EMD_SEED
     return _wasserstein1(p, g)
 
 
+def earth_movers_distance_equal(pred, gt, *, n: int = EMD_POINTS, seed: int = EMD_SEED) -> float:
+    """Equal-size EMD: the exact W1 between the two clouds resampled to exactly ``n`` points each
+    (:func:`emd_resample`: without replacement from a cloud of more than ``n`` points, every point
+    once plus ``n - N`` drawn with replacement from a smaller one), i.e. the mean distance of the
+    optimal one-to-one assignment between the resampled clouds.
+
+    Parameters
+    ----------
+    pred, gt : array-like or torch.Tensor, ``(N, 3)`` and ``(M, 3)``
+    n : int
+        Points of each resampled cloud.
+    seed : int
+        Seed of the two (independent, content-keyed) draws.
+
+    Returns
+    -------
+    float
+        Metres. Equal to :func:`earth_movers_distance` when ``N >= n`` and ``M >= n``; 0 for a
+        cloud against itself.
+
+    Raises
+    ------
+    ValueError
+        Empty or malformed cloud (naming it), ``n < 1``.
+
+    Examples
+    --------
+    >>> earth_movers_distance_equal([[0.0, 0, 0]], [[1.0, 0, 0], [3.0, 0, 0]], n=2)   # (1 + 3) / 2
+    2.0
+    """
+    if int(n) != n or n < 1:
+        raise ValueError(f"EMD resample size n must be a positive integer, got {n}")
+    _cloud(pred, "pred")   # name the pred cloud first if both are bad
+    g, cg = _resampled(gt, n, seed, "gt")
+    p, cp = _resampled(pred, n, seed, "pred")
+    if len(p) == len(g) == n:                                       # both drawn without replacement
+        return _wasserstein1(p, g)
+    return _wasserstein1(p, g, cp / float(n), cg / float(n))
+
+
 def earth_movers_distance_batch(preds, gts, *, offsets: tuple | None = None, n: int = EMD_POINTS,
-                                seed: int = EMD_SEED, workers: int | None = None) -> np.ndarray:
-    """EMD of many pairs in a thread pool: ``out[b] = earth_movers_distance(preds[b], gts[b], n=n, seed=seed)``.
+                                seed: int = EMD_SEED, workers: int | None = None,
+                                equal_size: bool = False) -> np.ndarray:
+    """EMD of many pairs in a thread pool: ``out[b] = earth_movers_distance(preds[b], gts[b], n=n, seed=seed)``
+    (with ``equal_size``, :func:`earth_movers_distance_equal`).
 
     Arguments as :func:`chamfer_distance_batch` (``offsets`` for concatenated clouds) and
     :func:`earth_movers_distance` (``n``, ``seed``). Returns ``(B,)`` float64 metres.
@@ -333,21 +438,32 @@ def earth_movers_distance_batch(preds, gts, *, offsets: tuple | None = None, n: 
     preds, gts = _pairs_of(preds, gts, offsets)
     if int(n) != n or n < 1:
         raise ValueError(f"EMD subset size n must be a positive integer, got {n}")
+    fn = earth_movers_distance_equal if equal_size else earth_movers_distance
 
     def one(b: int) -> float:
         try:
-            return earth_movers_distance(preds[b], gts[b], n=n, seed=seed)
+            return fn(preds[b], gts[b], n=n, seed=seed)
         except ValueError as e:
             raise _PairError(b, str(e)) from e
 
     return np.asarray(_map(one, len(preds), workers), dtype=np.float64)
 
 
+def _both_emds(pred, gt, n: int, seed: int) -> tuple[float, float]:
+    """``(earth_movers_distance, earth_movers_distance_equal)`` of one pair, the second reusing the
+    first when both clouds have at least ``n`` points (then the two problems are the same)."""
+    emd = earth_movers_distance(pred, gt, n=n, seed=seed)
+    if len(pred) >= n and len(gt) >= n:
+        return emd, emd
+    return emd, earth_movers_distance_equal(pred, gt, n=n, seed=seed)
+
+
 # ---- per-frame and per-scene tables ----------------------------------------------------------
 
 @dataclass
 class CloudPair:
-    """One frame to score: a predicted cloud and its ground truth, ``(N, 3)`` and ``(M, 3)``."""
+    """One frame to score: a predicted cloud and its ground truth, ``(N, 3)`` and ``(M, 3)``
+    (``N`` may be 0: the frame is then counted as empty, not scored)."""
 
     run: str
     frame: int
@@ -357,32 +473,79 @@ class CloudPair:
 
 @dataclass(frozen=True)
 class FrameMetrics:
+    """One frame's scores (metres). An empty prediction (``n_pred == 0``) is counted, not scored:
+    its ``chamfer``, ``emd`` and ``emd_equal`` are None."""
+
     run: str
     frame: int
     scene: str
-    chamfer: float     # metres
-    emd: float         # metres
+    chamfer: float | None      # metres; None for an empty prediction
+    emd: float | None          # metres: W1 between the subsets of emd_subset; None for an empty prediction
     n_pred: int
     n_gt: int
-    emd_pred_k: int    # predicted points in the EMD subset, min(emd_points, n_pred)
-    emd_gt_k: int      # ground-truth points in the EMD subset, min(emd_points, n_gt)
+    emd_pred_k: int            # predicted points in the EMD subset, min(emd_points, n_pred)
+    emd_gt_k: int              # ground-truth points in the EMD subset, min(emd_points, n_gt)
+    emd_equal: float | None = None   # metres: W1 between both clouds resampled to emd_points (emd_resample)
+
+    @property
+    def empty(self) -> bool:
+        """Whether the prediction has no point (the frame is counted, not scored)."""
+        return self.n_pred == 0
+
+    @property
+    def key(self) -> tuple[str, int]:
+        """``(run, frame)``: the frame, as prediction folders name it."""
+        return (self.run, self.frame)
+
+
+def _stats(values: list[float]) -> tuple[float | None, float | None]:
+    if not values:
+        return None, None
+    v = np.asarray(values, dtype=np.float64)
+    return float(v.mean()), float(np.median(v))
 
 
 @dataclass(frozen=True)
 class SceneSummary:
-    scene: str          # scene name, or "all"
-    n_frames: int
-    chamfer_mean: float
-    chamfer_median: float
-    emd_mean: float
-    emd_median: float
+    """A scene's (or all frames', ``scene == "all"``) means and medians over its *scored* frames
+    (metres; None when no frame was scored), with the number of frames listed and of those whose
+    prediction was empty."""
+
+    scene: str                    # scene name, or "all"
+    n_frames: int                 # frames listed: scored + empty
+    chamfer_mean: float | None
+    chamfer_median: float | None
+    emd_mean: float | None
+    emd_median: float | None
+    empty: int = 0                # frames with an empty prediction (counted, not scored)
+    emd_equal_mean: float | None = None
+    emd_equal_median: float | None = None
+
+    @property
+    def n_scored(self) -> int:
+        return self.n_frames - self.empty
 
     @classmethod
     def of(cls, scene: str, frames: Sequence[FrameMetrics]) -> "SceneSummary":
-        cd = np.array([f.chamfer for f in frames])
-        emd = np.array([f.emd for f in frames])
-        return cls(scene, len(frames), float(cd.mean()), float(np.median(cd)),
-                   float(emd.mean()), float(np.median(emd)))
+        scored = [f for f in frames if not f.empty]
+        cd = _stats([f.chamfer for f in scored])
+        emd = _stats([f.emd for f in scored])
+        eq = _stats([f.emd_equal for f in scored if f.emd_equal is not None])
+        return cls(scene, len(frames), *cd, *emd, empty=len(frames) - len(scored),
+                   emd_equal_mean=eq[0], emd_equal_median=eq[1])
+
+
+def summarize_frames(frames: Sequence[FrameMetrics]) -> tuple[list[SceneSummary], SceneSummary]:
+    """Per-scene summaries (scenes sorted) and the overall one (``"all"``) of per-frame scores."""
+    by_scene: dict[str, list[FrameMetrics]] = {}
+    for f in frames:
+        by_scene.setdefault(f.scene, []).append(f)
+    return [SceneSummary.of(s, fs) for s, fs in sorted(by_scene.items())], SceneSummary.of("all", frames)
+
+
+def _m(x: float | None) -> str:
+    """A distance for a table (3 decimals), ``-`` when nothing was scored."""
+    return "-" if x is None else f"{x:.3f}"
 
 
 @dataclass
@@ -396,24 +559,42 @@ class PointSetReport:
     emd_seed: int = EMD_SEED
     extra: dict = field(default_factory=dict)   # provenance (method, split, ...), JSON-serializable
 
+    @property
+    def keys(self) -> list[tuple[str, int]]:
+        """``(run, frame)`` of every frame listed, in order."""
+        return [f.key for f in self.frames]
+
+    @property
+    def scored_keys(self) -> set[tuple[str, int]]:
+        """``(run, frame)`` of the frames scored (prediction not empty)."""
+        return {f.key for f in self.frames if not f.empty}
+
+    def subset(self, keys: Iterable[tuple[str, int]]) -> "PointSetReport":
+        """The same report over the frames whose ``(run, frame)`` is in ``keys`` (summaries recomputed)."""
+        want = set(keys)
+        frames = [f for f in self.frames if f.key in want]
+        scenes, overall = summarize_frames(frames)
+        return PointSetReport(frames, scenes, overall, self.emd_points, self.emd_seed, dict(self.extra))
+
     def to_markdown(self) -> str:
-        """A Markdown table: one row per scene plus ``all``, CD and EMD mean and median in metres."""
+        """A Markdown table: one row per scene plus ``all``: frames, empty predictions, then CD, EMD
+        and EMD_equal mean and median in metres over the scored frames."""
         lines = [
-            "| scene | frames | CD mean (m) | CD median (m) | EMD mean (m) | EMD median (m) |",
-            "|---|---:|---:|---:|---:|---:|",
+            "| scene | frames | empty | CD mean (m) | CD median (m) | EMD mean (m) | EMD median (m) | "
+            "EMD_equal mean (m) | EMD_equal median (m) |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
         ]
         for s in [*self.scenes, self.overall]:
             name = f"**{s.scene}**" if s is self.overall else s.scene
-            lines.append(f"| {name} | {s.n_frames} | {s.chamfer_mean:.3f} | {s.chamfer_median:.3f} | "
-                         f"{s.emd_mean:.3f} | {s.emd_median:.3f} |")
+            lines.append(f"| {name} | {s.n_frames} | {s.empty} | {_m(s.chamfer_mean)} | {_m(s.chamfer_median)} | "
+                         f"{_m(s.emd_mean)} | {_m(s.emd_median)} | {_m(s.emd_equal_mean)} | "
+                         f"{_m(s.emd_equal_median)} |")
         lines.append("")
-        kp = np.mean([f.emd_pred_k for f in self.frames]) if self.frames else 0.0
-        kg = np.mean([f.emd_gt_k for f in self.frames]) if self.frames else 0.0
-        lines.append(f"CD: RaLD's non-squared Chamfer distance on the full clouds. EMD: exact Wasserstein-1 "
-                     f"(POT network simplex) between uniform random subsets, min({self.emd_points}, |gt|) "
-                     f"ground-truth points (the same draw for every method) and min({self.emd_points}, "
-                     f"|pred|) predicted points (seed {self.emd_seed}; mean subset sizes: gt {kg:.0f}, "
-                     f"pred {kp:.0f}).")
+        scored = [f for f in self.frames if not f.empty]
+        kp = np.mean([f.emd_pred_k for f in scored]) if scored else 0.0
+        kg = np.mean([f.emd_gt_k for f in scored]) if scored else 0.0
+        lines.append(metric_note(self.emd_points, self.emd_seed)
+                     + f" Mean EMD subset sizes: gt {kg:.0f}, pred {kp:.0f}.")
         return "\n".join(lines) + "\n"
 
     def to_dict(self) -> dict:
@@ -423,7 +604,7 @@ class PointSetReport:
             **({"extra": self.extra} if self.extra else {}),
             "overall": asdict(self.overall),
             "scenes": [asdict(s) for s in self.scenes],
-            "frames": [asdict(f) for f in self.frames],
+            "frames": [{**asdict(f), "empty": f.empty} for f in self.frames],
         }
 
     def write(self, json_path: str | os.PathLike, markdown_path: str | os.PathLike | None = None) -> None:
@@ -433,6 +614,22 @@ class PointSetReport:
         if markdown_path is not None:
             with atomic_write(Path(markdown_path), "w") as f:
                 f.write(self.to_markdown())
+
+
+def metric_note(emd_points: int, emd_seed: int) -> str:
+    """The sentence under a table that says what CD, EMD, EMD_equal and ``empty`` are."""
+    return (f"CD: RaLD's non-squared Chamfer distance on the full clouds. EMD: exact Wasserstein-1 (POT network "
+            f"simplex) between uniform random subsets, min({emd_points}, |gt|) ground-truth points (the same draw "
+            f"for every method) and min({emd_points}, |pred|) predicted points. EMD_equal: exact Wasserstein-1 "
+            f"between both clouds resampled to exactly {emd_points} points (without replacement from a larger "
+            f"cloud; every point once plus the rest drawn with replacement from a smaller one), the mean distance "
+            f"of the optimal one-to-one assignment. Seed {emd_seed}. empty: frames whose prediction has no point, "
+            f"counted, not scored (the means and medians are over the other frames).")
+
+
+def _is_empty_cloud(x) -> bool:
+    shape = tuple(x.shape) if hasattr(x, "shape") else np.shape(x)
+    return shape == (0, 3)
 
 
 def evaluate_clouds(
@@ -445,7 +642,11 @@ def evaluate_clouds(
     workers: int | None = None,
     progress: bool = False,
 ) -> PointSetReport:
-    """Score every pair with Chamfer and EMD and summarize per scene.
+    """Score every pair with Chamfer, EMD and EMD_equal and summarize per scene.
+
+    A pair whose prediction is empty (``(0, 3)``) is counted, not scored (module docstring): its
+    :class:`FrameMetrics` has ``n_pred == 0`` and no distances, the summaries count it in
+    ``empty``.
 
     Parameters
     ----------
@@ -454,10 +655,11 @@ def evaluate_clouds(
     scene_of : callable or mapping
         Run name -> scene name.
     emd_points, emd_seed : int
-        EMD subset size and seed (see :func:`earth_movers_distance`).
+        EMD subset size and seed (see :func:`earth_movers_distance`), also the resample size of
+        EMD_equal (:func:`earth_movers_distance_equal`).
     batch_size : int
-        Frames held in memory and scored together by :func:`chamfer_distance_batch` and
-        :func:`earth_movers_distance_batch`.
+        Frames held in memory and scored together (Chamfer by :func:`chamfer_distance_batch`, the
+        two EMDs in the same thread pool).
     workers : int, optional
         Threads of those batch calls (default: all cores).
     progress : bool
@@ -470,11 +672,15 @@ def evaluate_clouds(
     Raises
     ------
     ValueError
-        No pairs, an empty or malformed cloud (naming run and frame), a run without a scene.
+        No pairs, an empty ground truth or a malformed cloud (naming run and frame), a run
+        without a scene.
     """
     lookup = scene_of.__getitem__ if isinstance(scene_of, Mapping) else scene_of
     if int(batch_size) < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    if int(emd_points) != emd_points or emd_points < 1:
+        raise ValueError(f"EMD subset size n must be a positive integer, got {emd_points}")
+    n = int(emd_points)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -482,17 +688,32 @@ def evaluate_clouds(
     frames: list[FrameMetrics] = []
 
     def flush(batch: list[tuple[CloudPair, str]]) -> None:
-        ps, gs = [b[0].pred for b in batch], [b[0].gt for b in batch]
+        for pair, _ in batch:                 # the truth of every frame, empty predictions' too
+            try:
+                _cloud(pair.gt, "gt")
+            except ValueError as e:
+                raise ValueError(f"run {pair.run!r} frame {pair.frame}: {e}") from e
+        scored = [k for k, (pair, _) in enumerate(batch) if not _is_empty_cloud(pair.pred)]
+        ps, gs = [batch[k][0].pred for k in scored], [batch[k][0].gt for k in scored]
+
+        def emds(b: int) -> tuple[float, float]:
+            try:
+                return _both_emds(ps[b], gs[b], n, int(emd_seed))
+            except ValueError as e:
+                raise _PairError(b, str(e)) from e
+
         try:
             cds = chamfer_distance_batch(ps, gs, workers=workers)
-            emds = earth_movers_distance_batch(ps, gs, n=emd_points, seed=emd_seed, workers=workers)
+            both = _map(emds, len(ps), workers)
         except _PairError as e:   # name the run and frame of the bad pair
-            pair = batch[e.index][0]
+            pair = batch[scored[e.index]][0]
             raise ValueError(f"run {pair.run!r} frame {pair.frame}: {e.reason}") from e
-        for (pair, scene), cd, emd in zip(batch, cds, emds):
+        result = {k: (float(cd), *map(float, em)) for k, cd, em in zip(scored, cds, both)}
+        for k, (pair, scene) in enumerate(batch):
             n_pred, n_gt = len(pair.pred), len(pair.gt)
-            frames.append(FrameMetrics(pair.run, int(pair.frame), scene, float(cd), float(emd), n_pred, n_gt,
-                                       min(int(emd_points), n_pred), min(int(emd_points), n_gt)))
+            cd, emd, eq = result.get(k, (None, None, None))
+            frames.append(FrameMetrics(pair.run, int(pair.frame), scene, cd, emd, n_pred, n_gt,
+                                       min(n, n_pred), min(n, n_gt), emd_equal=eq))
         if bar is not None:
             bar.update(len(batch))
 
@@ -512,9 +733,5 @@ def evaluate_clouds(
         bar.close()
     if not frames:
         raise ValueError("evaluate_clouds got no frames to score")
-    by_scene: dict[str, list[FrameMetrics]] = {}
-    for f in frames:
-        by_scene.setdefault(f.scene, []).append(f)
-    scenes = [SceneSummary.of(s, fs) for s, fs in sorted(by_scene.items())]
-    return PointSetReport(frames=frames, scenes=scenes, overall=SceneSummary.of("all", frames),
-                          emd_points=int(emd_points), emd_seed=int(emd_seed))
+    scenes, overall = summarize_frames(frames)
+    return PointSetReport(frames=frames, scenes=scenes, overall=overall, emd_points=n, emd_seed=int(emd_seed))

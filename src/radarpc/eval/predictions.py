@@ -17,7 +17,9 @@
 Writers: :mod:`radarpc.pipelines.oscfar` and :mod:`radarpc.pipelines.rald_generate`, through the
 shared loop :func:`radarpc.pipelines.predictions.fill_predictions`; reader: ``radarpc evaluate-points``
 through :func:`prediction_pairs`, which refuses a folder whose ``index.json`` names another root
-or split (:func:`check_index`).
+or split (:func:`check_index`). The frames a folder holds are those its index lists
+(:func:`index_frames`): every paired frame of the split, or a subset of them (e.g. every K-th);
+a cloud without a point is a frame whose prediction is empty (flagged ``empty`` in the index).
 """
 from __future__ import annotations
 
@@ -28,7 +30,8 @@ from typing import Iterator, Mapping, Sequence
 
 from radarpc.io import DataFileError, atomic_write, load_array
 
-__all__ = ["INDEX_FILE", "prediction_path", "write_index", "check_index", "load_prediction", "prediction_pairs"]
+__all__ = ["INDEX_FILE", "prediction_path", "write_index", "check_index", "index_frames", "load_prediction",
+           "prediction_pairs"]
 
 INDEX_FILE = "index.json"
 
@@ -77,26 +80,64 @@ def check_index(pred_dir: str | os.PathLike, data: str | os.PathLike, split: str
                          "(pass --force to score them anyway)")
 
 
-def load_prediction(pred_dir: str | os.PathLike, run: str, frame: int):
-    """The ``(N, 3)`` float cloud of ``run``'s radar frame ``frame``; missing or empty files are a
-    :class:`radarpc.io.DataFileError` naming the file."""
+def index_frames(pred_dir: str | os.PathLike) -> list[tuple[str, int]]:
+    """``(run, frame)`` of every frame ``pred_dir/index.json`` lists, in its order.
+
+    Raises
+    ------
+    radarpc.io.DataFileError
+        The index is missing or unreadable, has no ``frames`` list, an entry lacks a string
+        ``run`` or an integer ``frame``, or lists a frame twice (the message names the file and
+        the entry).
+    """
+    path = Path(pred_dir) / INDEX_FILE
+    if not path.is_file():
+        raise DataFileError(path, "prediction index is missing: cannot tell which frames the folder holds")
+    try:
+        frames = json.loads(path.read_text())["frames"]
+    except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+        raise DataFileError(path, f"expected a JSON object with a 'frames' list ({e})") from e
+    if not isinstance(frames, list):
+        raise DataFileError(path, f"'frames' must be a list, found {type(frames).__name__}")
+    keys: list[tuple[str, int]] = []
+    for k, e in enumerate(frames):
+        run = e.get("run") if isinstance(e, dict) else None
+        frame = e.get("frame") if isinstance(e, dict) else None
+        if not isinstance(run, str) or isinstance(frame, bool) or not isinstance(frame, int):
+            raise DataFileError(path, f"frames[{k}] must hold a string 'run' and an integer 'frame', found {e!r}")
+        keys.append((run, frame))
+    seen: set[tuple[str, int]] = set()
+    for run, frame in keys:
+        if (run, frame) in seen:
+            raise DataFileError(path, f"lists run {run!r} frame {frame} twice")
+        seen.add((run, frame))
+    return keys
+
+
+def load_prediction(pred_dir: str | os.PathLike, run: str, frame: int, *, allow_empty: bool = False):
+    """The ``(N, 3)`` float cloud of ``run``'s radar frame ``frame``; a missing or malformed file is a
+    :class:`radarpc.io.DataFileError` naming the file, and so is an empty one unless ``allow_empty``
+    (then it is returned as a ``(0, 3)`` array)."""
     path = prediction_path(pred_dir, run, frame)
     if not path.is_file():
         raise DataFileError(path, f"prediction for run {run!r} frame {frame} is missing "
                                   f"(expected float32 (N, 3) points, one file per frame of the split)")
     pred = load_array(path, shape=(None, 3), complex_=False)
-    if pred.shape[0] == 0:
+    if pred.shape[0] == 0 and not allow_empty:
         raise DataFileError(path, "prediction is empty: Chamfer distance and EMD need at least one point")
     return pred
 
 
-def prediction_pairs(ds, pred_dir: str | os.PathLike) -> Iterator:
-    """``CloudPair(run, frame, prediction, cropped LiDAR)`` for every item of a
-    :class:`radarpc.data.coloradar.ColoRadar` dataset, in order (for
-    :func:`radarpc.eval.pointsets.evaluate_clouds`)."""
+def prediction_pairs(ds, pred_dir: str | os.PathLike, items: Sequence[int] | None = None, *,
+                     allow_empty: bool = False) -> Iterator:
+    """``CloudPair(run, frame, prediction, cropped LiDAR)`` for the items ``items`` (default all,
+    in order) of a :class:`radarpc.data.coloradar.ColoRadar` dataset (for
+    :func:`radarpc.eval.pointsets.evaluate_clouds`); ``allow_empty`` passes empty clouds on (they
+    are counted, not scored) instead of refusing them."""
     from radarpc.eval.pointsets import CloudPair
 
-    for i in range(len(ds)):
+    for i in range(len(ds)) if items is None else items:
         k, ri, _ = ds.index[i]
         run = ds.runs[k]
-        yield CloudPair(run.name, int(ri), load_prediction(pred_dir, run.name, ri), ds.lidar_points(i))
+        yield CloudPair(run.name, int(ri), load_prediction(pred_dir, run.name, ri, allow_empty=allow_empty),
+                        ds.lidar_points(i))

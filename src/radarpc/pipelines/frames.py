@@ -16,7 +16,7 @@ import json
 import os
 from dataclasses import replace
 from pathlib import Path
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -134,21 +134,23 @@ def _prediction_method(pred: str | os.PathLike) -> str:
         return ""
 
 
-def scene_frames(ds: ColoRadar) -> dict[str, int]:
+def scene_frames(ds: ColoRadar, items: Sequence[int] | None = None) -> dict[str, int]:
     """One item of a ColoRadar split per scene, ``{scene: item index}`` (scenes sorted): the middle
-    item of the scene's first run in the split."""
+    item of the scene's first run in the split, among ``items`` (default all, e.g. the frames a
+    prediction folder lists)."""
     first: dict[str, list[int]] = {}
-    for i, (k, _, _) in enumerate(ds.index):
+    for i in range(len(ds)) if items is None else sorted(items):
+        k = ds.index[i][0]
         run = ds.runs[k]
-        items = first.setdefault(run.scene, [])
-        if not items or ds.runs[ds.index[items[0]][0]].name == run.name:
-            items.append(i)
-    return {scene: items[len(items) // 2] for scene, items in sorted(first.items())}
+        chosen = first.setdefault(run.scene, [])
+        if not chosen or ds.runs[ds.index[chosen[0]][0]].name == run.name:
+            chosen.append(i)
+    return {scene: chosen[len(chosen) // 2] for scene, chosen in sorted(first.items())}
 
 
 def comparison_views(root: str | os.PathLike, split: str, preds: Mapping[str, str | os.PathLike], *,
                      notes: Mapping[str, Mapping[tuple[str, int], str]] | None = None,
-                     max_points: int = 50_000) -> list[ComparisonView]:
+                     max_points: int = 50_000, items: Sequence[int] | None = None) -> list[ComparisonView]:
     """The comparison figure's view of one frame per scene (:func:`scene_frames`) of a ColoRadar split.
 
     Parameters
@@ -161,6 +163,8 @@ def comparison_views(root: str | os.PathLike, split: str, preds: Mapping[str, st
         Method name -> ``{(run, frame): note}`` (e.g. the frame's Chamfer distance).
     max_points : int
         Points drawn per cloud at most.
+    items : sequence of int, optional
+        The split's items to choose from (default all): the frames every folder holds.
 
     Raises
     ------
@@ -171,7 +175,7 @@ def comparison_views(root: str | os.PathLike, split: str, preds: Mapping[str, st
     if len(ds) == 0:
         raise ValueError(f"split {split!r} of {root} has no paired radar/LiDAR frame")
     views = []
-    for scene, i in scene_frames(ds).items():
+    for scene, i in scene_frames(ds, items).items():
         k, ri, li = ds.index[i]
         run = ds.runs[k]
         cube = ds.cube(i)
