@@ -179,3 +179,44 @@ def rald_run(colo_root, rald_ae_run, tmp_path_factory) -> Path:
     _train_quietly(RALD_CONFIGS / "rald-tiny.yaml", "--data", colo_root, "--ae", rald_ae_run, "--out", out)
     with _read_only(out):
         yield out
+
+
+@pytest.fixture(scope="session")
+def rald_ae_overfit(colo_hallway_root):
+    """``(config, state_dict, oscfar_chamfer)``: the tiny autoencoder overfit on frame 0 of
+    :func:`colo_hallway_root`'s train split (hallway_run0: 1,856 LiDAR points in the field of view): 512
+    points and 4,096 queries (6.25 % occupied) per step, new queries every step, frustum cells of
+    0.2 m x 2 deg x 4 deg, 300 AdamW steps at 1e-3 from ``torch.manual_seed(0)`` (so
+    ``torch.manual_seed(0); task.build_model()`` rebuilds its starting weights); and OS-CFAR's Chamfer
+    distance on that frame, tuned on that very frame over 72 settings (its best case), the mark the
+    autoencoder's reconstruction must beat. Tests load the state into a model of their own."""
+    import torch
+
+    from radarpc.rald.oscfar_baseline import CubeAxes, TuningGrid, tune_oscfar
+
+    from radarpc.experiments.rald.config import AutoencoderExperiment, LidarData
+    from radarpc.experiments.rald.task import AutoencoderTask
+    from radarpc.models import ModelSpec
+    from radarpc.training.loop import TrainConfig
+
+    cfg = AutoencoderExperiment("t", ModelSpec("rald-ae-tiny"),
+                                data=LidarData(points=512, queries=4096, occupied_fraction=0.0625, cell=(0.2, 2.0, 4.0)),
+                                train=TrainConfig(select_metric="loss", select_mode="min"))
+    task = AutoencoderTask(cfg, colo_hallway_root)
+    torch.manual_seed(0)
+    model = task.build_model()
+    model.train()
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=0.0)
+    for step in range(300):
+        task.train_set.set_epoch(step)
+        loss, _ = task.loss(model, task.collate([task.train_set[0]]))
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+    frames = task.train_set.frames
+    cube = frames.cube(0)
+    axes = CubeAxes.from_radians(cube.range_m, cube.azimuth_rad, cube.elevation_rad)
+    grid_search = TuningGrid(windows=((9, 3, 3), (17, 7, 3)), guards=((3, 1, 1), (5, 3, 1)), ranks=(0.5, 0.75))
+    oscfar = tune_oscfar([(cube.intensity_db, frames.lidar_points(0))], axes, grid_search).best_chamfer
+    return cfg, {k: v.detach().clone() for k, v in model.state_dict().items()}, oscfar

@@ -48,11 +48,12 @@ SKIPPED = {
     "radarpc train": "tests/experiments/radial_detection/test_experiment.py and tests/experiments/rald/test_train.py "
                      "train and resume tiny models through this command; the shipped configs train for minutes to days",
     "radarpc evaluate": "tests/experiments/radial_detection/test_experiment.py evaluates a tiny run through this command",
-    "radarpc generate": "generates with the RaLD runs of `radarpc train` and `radarpc import-rald`, which this test "
-                        "skips; tests/cli/test_rald_cli.py generates with tiny runs trained through `radarpc train` "
-                        "and imported through `radarpc import-rald`",
+    "radarpc generate": "generates (and reconstructs) with the RaLD runs of `radarpc train` and `radarpc import-rald`, "
+                        "which this test skips; tests/cli/test_rald_cli.py generates and reconstructs with tiny runs "
+                        "trained through `radarpc train` and imported through `radarpc import-rald`",
     "radarpc evaluate-points preds/rald": "scores the clouds of `radarpc generate` above (skipped); "
-                                          "tests/cli/test_rald_cli.py scores tiny generated clouds beside OS-CFAR's",
+                                          "tests/cli/test_rald_cli.py scores tiny generated and reconstructed "
+                                          "clouds beside OS-CFAR's",
     "radarpc import-rald": "needs the official RaLD checkpoints, which this repository cannot ship; "
                            "tests/cli/test_rald_cli.py imports tiny checkpoints in the official layout",
     "torchrun": "starts several processes (GPUs); tests/training/test_loop.py runs a 2-process gloo job",

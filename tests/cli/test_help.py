@@ -39,6 +39,7 @@ def test_help_choices_match_the_library():
     from radarpc.experiments.rald.official import WEIGHTS
     from radarpc.experiments.study.config import STUDY_KINDS
     from radarpc.rald.guide import GUIDE_SOURCES
+    from radarpc.rald.reconstruct import POSTERIORS
     from radarpc.sensors.radial import RADIAL_SENSORS
     from radarpc.sim.indoor import SCENE_KINDS
     from radarpc.viz import COLOR_BY
@@ -53,6 +54,7 @@ def test_help_choices_match_the_library():
     assert options.MODEL_NAMES == tuple(MODELS)
     assert options.STUDY_KINDS == tuple(STUDY_KINDS)
     assert options.GUIDE_SOURCES == GUIDE_SOURCES
+    assert options.POSTERIORS == POSTERIORS
     assert options.OFFICIAL_RALD_WEIGHTS == WEIGHTS
 
 

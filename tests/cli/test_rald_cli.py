@@ -1,6 +1,7 @@
 """The RaLD user path through the command line: `radarpc generate` with a run trained by `radarpc train`
-(one readable cloud per frame, the run's own input, resume after a rerun and after a kill), the
-clouds scored beside OS-CFAR's by `radarpc evaluate-points`, `radarpc import-rald` of official-layout
+(one readable cloud per frame, the run's own input, resume after a rerun and after a kill), with a
+stage-1 run (the autoencoder's reconstruction: its training's input, resume after a kill, the
+options of the other stage refused), the clouds scored beside OS-CFAR's by `radarpc evaluate-points`, `radarpc import-rald` of official-layout
 checkpoints (a run `load_rald` loads with the official weights, that `generate` runs) and the
 refusals, each one line."""
 from __future__ import annotations
@@ -23,6 +24,7 @@ from radarpc.experiments.rald.runs import load_rald
 from radarpc.experiments.rald.task import DiffusionFrames
 from radarpc.models import build_model
 from radarpc.pipelines import rald_generate as job_module
+from radarpc.pipelines import rald_reconstruct as recon_module
 from raldkit import ae_official_state, dit_official_state, save_official
 
 # tiny generation settings: a few hundred queries, two Heun steps, OS-CFAR guide points
@@ -30,8 +32,16 @@ QUICK = ["--random-queries", "400", "--guided-queries", "300", "--refine-queries
          "--chunk", "256", "--guide", "os-cfar", "--no-progress"]
 
 
+QUICK_AE = [a for a in QUICK if a not in ("--steps", "2")]          # a stage-1 run has no sampler
+
+
 def _generate(run, root, out, *extra) -> int:
     return main(["generate", str(run), "--data", str(root), "--split", "test", "--out", str(out), *QUICK,
+                 *map(str, extra)])
+
+
+def _reconstruct(run, root, out, *extra) -> int:
+    return main(["generate", str(run), "--data", str(root), "--split", "test", "--out", str(out), *QUICK_AE,
                  *map(str, extra)])
 
 
@@ -142,20 +152,103 @@ def test_every_generates_and_predicts_a_subset(generated, rald_run, colo_root, t
     assert index["every"] == 2 and [e["file"] for e in index["frames"]] == [first["file"]]
 
 
-def test_generated_and_oscfar_clouds_side_by_side(generated, colo_root, tmp_path, capsys):
-    gen = tmp_path / "rald"
+@pytest.fixture(scope="module")
+def reconstructed(rald_ae_run, colo_root, tmp_path_factory) -> tuple[Path, str, str]:
+    """``(folder, stdout, stderr)`` of `radarpc generate` with the session's tiny stage-1 run on the test
+    split: the autoencoder's reconstruction (read-only for the tests)."""
+    import contextlib
+    import io
+
+    out = tmp_path_factory.mktemp("rald_ae_rec") / "preds"
+    text, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(text), contextlib.redirect_stderr(err):
+        assert _reconstruct(rald_ae_run, colo_root, out) == 0
+    return out, text.getvalue(), err.getvalue()
+
+
+def test_generate_with_a_stage_1_run_reconstructs_each_frames_lidar(reconstructed, rald_ae_run, colo_root):
+    from radarpc.experiments.rald.generation import encoder_input
+    from radarpc.experiments.rald.runs import load_rald_ae
+    from radarpc.experiments.rald.task import AutoencoderFrames
+    from radarpc.rald.generate import frame_seed
+    from radarpc.rald.reconstruct import points_generator
+
+    out, stdout, stderr = reconstructed
+    ds = ColoRadar(colo_root, "test", cube_size=None)
+    index = json.loads((out / "index.json").read_text())
+    assert index["method"] == "rald-ae" and index["kind"] == "reconstruction"
+    assert [(e["run"], e["frame"]) for e in index["frames"]] == [(ds.runs[k].name, ri) for k, ri, _ in ds.index]
+    with open(out / "generation.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    for e, row in zip(index["frames"], rows):
+        pts = np.load(out / e["file"], allow_pickle=False)
+        assert pts.dtype == np.float32 and pts.shape == (e["n_points"], 3) and int(row["n_points"]) == e["n_points"]
+        assert int(row["queries_random"]) == 400 and "seconds_encoding" in row and "seconds_sampler" not in row
+        assert row["empty"] == str(e["n_points"] == 0) == str(e["empty"])
+    key = json.loads((out / "generation.json").read_text())
+    best = rald_ae_run / "best.safetensors"
+    assert key["model"] == {"run": str(rald_ae_run.resolve()),
+                            "weights": {"best.safetensors": hashlib.sha256(best.read_bytes()).hexdigest()}}
+    assert key["reconstruction"] == {"posterior": "sample"} and "num_steps" not in key["generation"]
+    assert key["grid"]["kind"] == "frustum" and key["mirror_azimuth"] is False
+    lines = stdout.splitlines()
+    assert lines[-2].startswith("seconds per frame (2 new frames): encoding ")
+    assert lines[-1].startswith("wrote 2 new point clouds (2 frames") and lines[-1].endswith(str(out))
+    err = stderr.splitlines()
+    assert err[0] == (f"{rald_ae_run}: a stage-1 run: each frame's LiDAR is encoded and decoded by the "
+                      f"autoencoder (a reconstruction, posterior sample), not generated from the radar")
+    # the 4-step autoencoder decodes nothing occupied yet: its empty clouds are flagged as a generation's
+    empty = [{"run": e["run"], "frame": e["frame"]} for e in index["frames"] if e["empty"]]
+    assert index["empty_frames"] == empty and len(err) == 1 + len(empty)
+    assert all(line.startswith("warning: run lab_run2 frame ") and "empty decoding" in line for line in err[1:])
+    # what the encoder read is what its training reads: AutoencoderFrames' points (its item's first
+    # draws) when its generator is the frame's (points_generator of the frame's seed)
+    run = load_rald_ae(rald_ae_run)
+    frames = AutoencoderFrames(colo_root, "test", run.config.data, training=False)
+    for i, (k, ri, _) in enumerate(ds.index):
+        seed = frame_seed(0, ds.runs[k].name, ri)
+        frames._rng = lambda _, seed=seed: points_generator(seed)          # the item's generator, replaced
+        assert torch.equal(encoder_input(run)(ds.lidar_points(i), points_generator(seed)), frames[i][0])
+
+
+def test_a_killed_reconstruction_resumes_to_the_same_files(reconstructed, rald_ae_run, colo_root, tmp_path,
+                                                           monkeypatch, capsys):
+    out = tmp_path / "killed"
+    real, calls = recon_module.reconstruct_cloud, []
+
+    def killed_on_the_second(*a, **kw):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **kw)
+
+    monkeypatch.setattr(recon_module, "reconstruct_cloud", killed_on_the_second)
+    assert _reconstruct(rald_ae_run, colo_root, out) == 130
+    assert "interrupted; finished work is kept, run the same command again to resume" in capsys.readouterr().err
+    monkeypatch.undo()
+    assert len(_files(out)) == 1
+    assert _reconstruct(rald_ae_run, colo_root, out) == 0
+    assert "wrote 1 new point cloud (2 frames" in capsys.readouterr().out
+    assert _files(out) == _files(reconstructed[0])
+
+
+def test_generated_and_oscfar_clouds_side_by_side(generated, imported, colo_root, tmp_path, capsys):
+    gen, rec = tmp_path / "rald", tmp_path / "rald-ae"
     shutil.copytree(generated[0], gen)
+    # the reconstruction of an imported autoencoder (OUT/ae: a stage-1 run in the official frame)
+    assert _reconstruct(imported / "ae", colo_root, rec) == 0
+    assert json.loads((rec / "generation.json").read_text())["mirror_azimuth"] is True
     oscfar = tmp_path / "oscfar"
     assert main(["baseline", "os-cfar", str(colo_root), "--split", "test", "--out", str(oscfar), "--quick-tune",
                  "--max-tune-frames", "2"]) == 0
     capsys.readouterr()
-    assert main(["evaluate-points", str(gen), str(oscfar), "--data", str(colo_root), "--split", "test",
+    assert main(["evaluate-points", str(gen), str(rec), str(oscfar), "--data", str(colo_root), "--split", "test",
                  "--emd-points", "64", "--out", str(tmp_path / "cmp")]) == 0
     stdout = capsys.readouterr().out
     assert "## side by side" in stdout
-    cmp = json.loads((tmp_path / "cmp" / "comparison.json").read_text())
-    assert "rald" in json.dumps(cmp) and "os-cfar" in json.dumps(cmp)
-    for folder in (gen, oscfar):
+    cmp = json.dumps(json.loads((tmp_path / "cmp" / "comparison.json").read_text()))
+    assert '"rald"' in cmp and '"rald-ae"' in cmp and '"os-cfar"' in cmp
+    for folder in (gen, rec, oscfar):
         metrics = json.loads((folder / "metrics.json").read_text())
         assert len(metrics["frames"]) == 2
 
@@ -258,19 +351,30 @@ def test_generate_runs_an_imported_run_in_its_official_frame(imported, colo_root
 def test_generate_refusals(rald_run, rald_ae_run, colo_root, generated, tmp_path, capsys, monkeypatch):
     cases = [
         ((tmp_path / "none", colo_root, tmp_path / "a"), f"{tmp_path / 'none'}: no RaLD training run here"),
-        ((rald_ae_run, colo_root, tmp_path / "b"),
-         "a RaLD autoencoder run, not a diffusion run (it is a stage-1 run; give the stage-2 run trained against it)"),
+        ((rald_ae_run, colo_root, tmp_path / "b", "--steps", "18"),                     # even the default
+         f"{rald_ae_run}: a stage-1 (autoencoder) run reconstructs the LiDAR without the diffusion sampler; "
+         f"generation.num_steps (--steps) applies to a stage-2 run only"),
+        ((rald_run, colo_root, tmp_path / "g", "--posterior", "mean"),
+         f"{rald_run}: a stage-2 (diffusion) run generates from the radar; reconstruction.posterior (--posterior) "
+         f"applies to a stage-1 (autoencoder) run only"),
+        ((tmp_path / "detection", colo_root, tmp_path / "h"), "a detection training run, not a RaLD one"),
         ((rald_run, colo_root, tmp_path / "c", "--steps", "1"), "GenerationConfig.num_steps must be >= 2, got 1"),
         ((rald_run, tmp_path, tmp_path / "d"), str(tmp_path)),
     ]
+    (tmp_path / "detection").mkdir()
+    (tmp_path / "detection" / "run.json").write_text('{"experiment": {"name": "fftradnet"}}')
     bad_yaml = tmp_path / "gen.yaml"
     bad_yaml.write_text("generation: {random_queries: 10, queries: 5}\n")
     cases.append(((rald_run, colo_root, tmp_path / "e", "--config", bad_yaml), str(bad_yaml)))
+    sampler_yaml = tmp_path / "sampler.yaml"
+    sampler_yaml.write_text("generation: {sigma_max: 40.0, rho: 5.0}\n")
+    cases.append(((rald_ae_run, colo_root, tmp_path / "i", "--config", sampler_yaml),
+                  "generation.sigma_max, generation.rho apply to a stage-2 run only"))
     for argv, message in cases:
-        assert _generate(*argv) == 2, message
+        assert (_reconstruct if argv[0] == rald_ae_run else _generate)(*argv) == 2, message
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
-    assert not any((tmp_path / n).exists() for n in "abcde")
+    assert not any((tmp_path / n).exists() for n in "abcdeghi")
     # other settings into a generated folder (a config file's, the options applied over it): refused,
     # nothing changed
     out = tmp_path / "preds"

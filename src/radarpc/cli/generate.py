@@ -1,12 +1,14 @@
-"""``radarpc generate RUN``: RaLD's clouds of a ColoRadar split, one per paired radar frame.
+"""``radarpc generate RUN``: RaLD's clouds of a ColoRadar split, one per paired radar frame (or, for
+a stage-1 run, the autoencoder's reconstruction of each frame's LiDAR).
 
 ::
 
     radarpc generate runs/rald --data data/sim_colo --split test --out preds/rald
+    radarpc generate runs/ae --data data/sim_colo --split test --out preds/rald-ae    # the reconstruction
     radarpc generate runs/rald-official --data data/coloradar --split test --out preds/official --device cuda
     radarpc generate runs/rald --data data/sim_colo --out preds/quick --random-queries 50000 \\
         --guided-queries 50000 --refine-queries 50000 --steps 8 --guide os-cfar
-    radarpc evaluate-points preds/rald preds/oscfar --data data/sim_colo --split test
+    radarpc evaluate-points preds/rald preds/rald-ae preds/oscfar --data data/sim_colo --split test
 
 RUN is a stage-2 run folder: ``radarpc train`` with a diffusion config (the autoencoder it was
 trained against is stored with it), or ``radarpc import-rald`` (the official weights). Per frame:
@@ -20,6 +22,19 @@ queries only). --config takes a YAML with a generation section (random_queries, 
 guided_spread, refine_queries, refine_spread, refine_rounds, chunk, num_steps, sigma_min,
 sigma_max, rho, seed) and a guide section (source, n_points, angle_bins, upsample, oscfar), each
 optional; the options above replace its values.
+
+RUN may also be a stage-1 run (``radarpc train`` with an autoencoder config, or OUT/ae of
+``radarpc import-rald``): then each frame's LiDAR truth, drawn as the autoencoder's training draws
+it (the same points for a frame and --seed), is encoded to latents, a posterior sample as the
+official evaluation decodes (--posterior mean: the posterior mean), and decoded exactly as a
+generation decodes (the same queries, chunks, refinement and Cartesian output) without the sampler:
+the autoencoder's reconstruction, the best a generation with this autoencoder can reach. Its folder
+is the same layout with method ``rald-ae`` and ``"kind": "reconstruction"`` in generation.json, and
+stages encoding, decoding and refinement in generation.csv. --steps (and the sampler's fields of
+--config) are refused with a stage-1 run, --posterior (and the reconstruction section of
+--config: posterior) with a stage-2 run. The official
+autoencoder evaluation decodes 500,000 random queries only: --guide none with ``generation:
+{refine_rounds: 0}`` in --config.
 
 OUT gets ``{run}/{frame:06d}.npy`` (float32 (N, 3)), ``index.json``, ``generation.json`` (the key:
 root, split, settings, grid, the run folder and its weights' SHA-256) and ``generation.csv`` (per
@@ -35,7 +50,7 @@ from __future__ import annotations
 
 import argparse
 
-from radarpc.cli.options import GUIDE_SOURCES
+from radarpc.cli.options import GUIDE_SOURCES, POSTERIORS
 
 __all__ = ["add_parser", "run"]
 
@@ -52,12 +67,14 @@ def run(args: argparse.Namespace) -> int:
 
     config = load_generate_config(args.config) if args.config else GenerateConfig()
     changes = {field: getattr(args, opt) for opt, field in _GENERATION_OPTIONS if getattr(args, opt) is not None}
-    config = with_generation(config, guide=args.guide, **changes)
-    res = generate_run(args.run, args.out, data=args.data, split=args.split, every=args.every, config=config, device=args.device,
+    config = with_generation(config, guide=args.guide, posterior=args.posterior, **changes)
+    res = generate_run(args.run, args.out, data=args.data, split=args.split, every=args.every, config=config,
+                       device=args.device,
                        allow_unfinished=args.allow_unfinished, overwrite=args.overwrite,
                        progress=not args.no_progress,
                        on_warning=lambda s: print(f"warning: {s}", file=sys.stderr),
-                       notice=lambda s: print(s, file=sys.stderr))
+                       notice=lambda s: print(s, file=sys.stderr),
+                       given=[f for f, v in (("num_steps", args.steps), ("posterior", args.posterior)) if v is not None])
     if res.seconds:
         stages = ", ".join(f"{k} {v:.3g}" for k, v in res.seconds.items())
         print(f"seconds per frame ({plural(res.n_new, 'new frame')}): {stages}")
@@ -67,10 +84,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("generate", help="RaLD's point clouds of a ColoRadar split from a trained or imported run "
-                                        "(resumable)",
+    p = sub.add_parser("generate", help="RaLD's point clouds of a ColoRadar split from a trained or imported run, "
+                                        "or a stage-1 run's reconstruction (resumable)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("run", help="stage-2 RaLD run folder (radarpc train with a diffusion config, or radarpc import-rald)")
+    p.add_argument("run", help="stage-2 RaLD run folder (radarpc train with a diffusion config, or radarpc import-rald), "
+                               "or a stage-1 one (the autoencoder's reconstruction)")
     p.add_argument("--data", default=None, metavar="ROOT",
                    help="ColoRadar root (default: the root the run was trained on, or given to import-rald)")
     p.add_argument("--split", default="test", choices=("train", "val", "test", "all"),
@@ -80,7 +98,8 @@ def add_parser(sub) -> None:
                         "scores the frames the folder lists")
     p.add_argument("--out", required=True, help="prediction folder")
     p.add_argument("--config", default=None, metavar="YAML",
-                   help="generation settings (generation and guide sections; default the official values)")
+                   help="generation settings (generation and guide sections, and for a stage-1 run a "
+                        "reconstruction section; default the official values)")
     p.add_argument("--random-queries", type=int, default=None, metavar="N",
                    help="random queries per frame, uniform over the grid (default 500,000)")
     p.add_argument("--guided-queries", type=int, default=None, metavar="N",
@@ -88,7 +107,7 @@ def add_parser(sub) -> None:
     p.add_argument("--refine-queries", type=int, default=None, metavar="N",
                    help="queries per frame of the refinement around the occupied ones (default 500,000)")
     p.add_argument("--steps", type=int, default=None, metavar="N",
-                   help="Heun steps of the sampler, 2N - 1 network calls (default 18)")
+                   help="Heun steps of the sampler, 2N - 1 network calls (default 18; stage-2 runs only)")
     p.add_argument("--seed", type=int, default=None, metavar="S",
                    help="base seed; each frame draws from a seed of it, its run and its index (default 0)")
     p.add_argument("--chunk", type=int, default=None, metavar="N",
@@ -96,6 +115,9 @@ def add_parser(sub) -> None:
     p.add_argument("--guide", default=None, choices=GUIDE_SOURCES,
                    help="where the guided queries start: RaLD's intensity peaks, radarpc's OS-CFAR points or "
                         "nowhere (default peaks)")
+    p.add_argument("--posterior", default=None, choices=POSTERIORS,
+                   help="stage-1 runs only: decode a seeded sample of the posterior, as the official evaluation, or "
+                        "its mean (default sample)")
     p.add_argument("--device", default=None, help="torch device (default: a GPU if any, else the CPU)")
     p.add_argument("--allow-unfinished", action="store_true",
                    help="generate with the best weights so far of a run that has not finished")

@@ -10,7 +10,9 @@
                               "frames": [one entry per frame]}
       config.yaml             the method's parameters (OS-CFAR: radarpc.rald.oscfar_baseline)
       tuning.json             the tuning search, when the parameters were tuned
-      generation.json         RaLD: the generation's key (radarpc.pipelines.rald_generate)
+      generation.json         RaLD: the generation's key (radarpc.pipelines.rald_generate; the
+                              autoencoder's reconstruction, kind "reconstruction":
+                              radarpc.pipelines.rald_reconstruct)
       generation.csv          RaLD: per frame, points, empty flag, query counts, seconds per stage
       metrics.json, metrics.md   written by ``radarpc evaluate-points``
 

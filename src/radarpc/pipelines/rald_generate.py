@@ -15,7 +15,8 @@ loop the OS-CFAR baseline shares (:func:`radarpc.pipelines.predictions.fill_pred
   and seconds per stage (condition, sampler, decoding, refinement);
 * ``index.json`` -- the frames, the configs, the model and the list ``empty_frames``.
 
-Per frame: the single-chip ADC, RaLD's cube of it (:func:`radarpc.dsp.tdm.radar_cube`), the
+The same loop (:func:`fill_rald_folder`) fills the autoencoder's reconstructions
+(:mod:`radarpc.pipelines.rald_reconstruct`). Per frame: the single-chip ADC, RaLD's cube of it (:func:`radarpc.dsp.tdm.radar_cube`), the
 model's input ``model_input(cube)`` (the run's normalisation: RaLD clips the intensity to 0..45 dB,
 divides by 45 and upsamples to 128 x 64 x 32), the guide points (:func:`radarpc.rald.guide.guide_points`),
 then the generation.
@@ -44,13 +45,13 @@ from radarpc.data.coloradar import ColoRadar
 from radarpc.dsp.tdm import RadarCube, radar_cube
 from radarpc.pipelines.predictions import FilledFolder, FramePrediction, fill_predictions
 from radarpc.rald.frustum import RALD_GRID, FrustumGrid
-from radarpc.rald.generate import STAGES, GenerationConfig, frame_seed, generate_cloud
+from radarpc.rald.generate import STAGES, GeneratedCloud, GenerationConfig, frame_seed, generate_cloud
 from radarpc.rald.guide import GuideConfig, guide_points
 from radarpc.rald.voxels import CartesianGrid
 from radarpc.runs import RunFolder
 
 __all__ = ["METHOD", "GENERATION_FILE", "RECORDS_FILE", "GenerationJob", "GenerationRun", "grid_key",
-           "file_digests", "generate_predictions"]
+           "file_digests", "generate_predictions", "paired_frames", "fill_rald_folder"]
 
 METHOD = "rald"
 GENERATION_FILE = "generation.json"
@@ -145,15 +146,45 @@ def generate_predictions(job: GenerationJob, ae: torch.nn.Module, dit: torch.nn.
     radarpc.runs.OutputBusyError
         Another process writes the folder.
     """
-    ds = ColoRadar(job.root, job.split, cube_size=None, every=job.every)
-    if len(ds) == 0:
-        raise ValueError(f"split {job.split!r} of {job.root} has no paired radar/LiDAR frame")
-    cfg, chip = job.generation, ds.calib.single_chip
+    ds = paired_frames(job)
+    cfg = job.generation
     key = {"method": METHOD, "root": str(Path(job.root).resolve()), "split": job.split,
            "every": ds.every, "generation": to_dict(cfg), "guide": to_dict(job.guide), "grid": grid_key(grid),
            "mirror_azimuth": bool(mirror_azimuth), "model": dict(model or {})}
     ae.eval()
     dit.eval()
+
+    def cloud(i: int, cube: RadarCube, guide: np.ndarray, seed: int) -> GeneratedCloud:
+        return generate_cloud(ae, dit, model_input(cube), guide, cfg, seed, grid=grid, mirror_azimuth=mirror_azimuth)
+
+    return fill_rald_folder(job, ds, key, cloud, stages=STAGES, desc=f"RaLD {job.split}", progress=progress,
+                            on_warning=on_warning)
+
+
+def paired_frames(job: GenerationJob) -> ColoRadar:
+    """The paired radar / LiDAR frames of the job's split (every ``job.every``-th of each run).
+
+    Raises
+    ------
+    ValueError
+        The split has none.
+    """
+    ds = ColoRadar(job.root, job.split, cube_size=None, every=job.every)
+    if len(ds) == 0:
+        raise ValueError(f"split {job.split!r} of {job.root} has no paired radar/LiDAR frame")
+    return ds
+
+
+def fill_rald_folder(job: GenerationJob, ds: ColoRadar, key: Mapping[str, object],
+                     cloud: Callable[[int, RadarCube, np.ndarray, int], GeneratedCloud], *,
+                     stages: Sequence[str] = STAGES, desc: str = "", progress: bool = True,
+                     on_warning: Callable[[str], None] | None = None) -> GenerationRun:
+    """The frame loop of a RaLD folder, a generation's or a reconstruction's
+    (:mod:`radarpc.pipelines.rald_reconstruct`): per frame of ``ds`` the single-chip ADC, RaLD's cube,
+    the guide points and the frame's seed, then ``cloud(i, cube, guide, seed)``; the folder owned
+    under ``key`` (its ``"method"`` names the method; the key's other entries but root and split
+    go into ``index.json``), filled resumably, the mean seconds of ``stages`` returned."""
+    cfg, chip = job.generation, ds.calib.single_chip
     records: list[dict] = []
 
     def predict(i: int) -> FramePrediction:
@@ -162,18 +193,18 @@ def generate_predictions(job: GenerationJob, ae: torch.nn.Module, dit: torch.nn.
         adc = run.adc(ri)
         cube = radar_cube(adc, chip)                                     # RaLD's 128 x 8 x 2 cube
         guide = guide_points(job.guide, adc, chip, cube)                 # (P, 3) Cartesian
-        res = generate_cloud(ae, dit, model_input(cube), guide, cfg, frame_seed(cfg.seed, run.name, ri), grid=grid,
-                             mirror_azimuth=mirror_azimuth)
+        res = cloud(i, cube, guide, frame_seed(cfg.seed, run.name, ri))
         records.append(res.record())
         return FramePrediction(res.points, res.record(), res.warning)
 
     def extra(res: FilledFolder) -> dict:
-        return {**{k: key[k] for k in ("every", "generation", "guide", "grid", "mirror_azimuth", "model")},
+        return {**{k: v for k, v in key.items() if k not in ("method", "root", "split")},
                 "empty_frames": [{"run": r, "frame": f} for r, f in res.empty]}
 
-    with RunFolder(job.out, {GENERATION_FILE: key}, what="prediction folder").start(overwrite=job.overwrite) as folder:
-        res = fill_predictions(folder.path, ds, predict, keep=lambda i, path: folder.done(path), method=METHOD,
-                               root=job.root, split=job.split, index_extra=extra, records=RECORDS_FILE,
-                               progress=progress, desc=f"RaLD {job.split}", on_warning=on_warning)
-    seconds = {s: float(np.mean([r[f"seconds_{s}"] for r in records])) for s in STAGES} if records else {}
+    owned = RunFolder(job.out, {GENERATION_FILE: dict(key)}, what="prediction folder")
+    with owned.start(overwrite=job.overwrite) as folder:
+        res = fill_predictions(folder.path, ds, predict, keep=lambda i, path: folder.done(path),
+                               method=str(key["method"]), root=job.root, split=job.split, index_extra=extra, records=RECORDS_FILE,
+                               progress=progress, desc=desc, on_warning=on_warning)
+    seconds = {s: float(np.mean([r[f"seconds_{s}"] for r in records])) for s in stages} if records else {}
     return GenerationRun(Path(job.out), res.n_frames, res.n_new, res.empty, res.warnings, seconds)

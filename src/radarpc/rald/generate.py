@@ -77,6 +77,7 @@ __all__ = [
     "model_frame",
     "decode_occupied",
     "refine",
+    "decode_cloud",
     "generate_clouds",
     "generate_cloud",
 ]
@@ -387,6 +388,7 @@ class GeneratedCloud:
     n_cfar_points: int = 0                                       # CFAR points inside the grid
     n_occupied: int = 0                                          # occupied queries before the refinement
     seed: int = 0                                                # the frame's seed
+    stages: tuple[str, ...] = STAGES                             # the timed stages, in order (the record's columns)
 
     @property
     def empty(self) -> bool:
@@ -407,7 +409,7 @@ class GeneratedCloud:
         out: dict[str, object] = {"n_points": int(self.points.shape[0]), "empty": self.empty, "seed": self.seed,
                                   "n_cfar_points": self.n_cfar_points, "n_occupied": self.n_occupied}
         out.update({f"queries_{k}": v for k, v in self.n_queries.items()})
-        out.update({f"seconds_{k}": self.seconds.get(k, 0.0) for k in STAGES})
+        out.update({f"seconds_{k}": self.seconds.get(k, 0.0) for k in self.stages})
         return out
 
 
@@ -478,13 +480,40 @@ def generate_clouds(ae, dit, cubes: torch.Tensor, cfar_points: Sequence, cfg: Ge
 
     out = []
     for i in range(b):
-        out.append(_decode_frame(ae, latents[i:i + 1], cfar_points[i], cfg, int(seeds[i]), grid, mirror_azimuth))
+        out.append(decode_cloud(ae, latents[i:i + 1], cfar_points[i], cfg, int(seeds[i]), grid=grid,
+                                mirror_azimuth=mirror_azimuth))
         out[-1].seconds = {"condition": (t1 - t0) / b, "sampler": (t2 - t1) / b, **out[-1].seconds}
     return out
 
 
-def _decode_frame(ae, latents: torch.Tensor, cfar_points, cfg: GenerationConfig, seed: int,
-                  grid: Grid, mirror_azimuth: bool) -> GeneratedCloud:
+@torch.no_grad()
+def decode_cloud(ae, latents: torch.Tensor, cfar_points, cfg: GenerationConfig, seed: int, *,
+                 grid: Grid = RALD_GRID, mirror_azimuth: bool = False) -> GeneratedCloud:
+    """One frame's cloud from its latents: steps 3 to 5 of the module docstring (random and guided
+    queries decoded in chunks, the refinement, Cartesian points in the radar frame).
+
+    Parameters
+    ----------
+    ae : radarpc.models.vecset.VecSetAutoencoder
+        In evaluation mode.
+    latents : torch.Tensor, ``(1, M, D)`` or ``(M, D)``
+        The frame's latents (sampled by the diffusion model, or encoded from its LiDAR:
+        :mod:`radarpc.rald.reconstruct`).
+    cfar_points : array-like, ``(P, 3)``
+        Cartesian guide points of the frame, radar frame.
+    cfg : GenerationConfig
+        Its query counts, spreads, refinement and chunk (the sampler's fields are not read).
+    seed : int
+        The frame's seed (:func:`frame_seed`): the queries' draws.
+    grid, mirror_azimuth
+        As :func:`generate_clouds`.
+
+    Returns
+    -------
+    GeneratedCloud
+        With ``seconds["decoding"]`` and ``seconds["refinement"]``.
+    """
+    _check_eval(ae, "the autoencoder")
     dev = _device(ae)
     gen = _query_generator(seed)
     _sync(dev)

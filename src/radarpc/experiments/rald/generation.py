@@ -1,5 +1,7 @@
 """A RaLD run's generation for a ColoRadar split: the run's models, input and coordinates handed to
-:func:`radarpc.pipelines.rald_generate.generate_predictions` (what ``radarpc generate`` calls).
+:func:`radarpc.pipelines.rald_generate.generate_predictions` (what ``radarpc generate`` calls), or,
+for a stage-1 run, its autoencoder's reconstruction of the split's LiDAR handed to
+:func:`radarpc.pipelines.rald_reconstruct.reconstruct_predictions`.
 
 From the stage-2 run (:func:`radarpc.experiments.rald.runs.load_rald`: trained, or imported from the
 official checkpoints) the generation takes
@@ -14,8 +16,18 @@ official checkpoints) the generation takes
 * the identity in the folder's key: the run folder (resolved) and the SHA-256 of its
   ``best.safetensors`` (both networks), so that clouds of other weights are never mixed in.
 
-:class:`GenerateConfig` is the YAML of ``radarpc generate --config``: the generation and its guide
-points, each section optional (the official values by default).
+From a stage-1 run (:func:`radarpc.experiments.rald.runs.load_rald_ae`) the reconstruction takes the
+autoencoder, its grid and frame as above, and the encoder's input of a frame: ``data.points`` of
+the frame's LiDAR in the model's frame, drawn as the run's training draws them
+(:func:`radarpc.experiments.rald.task.resample_points`, without replacement when the frame has
+enough points), mapped to the model's coordinates (:func:`encoder_input`); the generator is the
+frame's own (:func:`radarpc.rald.reconstruct.points_generator` of its seed), so a frame always
+encodes the same points. The sampler's settings (``num_steps``, ``sigma_min``, ``sigma_max``,
+``rho``) are refused for a stage-1 run, and the reconstruction's (``posterior``) for a stage-2 run.
+
+:class:`GenerateConfig` is the YAML of ``radarpc generate --config``: the generation, its guide
+points and (stage-1 runs) the reconstruction, each section optional (the official values by
+default).
 """
 from __future__ import annotations
 
@@ -23,19 +35,24 @@ import dataclasses
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import torch
 
 from radarpc.config import load_yaml
 from radarpc.data.coloradar import rald_intensity
-from radarpc.experiments.rald.runs import RaldRun, load_rald
+from radarpc.experiments.rald.runs import AutoencoderRun, RaldRun, load_rald, load_rald_ae, rald_stage
+from radarpc.experiments.rald.task import resample_points
 from radarpc.pipelines.rald_generate import GenerationJob, GenerationRun, file_digests, generate_predictions
+from radarpc.pipelines.rald_reconstruct import SAMPLER_FIELDS, reconstruct_predictions
 from radarpc.rald.generate import GenerationConfig
 from radarpc.rald.guide import GuideConfig
+from radarpc.rald.reconstruct import ReconstructionConfig
+from radarpc.rald.voxels import model_coords
 from radarpc.training.loop import BEST_WEIGHTS
 
-__all__ = ["GenerateConfig", "load_generate_config", "with_generation", "run_root", "model_input", "generate_run"]
+__all__ = ["GenerateConfig", "load_generate_config", "with_generation", "run_root", "model_input", "encoder_input",
+           "generate_run"]
 
 
 @dataclass(frozen=True)
@@ -45,6 +62,7 @@ class GenerateConfig:
 
     generation: GenerationConfig = field(default_factory=GenerationConfig)
     guide: GuideConfig = field(default_factory=GuideConfig)
+    reconstruction: ReconstructionConfig = field(default_factory=ReconstructionConfig)   # stage-1 runs only
 
 
 def load_generate_config(path: str | os.PathLike) -> GenerateConfig:
@@ -53,15 +71,19 @@ def load_generate_config(path: str | os.PathLike) -> GenerateConfig:
     return load_yaml(GenerateConfig, path)
 
 
-def with_generation(config: GenerateConfig, *, guide: str | None = None, **changes) -> GenerateConfig:
+def with_generation(config: GenerateConfig, *, guide: str | None = None, posterior: str | None = None,
+                    **changes) -> GenerateConfig:
     """``config`` with fields of its :class:`~radarpc.rald.generate.GenerationConfig` replaced
-    (``changes``, checked by it) and, with ``guide``, another guide source."""
+    (``changes``, checked by it) and, with ``guide``, another guide source, with ``posterior``
+    another posterior to reconstruct from."""
     gen = dataclasses.replace(config.generation, **changes) if changes else config.generation
     src = dataclasses.replace(config.guide, source=guide) if guide is not None else config.guide
-    return GenerateConfig(generation=gen, guide=src)
+    rec = (dataclasses.replace(config.reconstruction, posterior=posterior) if posterior is not None
+           else config.reconstruction)
+    return GenerateConfig(generation=gen, guide=src, reconstruction=rec)
 
 
-def run_root(run: RaldRun) -> Path | None:
+def run_root(run: RaldRun | AutoencoderRun) -> Path | None:
     """The ColoRadar root the run's key names (trained on, or given to the import), or None."""
     data = run.key.get("data")
     return Path(data) if isinstance(data, str) else None
@@ -74,19 +96,34 @@ def model_input(run: RaldRun) -> Callable:
     return lambda cube: rald_intensity(cube, shape, max_db=max_db)
 
 
+def encoder_input(run: AutoencoderRun) -> Callable:
+    """``(lidar, generator) -> (N, 3)`` float32 tensor: the autoencoder's input of a frame's LiDAR
+    (radar frame, metres), drawn as the run's training draws it (module docstring)."""
+    data, grid = run.config.data, run.grid
+
+    def points(lidar, generator: torch.Generator) -> torch.Tensor:
+        xyz = data.model_frame(torch.from_numpy(lidar))                                  # (M, 3) model frame
+        return model_coords(grid, resample_points(xyz, data.points, generator)).to(torch.float32)   # (N, 3)
+
+    return points
+
+
 def generate_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, data: str | os.PathLike | None = None,
                  split: str = "test", every: int = 1, config: GenerateConfig = GenerateConfig(),
                  device: str | None = None,
                  allow_unfinished: bool = False, overwrite: bool = False, progress: bool = True,
                  on_warning: Callable[[str], None] | None = None,
-                 notice: Callable[[str], None] | None = None) -> GenerationRun:
+                 notice: Callable[[str], None] | None = None, given: Sequence[str] = ()) -> GenerationRun:
     """Generate one cloud per paired frame of ``split`` with the stage-2 run ``run_dir`` into the
-    prediction folder ``out`` (resumable: :func:`~radarpc.pipelines.rald_generate.generate_predictions`).
+    prediction folder ``out`` (resumable: :func:`~radarpc.pipelines.rald_generate.generate_predictions`),
+    or, with a stage-1 run, reconstruct each frame's LiDAR through its autoencoder
+    (:func:`~radarpc.pipelines.rald_reconstruct.reconstruct_predictions`).
 
     Parameters
     ----------
     run_dir : path-like
-        A stage-2 run folder (``radarpc train`` with a diffusion config, or ``radarpc import-rald``).
+        A stage-2 run folder (``radarpc train`` with a diffusion config, or ``radarpc import-rald``),
+        or a stage-1 one (``radarpc train`` with an autoencoder config, or ``OUT/ae`` of an import).
     out : path-like
         The prediction folder.
     data : path-like, optional
@@ -96,6 +133,8 @@ def generate_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, data: st
         Generate every ``every``-th paired frame of each run (1: all; see
         :class:`~radarpc.data.coloradar.ColoRadar`).
     config : GenerateConfig
+        For a stage-1 run its sampler's fields must be the defaults; for a stage-2 run its
+        reconstruction section.
     device : str, optional
         Default: a GPU if any, else the CPU.
     allow_unfinished : bool
@@ -106,16 +145,21 @@ def generate_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, data: st
     on_warning : callable, optional
         Each empty frame's warning line, as it happens.
     notice : callable, optional
-        One-line notices: the stage-1 folder the run names has changed or is missing (the
-        autoencoder stored with the run is used either way), an unfinished run generating.
+        One-line notices: a stage-1 run reconstructs; the stage-1 folder a stage-2 run names has
+        changed or is missing (the autoencoder stored with the run is used either way); an
+        unfinished run generating.
+    given : sequence of str
+        Fields of ``config`` the caller set explicitly (``"num_steps"``, ``"posterior"``: the
+        command's options): refused for a run of the other stage even at their default values.
 
     Raises
     ------
     FileNotFoundError, DataFileError
-        ``run_dir`` is not a loadable stage-2 run (:func:`~radarpc.experiments.rald.runs.load_rald`).
+        ``run_dir`` is not a loadable RaLD run (:func:`~radarpc.experiments.rald.runs.load_rald`,
+        :func:`~radarpc.experiments.rald.runs.load_rald_ae`).
     ValueError
         An unfinished run without ``allow_unfinished``; no ``data`` for a run that names no root;
-        a split without paired frames.
+        a split without paired frames; a setting of the other stage (above).
     RunMismatchError
         ``out`` holds anything else, without ``overwrite``.
     PermissionError
@@ -125,20 +169,23 @@ def generate_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, data: st
     from radarpc.runs import check_writable
 
     check_writable(out, "prediction folder")                 # before the models are read
-    dev = check_device(device, "--device") if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
     run_dir = Path(run_dir)
-    run = load_rald(run_dir, device=dev)
+    stage = rald_stage(run_dir)
+    _check_stage_settings(run_dir, stage, config, given)
+    dev = check_device(device, "--device") if device else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    run = load_rald(run_dir, device=dev) if stage == "diffusion" else load_rald_ae(run_dir, device=dev)
     say = notice or (lambda s: None)
+    what = "diffusion" if stage == "diffusion" else "autoencoder"
     if run.finished is False:
         where = f"step {run.status['steps_done']}, best weights of step {run.status['weights_step']}"
         if not allow_unfinished:
-            raise ValueError(f"{run_dir}: the diffusion run has not finished ({where}); finish it with the same "
+            raise ValueError(f"{run_dir}: the {what} run has not finished ({where}); finish it with the same "
                              f"`radarpc train` command, or pass --allow-unfinished to generate with its best weights "
                              f"so far")
-        say(f"{run_dir}: the diffusion run has not finished ({where}); generating with its best weights so far")
-    if run.ae_status != "same":
-        what = "holds another run or other weights now" if run.ae_status == "changed" else "holds no run any more"
-        say(f"{run_dir}: its stage-1 folder {run.ae_dir} {what}; the autoencoder stored with the run (the one the "
+        say(f"{run_dir}: the {what} run has not finished ({where}); generating with its best weights so far")
+    if stage == "diffusion" and run.ae_status != "same":
+        state = "holds another run or other weights now" if run.ae_status == "changed" else "holds no run any more"
+        say(f"{run_dir}: its stage-1 folder {run.ae_dir} {state}; the autoencoder stored with the run (the one the "
             f"diffusion model was trained on) is used")
     if data is None:
         data = run_root(run)
@@ -146,6 +193,31 @@ def generate_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, data: st
             raise ValueError(f"{run_dir}: the run names no ColoRadar root (an import without --data); give --data ROOT")
     job = GenerationJob(data, out, split, every, generation=config.generation, guide=config.guide, overwrite=overwrite)
     identity = {"run": str(run_dir.resolve()), "weights": file_digests([run_dir / BEST_WEIGHTS])}
+    if stage == "autoencoder":
+        say(f"{run_dir}: a stage-1 run: each frame's LiDAR is encoded and decoded by the autoencoder (a "
+            f"reconstruction, posterior {config.reconstruction.posterior}), not generated from the radar")
+        return reconstruct_predictions(job, run.ae, encoder_input=encoder_input(run),
+                                       reconstruction=config.reconstruction, grid=run.grid,
+                                       mirror_azimuth=run.config.data.mirror_azimuth, model=identity,
+                                       progress=progress, on_warning=on_warning)
     return generate_predictions(job, run.ae, run.dit, model_input=model_input(run), grid=run.grid,
                                 mirror_azimuth=run.ae_config.data.mirror_azimuth, model=identity,
                                 progress=progress, on_warning=on_warning)
+
+
+_OPTIONS = {"num_steps": "--steps", "posterior": "--posterior"}
+
+
+def _check_stage_settings(run_dir: Path, stage: str, config: GenerateConfig, given: Sequence[str]) -> None:
+    """Refuse a setting that the run's stage does not read (module docstring)."""
+    if stage == "autoencoder":
+        default = GenerationConfig()
+        fields = [f for f in SAMPLER_FIELDS if f in given or getattr(config.generation, f) != getattr(default, f)]
+        if fields:
+            names = ", ".join(f"generation.{f}" + (f" ({_OPTIONS[f]})" if f in _OPTIONS else "") for f in fields)
+            verb = "applies" if len(fields) == 1 else "apply"
+            raise ValueError(f"{run_dir}: a stage-1 (autoencoder) run reconstructs the LiDAR without the diffusion "
+                             f"sampler; {names} {verb} to a stage-2 run only")
+    elif "posterior" in given or config.reconstruction != ReconstructionConfig():
+        raise ValueError(f"{run_dir}: a stage-2 (diffusion) run generates from the radar; reconstruction.posterior "
+                         f"(--posterior) applies to a stage-1 (autoencoder) run only")

@@ -56,7 +56,7 @@ from radarpc.runs import read_json
 from radarpc.training.checkpoint import load_model_state, load_weights
 from radarpc.training.loop import BEST_WEIGHTS, training_status
 
-__all__ = ["AutoencoderRun", "RaldRun", "load_rald_ae", "load_rald", "autoencoder_run_key",
+__all__ = ["AutoencoderRun", "RaldRun", "rald_stage", "load_rald_ae", "load_rald", "autoencoder_run_key",
            "diffusion_run_key", "ae_reference", "resolve_ae_dir", "file_sha256", "AE_STATUSES"]
 
 AE_STATUSES = ("same", "changed", "missing")
@@ -129,7 +129,7 @@ def _comparable(key: object) -> object:
     return {k: v for k, v in canonical_key(key, num_workers=0).items() if k != "software"}
 
 
-def _read_key(folder: Path, stage: str):
+def _read_rald_key(folder: Path):
     path = folder / "run.json"
     if folder.is_file():
         raise DataFileError(folder, "is a file; expected a RaLD run folder (run.json, best.safetensors, ...)")
@@ -140,7 +140,26 @@ def _read_key(folder: Path, stage: str):
         raise DataFileError(path, "not a radarpc training run key (no 'experiment')")
     if "stage" not in key["experiment"]:
         raise DataFileError(path, "a detection training run, not a RaLD one (its experiment names no 'stage')")
-    cfg = experiment_from_dict(key["experiment"], where=str(path))
+    return experiment_from_dict(key["experiment"], where=str(path)), key
+
+
+def rald_stage(run_dir: str | os.PathLike) -> str:
+    """The stage of the RaLD run in ``run_dir``, ``"autoencoder"`` or ``"diffusion"``, from its
+    ``run.json`` alone (no weights read).
+
+    Raises
+    ------
+    FileNotFoundError
+        No ``run.json``.
+    DataFileError
+        ``run_dir`` is a file, or ``run.json`` is not a RaLD run key.
+    """
+    return _read_rald_key(Path(run_dir))[0].stage
+
+
+def _read_key(folder: Path, stage: str):
+    path = folder / "run.json"
+    cfg, key = _read_rald_key(folder)
     if cfg.stage != stage:
         hint = ("its diffusion model and frozen autoencoder load with load_rald" if stage == "autoencoder"
                 else "it is a stage-1 run; give the stage-2 run trained against it")
