@@ -315,8 +315,7 @@ def experiment_from_dict(d: Any, *, where: str = "experiment") -> RaldExperiment
         raise ValueError(f"{where}: expected a mapping (a RaLD experiment config), got {type(d).__name__}")
     stage = d.get("stage")
     if stage not in _CLASSES:
-        raise ValueError(f"{where}: stage must be one of {', '.join(STAGES)} (the RaLD training stage; occupancy "
-                         f"is the learned baseline's, radarpc.experiments.rpdnet), "
+        raise ValueError(f"{where}: stage must be one of {', '.join(STAGES)} (the RaLD training stage), "
                          f"got {stage!r}" if "stage" in d else
                          f"{where}: no 'stage' (a RaLD experiment config names its stage: {', '.join(STAGES)})")
     return from_dict(_CLASSES[stage], d, where=where)
