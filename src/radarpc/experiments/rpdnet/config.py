@@ -67,14 +67,14 @@ class OccupancyTarget:
     ``L = (1/N) sum_c [ w y_c (-log sigma(s_c)) + (1 - y_c) (-log(1 - sigma(s_c))) ]``, ``s_c`` the
     logit and ``y_c`` the truth of cell ``c``, ``w = occupied_weight``.
 
-    Why weight the occupied cells: they are few (2.6 % of the default grid in a simulated
-    hallway), and the radar localises a surface only to within several angular cells. The
+    Why weight the occupied cells: they are few (2.6-4 % of the default grid in simulated
+    hallways and labs), and the radar localises a surface only to within several angular cells. The
     prediction ``p`` that minimises the expected loss of a cell whose posterior occupancy is ``q``
     is ``p* = w q / (w q + 1 - q)``, so ``p* > 1/2`` exactly when ``q > 1 / (1 + w)``: the weight
     sets the posterior above which the cloud (cells with ``sigma(s) > 0.5``) keeps a cell. Plain
     BCE (``w = 1``) keeps only cells more likely occupied than not, which on a radar's spread-out
     evidence leaves most surfaces without a point; full class balancing (``w = (1 - pi) / pi``,
-    about 40 here) keeps every cell with a 2.5 % chance and floods the field of view. ``w = 4``
+    24-37 here) keeps every cell with a 2.6-4 % chance and floods the field of view. ``w = 4``
     keeps the cells with a posterior above 0.2.
     """
 
