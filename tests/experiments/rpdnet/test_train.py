@@ -93,6 +93,12 @@ def test_generate_writes_the_cells_above_the_threshold_and_evaluate_points_score
         lo, cell = torch.tensor(loaded.grid.lo, dtype=torch.float64), torch.tensor(loaded.grid.cell, dtype=torch.float64)
         frac = (rae - lo) / cell % 1.0                                      # where in its cell each point lies
         torch.testing.assert_close(frac, torch.full_like(frac, 0.5), rtol=0, atol=1e-4)
+    # the same command again keeps every cloud; other settings into the same folder are refused
+    assert main(["generate", str(run), "--out", str(preds), "--split", "test", "--no-progress"]) == 0
+    assert "wrote 0 new point clouds (2 frames)" in capsys.readouterr().out
+    assert main(["generate", str(run), "--out", str(preds), "--split", "test", "--threshold", "0.4",
+                 "--no-progress"]) == 2
+    assert "--overwrite" in capsys.readouterr().err
     # jittered: other points, each inside a cell above the threshold, the same again with the same seed
     jit, jit2 = tmp_path / "jit", tmp_path / "jit2"
     for out in (jit, jit2):
