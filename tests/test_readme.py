@@ -45,12 +45,14 @@ SKIPPED = {
     "pip": "installs packages; the suite runs in an installed environment, without network",
     "python -m pytest": "the test suite itself",
     "radarpc demo": "tests/cli/test_demo.py runs `radarpc demo --tiny` end to end; the full demo takes minutes",
-    "radarpc train": "tests/experiments/radial_detection/test_experiment.py and tests/experiments/rald/test_train.py "
-                     "train and resume tiny models through this command; the shipped configs train for minutes to days",
+    "radarpc train": "tests/experiments/radial_detection/test_experiment.py, tests/experiments/rald/test_train.py and "
+                     "tests/experiments/rpdnet/test_train.py train and resume tiny models through this command; the "
+                     "shipped configs train for minutes to days",
     "radarpc evaluate": "tests/experiments/radial_detection/test_experiment.py evaluates a tiny run through this command",
     "radarpc generate": "generates (and reconstructs) with the RaLD runs of `radarpc train` and `radarpc import-rald`, "
                         "which this test skips; tests/cli/test_rald_cli.py generates and reconstructs with tiny runs "
-                        "trained through `radarpc train` and imported through `radarpc import-rald`",
+                        "trained through `radarpc train` and imported through `radarpc import-rald`; "
+                        "tests/experiments/rpdnet/test_train.py generates with a tiny occupancy baseline run",
     "radarpc evaluate-points preds/rald": "scores the clouds of `radarpc generate` above (skipped); "
                                           "tests/cli/test_rald_cli.py scores tiny generated and reconstructed "
                                           "clouds beside OS-CFAR's",

@@ -45,6 +45,17 @@ other weights into the same OUT are refused unless --overwrite. A frame whose de
 written as an empty cloud, flagged in the CSV and the index, and reported. A run that has not
 finished is refused unless --allow-unfinished. The driver is
 ``radarpc.experiments.rald.generation``.
+
+RUN may also be a run of RaLD's learned baseline (``radarpc train`` with a stage: occupancy config,
+e.g. configs/rpdnet-s.yaml): one forward pass per frame, and a point per cell of its coarse frustum
+grid whose occupancy probability exceeds --threshold (default 0.5), at the cell's centre or, with
+--jitter, uniform inside the cell (seeded by --seed, the run and the frame). OUT gets the same
+clouds and index.json, with prediction.json (the key) and prediction.csv (per frame: points, empty
+flag, seconds of the forward pass); resumable in the same way. The driver is
+``radarpc.experiments.rpdnet.generation``::
+
+    radarpc generate runs/rpdnet --data data/sim_colo --split test --out preds/rpdnet
+    radarpc evaluate-points preds/rpdnet preds/rald preds/oscfar --data data/sim_colo --split test
 """
 from __future__ import annotations
 
@@ -63,6 +74,13 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from radarpc.cli.text import plural
+    from radarpc.experiments.rpdnet.runs import is_occupancy_run
+
+    if is_occupancy_run(args.run):
+        return _run_occupancy(args)
+    if args.threshold is not None or args.jitter:
+        raise ValueError(f"--threshold and --jitter read a radar-to-occupancy run's cells; {args.run} is not one "
+                         f"(RaLD's generation decodes queries: see --random-queries, --guided-queries)")
     from radarpc.experiments.rald.generation import GenerateConfig, generate_run, load_generate_config, with_generation
 
     config = load_generate_config(args.config) if args.config else GenerateConfig()
@@ -83,12 +101,40 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_occupancy(args: argparse.Namespace) -> int:
+    import sys
+
+    from radarpc.cli.text import plural
+    from radarpc.experiments.rpdnet.generation import predict_run
+    from radarpc.pipelines.occupancy_clouds import CloudConfig
+
+    rald_only = [f"--{opt.replace('_', '-')}" for opt, _ in _GENERATION_OPTIONS
+                 if opt != "seed" and getattr(args, opt) is not None]
+    rald_only += ["--config"] * (args.config is not None) + ["--guide"] * (args.guide is not None)
+    rald_only += ["--posterior"] * (args.posterior is not None)
+    if rald_only:
+        raise ValueError(f"{args.run} is a radar-to-occupancy run (stage: occupancy): {', '.join(rald_only)} "
+                         f"belong to RaLD's generation; its clouds take --threshold, --jitter and --seed")
+    cloud = CloudConfig(**{k: v for k, v in (("threshold", args.threshold), ("seed", args.seed)) if v is not None},
+                        jitter=args.jitter)
+    res = predict_run(args.run, args.out, data=args.data, split=args.split, every=args.every, cloud=cloud, device=args.device,
+                      allow_unfinished=args.allow_unfinished, overwrite=args.overwrite, progress=not args.no_progress,
+                      on_warning=lambda s: print(f"warning: {s}", file=sys.stderr),
+                      notice=lambda s: print(s, file=sys.stderr))
+    if res.seconds is not None:
+        print(f"seconds per forward pass ({plural(res.n_new, 'new frame')}): {res.seconds:.3g}")
+    empty = f", {len(res.empty)} empty" if res.empty else ""
+    print(f"wrote {plural(res.n_new, 'new point cloud')} ({plural(res.n_frames, 'frame')}{empty}) to {res.out}")
+    return 0
+
+
 def add_parser(sub) -> None:
-    p = sub.add_parser("generate", help="RaLD's point clouds of a ColoRadar split from a trained or imported run, "
-                                        "or a stage-1 run's reconstruction (resumable)",
+    p = sub.add_parser("generate", help="RaLD's (or its learned baseline's) point clouds of a ColoRadar split from a "
+                                        "trained or imported run, or a stage-1 run's reconstruction (resumable)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run", help="stage-2 RaLD run folder (radarpc train with a diffusion config, or radarpc import-rald), "
-                               "or a stage-1 one (the autoencoder's reconstruction)")
+                               "a stage-1 one (the autoencoder's reconstruction), or a run of the occupancy baseline "
+                               "(stage: occupancy)")
     p.add_argument("--data", default=None, metavar="ROOT",
                    help="ColoRadar root (default: the root the run was trained on, or given to import-rald)")
     p.add_argument("--split", default="test", choices=("train", "val", "test", "all"),
@@ -118,6 +164,11 @@ def add_parser(sub) -> None:
     p.add_argument("--posterior", default=None, choices=POSTERIORS,
                    help="stage-1 runs only: decode a seeded sample of the posterior, as the official evaluation, or "
                         "its mean (default sample)")
+    p.add_argument("--threshold", type=float, default=None, metavar="P",
+                   help="occupancy runs: a cell is a point when its probability exceeds P (default 0.5)")
+    p.add_argument("--jitter", action="store_true",
+                   help="occupancy runs: each point uniform inside its cell (seeded by --seed, run and frame) "
+                        "instead of at its centre")
     p.add_argument("--device", default=None, help="torch device (default: a GPU if any, else the CPU)")
     p.add_argument("--allow-unfinished", action="store_true",
                    help="generate with the best weights so far of a run that has not finished")

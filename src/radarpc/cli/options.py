@@ -19,7 +19,8 @@ COLOR_BY = ("velocity", "amplitude")                       # radarpc.viz.COLOR_B
 DEFAULT_WAIT_S = 7200.0                                    # radarpc.distributed.DEFAULT_WAIT_S
 MODEL_NAMES = ("fftradnet", "fftradnet-s", "fftradnet-tiny", "pointpillars", "spectralpillars",
                "pointpillars-s", "spectralpillars-s", "pillars-tiny", "rald-ae", "rald-ae-s", "rald-ae-tiny",
-               "rald-dit", "rald-dit-d12", "rald-dit-d18", "rald-dit-s", "rald-dit-tiny")   # radarpc.models.MODELS
+               "rald-dit", "rald-dit-d12", "rald-dit-d18", "rald-dit-s", "rald-dit-tiny", "rpdnet", "rpdnet-s",
+               "rpdnet-tiny")   # radarpc.models.MODELS
 STUDY_KINDS = ("density-sweep", "ablation", "fps")         # radarpc.experiments.study.config.STUDY_KINDS
 GUIDE_SOURCES = ("peaks", "os-cfar", "none")               # radarpc.rald.guide.GUIDE_SOURCES
 POSTERIORS = ("sample", "mean")                            # radarpc.rald.reconstruct.POSTERIORS

@@ -10,11 +10,14 @@ ColoRadar-layout root.
     radarpc train configs/spectralpillars-s.yaml --data sim_a sim_b --points pc_a.parquet pc_b.parquet --out runs/sp_ab
     radarpc train configs/rald-ae-s.yaml --data data/sim_colo --out runs/ae
     radarpc train configs/rald-s.yaml --data data/sim_colo --ae runs/ae --out runs/rald
+    radarpc train configs/rpdnet-s.yaml --data data/sim_colo --out runs/rpdnet
 
 What the config is decides the rest. A config with a stage key is a RaLD experiment: stage
 autoencoder trains RaLD's LiDAR occupancy autoencoder (stage 1), stage diffusion its
 radar-conditioned latent diffusion model against a stage-1 run given by --ae RUN, whose
-autoencoder is frozen (stage 2). Both read one ColoRadar-layout root (--data; its runs give the
+autoencoder is frozen (stage 2), stage occupancy the learned baseline of RaLD's Table 2 (a
+radar-to-occupancy network, RPDNet-style, supervised by the LiDAR truth's occupancy of a coarse
+frustum grid). All three read one ColoRadar-layout root (--data; its runs give the
 train and val splits). A config without a stage key is a detection experiment on RADIal-layout
 roots.
 
@@ -50,7 +53,12 @@ def run(args: argparse.Namespace) -> int:
 
     from radarpc.config import load_yaml_mapping
 
-    if "stage" in load_yaml_mapping(args.config):
+    from radarpc.experiments.rpdnet.config import is_occupancy_config
+
+    mapping = load_yaml_mapping(args.config)
+    if is_occupancy_config(mapping):
+        return _run_occupancy(args)
+    if "stage" in mapping:
         return _run_rald(args)
     if args.ae is not None:
         raise ValueError(f"--ae names the stage-1 autoencoder run of a RaLD diffusion config (stage: diffusion); "
@@ -120,8 +128,34 @@ def _run_rald(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_occupancy(args: argparse.Namespace) -> int:
+    import sys
+
+    from radarpc.distributed import dist_env
+    from radarpc.experiments.rpdnet.config import load_experiment, with_train
+    from radarpc.experiments.rpdnet.train import train_occupancy
+
+    for given, what in ((args.points is not None, "--points (a detection experiment's point store)"),
+                        (args.ae is not None, "--ae (RaLD stage 2's autoencoder run)"),
+                        (args.runs != 1, f"--runs {args.runs} (train each seed with --seed into its own --out)")):
+        if given:
+            raise ValueError(f"{args.config} is the occupancy baseline (stage: occupancy), which takes no {what}")
+    cfg = _with_model(load_experiment(args.config, notice=lambda s: print(s, file=sys.stderr)), args.model)
+    changes = _train_changes(args)
+    if changes:
+        cfg = with_train(cfg, **changes)
+    rank0 = dist_env().rank == 0
+    r = train_occupancy(cfg, args.data, args.out, device=args.device, overwrite=args.overwrite,
+                        progress=not args.no_progress, log=print if rank0 else (lambda s: None))
+    if rank0:
+        print(f"{r.out}: best validation {cfg.train.select_metric} {r.best_score:.4f} at step {r.best_step} "
+              f"(epoch {r.best_epoch})")
+    return 0
+
+
 def add_parser(sub) -> None:
-    p = sub.add_parser("train", help="train a detector or a RaLD stage from a config (resumable, DDP under torchrun)",
+    p = sub.add_parser("train", help="train a detector, a RaLD stage or RaLD's learned baseline from a config "
+                                     "(resumable, DDP under torchrun)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("config", help="experiment YAML (see configs/)")
     p.add_argument("--data", required=True, nargs="+", metavar="ROOT",

@@ -6,8 +6,8 @@ builds the model, each override replacing one field of the variant's model confi
 CLI and the experiment configs choose from. A model built here has a ``cfg`` (its resolved,
 frozen config) and an ``input_kind`` (what its forward takes: ``"rd"`` complex range-Doppler cubes,
 ``"points"`` a :class:`~radarpc.points.PointCloudBatch`, ``"radar"`` RaLD's radar intensity cube
-``(B, range, azimuth, elevation)``, ``"lidar"`` dense ``(B, N, 3)`` LiDAR points and ``(B, Q, 3)``
-query points normalised to [-1, 1]).
+``(B, range, azimuth, elevation)`` (RaLD's diffusion model and the RPDNet-style baseline), ``"lidar"``
+dense ``(B, N, 3)`` LiDAR points and ``(B, Q, 3)`` query points normalised to [-1, 1]).
 
 An experiment names its model with a :class:`ModelSpec`::
 
@@ -34,6 +34,7 @@ from radarpc.models.fftradnet import fftradnet, fftradnet_s, fftradnet_tiny
 from radarpc.models.latent_dit import rald_dit, rald_dit_d12, rald_dit_d18, rald_dit_s, rald_dit_tiny
 from radarpc.models.pillars import (pillars_tiny, polar_pointpillars, polar_pointpillars_s, spectralpillars,
                                     spectralpillars_s)
+from radarpc.models.rpdnet import rpdnet, rpdnet_s, rpdnet_tiny
 from radarpc.models.vecset import rald_ae, rald_ae_s, rald_ae_tiny
 
 __all__ = ["MODELS", "ModelSpec", "build_model"]
@@ -55,6 +56,9 @@ MODELS: dict[str, Callable[..., nn.Module]] = {
     "rald-dit-d18": rald_dit_d18,
     "rald-dit-s": rald_dit_s,                   # trains on 2 CPU cores
     "rald-dit-tiny": rald_dit_tiny,             # tests
+    "rpdnet": rpdnet,                           # RaLD's learned baseline: radar cube -> frustum occupancy, GPU size
+    "rpdnet-s": rpdnet_s,                       # ... trains on 2 CPU cores
+    "rpdnet-tiny": rpdnet_tiny,                 # tests
 }
 """Model size variants by name: ``MODELS[name](**overrides) -> nn.Module``."""
 

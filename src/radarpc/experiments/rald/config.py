@@ -42,6 +42,7 @@ import torch
 from radarpc.config import from_dict, load_yaml_mapping, to_dict
 from radarpc.data.coloradar import RALD_MAX_INTENSITY_DB
 from radarpc.models import ModelSpec
+from radarpc.models.latent_dit import LatentDiTConfig
 from radarpc.rald.frustum import FrustumGrid
 from radarpc.rald.voxels import PARTITIONS, CartesianGrid, cartesian_points, model_coords, partition_grid
 from radarpc.sensors.coloradar import AWR1843_FOV, RadarFOV
@@ -280,6 +281,10 @@ class DiffusionExperiment:
 
     def __post_init__(self) -> None:
         _check_common(self.name, self.stage, "diffusion", self.model, self.train, DIFFUSION_METRICS)
+        if not isinstance(self.model.config, LatentDiTConfig):
+            raise ValueError(f"experiment {self.name!r}: stage 'diffusion' trains a latent diffusion model (rald-dit, "
+                             f"...), but model {self.model.variant!r} is a {type(self.model.config).__name__} model"
+                             f" (a radar-to-occupancy network trains with stage: occupancy)")
 
     __hash__ = None
 
