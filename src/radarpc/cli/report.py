@@ -15,7 +15,12 @@ against density (log axis) with their spread and the dense reference as a line. 
 figures name the study command, config file and commits that produced them. The output of
 ``radarpc experiment fps`` gets the FPS report instead: frames/s per model and density (median and
 range, network alone and with extraction, plain and fast), against the dense model, the working
-memory, the machine and every row's load, and ``figures/fps.png`` (frames/s against density).
+memory, the machine and every row's load, and ``figures/fps.png`` (frames/s against density);
+with ``--scores STUDY ...`` (training studies' outputs, e.g. the density sweep), each model's F1 @ 0.2
+beside its frames/s where a study scored the same model, sensor, input and density (the paper's
+Table 2)::
+
+    radarpc report runs/fps --scores runs/sweep runs/rd
 """
 from __future__ import annotations
 
@@ -29,7 +34,8 @@ def run(args: argparse.Namespace) -> int:
     from radarpc.experiments.study.report import write_report
 
     argv = ["radarpc", "report", str(args.runs)] + (["--out", str(args.out)] if args.out is not None else [])
-    write_report(args.runs, args.out, command=shlex.join(argv))
+    argv += ["--scores", *map(str, args.scores)] if args.scores else []
+    write_report(args.runs, args.out, command=shlex.join(argv), scores=tuple(args.scores or ()))
     return 0
 
 
@@ -38,4 +44,6 @@ def add_parser(sub) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("runs", help="a study output (radarpc experiment --out) or its results/ folder")
     p.add_argument("--out", default=None, help="where to write report.md and figures/ (default RUNS/report)")
+    p.add_argument("--scores", nargs="+", default=None, metavar="STUDY",
+                   help="FPS study only: training study outputs whose F1 @ 0.2 goes beside the frames/s")
     p.set_defaults(func=run)

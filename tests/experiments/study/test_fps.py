@@ -286,3 +286,39 @@ def test_the_report_renders_the_table(fps_run, tmp_path):
         assert im.size[0] > 800 and im.size[1] > 300
     with pytest.raises(FileNotFoundError, match="no result rows"):
         write_fps_report(tmp_path / "empty")
+
+
+def _scored_row(name: str, variant: str, input_: str, sensor: str, density: float, seed: int, f1: float) -> dict:
+    from radarpc.experiments.study.results import ROW_FORMAT
+
+    return {"format": ROW_FORMAT, "run": f"density-{density * 1000:03.0f}/{name}/seed{seed}",
+            "study": {"kind": "density-sweep", "name": "sweep", "config": {"name": "sweep"}},
+            "arm": {"name": name, "label": name, "group": "models", "input": input_, "enrich": [], "variant": variant,
+                    "order": 0},
+            "density": density, "seed": seed, "key": {"seed": seed, "data": {"sensor": sensor}},
+            "metrics": {"f1_fixed": f1}}
+
+
+def test_scores_put_a_training_studys_f1_beside_the_frames_per_second(fps_run, tmp_path, capsys):
+    sweep = tmp_path / "sweep"
+    (sweep / "results").mkdir(parents=True)
+    rows = [_scored_row("pp", "pillars-tiny", "points", "radial-s", 0.05, 0, 0.5),
+            _scored_row("pp", "pillars-tiny", "points", "radial-s", 0.05, 1, 0.7),
+            _scored_row("pp", "pillars-tiny", "points", "radial-s", 0.2, 0, 0.9),       # a density not timed
+            _scored_row("pp-r", "pillars-tiny", "points", "radial", 0.05, 0, 0.1)]      # another sensor
+    for row in rows:
+        (sweep / "results" / (row["run"].replace("/", "__") + ".json")).write_text(json.dumps(row))
+    assert main(["report", str(fps_run.out), "--out", str(tmp_path / "report"), "--scores", str(sweep)]) == 0
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert f"--scores {sweep}" in text
+    block = text[text.index("## F1 beside frames/s"):].split("\n\n")[2].splitlines()
+    assert block[0] == "| model | sensor | density | F1 @ 0.2 (runs, study) | frames/s, plain | frames/s, fast |"
+    rate = _rows(fps_run.out)["density-050/pillars-tiny/fast"]["measurements"]["pipeline"]["rate"]
+    # mean 0.6 and sample standard deviation sqrt(0.02) = 0.141 of the two seeds; the pillar model was timed
+    # fast only, with its extraction
+    assert block[2:] == [f"| pillars-tiny | radial-s | 5 % | 0.600 ± 0.141 (2, sweep) | - | "
+                         f"{rate['median']:.3g} ({rate['low']:.3g}-{rate['high']:.3g}) |"]
+    capsys.readouterr()
+    # --scores belongs to an FPS report: on a training study it is one line
+    assert main(["report", str(sweep), "--scores", str(sweep)]) == 2
+    assert "--scores pairs F1 with an FPS study's frames/s" in capsys.readouterr().err

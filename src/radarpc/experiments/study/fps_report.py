@@ -12,7 +12,10 @@ the rows alone are enough) and writes ``report.md`` and ``figures/fps.png`` (def
 * the working memory of one inference per path and mode, and the process's peak resident set;
 * the machine (CPU, instruction sets, threads, device) and every row's load average at the start
   and end of its timing: frames/s measured while other processes ran are lower than the machine's;
-* a figure of frames/s against density (log axes), one panel per mode, the dense models as lines.
+* a figure of frames/s against density (log axes), one panel per mode, the dense models as lines;
+* with ``scores`` (training studies' outputs, e.g. the density sweep): the paper's Table 2 pairing,
+  each model's F1 @ 0.2 beside its frames/s, where a training study scored the same model
+  (variant), sensor, input, enrichments and density (:func:`collect_scores`).
 
 Like the training studies' report it states the study command, config file and commits of its
 rows and of itself (:mod:`radarpc.experiments.study.provenance`), and ends with the study config.
@@ -30,7 +33,7 @@ from radarpc.experiments.study.results import RESULTS_DIR, read_rows
 from radarpc.io import atomic_write
 from radarpc.models.complexity import MEMORY_METHODS
 
-__all__ = ["FPSModelRows", "collect_fps", "write_fps_report", "FPS_FIGURE"]
+__all__ = ["FPSModelRows", "collect_fps", "ScoreKey", "collect_scores", "write_fps_report", "FPS_FIGURE"]
 
 FPS_FIGURE = "fps.png"
 _PATH_TITLES = {"network": "network alone", "pipeline": "with extraction"}
@@ -72,6 +75,70 @@ def collect_fps(rows: dict[str, dict]) -> list[FPSModelRows]:
                                                       tuple(a.get("enrich") or ()), int(a.get("order", 10 ** 6))))
         m.rows.setdefault(row["density"], {})[row["mode"]] = row
     return sorted(models.values(), key=lambda m: (m.order, m.name))
+
+
+ScoreKey = tuple[str, str, str, tuple[str, ...], "float | None"]
+"""What pairs a training study's score with an FPS row: ``(sensor, variant, input, enrich, density)``."""
+
+
+def collect_scores(studies) -> dict[ScoreKey, list[tuple[str, list[float]]]]:
+    """F1 @ 0.2 (``metrics.f1_fixed``) of training studies' rows by :data:`ScoreKey`.
+
+    Parameters
+    ----------
+    studies : sequence of path-like
+        Training study outputs (``radarpc experiment density-sweep|ablation --out``) or their
+        ``results/`` folders.
+
+    Returns
+    -------
+    dict
+        Per key, one ``(study name, values over seeds)`` per study that scored it, in the order given.
+
+    Raises
+    ------
+    FileNotFoundError
+        A study without result rows.
+    """
+    found: dict[ScoreKey, dict[str, list[float]]] = {}
+    for study in studies:
+        rows = read_rows(Path(study))
+        if not rows:
+            raise FileNotFoundError(f"{study}: no result rows of a training study (no {RESULTS_DIR}/*.json)")
+        for row in sorted(rows.values(), key=lambda r: r["seed"]):
+            f1 = row["metrics"].get("f1_fixed")
+            if f1 is None:
+                continue
+            a = row["arm"]
+            key = ((row["key"].get("data") or {}).get("sensor", "?"), a.get("variant", a["name"]), a["input"],
+                   tuple(a.get("enrich") or ()), row["density"])
+            found.setdefault(key, {}).setdefault(row["study"]["name"], []).append(float(f1))
+    return {k: list(v.items()) for k, v in found.items()}
+
+
+def _score_cell(scores: list[tuple[str, list[float]]]) -> str:
+    from radarpc.eval.curves import seed_statistics
+
+    cells = []
+    for study, values in scores:
+        st = seed_statistics(values)
+        cells.append(f"{st.mean:.3f}" + ("" if st.std is None else f" ± {st.std:.3f}") + f" ({st.n}, {study})")
+    return "; ".join(cells)
+
+
+def _score_table(models: list[FPSModelRows], modes: list[str], scores: dict) -> list[str]:
+    """F1 @ 0.2 beside frames/s (the model's own path: with extraction, or the network on a dense cube)."""
+    head = ["model", "sensor", "density", "F1 @ 0.2 (runs, study)"] + [f"frames/s, {mode}" for mode in modes]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for m in models:
+        for d in m.densities:
+            got = scores.get((m.sensor, m.variant, m.input, m.enrich, d))
+            if not got:
+                continue
+            path = "network" if m.dense else "pipeline"
+            lines.append("| " + " | ".join([m.name, m.sensor, _pct(d), _score_cell(got)]
+                                           + [_rate_cell(m.rate(d, mode, path)) for mode in modes]) + " |")
+    return lines if len(lines) > 2 else []
 
 
 def _pct(d: float | None) -> str:
@@ -243,7 +310,7 @@ def _panels(models: list[FPSModelRows], modes: list[str]):
 
 
 def write_fps_report(runs: str | os.PathLike, out: str | os.PathLike | None = None, *, command: str | None = None,
-                     log: Callable[[str], None] = print) -> Path:
+                     scores: tuple[str | os.PathLike, ...] = (), log: Callable[[str], None] = print) -> Path:
     """Write ``report.md`` and ``figures/fps.png`` of the FPS study output ``runs`` (see the module docstring).
 
     Parameters
@@ -254,6 +321,8 @@ def write_fps_report(runs: str | os.PathLike, out: str | os.PathLike | None = No
         Where to write (default ``RUNS/report``).
     command : str, optional
         The command that makes the report, stated in it and in its figure.
+    scores : sequence of path-like
+        Training study outputs whose F1 @ 0.2 is paired with the frames/s (:func:`collect_scores`).
 
     Returns
     -------
@@ -263,7 +332,7 @@ def write_fps_report(runs: str | os.PathLike, out: str | os.PathLike | None = No
     Raises
     ------
     FileNotFoundError
-        No row in ``runs``.
+        No row in ``runs``, or a ``scores`` study without rows.
     """
     from radarpc.viz import plot_rate_curves
 
@@ -298,6 +367,17 @@ def write_fps_report(runs: str | os.PathLike, out: str | os.PathLike | None = No
         f"Machine: the 1-minute load average ranged from {_load_range(rows)} over the rows; timings taken while "
         "other processes ran are lower than the machine's speed (see every row's load below).", ""] + _machines(rows) + [""]
     lines += ["## frames/s at batch 1", ""] + _rate_table(models, modes) + [""]
+    if scores:
+        paired = _score_table(models, modes, collect_scores(scores))
+        lines += ["## F1 beside frames/s (the paper's Table 2)", "",
+                  "F1 at IoU 0.5 and confidence 0.2 on the test split: mean ± sample standard deviation over the "
+                  "runs of the training studies " + ", ".join(f"`{Path(x)}`" for x in scores) + " that trained the "
+                  "same model (variant), on the same sensor, input and enrichments, at the same target density "
+                  "(their weights were trained, the timed ones are not: speed does not depend on the weights). "
+                  "Frames/s: the model's path from the RD cube, with extraction (the network alone for a dense "
+                  "model), median (range) of the timed sweeps.", ""]
+        lines += paired if paired else ["No FPS row matches a scored run of those studies.", ""]
+        lines += [""]
     rel = _relative_table(models, modes)
     if rel:
         lines += ["## with extraction against the dense model", ""] + rel + [""]

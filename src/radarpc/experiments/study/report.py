@@ -222,7 +222,7 @@ def _num(x) -> str:
 
 
 def write_report(runs: str | os.PathLike, out: str | os.PathLike | None = None, *, command: str | None = None,
-                 log: Callable[[str], None] = print) -> Path:
+                 scores: tuple[str | os.PathLike, ...] = (), log: Callable[[str], None] = print) -> Path:
     """Write ``report.md`` and the figures of the study output ``runs`` (see the module docstring).
 
     Parameters
@@ -233,6 +233,9 @@ def write_report(runs: str | os.PathLike, out: str | os.PathLike | None = None, 
         Where to write (default ``RUNS/report``).
     command : str, optional
         The command that makes the report, stated in it and in its figures.
+    scores : sequence of path-like
+        An FPS study only: training studies whose F1 @ 0.2 is paired with its frames/s
+        (:func:`radarpc.experiments.study.fps_report.collect_scores`).
 
     Returns
     -------
@@ -250,7 +253,10 @@ def write_report(runs: str | os.PathLike, out: str | os.PathLike | None = None, 
     if rows_format(runs) == FPS_ROW_FORMAT:
         from radarpc.experiments.study.fps_report import write_fps_report
 
-        return write_fps_report(runs, out, command=command, log=log)
+        return write_fps_report(runs, out, command=command, scores=tuple(scores), log=log)
+    if scores:
+        raise ValueError(f"{runs}: --scores pairs F1 with an FPS study's frames/s; {runs} is a training study "
+                         f"(give the output of `radarpc experiment fps`)")
     rows = read_rows(runs)
     if not rows:
         raise FileNotFoundError(f"{runs}: no result rows (no {RESULTS_DIR}/*.json); run `radarpc experiment ...` "
