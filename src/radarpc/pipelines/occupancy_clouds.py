@@ -76,9 +76,9 @@ class OccupancyJob:
     root: str | os.PathLike                                  # ColoRadar root (real or simulated)
     out: str | os.PathLike                                   # prediction folder
     split: str = "test"                                      # frames to predict
-    every: int = 1                                           # every k-th paired frame of each run
     cloud: CloudConfig = field(default_factory=CloudConfig)
     overwrite: bool = False                                  # replace a folder holding anything else
+    every: int = 1                                           # every k-th paired frame of each run
 
 
 @dataclass(frozen=True)

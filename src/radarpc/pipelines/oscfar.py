@@ -55,13 +55,13 @@ class OSCFARJob:
     root: str | os.PathLike                 # ColoRadar root (real or simulated)
     out: str | os.PathLike                  # prediction folder
     split: str = "test"                     # frames to predict
-    every: int = 1                          # every k-th paired frame of each run
     tune_split: str = "val"                 # split whose frames tune the parameters
     max_tune_frames: int = 32               # evenly spaced frames of the tuning split in the search
     config: str | os.PathLike | None = None  # use this config.yaml instead of tuning
     retune: bool = False                    # tune again even if OUT/config.yaml exists
     quick_tune: bool = False                # search QUICK_GRID instead of the full TuningGrid()
     overwrite: bool = False                 # replace a folder of another root or split, or a foreign one
+    every: int = 1                          # every k-th paired frame of each run
 
     def __post_init__(self) -> None:
         if self.max_tune_frames < 1:

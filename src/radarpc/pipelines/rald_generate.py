@@ -67,10 +67,10 @@ class GenerationJob:
     root: str | os.PathLike                                      # ColoRadar root (real or simulated)
     out: str | os.PathLike                                       # prediction folder
     split: str = "test"                                          # frames to generate
-    every: int = 1                                               # every k-th paired frame of each run
     generation: GenerationConfig = field(default_factory=GenerationConfig)
     guide: GuideConfig = field(default_factory=GuideConfig)
     overwrite: bool = False                                      # replace a folder holding anything else
+    every: int = 1                                               # every k-th paired frame of each run
 
 
 @dataclass(frozen=True)

@@ -191,7 +191,7 @@ def generate_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, data: st
         data = run_root(run)
         if data is None:
             raise ValueError(f"{run_dir}: the run names no ColoRadar root (an import without --data); give --data ROOT")
-    job = GenerationJob(data, out, split, every, generation=config.generation, guide=config.guide, overwrite=overwrite)
+    job = GenerationJob(data, out, split, every=every, generation=config.generation, guide=config.guide, overwrite=overwrite)
     identity = {"run": str(run_dir.resolve()), "weights": file_digests([run_dir / BEST_WEIGHTS])}
     if stage == "autoencoder":
         say(f"{run_dir}: a stage-1 run: each frame's LiDAR is encoded and decoded by the autoencoder (a "

@@ -87,8 +87,8 @@ def predict_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, data: str
                              f"command, or pass --allow-unfinished to predict with its best weights so far")
         if notice is not None:
             notice(f"{run_dir}: the run has not finished ({where}); predicting with its best weights so far")
-    job = OccupancyJob(data if data is not None else run.key["data"], out, split, every, cloud=cloud,
-                       overwrite=overwrite)
+    job = OccupancyJob(data if data is not None else run.key["data"], out, split, cloud=cloud,
+                       overwrite=overwrite, every=every)
     identity = {"run": str(run_dir.resolve()), "weights": file_digests([run_dir / BEST_WEIGHTS])}
     return predict_occupancy_clouds(job, run.model, model_input=model_input(run), grid=run.grid, method="rpdnet",
                                     model_id=identity, progress=progress, on_warning=on_warning)
