@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from radarpc.config import save_yaml
+from radarpc.distributed import dist_env
 from radarpc.experiments.rald.config import AutoencoderExperiment, DiffusionExperiment, RaldExperiment, canonical_key
 from radarpc.experiments.rald.runs import ae_reference, autoencoder_run_key, diffusion_run_key, load_rald_ae
 from radarpc.experiments.rald.task import AutoencoderTask, DiffusionTask
@@ -50,7 +51,7 @@ def _fit(task, cfg: RaldExperiment, out: Path, key: dict, device, overwrite, pro
     res = fit(task, cfg.train, out, key, device=device, overwrite=overwrite, progress=progress, log=log,
               extra_outputs=(CONFIG_YAML,), on_step=on_step,
               canonical_key=functools.partial(canonical_key, num_workers=cfg.train.num_workers))
-    if not (out / CONFIG_YAML).is_file():
+    if dist_env().rank == 0 and not (out / CONFIG_YAML).is_file():      # under torchrun, rank 0 alone writes
         save_yaml(cfg, out / CONFIG_YAML)
     return res
 
