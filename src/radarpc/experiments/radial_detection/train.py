@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Callable
 
 from radarpc.config import save_yaml, to_dict
+from radarpc.distributed import dist_env
 from radarpc.experiments.radial_detection.config import ExperimentConfig, canonical_key, with_train
 from radarpc.experiments.radial_detection.task import DataPaths, RadialDetectionTask, data_pairs
 from radarpc.io import atomic_write
@@ -83,7 +84,7 @@ def train_runs(cfg: ExperimentConfig, data: DataPaths, out: str | os.PathLike, *
         res = fit(task, run_cfg.train, folder, run_key(run_cfg, data, points), device=device,
                   overwrite=overwrite, progress=progress, log=log, extra_outputs=(CONFIG_YAML,), on_step=on_step,
                   canonical_key=functools.partial(canonical_key, num_workers=run_cfg.train.num_workers))
-        if not (folder / CONFIG_YAML).is_file():
+        if dist_env().rank == 0 and not (folder / CONFIG_YAML).is_file():   # under torchrun, rank 0 alone writes
             save_yaml(run_cfg, folder / CONFIG_YAML)
         results.append(res)
     if runs > 1:

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from radarpc.config import save_yaml
+from radarpc.distributed import dist_env
 from radarpc.experiments.rald.train import CONFIG_YAML
 from radarpc.experiments.rpdnet.config import OccupancyExperiment, canonical_key
 from radarpc.experiments.rpdnet.runs import run_key
@@ -41,6 +42,6 @@ def train_occupancy(cfg: OccupancyExperiment, data: str | os.PathLike | Sequence
     res = fit(OccupancyTask(cfg, root), cfg.train, out, run_key(cfg, root), device=device, overwrite=overwrite,
               progress=progress, log=log, extra_outputs=(CONFIG_YAML,), on_step=on_step,
               canonical_key=functools.partial(canonical_key, num_workers=cfg.train.num_workers))
-    if not (out / CONFIG_YAML).is_file():
+    if dist_env().rank == 0 and not (out / CONFIG_YAML).is_file():      # under torchrun, rank 0 alone writes
         save_yaml(cfg, out / CONFIG_YAML)
     return res
