@@ -549,7 +549,7 @@ def plot_cdfs(panels: list[CDFPanel], out: str | os.PathLike, *, title: str, xla
             p = np.r_[0.0, c.p, c.p[-1]]
             ax.step(x, p, where="post", color=colour[c.label], label=label)
         ax.set(xlim=(0.0, 1.02 * right), ylim=(0.0, 1.02), xlabel=xlabel, title=panel.title)
-        if k == 0:
+        if k % _PANELS_PER_ROW == 0:
             ax.set_ylabel("fraction of frames with a score <= x (CDF)")
         ax.grid(alpha=0.3)
         if panel.curves:
@@ -829,15 +829,24 @@ def plot_density_curves(panels: list[DensityPanel], out: str | os.PathLike, *, t
     return _save_with_footer(fig, out, footer, metadata)
 
 
+_PANELS_PER_ROW = 3
+
+
 def _panel_figure(out, n_panels: int, what: str):
-    """``(out, figure, axes)`` for ``n_panels`` side by side, ``out`` checked and its folder made."""
+    """``(out, figure, axes)`` for ``n_panels`` in rows of at most three (a wider figure stops being
+    readable), ``out`` checked and its folder made; cells past the last panel are hidden."""
     if not n_panels:
         raise ValueError(f"{what}: no panel to draw")
     out = Path(out)
     figure_format(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig = _figure((6.4 * n_panels, 4.8))
-    return out, fig, fig.subplots(1, n_panels, squeeze=False)[0]
+    cols = min(n_panels, _PANELS_PER_ROW)
+    rows = -(-n_panels // cols)
+    fig = _figure((6.4 * cols, 4.8 * rows))
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    for ax in axes[n_panels:]:
+        ax.set_visible(False)
+    return out, fig, axes[:n_panels]
 
 
 def _density_axis(ax, panel) -> None:
