@@ -35,6 +35,8 @@ Printed JSON:
 * with ``--plain-decode``: radarpc's decoding and refinement layer by layer
   (``folded_decoder=False``) on the same latents and queries, timed, and its agreement with the
   folded decoder;
+* with ``--bf16``: radarpc's condition and sampler under bfloat16 autocast (not an exact path: a
+  trade-off measured), timed, its latents and cloud against radarpc's float32 ones;
 * with ``--flops``: the floating-point operations of one denoiser call of each (counted by
   :class:`torch.utils.flop_counter.FlopCounterMode`), the GFLOP/s of one timed call and of a plain
   ``(M x W) @ (W x 8 W)`` matrix product of the feed-forward's shape in the same process, and the
@@ -156,12 +158,26 @@ def official_sampler(official, net, cube5: torch.Tensor, seed: int, steps: int) 
     return {"latents": latents, "t_sampler_all": t1 - t0, "t_condition": watch.seconds}
 
 
+def official_decode(ae, latents: torch.Tensor, queries: torch.Tensor, chunk: int) -> torch.Tensor:
+    """``KLAutoEncoder.decode`` of one frame's queries ``(Q, 3)`` -> logits ``(Q,)``: one call (``chunk``
+    0, as ``evaluate`` does), or its own modules in the same order with the query part in chunks
+    (the latent layers once, as in one call): the same arithmetic a query, bounded memory."""
+    if chunk <= 0 or queries.shape[0] <= chunk:
+        return ae.decode(latents, queries[None]).squeeze(-1)[0]
+    x = ae.proj(latents)
+    for self_attn, self_ff in ae.layers:
+        x = self_attn(x) + x
+        x = self_ff(x) + x
+    return torch.cat([ae.to_outputs(ae.decoder_cross_attn(ae.point_embed(q[None]), context=x)).squeeze(-1)[0]
+                      for q in queries.split(chunk)])
+
+
 def official_decoding(ae, latents: torch.Tensor, q1: torch.Tensor, n_f: int, spread: int,
-                      gen: torch.Generator) -> dict:
+                      gen: torch.Generator, chunk: int) -> dict:
     """The official decoding and refinement, timed: ``q1`` the first stage's queries, ``gen``
     radarpc's query generator in the state after drawing them (it draws the refinement's copies)."""
     t0 = time.perf_counter()
-    logits1 = ae.decode(latents, q1[None]).squeeze(-1)[0]        # (Q1,) one call, as evaluate()
+    logits1 = official_decode(ae, latents, q1, chunk)             # (Q1,) one call, as evaluate()
     kept = q1[logits1 > 0]
     t1 = time.perf_counter()
     k = kept.shape[0]
@@ -171,7 +187,7 @@ def official_decoding(ae, latents: torch.Tensor, q1: torch.Tensor, n_f: int, spr
         q2 = torch.cat((kept, new))
     else:
         q2 = kept[:n_f]
-    logits2 = ae.decode(latents, q2[None]).squeeze(-1)[0]
+    logits2 = official_decode(ae, latents, q2, chunk)
     final = q2[logits2 > 0]
     t2 = time.perf_counter()
     return {"t_decoding": t1 - t0, "t_refinement": t2 - t1, "logits1": logits1, "q2": q2, "logits2": logits2,
@@ -230,7 +246,7 @@ def flops(official, net, rdit, cube: torch.Tensor, cube5: torch.Tensor, threads:
             fn()
         return float(fc.get_total_flops())
 
-    def best(fn, n: int = 3) -> float:
+    def best(fn, n: int = 2) -> float:
         fn()
         ts = []
         for _ in range(n):
@@ -267,10 +283,14 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--steps", type=int, default=18, help="Heun steps (paper: 18, 35 network calls)")
     ap.add_argument("--occupied", type=float, default=0.02, help="occupied fraction of random queries (bias shift)")
     ap.add_argument("--threads", type=int, default=torch.get_num_threads())
+    ap.add_argument("--official-chunk", type=int, default=0,
+                    help="decode the official way in chunks of this many queries (0: one call, as the official "
+                         "evaluate; 1.2M queries in one call take about 17 GB)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--float64", action="store_true", help="radarpc's float64 sampler: the float32 rounding scale")
     ap.add_argument("--plain-decode", action="store_true", help="also time radarpc's layer-by-layer decoder")
     ap.add_argument("--flops", action="store_true", help="FLOPs per denoiser call against a plain matmul's GFLOP/s")
+    ap.add_argument("--bf16", action="store_true", help="also radarpc's sampler in bfloat16 (a trade-off: other points)")
     args = ap.parse_args(argv)
     size = SIZES[args.size]
     n_r, n_g, n_f = (v if v is not None else d for v, d in
@@ -306,7 +326,7 @@ def main(argv: list[str] | None = None) -> dict:
         q_guided = normalize(RALD_GRID, spread_queries(_cfar_in_grid(cfar, RALD_GRID), n_g, RALD_GRID,
                                                        cfg.guided_spread, gen)).float()
         q1 = torch.cat((q_random, q_guided))
-        off.update(official_decoding(ae, off["latents"], q1, n_f, cfg.refine_spread, gen))
+        off.update(official_decoding(ae, off["latents"], q1, n_f, cfg.refine_spread, gen, args.official_chunk))
         seconds_off = {"condition": off["t_condition"], "sampler": off["t_sampler_all"] - off["t_condition"],
                        "decoding": off["t_decoding"], "refinement": off["t_refinement"]}
         gc.collect()
@@ -351,25 +371,48 @@ def main(argv: list[str] | None = None) -> dict:
     report["agreement"] = agree
 
     # ---- radarpc's decoder layer by layer (before folding), same latents and queries ----------
-    if args.plain_decode:
+    def decode(latents: torch.Tensor, fold: bool) -> tuple[dict, np.ndarray]:
+        """radarpc's decoding and refinement of ``latents`` with generate_cloud's queries, timed."""
+        g = _query_generator(seed)
         with torch.no_grad():
-            times = {}
-            for name, fold in (("plain", False), ("folded", True)):
-                g = _query_generator(seed)
-                t0 = time.perf_counter()
-                qr = random_queries(n_r, g)
-                qg = normalize(RALD_GRID, spread_queries(_cfar_in_grid(cfar, RALD_GRID), n_g, RALD_GRID,
-                                                         cfg.guided_spread, g)).float()
-                occ, lg = decode_occupied(rae, lat_ours, torch.cat((qr, qg)), cfg.chunk, folded=fold)
-                t1 = time.perf_counter()
-                occ, lg, _ = refine(rae, lat_ours, occ, lg, RALD_GRID, n=n_f, spread=cfg.refine_spread,
-                                    chunk=cfg.chunk, generator=g, folded=fold)
-                t2 = time.perf_counter()
-                times[name] = {"decoding": t1 - t0, "refinement": t2 - t1, "points": occ}
-        pts = {k: cartesian_points(RALD_GRID, v.pop("points").double()).float().numpy() for k, v in times.items()}
+            t0 = time.perf_counter()
+            qr = random_queries(n_r, g)
+            qg = normalize(RALD_GRID, spread_queries(_cfar_in_grid(cfar, RALD_GRID), n_g, RALD_GRID,
+                                                     cfg.guided_spread, g)).float()
+            occ, lg = decode_occupied(rae, latents, torch.cat((qr, qg)), cfg.chunk, folded=fold)
+            t1 = time.perf_counter()
+            occ, lg, _ = refine(rae, latents, occ, lg, RALD_GRID, n=n_f, spread=cfg.refine_spread,
+                                chunk=cfg.chunk, generator=g, folded=fold)
+            t2 = time.perf_counter()
+        return ({"decoding": t1 - t0, "refinement": t2 - t1},
+                cartesian_points(RALD_GRID, occ.double()).float().numpy())
+
+    if args.plain_decode:
+        times, pts = {}, {}
+        for name, fold in (("plain", False), ("folded", True)):
+            times[name], pts[name] = decode(lat_ours, fold)
         report["plain_decode"] = {"seconds": times,
                                   "speedup": {k: times["plain"][k] / times["folded"][k] for k in ("decoding", "refinement")},
                                   "cloud": cloud_agreement(pts["plain"], pts["folded"], ("plain", "folded"))}
+
+    # ---- a trade-off, not an exact path: the sampler in bfloat16 (autocast) ---------------------
+    if args.bf16:
+        with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+            t0 = time.perf_counter()
+            cond16 = rdit.encode_radar(cube)
+            t1 = time.perf_counter()
+            rnd = SeededNoise([seed])
+            lat16 = edm_sampler(rdit, rnd.randn((1, rdit.cfg.n_latents, rdit.cfg.latent_dim)), cond16,
+                                randn_like=rnd.randn_like, **cfg.sampler()).float()
+            t2 = time.perf_counter()
+        sec16, pts16 = decode(lat16, True)
+        sec16 = {"condition": t1 - t0, "sampler": t2 - t1, **sec16}
+        sec16["total"] = sum(sec16.values())
+        report["bf16_sampler"] = {
+            "seconds": sec16, "speedup_vs_official": {k: seconds_off[k] / sec16[k] for k in sec16},
+            "latents_max_abs_diff_vs_float32": float((lat16 - lat_ours).abs().max()),
+            "cloud_vs_float32": cloud_agreement(cloud.points, pts16, ("float32", "bf16"))}
+
     if args.flops:
         with torch.no_grad():
             fl = flops(official, net, rdit, cube, cube5, args.threads)
