@@ -9,7 +9,9 @@ same radar cube, the same initial noise (the frame's seed) and the same queries:
   the radar cube re-encoded in each of the ``2 steps - 1`` network calls; the time spent in
   ``process_radar_cond`` is the official ``condition``), ``KLAutoEncoder.decode`` of the random and
   CFAR-guided queries in one call, the occupied ones kept (``engine_generation.py`` ``evaluate``),
-  then the refinement: the kept points and ``n_f - K`` moved copies decoded in one call;
+  then the refinement: the kept points and ``n_f - K`` moved copies decoded in one call (with
+  ``--official-chunk N``: the same modules in the same order, the latent layers once a call and
+  the queries ``N`` at a time, for memory: 1.2M queries in one call take about 17 GB);
 * **radarpc**: :func:`radarpc.rald.generate.generate_cloud` (the condition once, the sampler, chunked
   decoding with the folded decoder, the refinement of the new queries only).
 
@@ -34,7 +36,12 @@ Printed JSON:
   rounding of 0, which ``outputs_agree`` checks;
 * with ``--plain-decode``: radarpc's decoding and refinement layer by layer
   (``folded_decoder=False``) on the same latents and queries, timed, and its agreement with the
-  folded decoder;
+  folded decoder (on the first stage's queries, and the clouds);
+
+A query that changes sides in the first stage changes the number ``K`` of kept points, and with it
+every refinement copy drawn (a copy picks one of the ``K`` points): the clouds then differ in most
+refined points, though every decision agrees to rounding. ``agreement.decoding`` and
+``agreement.refinement`` compare the decisions on the same queries for this reason.
 * with ``--bf16``: radarpc's condition and sampler under bfloat16 autocast (not an exact path: a
   trade-off measured), timed, its latents and cloud against radarpc's float32 ones;
 * with ``--flops``: the floating-point operations of one denoiser call of each (counted by
@@ -95,7 +102,7 @@ SIZES = {
     "tiny": dict(ae=dict(depth=2, dim=64, queries_dim=64, num_latents=16, latent_dim=4, heads=2, dim_head=32),
                  dit=dict(n_latents=16, channels=4, n_heads=2, d_head=16, depth=2),
                  configs=dict(enc_hidden_ch=32, enc_radar_ch=8, radar_token_channel=32),
-                 cube=(32, 16, 16), heads=2, queries=(3000, 4000, 3000), cfar=100),
+                 cube=(16, 16, 16), heads=2, queries=(3000, 4000, 3000), cfar=100),
 }
 
 
@@ -234,6 +241,7 @@ def cloud_agreement(a: np.ndarray, b: np.ndarray, names: tuple[str, str] = ("off
 def flops(official, net, rdit, cube: torch.Tensor, cube5: torch.Tensor, threads: int) -> dict:
     """FLOPs of one denoiser call of each, the GFLOP/s of a timed call and of a plain matrix product of
     the feed-forward's shape, and the floor these set."""
+    from torch.nn.attention import SDPBackend, sdpa_kernel
     from torch.utils.flop_counter import FlopCounterMode
 
     m, dim = rdit.cfg.n_latents, rdit.cfg.latent_dim
@@ -242,7 +250,9 @@ def flops(official, net, rdit, cube: torch.Tensor, cube5: torch.Tensor, threads:
     cond = rdit.encode_radar(cube)
 
     def count(fn) -> float:
-        with FlopCounterMode(display=False) as fc:
+        # the math backend of scaled_dot_product_attention: its matrix products are counted (the
+        # fused CPU kernel is not), the same FLOPs
+        with FlopCounterMode(display=False) as fc, sdpa_kernel(SDPBackend.MATH):
             fn()
         return float(fc.get_total_flops())
 
@@ -263,13 +273,16 @@ def flops(official, net, rdit, cube: torch.Tensor, cube5: torch.Tensor, threads:
     w = rdit.cfg.width
     a, b = torch.randn(m, w), torch.randn(w, 2 * rdit.cfg.ff_mult * w)
     t_mm = best(lambda: a @ b, 5)
+    a16, b16 = a.bfloat16(), b.bfloat16()
+    t_mm16 = best(lambda: a16 @ b16, 5)
     mm_gflops = 2 * m * w * 2 * rdit.cfg.ff_mult * w / t_mm / 1e9
     return {"threads": threads,
             "denoiser_call_gflop": {"radarpc": f_ours / 1e9, "official": f_theirs / 1e9,
                                     "radar_encoder": f_enc / 1e9},
             "denoiser_call_seconds": {"radarpc": t_ours, "official": t_theirs},
             "denoiser_call_gflop_per_s": {"radarpc": f_ours / t_ours / 1e9, "official": f_theirs / t_theirs / 1e9},
-            "matmul": {"shape": [m, w, 2 * rdit.cfg.ff_mult * w], "gflop_per_s": mm_gflops}}
+            "matmul": {"shape": [m, w, 2 * rdit.cfg.ff_mult * w], "gflop_per_s": mm_gflops,
+                       "bfloat16_gflop_per_s": mm_gflops * t_mm / t_mm16}}
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -391,8 +404,11 @@ def main(argv: list[str] | None = None) -> dict:
         times, pts = {}, {}
         for name, fold in (("plain", False), ("folded", True)):
             times[name], pts[name] = decode(lat_ours, fold)
+        with torch.no_grad():
+            plain1 = torch.cat([rae.occupancy_logits(tokens, q[None])[0] for q in q1.split(cfg.chunk)])
         report["plain_decode"] = {"seconds": times,
                                   "speedup": {k: times["plain"][k] / times["folded"][k] for k in ("decoding", "refinement")},
+                                  "decoding": side_agreement(ours1, plain1),
                                   "cloud": cloud_agreement(pts["plain"], pts["folded"], ("plain", "folded"))}
 
     # ---- a trade-off, not an exact path: the sampler in bfloat16 (autocast) ---------------------
@@ -411,6 +427,8 @@ def main(argv: list[str] | None = None) -> dict:
         report["bf16_sampler"] = {
             "seconds": sec16, "speedup_vs_official": {k: seconds_off[k] / sec16[k] for k in sec16},
             "latents_max_abs_diff_vs_float32": float((lat16 - lat_ours).abs().max()),
+            "decoding_vs_float32": side_agreement(torch.cat([rae.folded_decoder(rae.latent_tokens(lat16))(q[None])[0]
+                                                             for q in q1.split(cfg.chunk)]), ours1),
             "cloud_vs_float32": cloud_agreement(cloud.points, pts16, ("float32", "bf16"))}
 
     if args.flops:

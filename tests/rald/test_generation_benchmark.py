@@ -37,7 +37,7 @@ def benchmark(monkeypatch):
 
 def test_tiny_benchmark_times_both_and_finds_the_same_outputs(benchmark, capsys):
     repo, module = benchmark
-    report = module.main(["--rald-repo", repo, "--size", "tiny", "--steps", "4", "--threads", "1", "--float64",
+    report = module.main(["--rald-repo", repo, "--size", "tiny", "--steps", "3", "--threads", "1", "--float64",
                           "--plain-decode"])
     assert json.loads(capsys.readouterr().out) == json.loads(json.dumps(report))      # the printed JSON is the report
     stages = ("condition", "sampler", "decoding", "refinement")
@@ -46,7 +46,7 @@ def test_tiny_benchmark_times_both_and_finds_the_same_outputs(benchmark, capsys)
         assert all(s[k] > 0 for k in stages) and s["total"] == pytest.approx(sum(s[k] for k in stages))
     assert report["speedup"]["total"] == pytest.approx(report["seconds"]["official"]["total"]
                                                        / report["seconds"]["radarpc"]["total"])
-    assert report["config"]["network_calls"] == 7
+    assert report["config"]["network_calls"] == 5
     agree = report["agreement"]
     lat = agree["latents"]
     # the two codes' latents differ by float32 rounding: at most a few times radarpc's own float32 error
