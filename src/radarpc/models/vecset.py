@@ -384,11 +384,15 @@ class FoldedDecoder:
         sigma = sqrt(|W_c f + b_c|^2 / C + eps)
         l     = sum_j exp(s_j - max s) u_j / sum_j exp(s_j - max s) + b0,   u = V W_o^T w,  b0 = w . b_o + b
 
-    ``A``, ``a``, ``c``, ``u`` and ``b0`` are computed once per frame (in float64 where the device
-    has it, then rounded once to the model's dtype), so a query costs ``F' (C + M)`` multiply-adds
-    (one matrix product gives ``W_c f + b_c`` and ``f A + a`` together), ``M`` exponentials and
-    ``M`` multiply-adds, against ``F' C + 2 C d + 2 M d`` for the unfolded decoder (52,700
-    against 1,075,000 at paper size, ``C = d = M = 512``). The logits are the same function; float32
+    (numerator and denominator in one product with ``[u, 1]``).
+
+    ``A``, ``a``, ``c``, ``u``, ``b0`` and the Gram matrix ``G = [W_c b_c]^T [W_c b_c] / C`` are
+    computed once per frame (in float64 where the device has it, then ``A``, ``a``, ``c``, ``u``,
+    ``b0`` rounded once to the model's dtype), so a query costs ``(F' + 1) M`` multiply-adds for
+    the scores, ``(F' + 1)^2`` in float64 for ``sigma^2 = [f, 1] G [f, 1]^T + eps`` (float64: the
+    quadratic form's terms may cancel), ``M`` exponentials and ``M`` multiply-adds, against
+    ``F' C + 2 C d + 2 M d`` for the unfolded decoder (about 30,000 against 1,075,000 at paper
+    size, ``C = d = M = 512``). The logits are the same function; float32
     rounds them differently, by about the float32 error of either (a query whose logit lies
     within that of 0 can change sides).
     """
@@ -415,11 +419,14 @@ class FoldedDecoder:
         b = tokens.shape[0]
         self.embed = ae.embed
         self.width, self.eps, self.dtype = c, attn.norm.eps, tokens.dtype
-        self.weight = torch.cat((w_cen.T.expand(b, -1, -1), a_mat), dim=2).to(tokens.dtype)      # (B, F', C + M)
-        self.bias = torch.cat((b_cen.expand(b, -1), a_vec), dim=1)[:, None].to(tokens.dtype)     # (B, 1, C + M)
-        self.c = (k_tilde @ w(attn.norm.bias))[:, None].to(tokens.dtype)                         # (B, 1, M)
-        self.u = (v @ (w(attn.to_out.weight).T @ w_l))[..., None].to(tokens.dtype)               # (B, M, 1)
-        self.b0 = (w_l @ w(attn.to_out.bias) + w(ae.to_logit.bias)[0]).to(tokens.dtype)         # ()
+        # f~ = [f, 1]: the biases as one more row of the matrices
+        self.weight = torch.cat((a_mat, a_vec[:, None]), dim=1).to(tokens.dtype)               # (B, F' + 1, M)
+        w_aug = torch.cat((w_cen, b_cen[:, None]), dim=1)                                      # (C, F' + 1)
+        self.gram = (w_aug.T @ w_aug / c).to(dt)                                               # (F' + 1, F' + 1)
+        self.c = (k_tilde @ w(attn.norm.bias))[:, None].to(tokens.dtype)                       # (B, 1, M)
+        u = v @ (w(attn.to_out.weight).T @ w_l)                                                # (B, M)
+        self.u_one = torch.stack((u, torch.ones_like(u)), dim=2).to(tokens.dtype)             # (B, M, 2): [u, 1]
+        self.b0 = (w_l @ w(attn.to_out.bias) + w(ae.to_logit.bias)[0]).to(tokens.dtype)       # ()
 
     @torch.no_grad()
     def __call__(self, queries: torch.Tensor) -> torch.Tensor:
@@ -427,13 +434,17 @@ class FoldedDecoder:
         _check_points(queries, "queries")
         if queries.shape[0] != self.weight.shape[0]:
             raise ValueError(f"queries hold {queries.shape[0]} frames but the latents {self.weight.shape[0]}")
-        f = self.embed.features(queries.to(self.dtype))                         # (B, Q, F')
-        y = torch.baddbmm(self.bias, f, self.weight)                             # (B, Q, C + M)
-        e, s = y.split((self.width, y.shape[2] - self.width), dim=2)             # W_c f + b_c, f A + a
-        sigma = (torch.linalg.vector_norm(e, dim=2, keepdim=True).square() / self.width + self.eps).sqrt()   # (B, Q, 1)
-        s = s.div_(sigma).add_(self.c)                                           # (B, Q, M) scores
-        s = s.sub_(s.amax(dim=2, keepdim=True)).exp_()                           # exp(s - max s)
-        return (s @ self.u).squeeze(2) / s.sum(dim=2) + self.b0                  # (B, Q)
+        f = self.embed.features(queries.to(self.dtype))                                       # (B, Q, F')
+        f = torch.cat((f, f.new_ones(f.shape[:2] + (1,))), dim=2)                              # (B, Q, F' + 1)
+        # sigma^2 = |W_c f + b_c|^2 / C + eps, from the Gram matrix in float64 (no (Q, C) embedding made)
+        f64 = f.to(self.gram.dtype)
+        var = ((f64 @ self.gram) * f64).sum(dim=2, keepdim=True)                               # (B, Q, 1)
+        sigma = (var + self.eps).sqrt().to(self.dtype)
+        t = torch.bmm(f, self.weight)                                                          # (B, Q, M): f A + a
+        s = torch.addcdiv(self.c, t, sigma, out=t)                                             # (B, Q, M) scores
+        s = s.sub_(s.amax(dim=2, keepdim=True)).exp_()                                         # exp(s - max s)
+        num_den = s @ self.u_one                                                               # (B, Q, 2)
+        return num_den[..., 0] / num_den[..., 1] + self.b0                                    # (B, Q)
 
 
 class Attention(nn.Module):
