@@ -47,7 +47,9 @@ refined points, though every decision agrees to rounding. ``agreement.decoding``
 * with ``--flops``: the floating-point operations of one denoiser call of each (counted by
   :class:`torch.utils.flop_counter.FlopCounterMode`), the GFLOP/s of one timed call and of a plain
   ``(M x W) @ (W x 8 W)`` matrix product of the feed-forward's shape in the same process, and the
-  sampler time these set as a floor.
+  sampler time these set as a floor; and ``frame``: each side's counted FLOPs of the whole frame
+  per stage and their ratio (``--flops-only``: that count alone, no generation, radarpc's
+  refinement counted at its most, ``n_f`` new queries).
 
 Usage::
 
@@ -238,23 +240,59 @@ def cloud_agreement(a: np.ndarray, b: np.ndarray, names: tuple[str, str] = ("off
     return out
 
 
-def flops(official, net, rdit, cube: torch.Tensor, cube5: torch.Tensor, threads: int) -> dict:
-    """FLOPs of one denoiser call of each, the GFLOP/s of a timed call and of a plain matrix product of
-    the feed-forward's shape, and the floor these set."""
+def _count(fn) -> float:
+    """The FLOPs of ``fn()`` by :class:`torch.utils.flop_counter.FlopCounterMode` (matrix products and
+    convolutions), with attention on its math backend: its matrix products are counted (the fused
+    CPU kernel's are not), the same FLOPs."""
     from torch.nn.attention import SDPBackend, sdpa_kernel
     from torch.utils.flop_counter import FlopCounterMode
 
+    with torch.no_grad(), FlopCounterMode(display=False) as fc, sdpa_kernel(SDPBackend.MATH):
+        fn()
+    return float(fc.get_total_flops())
+
+
+def frame_flops(ae, net, rae, rdit, cube: torch.Tensor, cube5: torch.Tensor, calls: int, n_first: int,
+                n_refine_official: int, n_refine_radarpc: int) -> dict:
+    """Counted FLOPs of one frame on each side: the network calls, and the decoding as a fixed part
+    (the latent layers; the fold) plus a part per query (counted at 1,000 and 2,000 queries)."""
+    x = torch.randn(1, rdit.cfg.n_latents, rdit.cfg.latent_dim)
+    sigma = torch.tensor([1.0])
+    with torch.no_grad():
+        cond = rdit.encode_radar(cube)
+        tokens = rae.latent_tokens(x)
+    q = random_queries(2000, torch.Generator().manual_seed(0))
+
+    def linear(fn) -> tuple[float, float]:                    # (fixed, per query)
+        c1, c2 = _count(lambda: fn(q[:1000])), _count(lambda: fn(q))
+        return c1 - 1000 * (c2 - c1) / 1000, (c2 - c1) / 1000
+
+    off_call = _count(lambda: net(x, sigma, cube5, "radar"))
+    ours_call, encoder = _count(lambda: rdit(x, sigma, cond)), _count(lambda: rdit.encode_radar(cube))
+    off_fixed, off_q = linear(lambda qq: official_decode(ae, x, qq, 0))
+    fold = _count(lambda: rae.folded_decoder(tokens))
+    _, ours_q = linear(lambda qq: rae.folded_decoder(tokens)(qq[None]))
+    latent = _count(lambda: rae.latent_tokens(x))
+    official = {"sampler": calls * off_call, "decoding": off_fixed + n_first * off_q,
+                "refinement": off_fixed + n_refine_official * off_q}
+    ours = {"condition": encoder, "sampler": calls * ours_call, "decoding": latent + fold + n_first * ours_q,
+            "refinement": fold + n_refine_radarpc * ours_q}
+    official["total"], ours["total"] = sum(official.values()), sum(ours.values())
+    g = lambda d: {k: v / 1e9 for k, v in d.items()}                                    # noqa: E731
+    return {"official_gflop": g(official), "radarpc_gflop": g(ours),
+            "flop_ratio": official["total"] / ours["total"],
+            "per_query_flop": {"official": off_q, "radarpc_folded": ours_q},
+            "call_gflop": {"official": off_call / 1e9, "radarpc": ours_call / 1e9, "radar_encoder": encoder / 1e9}}
+
+
+def flops(official, net, rdit, cube: torch.Tensor, cube5: torch.Tensor, threads: int) -> dict:
+    """FLOPs of one denoiser call of each, the GFLOP/s of a timed call and of a plain matrix product of
+    the feed-forward's shape, and the floor these set."""
     m, dim = rdit.cfg.n_latents, rdit.cfg.latent_dim
     x = torch.randn(1, m, dim)
     sigma = torch.tensor([1.0])
     cond = rdit.encode_radar(cube)
-
-    def count(fn) -> float:
-        # the math backend of scaled_dot_product_attention: its matrix products are counted (the
-        # fused CPU kernel is not), the same FLOPs
-        with FlopCounterMode(display=False) as fc, sdpa_kernel(SDPBackend.MATH):
-            fn()
-        return float(fc.get_total_flops())
+    count = _count
 
     def best(fn, n: int = 2) -> float:
         fn()
@@ -303,6 +341,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--float64", action="store_true", help="radarpc's float64 sampler: the float32 rounding scale")
     ap.add_argument("--plain-decode", action="store_true", help="also time radarpc's layer-by-layer decoder")
     ap.add_argument("--flops", action="store_true", help="FLOPs per denoiser call against a plain matmul's GFLOP/s")
+    ap.add_argument("--flops-only", action="store_true",
+                    help="only count each side's FLOPs of a frame (no timing, no generation)")
     ap.add_argument("--bf16", action="store_true", help="also radarpc's sampler in bfloat16 (a trade-off: other points)")
     args = ap.parse_args(argv)
     size = SIZES[args.size]
@@ -329,6 +369,11 @@ def main(argv: list[str] | None = None) -> dict:
     cube, cube5, cfar = radar_input(size, n_cfar, args.seed)
     seed = args.seed
     gc.collect()
+    if args.flops_only:                     # counted, not timed: radarpc's refinement at its most (n_f)
+        report["flops"] = {"frame": frame_flops(ae, net, rae, rdit, cube, cube5, 2 * args.steps - 1, n_r + n_g,
+                                                n_f, n_f)}
+        print(json.dumps(report, indent=2))
+        return report
 
     with torch.no_grad():
         # ---- official: sampler, then decoding and refinement ----------------------------------
@@ -440,6 +485,8 @@ def main(argv: list[str] | None = None) -> dict:
         fl["radarpc_sampler_floor_s"] = floor
         rest = seconds_ours["condition"] + seconds_ours["decoding"] + seconds_ours["refinement"]
         fl["max_speedup_at_matmul_speed"] = seconds_off["total"] / (floor + rest)
+        fl["frame"] = frame_flops(ae, net, rae, rdit, cube, cube5, calls, n_r + n_g, n_f,
+                                  report["agreement"]["refinement"]["queries"] - cloud.n_occupied)
         report["flops"] = fl
     report["load_average_after"] = load_average()
     print(json.dumps(report, indent=2))
