@@ -63,9 +63,7 @@ import copy
 import gc
 import importlib.util
 import json
-import math
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path

@@ -289,8 +289,8 @@ class VecSetAutoencoder(nn.Module):
 
     def folded_decoder(self, tokens: torch.Tensor) -> "FoldedDecoder":
         """:meth:`occupancy_logits` for these tokens ``(B, M, C)``, folded into a few per-frame
-        matrices (:class:`FoldedDecoder`): the same logits to float32 rounding, about 20 times
-        less arithmetic per query at paper size. Build it once per frame, call it on every query chunk."""
+        matrices (:class:`FoldedDecoder`): the same logits to float32 rounding, about 35 times
+        fewer FLOPs a query at paper size. Build it once per frame, call it on every query chunk."""
         return FoldedDecoder(self, tokens)
 
     def decode(self, latents: torch.Tensor, queries: torch.Tensor) -> torch.Tensor:
@@ -416,9 +416,8 @@ class FoldedDecoder:
         a_mat = w_cen.T @ g.transpose(1, 2)                                      # (B, F', M)
         a_vec = g @ b_cen                                                        # (B, M)
         w_l = w(ae.to_logit.weight)[0]                                           # (C,)
-        b = tokens.shape[0]
         self.embed = ae.embed
-        self.width, self.eps, self.dtype = c, attn.norm.eps, tokens.dtype
+        self.eps, self.dtype = attn.norm.eps, tokens.dtype
         # f~ = [f, 1]: the biases as one more row of the matrices
         self.weight = torch.cat((a_mat, a_vec[:, None]), dim=1).to(tokens.dtype)               # (B, F' + 1, M)
         w_aug = torch.cat((w_cen, b_cen[:, None]), dim=1)                                      # (C, F' + 1)

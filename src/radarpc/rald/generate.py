@@ -40,7 +40,7 @@ Where this differs from the official code, and why the output is the same:
   one softmax per query), so the chunk size changes memory, not the result;
 * the decoder's linear maps are multiplied out once per frame
   (:class:`~radarpc.models.vecset.FoldedDecoder`, ``folded_decoder``): the same logits with
-  about 20 times less arithmetic a query at paper size, rounded differently in float32 (a query
+  about 35 times fewer FLOPs a query at paper size, rounded differently in float32 (a query
   whose logit lies within float32 rounding of 0 can change sides; ``folded_decoder=False``
   decodes layer by layer);
 * refinement decodes only the new queries: the official code decodes the kept points again,
@@ -112,7 +112,7 @@ class GenerationConfig:
     sigma_max: float = 80.0         # highest noise level
     rho: float = 7.0                # spacing exponent of the noise levels
     seed: int = 0                   # base seed; a frame's seed is frame_seed(seed, run, frame)
-    folded_decoder: bool = True     # decode with the autoencoder's folded decoder (same logits, ~20x less work)
+    folded_decoder: bool = True     # decode with the autoencoder's folded decoder (same logits, ~35x fewer FLOPs)
 
     def __post_init__(self) -> None:
         for k in ("random_queries", "guided_queries", "refine_queries", "refine_rounds", "guided_spread",
@@ -324,7 +324,7 @@ def decode_occupied(ae, latents: torch.Tensor, queries: torch.Tensor,
         activations), the result does not change (each query's logit depends on that query alone).
     folded : bool
         Decode with the autoencoder's :meth:`~radarpc.models.vecset.VecSetAutoencoder.folded_decoder`
-        (the same logits to float32 rounding, about 20 times less arithmetic a query at paper
+        (the same logits to float32 rounding, about 35 times fewer FLOPs a query at paper
         size); False: :meth:`~radarpc.models.vecset.VecSetAutoencoder.occupancy_logits` layer by layer.
 
     Returns
