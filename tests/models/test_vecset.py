@@ -2,6 +2,7 @@
 cases, order invariance, and an overfit on one synthetic frame's frustum occupancy."""
 from __future__ import annotations
 
+import copy
 import math
 import time
 
@@ -240,6 +241,46 @@ def test_each_logit_is_its_own_querys():
     torch.testing.assert_close(permuted, logits[:, perm], rtol=0, atol=1e-12)
     torch.testing.assert_close(alone, logits[:, [0, 17, 49]], rtol=0, atol=1e-12)
     assert logits.std() > 1e-3                          # the queries get different logits
+
+
+def _randomised(model: VecSetAutoencoder, seed: int) -> VecSetAutoencoder:
+    """Every parameter moved off its initial value (LayerNorm gains and biases too), so that every
+    folded term (gamma, beta, the embedding's mean, the output bias) is exercised."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.2 * torch.randn(p.shape, generator=g, dtype=torch.float64).to(p.dtype))
+    return model
+
+
+def test_folded_decoder_is_the_decoder_multiplied_out():
+    """In float64 the folded decoder is the same function as the layer-by-layer one (to float64
+    rounding); in float32 both are within float32 error of the exact logits of the same float32
+    inputs, the folded one no further than the unfolded one's own error (measured on the same
+    queries) allows."""
+    m32 = _randomised(tiny("hybrid", seed=3), 4)
+    m64 = copy.deepcopy(m32).double()
+    latents = torch.randn(2, m32.cfg.n_latents, m32.cfg.latent_dim, generator=torch.Generator().manual_seed(5))
+    queries = cloud(2, 3000, 6)
+    with torch.no_grad():
+        t32 = m32.latent_tokens(latents)                       # the same tokens for all: the decoders compared
+        t64, q64 = t32.double(), queries.double()
+        exact = m64.occupancy_logits(t64, q64)
+        torch.testing.assert_close(m64.folded_decoder(t64)(q64), exact, rtol=0, atol=1e-12 * exact.abs().max().item())
+        assert exact.std() > 0.1 and (exact > 0).any() and (exact < 0).any()   # logits of both signs, varied
+        plain32 = m32.occupancy_logits(t32, queries)
+        folded32 = m32.folded_decoder(t32)(queries)
+    err_plain = (plain32.double() - exact).abs().max().item()
+    err_folded = (folded32.double() - exact).abs().max().item()
+    # float32 rounding, a few hundred u = 2^-24 of |l| here (the softmax amplifies the scores' rounding);
+    # an error in the maths would be of the order of the logits themselves
+    assert 0 < err_plain < 1e-3 * exact.abs().max().item()
+    assert err_folded <= 4 * err_plain                        # the same order as the unfolded float32 error
+    # a query changes sides only where its logit lies within that rounding of 0
+    flip = (plain32 > 0) != (folded32 > 0)
+    assert bool((exact[flip].abs() <= err_plain + err_folded).all())
+    with pytest.raises(ValueError, match=r"queries hold 1 frames but the latents 2"):
+        m32.folded_decoder(t32)(queries[:1])
 
 
 def synthetic_frame() -> tuple[FrustumGrid, torch.Tensor]:
