@@ -191,3 +191,71 @@ def test_tiny_denoiser_learns_two_modes(one_thread):
     assert (mean_err < 0.1).float().mean().item() >= 0.85
     assert value_err.median().item() < 0.05
     assert 0.3 <= (mode > 0).float().mean().item() <= 0.7
+
+
+# ----------------------------------------------------------------------------------------------
+# Table 3(a): the raw spectrum in patches instead of the radar encoder
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", ["rald-dit", "rald-dit-s"])
+def test_patch_condition_parameter_count(name):
+    """Without the encoder: its parameters and its z -> W projection go, a (s^3 -> W) projection of
+    a 16^3 patch comes (s = 16, the encoder's stride, so 64 tokens as before); the transformer and
+    the axis embeddings stay. Paper size: 183,766,160 - 19,535,504 - (16 + 1) 512 + (4096 + 1) 512."""
+    base = build_model(name, device="meta")
+    model = build_model(name, {"radar_condition": "patches"}, device="meta")
+    W, z, s = base.cfg.width, base.cfg.enc_z_channels, 16
+    want = _count(base) - _count(base.radar_encoder) - (z + 1) * W + (s ** 3 + 1) * W
+    assert _count(model) == want
+    assert _count(model.radar_encoder) == 0
+    assert model.cfg.radar_stride == s and model.cfg.n_radar_tokens == 64
+    if name == "rald-dit":
+        assert want == 166_319_616
+
+
+def test_patch_condition_tokens_are_the_cube_patches():
+    """With a projection that picks patch channel ``(i s + j) s + k`` and zero embeddings, token
+    ``(r A + a) E + e`` is the cube's value at ``(r s + i, a s + j, e s + k)``; a second output channel
+    sums the whole patch."""
+    torch.manual_seed(0)
+    model = MODELS["rald-dit-tiny"](radar_condition="patches")
+    cfg, s = model.cfg, model.cfg.radar_stride
+    tok = model.radar_tokens
+    (i, j, k) = (3, 14, 9)
+    with torch.no_grad():
+        tok.proj.weight.zero_()
+        tok.proj.bias.zero_()
+        tok.proj.weight[0, (i * s + j) * s + k] = 1.0
+        tok.proj.weight[1] = 1.0
+        for emb in (tok.pos_range, tok.pos_azimuth, tok.pos_elevation):
+            emb.weight.zero_()
+        cube = torch.rand(2, *cfg.radar_shape)
+        out = model.encode_radar(cube)
+    assert out.shape == (2, 64, cfg.width)
+    for b, r, a, e in ((0, 0, 0, 0), (1, 7, 3, 1), (0, 5, 1, 0)):
+        t = out[b, (r * 4 + a) * 2 + e]
+        assert t[0] == cube[b, r * s + i, a * s + j, e * s + k]
+        patch = cube[b, r * s:(r + 1) * s, a * s:(a + 1) * s, e * s:(e + 1) * s]
+        torch.testing.assert_close(t[1], patch.sum(), rtol=1e-5, atol=0)   # float32 sums of 4096 values in [0, 1)
+        assert torch.all(t[2:] == 0)
+
+
+def test_patch_condition_samples_with_one_condition_per_frame():
+    torch.manual_seed(0)
+    model = MODELS["rald-dit-tiny"](radar_condition="patches").eval()
+    torch.nn.init.normal_(model.denoiser.proj_out.weight, std=0.1)
+    calls = {"patches": 0, "denoiser": 0}
+    model.radar_encoder.register_forward_hook(lambda *a: calls.__setitem__("patches", calls["patches"] + 1))
+    model.denoiser.register_forward_hook(lambda *a: calls.__setitem__("denoiser", calls["denoiser"] + 1))
+    cube = torch.rand(2, 128, 64, 32)
+    x = model.sample(cube, [1, 2])
+    assert calls == {"patches": 1, "denoiser": 35}
+    assert x.shape == (2, model.cfg.n_latents, model.cfg.latent_dim) and torch.isfinite(x).all()
+    with torch.no_grad():                         # the condition reaches the output
+        assert not torch.equal(model(x, torch.full((2,), 1.0), model.encode_radar(cube)),
+                               model(x, torch.full((2,), 1.0), model.encode_radar(cube.flip(1))))
+
+
+def test_radar_condition_is_checked():
+    with pytest.raises(ValueError, match="radar_condition must be one of"):
+        LatentDiTConfig(radar_condition="raw")

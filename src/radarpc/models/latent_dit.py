@@ -22,6 +22,15 @@ top-down:
    condition)`` is the denoiser ``D``; :meth:`LatentDiT.sample` runs the Heun sampler with one
    condition for all 35 network calls (the official code re-encodes the radar cube in each).
 
+The seed's Table 3(a) "w/o radar encoder" is the config choice ``radar_condition = "patches"``
+(:data:`RADAR_CONDITIONS`): no encoder; :class:`RadarPatches` cuts the normalised cube into
+non-overlapping patches of the encoder's total stride (``16^3`` cells at paper size), and each
+patch's intensities, flattened, are one cell of :class:`RadarTokens` (the same projection and axis
+embeddings). The patch grid is the encoder's output grid, so the condition keeps its 64 tokens and
+their range-major layout and only the 3-D conv encoder is gone. (The public code's no-encoder path
+makes each cube cell one token; on its 128 x 8 x 2 cube that is 2,048 tokens, on the 128 x 64 x 32
+cube here it would be 262,144.)
+
 ``input_kind = "radar"``: the model reads RaLD's radar intensity cube (no other radarpc model
 does; the detection models read ``"rd"`` cubes or ``"points"``).
 
@@ -45,9 +54,11 @@ import torch.nn.functional as F
 from radarpc.models.edm import SeededNoise, edm_precondition, edm_sampler
 
 __all__ = [
+    "RADAR_CONDITIONS",
     "LatentDiTConfig",
     "LatentDiT",
     "RadarEncoder",
+    "RadarPatches",
     "RadarTokens",
     "LatentTransformer",
     "OFFICIAL_KEY_RENAMES",
@@ -63,6 +74,10 @@ __all__ = [
 # ----------------------------------------------------------------------------------------------
 # Config
 # ----------------------------------------------------------------------------------------------
+
+RADAR_CONDITIONS: tuple[str, ...] = ("encoder", "patches")
+"""How the radar cube becomes condition cells: the 3-D conv :class:`RadarEncoder` (RaLD) or the raw
+cube cut into patches (:class:`RadarPatches`, the seed's Table 3(a) "w/o radar encoder")."""
 
 @dataclass(frozen=True)
 class LatentDiTConfig:
@@ -88,6 +103,8 @@ class LatentDiTConfig:
     enc_z_channels: int = 16                       # its output channels per cell
     enc_groups: int = 32                           # GroupNorm groups throughout the encoder
     enc_attention: bool = True                     # self-attention after each residual block of the last level
+    radar_condition: str = "encoder"               # "encoder" (RaLD) or "patches" (raw cube patches, no encoder;
+                                                   # patch edge = the encoder's total stride): RADAR_CONDITIONS
 
     def __post_init__(self) -> None:
         for k in ("radar_shape", "enc_ch_mult"):
@@ -99,6 +116,9 @@ class LatentDiTConfig:
                 raise ValueError(f"LatentDiTConfig.{k} must be an integer >= 1, got {v!r}")
         if not isinstance(self.enc_attention, bool):
             raise ValueError(f"LatentDiTConfig.enc_attention must be true or false, got {self.enc_attention!r}")
+        if self.radar_condition not in RADAR_CONDITIONS:
+            raise ValueError(f"LatentDiTConfig.radar_condition must be one of {list(RADAR_CONDITIONS)}, "
+                             f"got {self.radar_condition!r}")
         if self.width % self.heads:
             raise ValueError(f"LatentDiTConfig: width {self.width} is not divisible by heads {self.heads}")
         if self.noise_channels % 2:
@@ -126,6 +146,18 @@ class LatentDiTConfig:
         """The encoder's output grid (range, azimuth, elevation cells): ``(8, 4, 2)`` at paper size."""
         step = 2 ** (len(self.enc_ch_mult) - 1)
         return tuple(n // step for n in self.radar_shape)
+
+    @property
+    def radar_stride(self) -> int:
+        """Cube cells per condition cell along each axis: the encoder's total stride
+        ``2^(levels - 1)``, also the patch edge of ``radar_condition = "patches"`` (16 at paper size)."""
+        return 2 ** (len(self.enc_ch_mult) - 1)
+
+    @property
+    def radar_cell_channels(self) -> int:
+        """Channels of a condition cell before the token projection: the encoder's ``enc_z_channels``,
+        or a patch's ``radar_stride^3`` intensities."""
+        return self.enc_z_channels if self.radar_condition == "encoder" else self.radar_stride ** 3
 
     @property
     def n_radar_tokens(self) -> int:
@@ -246,19 +278,37 @@ class RadarEncoder(nn.Module):
         return self.conv_out(F.silu(self.norm_out(h)))
 
 
+class RadarPatches(nn.Module):
+    """The raw cube as condition cells, no weights: ``(B, 1, R, A, E)`` -> ``(B, s^3, R/s, A/s, E/s)``,
+    channel ``(i s + j) s + k`` of cell ``(r, a, e)`` the intensity at ``(r s + i, a s + j, e s + k)``,
+    ``s`` = :attr:`LatentDiTConfig.radar_stride` (the encoder's output layout, so
+    :class:`RadarTokens` reads either)."""
+
+    def __init__(self, cfg: LatentDiTConfig):
+        super().__init__()
+        self.s = cfg.radar_stride
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:               # (B, 1, R, A, E)
+        s = self.s
+        B, _, R, A, E = x.shape
+        x = x.reshape(B, R // s, s, A // s, s, E // s, s)             # (B, r, i, a, j, e, k)
+        x = x.permute(0, 2, 4, 6, 1, 3, 5)                             # (B, i, j, k, r, a, e)
+        return x.reshape(B, s ** 3, R // s, A // s, E // s)           # (B, s^3, r, a, e)
+
+
 class RadarTokens(nn.Module):
-    """Encoder cells -> condition tokens: a linear projection to ``width`` plus learned range,
+    """Condition cells -> condition tokens: a linear projection to ``width`` plus learned range,
     azimuth and elevation embeddings, flattened range-major (token ``(r A + a) E + e``)."""
 
     def __init__(self, cfg: LatentDiTConfig):
         super().__init__()
         r, a, e = cfg.radar_grid
-        self.proj = nn.Linear(cfg.enc_z_channels, cfg.width)
+        self.proj = nn.Linear(cfg.radar_cell_channels, cfg.width)
         self.pos_range = nn.Embedding(r, cfg.width)
         self.pos_azimuth = nn.Embedding(a, cfg.width)
         self.pos_elevation = nn.Embedding(e, cfg.width)
 
-    def forward(self, z: torch.Tensor) -> torch.Tensor:               # (B, z, r, a, e)
+    def forward(self, z: torch.Tensor) -> torch.Tensor:               # (B, z or s^3, r, a, e)
         t = self.proj(z.permute(0, 2, 3, 4, 1))                       # (B, r, a, e, W)
         t = (t + self.pos_range.weight[:, None, None] + self.pos_azimuth.weight[None, :, None]
              + self.pos_elevation.weight[None, None, :])
@@ -379,12 +429,15 @@ class LatentTransformer(nn.Module):
 # ----------------------------------------------------------------------------------------------
 
 class LatentDiT(nn.Module):
-    """RaLD's diffusion model: radar encoder, radar tokens and the EDM-preconditioned latent
-    transformer.
+    """RaLD's diffusion model: radar encoder (or, with ``radar_condition = "patches"``, the cube's
+    patches), radar tokens and the EDM-preconditioned latent transformer.
 
     ``encode_radar(cube (B, R, A, E)) -> condition (B, T, W)``, once per frame;
     ``forward(x_noisy (B, M, D), sigma (B,), condition) -> denoised (B, M, D)``, the EDM denoiser
     ``D(x; sigma) = c_skip x + c_out F(c_in x; c_noise, condition)``.
+
+    ``radar_encoder`` is the :class:`RadarEncoder`, or with ``radar_condition = "patches"`` the
+    weightless :class:`RadarPatches` in its place (same input, same output layout).
     """
 
     input_kind = "radar"                    # reads RaLD's radar intensity cube (B, range, azimuth, elevation)
@@ -392,7 +445,7 @@ class LatentDiT(nn.Module):
     def __init__(self, cfg: LatentDiTConfig):
         super().__init__()
         self.cfg = cfg
-        self.radar_encoder = RadarEncoder(cfg)
+        self.radar_encoder = RadarEncoder(cfg) if cfg.radar_condition == "encoder" else RadarPatches(cfg)
         self.radar_tokens = RadarTokens(cfg)
         self.denoiser = LatentTransformer(cfg)
 
