@@ -1,5 +1,5 @@
-"""``radarpc experiment {density-sweep,ablation,fps} CONFIG --out DIR``: a study of the spectral
-point-cloud paper, resumable.
+"""``radarpc experiment {density-sweep,ablation,fps,rald-ablation} CONFIG --out DIR``: a study of
+the spectral point-cloud paper, or RaLD's ablations, resumable.
 
 ::
 
@@ -32,13 +32,22 @@ above the warmed-up process's on a CPU, ``torch.cuda.max_memory_allocated`` on a
 records the machine (CPU, instruction sets, threads, load average at its start and end); a
 finished row is never timed again unless ``--overwrite`` (which times every row again), and a row
 of another config or machine is refused.
+
+``rald-ablation`` runs RaLD's arms (the RaLD paper's Tables 1, 3, 4, 9;
+:mod:`radarpc.experiments.rald.ablation`): for each arm without its row, stage 1 and stage 2 through
+``radarpc train``'s functions (arms with the same stage-1 config share its run; a finished run is
+reused), the generation (or the autoencoder's reconstruction) of the config's split, its CD and
+EMD per scene as ``radarpc evaluate-points`` scores them, and its row ``OUT/results/ARM.json``::
+
+    radarpc experiment rald-ablation table3.yaml --out runs/rald-table3
+    radarpc report runs/rald-table3
 """
 from __future__ import annotations
 
 import argparse
 import shlex
 
-from radarpc.cli.options import STUDY_KINDS
+from radarpc.cli.options import RALD_STUDY_KINDS, STUDY_KINDS
 
 __all__ = ["add_parser", "run", "command_line"]
 
@@ -64,6 +73,8 @@ def run(args: argparse.Namespace) -> int:
     from radarpc.experiments.study.runner import run_grid
     from radarpc.machine import check_device
 
+    if args.kind in RALD_STUDY_KINDS:
+        return _run_rald(args)
     cfg = load_study(args.config, args.kind, notice=lambda s: print(s, file=sys.stderr))
     if args.kind == "fps":
         return _run_fps(cfg, args)
@@ -90,6 +101,33 @@ def run(args: argparse.Namespace) -> int:
         check_device(args.device, "--device")
     run_grid(grid, args.out, cache=args.cache, device=args.device, progress=not args.no_progress,
              command=command_line(args), config_file=str(args.config))
+    return 0
+
+
+def _run_rald(args: argparse.Namespace) -> int:
+    from radarpc.experiments.rald.ablation import (RALD_ROW_FIELDS, RALD_ROW_FORMAT, load_rald_ablation,
+                                                   run_rald_ablation)
+    from radarpc.experiments.study.results import read_rows
+    from radarpc.machine import check_device
+
+    for flag, given in (("--cache", args.cache is not None), ("--overwrite", args.overwrite)):
+        if given:
+            raise ValueError(f"{flag} does not apply to rald-ablation (its runs, predictions and rows live in --out; "
+                             f"remove an arm's row to run it again)")
+    if args.plan:
+        cfg, plans = load_rald_ablation(args.config)
+        rows = read_rows(args.out, row_format=RALD_ROW_FORMAT, required=RALD_ROW_FIELDS)
+        print(f"RaLD ablation {cfg.name!r}: {len(plans)} arms, {sum(p.arm.name in rows for p in plans)} with a row in "
+              f"{args.out} (its key checked when the study runs)")
+        for p in plans:
+            stages = p.stage1_dir + ("" if p.stage2_dir is None else f" -> {p.stage2_dir}")
+            print(f"[{p.order + 1}/{len(plans)}] {p.arm.name}: {p.label}; {stages} -- "
+                  f"{'row present' if p.arm.name in rows else 'to run'}")
+        return 0
+    if args.device is not None:
+        check_device(args.device, "--device")
+    run_rald_ablation(args.config, args.out, device=args.device, progress=not args.no_progress,
+                      command=command_line(args))
     return 0
 
 
@@ -123,7 +161,8 @@ def _run_fps(cfg, args: argparse.Namespace) -> int:
 def add_parser(sub) -> None:
     p = sub.add_parser("experiment", help="run a study: density sweep, ablations or FPS table (resumable)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("kind", choices=STUDY_KINDS, help="the study: density-sweep, ablation or fps")
+    p.add_argument("kind", choices=STUDY_KINDS + RALD_STUDY_KINDS,
+                   help="the study: density-sweep, ablation, fps, or rald-ablation (RaLD's arms)")
     p.add_argument("config", help="study YAML (see configs/study/)")
     p.add_argument("--out", required=True, help="study output: run folders (training studies), result rows, study.json")
     p.add_argument("--cache", default=None, metavar="DIR",

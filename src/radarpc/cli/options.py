@@ -7,7 +7,7 @@ these copies are checked against them by ``tests/cli/test_help.py``.
 from __future__ import annotations
 
 __all__ = ["RADIAL_SENSOR_NAMES", "SCENE_KINDS", "CFAR_PRESET_NAMES", "BEAMFORMING_MODES", "ENVELOPES",
-           "COLOR_BY", "DEFAULT_WAIT_S", "MODEL_NAMES", "STUDY_KINDS", "GUIDE_SOURCES", "POSTERIORS",
+           "COLOR_BY", "DEFAULT_WAIT_S", "MODEL_NAMES", "STUDY_KINDS", "RALD_STUDY_KINDS", "GUIDE_SOURCES", "POSTERIORS",
            "OFFICIAL_RALD_WEIGHTS", "plain_text"]
 
 RADIAL_SENSOR_NAMES = ("radial", "radial-s", "tiny")       # radarpc.sensors.radial.RADIAL_SENSORS
@@ -22,6 +22,7 @@ MODEL_NAMES = ("fftradnet", "fftradnet-s", "fftradnet-tiny", "pointpillars", "sp
                "rald-dit", "rald-dit-d12", "rald-dit-d18", "rald-dit-s", "rald-dit-tiny", "rpdnet", "rpdnet-s",
                "rpdnet-tiny")   # radarpc.models.MODELS
 STUDY_KINDS = ("density-sweep", "ablation", "fps")         # radarpc.experiments.study.config.STUDY_KINDS
+RALD_STUDY_KINDS = ("rald-ablation",)                      # radarpc.experiments.rald.ablation
 GUIDE_SOURCES = ("peaks", "os-cfar", "none")               # radarpc.rald.guide.GUIDE_SOURCES
 POSTERIORS = ("sample", "mean")                            # radarpc.rald.reconstruct.POSTERIORS
 OFFICIAL_RALD_WEIGHTS = ("ema", "model")                   # radarpc.experiments.rald.official.WEIGHTS

@@ -21,6 +21,9 @@ beside its frames/s where a study scored the same model, sensor, input and densi
 Table 2)::
 
     radarpc report runs/fps --scores runs/sweep runs/rd
+
+The output of ``radarpc experiment rald-ablation`` gets a Table-3-like table: per arm, CD and EMD
+per scene and over all frames (:func:`radarpc.experiments.rald.ablation.write_rald_report`).
 """
 from __future__ import annotations
 
@@ -31,10 +34,18 @@ __all__ = ["add_parser", "run"]
 
 
 def run(args: argparse.Namespace) -> int:
+    from radarpc.experiments.rald.ablation import RALD_ROW_FORMAT, write_rald_report
     from radarpc.experiments.study.report import write_report
+    from radarpc.experiments.study.results import rows_format
 
     argv = ["radarpc", "report", str(args.runs)] + (["--out", str(args.out)] if args.out is not None else [])
     argv += ["--scores", *map(str, args.scores)] if args.scores else []
+    if rows_format(args.runs) == RALD_ROW_FORMAT:
+        if args.scores:
+            raise ValueError(f"{args.runs}: --scores pairs F1 with an FPS study's frames/s; {args.runs} is a RaLD "
+                             f"ablation")
+        write_rald_report(args.runs, args.out, command=shlex.join(argv))
+        return 0
     write_report(args.runs, args.out, command=shlex.join(argv), scores=tuple(args.scores or ()))
     return 0
 

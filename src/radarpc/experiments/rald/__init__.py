@@ -10,5 +10,7 @@
   :func:`~.runs.load_rald`);
 * :mod:`.official` -- the official RaLD checkpoints of both stages, read without running pickled code,
   and written as a run folder (``radarpc import-rald``);
-* :mod:`.generation` -- a stage-2 run's clouds of a ColoRadar split (``radarpc generate``).
+* :mod:`.generation` -- a stage-2 run's clouds of a ColoRadar split (``radarpc generate``);
+* :mod:`.ablation` -- the paper's ablation studies as arms of configs, trained, generated, scored
+  and written as result rows (``radarpc experiment rald-ablation``, ``radarpc report``).
 """

@@ -1,0 +1,319 @@
+"""RaLD's ablation studies (the seed's Tables 1, 3, 4 and 9): arms of stage-1 / stage-2 configs and
+a generation config, each trained, generated and scored, one portable result row per arm.
+
+A study YAML names its arms, the ColoRadar root, the split and ``every``::
+
+    name: rald-table3
+    data: data/sim_colo                 # the root, as `radarpc train --data` takes it
+    split: test
+    every: 10                           # score every 10th paired frame of each run
+    arms:
+      - name: c-encoder-cfar            # a row id (letters, digits, . _ -)
+        label: "(c) w/ encoder, w/ CFAR init"
+        autoencoder: ../../rald-ae-s.yaml          # stage-1 experiment YAML, relative to this file
+        diffusion: ../../rald-s.yaml               # stage-2 YAML; leave out: the autoencoder's reconstruction
+        generate: ../generate-official.yaml        # generation YAML; leave out: the official defaults
+      - name: a-no-encoder
+        autoencoder: ../../rald-ae-s.yaml
+        diffusion: rald-s-no-encoder.yaml
+        generate: ../generate-official.yaml
+
+:func:`run_rald_ablation` works through the arms in order. For an arm without its result row it
+trains the arm's stage 1 into ``OUT/stage1/NAME-HASH`` and its stage 2 into
+``OUT/stage2/NAME-HASH`` (:func:`~radarpc.experiments.rald.train.train_autoencoder`,
+:func:`~radarpc.experiments.rald.train.train_diffusion`; ``HASH`` of the resolved config, and for
+stage 2 of its stage-1 folder too, so arms with the same stage 1 share one run, and a finished
+run returns at once), generates (or, without a diffusion config, reconstructs) the split into
+``OUT/preds/ARM`` (:func:`~radarpc.experiments.rald.generation.generate_run`), scores it as
+``radarpc evaluate-points`` does (:func:`radarpc.pipelines.point_eval.evaluate_folders`: CD and
+EMD per scene) and writes ``OUT/results/ARM.json``: the arm, its key (the resolved configs, the
+root's folder name, split, ``every``, the EMD subset size), the metrics per scene and over all
+frames, the runs' status, the command, config file and software (commit). **An arm whose row is
+present with the same key is finished** and neither trained nor generated again; every step
+below it resumes on its own (a killed training from its last checkpoint, a killed generation
+frame by frame). A row whose key differs is refused, naming the fields: remove the row (and the
+arm's folders) to run it again.
+
+:func:`write_rald_report` turns the rows into a Table-3-like Markdown table (``radarpc report
+OUT``): per arm, CD and EMD (means over the scored frames) per scene and over all frames.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import re
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+from radarpc.config import from_dict, load_yaml_mapping, to_dict
+from radarpc.eval.pointsets import EMD_POINTS
+from radarpc.experiments.rald.config import AutoencoderExperiment, DiffusionExperiment, experiment_from_dict
+from radarpc.experiments.rald.generation import GenerateConfig, generate_run
+from radarpc.experiments.rald.train import train_autoencoder, train_diffusion
+from radarpc.experiments.study.provenance import provenance
+from radarpc.experiments.study.results import RESULTS_DIR, flat_differences, plain_json, read_rows, write_named_row
+from radarpc.io import atomic_write
+
+__all__ = ["RALD_ROW_FORMAT", "RALD_ROW_FIELDS", "RALD_REPORT_MD", "RaldArm", "RaldAblationConfig", "ArmPlan",
+           "load_rald_ablation", "arm_key", "run_rald_ablation", "write_rald_report"]
+
+RALD_ROW_FORMAT = "radarpc rald ablation row 1"
+"""The ``format`` every row of a RaLD ablation states."""
+RALD_ROW_FIELDS = ("format", "run", "study", "arm", "key", "metrics")
+"""What every such row holds."""
+RALD_REPORT_MD = "report.md"
+
+_NAME = re.compile(r"[A-Za-z0-9_.-]+")
+
+
+@dataclass(frozen=True)
+class RaldArm:
+    """One arm: its stage configs (paths relative to the study file) and its generation."""
+
+    name: str                           # row id and folder name: letters, digits, '.', '_', '-'
+    autoencoder: str                    # stage-1 experiment YAML (stage: autoencoder)
+    diffusion: str | None = None        # stage-2 experiment YAML; None: score the autoencoder's reconstruction
+    generate: str | None = None         # generation YAML (radarpc generate --config); None: the official defaults
+    label: str | None = None            # the table's row label; None: the name
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
+            raise ValueError(f"arm name {self.name!r}: use letters, digits, '.', '_' and '-' (it names a folder "
+                             f"and a result row)")
+
+
+@dataclass(frozen=True)
+class RaldAblationConfig:
+    """A RaLD ablation study (module docstring)."""
+
+    name: str
+    data: str                           # the ColoRadar root (relative to the working directory)
+    arms: tuple[RaldArm, ...]
+    split: str = "test"                 # the split generated and scored
+    every: int = 1                      # every K-th paired frame of each run (1: all)
+    emd_points: int = EMD_POINTS        # EMD subset size (evaluate-points' --emd-points)
+
+    def __post_init__(self) -> None:
+        if not self.arms:
+            raise ValueError(f"study {self.name!r}: arms: give at least one arm")
+        names = [a.name for a in self.arms]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise ValueError(f"study {self.name!r}: arm name(s) {', '.join(twice)} given twice")
+        for k in ("every", "emd_points"):
+            v = getattr(self, k)
+            if isinstance(v, bool) or int(v) != v or v < 1:
+                raise ValueError(f"study {self.name!r}: {k} must be an integer >= 1, got {v!r}")
+
+
+@dataclass(frozen=True)
+class ArmPlan:
+    """An arm with its configs read: what runs where (folders relative to the study output)."""
+
+    arm: RaldArm
+    order: int
+    autoencoder: AutoencoderExperiment
+    diffusion: DiffusionExperiment | None
+    generate: GenerateConfig
+    stage1_dir: str                     # "stage1/NAME-HASH"
+    stage2_dir: str | None              # "stage2/NAME-HASH", None without a diffusion config
+
+    @property
+    def label(self) -> str:
+        return self.arm.label or self.arm.name
+
+    @property
+    def preds_dir(self) -> str:
+        return f"preds/{self.arm.name}"
+
+
+def _digest(value) -> str:
+    return hashlib.sha256(json.dumps(plain_json(value), sort_keys=True).encode()).hexdigest()[:10]
+
+
+def _read_experiment(path: Path, stage: str, where: str):
+    if not path.is_file():
+        raise FileNotFoundError(f"{where}: {path} does not exist (paths are relative to the study config)")
+    cfg = experiment_from_dict(load_yaml_mapping(path), where=str(path))
+    if cfg.stage != stage:
+        raise ValueError(f"{where}: {path} is a stage {cfg.stage!r} config; this field takes stage {stage!r}")
+    return cfg
+
+
+def load_rald_ablation(path: str | os.PathLike) -> tuple[RaldAblationConfig, list[ArmPlan]]:
+    """Read a study YAML strictly and every config its arms name (relative to the file).
+
+    Raises
+    ------
+    ValueError
+        Unknown fields, bad values, an arm's config of the wrong stage, a diffusion model whose
+        latents are not its autoencoder's.
+    FileNotFoundError
+        A config an arm names is missing.
+    """
+    from radarpc.config import load_yaml
+
+    path = Path(path)
+    cfg = from_dict(RaldAblationConfig, load_yaml_mapping(path), where=str(path))
+    base = path.parent
+    plans = []
+    for i, arm in enumerate(cfg.arms):
+        where = f"{path}: arm {arm.name!r}"
+        ae = _read_experiment(base / arm.autoencoder, "autoencoder", f"{where}.autoencoder")
+        dit = None if arm.diffusion is None else _read_experiment(base / arm.diffusion, "diffusion",
+                                                                  f"{where}.diffusion")
+        if arm.generate is None:
+            gen = GenerateConfig()
+        else:
+            if not (base / arm.generate).is_file():
+                raise FileNotFoundError(f"{where}.generate: {base / arm.generate} does not exist (paths are "
+                                        f"relative to the study config)")
+            gen = load_yaml(GenerateConfig, base / arm.generate)
+        a = ae.model.config
+        if dit is not None and (a.n_latents, a.latent_dim) != (dit.model.config.n_latents, dit.model.config.latent_dim):
+            raise ValueError(f"{where}: {arm.diffusion} generates {dit.model.config.n_latents} latents of "
+                             f"{dit.model.config.latent_dim}, but {arm.autoencoder}'s autoencoder makes {a.n_latents} "
+                             f"of {a.latent_dim}")
+        s1 = f"stage1/{ae.name}-{_digest(to_dict(ae))}"
+        s2 = None if dit is None else f"stage2/{dit.name}-{_digest({'experiment': to_dict(dit), 'ae': s1})}"
+        plans.append(ArmPlan(arm, i, ae, dit, gen, s1, s2))
+    return cfg, plans
+
+
+def arm_key(cfg: RaldAblationConfig, plan: ArmPlan) -> dict:
+    """What makes an arm's row this arm's: the resolved configs, the data (the root's folder name,
+    so a row is the same on every machine), split, ``every`` and the EMD subset size."""
+    return plain_json({
+        "autoencoder": to_dict(plan.autoencoder),
+        "diffusion": None if plan.diffusion is None else to_dict(plan.diffusion),
+        "generate": to_dict(plan.generate),
+        "data": Path(cfg.data).name, "split": cfg.split, "every": cfg.every, "emd_points": cfg.emd_points})
+
+
+def run_rald_ablation(path: str | os.PathLike, out: str | os.PathLike, *, data: str | os.PathLike | None = None,
+                      device: str | None = None, progress: bool = True, log: Callable[[str], None] = print,
+                      command: str | None = None) -> dict[str, Path]:
+    """Run the study ``path`` into ``out`` (module docstring); returns the rows' paths by arm.
+
+    ``data`` replaces the config's root (its folder name must be the same: rows name it).
+
+    Raises
+    ------
+    ValueError
+        A row of an arm holds another key (the fields named), or anything the configs refuse.
+    """
+    from radarpc.pipelines.point_eval import evaluate_folders
+    from radarpc.training.checkpoint import software_record
+    from radarpc.training.loop import training_status
+
+    cfg, plans = load_rald_ablation(path)
+    root = Path(cfg.data if data is None else data)
+    if data is not None and Path(data).name != Path(cfg.data).name:
+        raise ValueError(f"--data {data}: the study's rows name the root {Path(cfg.data).name!r} (its folder name); "
+                         f"give a copy of that root, or change data: in {path}")
+    out = Path(out)
+    rows = read_rows(out, row_format=RALD_ROW_FORMAT, required=RALD_ROW_FIELDS)
+    done: dict[str, Path] = {}
+    for plan in plans:
+        name, key = plan.arm.name, arm_key(cfg, plan)
+        row = rows.get(name)
+        if row is not None:
+            diff = flat_differences(row["key"], key)
+            if diff:
+                more = f" (and {len(diff) - 3} more)" if len(diff) > 3 else ""
+                raise ValueError(f"{out / RESULTS_DIR / (name + '.json')}: made by another configuration of arm "
+                                 f"{name!r}: {'; '.join(diff[:3])}{more}. Remove the row (and {out / plan.preds_dir}) "
+                                 f"to run the arm again with this config, or give another --out")
+            log(f"[{plan.order + 1}/{len(plans)}] {name}: finished (its row is present), reused")
+            done[name] = out / RESULTS_DIR / f"{name}.json"
+            continue
+        log(f"[{plan.order + 1}/{len(plans)}] {name}: stage 1 in {out / plan.stage1_dir}")
+        train_autoencoder(plan.autoencoder, root, out / plan.stage1_dir, device=device, progress=progress, log=log)
+        run_dir = out / plan.stage1_dir
+        if plan.diffusion is not None:
+            log(f"[{plan.order + 1}/{len(plans)}] {name}: stage 2 in {out / plan.stage2_dir}")
+            train_diffusion(plan.diffusion, root, run_dir, out / plan.stage2_dir, device=device, progress=progress,
+                            log=log)
+            run_dir = out / plan.stage2_dir
+        preds = out / plan.preds_dir
+        log(f"[{plan.order + 1}/{len(plans)}] {name}: {'generating' if plan.diffusion else 'reconstructing'} "
+            f"split {cfg.split!r} into {preds}")
+        generate_run(run_dir, preds, data=root, split=cfg.split, every=cfg.every, config=plan.generate,
+                     device=device, progress=progress, notice=log)
+        evaluation = evaluate_folders([preds], root, cfg.split, emd_points=cfg.emd_points, progress=progress)
+        report = next(iter(evaluation.reports.values()))
+        status = {"stage1": training_status(out / plan.stage1_dir),
+                  "stage2": None if plan.stage2_dir is None else training_status(out / plan.stage2_dir)}
+        row = {"format": RALD_ROW_FORMAT, "run": name,
+               "study": {"name": cfg.name, "kind": "rald-ablation", "config_file": str(path), "config": to_dict(cfg)},
+               "arm": {"name": name, "label": plan.label, "order": plan.order,
+                       "output": "generation" if plan.diffusion else "reconstruction",
+                       "autoencoder": plan.arm.autoencoder, "diffusion": plan.arm.diffusion,
+                       "generate": plan.arm.generate},
+               "key": key,
+               "metrics": {"overall": asdict(report.overall), "scenes": [asdict(s) for s in report.scenes]},
+               "runs": status, "evaluation": {"split": cfg.split, "every": cfg.every, "emd_points": cfg.emd_points},
+               "command": command, "software": software_record(),
+               "times": {"finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}}
+        done[name] = write_named_row(out, f"{name}.json", row)
+        log(f"[{plan.order + 1}/{len(plans)}] {name}: CD {_num(report.overall.chamfer_mean)} m, "
+            f"EMD {_num(report.overall.emd_mean)} m over {report.overall.n_scored} frames; row {done[name]}")
+    return done
+
+
+def _num(x) -> str:
+    return "-" if x is None else f"{x:.3f}"
+
+
+def write_rald_report(runs: str | os.PathLike, out: str | os.PathLike | None = None, *, command: str | None = None,
+                      log: Callable[[str], None] = print) -> Path:
+    """Write ``report.md`` of a RaLD ablation's rows (default into ``RUNS/report``): a Table-3-like
+    table, one row per arm in the study's order, CD and EMD (means, metres) per scene and over all
+    frames, then every arm's frames, empty predictions, steps and commit.
+
+    Raises
+    ------
+    FileNotFoundError
+        No result row in ``runs``.
+    """
+    runs = Path(runs)
+    rows = read_rows(runs, row_format=RALD_ROW_FORMAT, required=RALD_ROW_FIELDS)
+    if not rows:
+        raise FileNotFoundError(f"{runs}: no result rows (no {RESULTS_DIR}/*.json); run `radarpc experiment "
+                                f"rald-ablation ...` first, or give the study's output folder")
+    base = runs.parent if runs.name == RESULTS_DIR and not (runs / RESULTS_DIR).is_dir() else runs
+    out = Path(out) if out is not None else base / "report"
+    made = provenance(rows, base / RESULTS_DIR, runs, command)
+    ordered = sorted(rows.values(), key=lambda r: (int(r["arm"].get("order", 10**6)), r["run"]))
+    scenes = sorted({s["scene"] for r in ordered for s in r["metrics"]["scenes"]})
+    splits = sorted({str((r.get("evaluation") or {}).get("split", "?")) for r in ordered})
+    head = ["arm"] + [f"{s} {m}" for s in [*scenes, "all"] for m in ("CD↓", "EMD↓")]
+    lines = made.header(f"RaLD ablation {', '.join(made.studies)}", "trained, generated and scored the arms") + [
+        f"CD (RaLD's non-squared Chamfer distance) and EMD (Wasserstein-1 between uniform subsets) in metres, "
+        f"the means over each scene's scored frames of the {'/'.join(splits)} split (`radarpc evaluate-points`); "
+        f"arms in the study's order.", "",
+        "| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
+    for r in ordered:
+        by_scene = {s["scene"]: s for s in r["metrics"]["scenes"]}
+        cells = [r["arm"].get("label") or r["run"]]
+        for s in [*scenes, "all"]:
+            m = r["metrics"]["overall"] if s == "all" else by_scene.get(s)
+            cells += ["-", "-"] if m is None else [_num(m.get("chamfer_mean")), _num(m.get("emd_mean"))]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "### arms", "", "| arm | output | frames | empty | stage-1 steps | stage-2 steps | commit |",
+              "|---|---|---:|---:|---:|---:|---|"]
+    for r in ordered:
+        o, st = r["metrics"]["overall"], r.get("runs") or {}
+        steps = [(st.get(k) or {}).get("steps_done", "-") if st.get(k) else "-" for k in ("stage1", "stage2")]
+        commit = (r.get("software") or {}).get("commit") or "-"
+        lines.append(f"| `{r['run']}` | {r['arm'].get('output', '-')} | {o['n_frames']} | {o.get('empty', 0)} | "
+                     f"{steps[0]} | {steps[1]} | `{commit[:10]}` |")
+    lines += [""] + made.config_section()
+    path = out / RALD_REPORT_MD
+    with atomic_write(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+    log(f"wrote {path}")
+    return path
