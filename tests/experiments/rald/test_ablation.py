@@ -1,5 +1,5 @@
 """`radarpc experiment rald-ablation` on the session's tiny ColoRadar root: two arms sharing one
-stage-1 run (a reconstruction and a generation), rows per arm, resume without retraining, the
+stage-1 run (a reconstruction, and a generation by the Table 3(a) model without radar encoder), rows per arm, resume without retraining, the
 refusal of a row of another config, and the `radarpc report` table."""
 from __future__ import annotations
 
@@ -20,12 +20,15 @@ QUICK = ("generation: {random_queries: 400, guided_queries: 300, refine_queries:
 def _study(tmp_path: Path, root: Path, every: int = 1) -> Path:
     (tmp_path / "gen.yaml").write_text(QUICK % ", num_steps: 2")
     (tmp_path / "recon.yaml").write_text(QUICK % "")
+    # the tiny stage 2 conditioned on raw cube patches (Table 3(a)): 4^3-cell patches of its 32 x 16 x 8 cube
+    text = (CONFIGS / "rald-tiny.yaml").read_text().replace("name: rald-tiny", "name: rald-tiny-patches")
+    (tmp_path / "patches.yaml").write_text(text.replace("  overrides:\n", "  overrides:\n    radar_condition: patches\n"))
     study = tmp_path / "study.yaml"
     study.write_text(
         f"name: tiny-table\ndata: {root}\nsplit: test\nevery: {every}\nemd_points: 64\narms:\n"
         f"  - {{name: ae, label: autoencoder, autoencoder: {CONFIGS / 'rald-ae-tiny.yaml'}, generate: recon.yaml}}\n"
-        f"  - {{name: full, label: 'w/ encoder', autoencoder: {CONFIGS / 'rald-ae-tiny.yaml'},\n"
-        f"     diffusion: {CONFIGS / 'rald-tiny.yaml'}, generate: gen.yaml}}\n")
+        f"  - {{name: full, label: 'w/o encoder', autoencoder: {CONFIGS / 'rald-ae-tiny.yaml'},\n"
+        f"     diffusion: patches.yaml, generate: gen.yaml}}\n")
     return study
 
 
@@ -88,7 +91,7 @@ def test_two_arms_share_stage_1_resume_and_report(colo_root, tmp_path, monkeypat
         assert row["software"]["radarpc"]
     assert rows["ae"]["arm"]["output"] == "reconstruction" and rows["ae"]["runs"]["stage2"] is None
     assert rows["full"]["arm"]["output"] == "generation" and rows["full"]["runs"]["stage2"]["finished"] is True
-    assert rows["full"]["key"]["diffusion"]["name"] == "rald-tiny"
+    assert rows["full"]["key"]["diffusion"]["model"]["overrides"]["radar_condition"] == "patches"
 
     # a third run does nothing
     calls = {}
@@ -103,8 +106,8 @@ def test_two_arms_share_stage_1_resume_and_report(colo_root, tmp_path, monkeypat
     scene = rows["ae"]["metrics"]["scenes"][0]["scene"]
     assert f"| arm | {scene} CD↓ | {scene} EMD↓ | all CD↓ | all EMD↓ |" in report
     o = rows["full"]["metrics"]["overall"]
-    assert f"| w/ encoder | {o['chamfer_mean']:.3f} | {o['emd_mean']:.3f} | {o['chamfer_mean']:.3f} |" in report
-    assert report.index("| autoencoder |") < report.index("| w/ encoder |")
+    assert f"| w/o encoder | {o['chamfer_mean']:.3f} | {o['emd_mean']:.3f} | {o['chamfer_mean']:.3f} |" in report
+    assert report.index("| autoencoder |") < report.index("| w/o encoder |")
 
     # another config of a finished arm is refused, naming the field
     capsys.readouterr()
