@@ -27,9 +27,10 @@ The seed's Table 3(a) "w/o radar encoder" is the config choice ``radar_condition
 non-overlapping patches of the encoder's total stride (``16^3`` cells at paper size), and each
 patch's intensities, flattened, are one cell of :class:`RadarTokens` (the same projection and axis
 embeddings). The patch grid is the encoder's output grid, so the condition keeps its 64 tokens and
-their range-major layout and only the 3-D conv encoder is gone. (The public code's no-encoder path
-makes each cube cell one token; on its 128 x 8 x 2 cube that is 2,048 tokens, on the 128 x 64 x 32
-cube here it would be 262,144.)
+their range-major layout and only the 3-D conv encoder is gone (paper size: 166,319,616 parameters,
+the encoder's 19.5M replaced by a 4,096 -> 512 projection). The public code's no-encoder path
+projects each cube cell to a token (its configs' ``input_radar_*_dim``: 128 x 8 x 2, 2,048 tokens);
+on the 128 x 64 x 32 cube read here that would be 262,144 tokens, hence patches.
 
 ``input_kind = "radar"``: the model reads RaLD's radar intensity cube (no other radarpc model
 does; the detection models read ``"rd"`` cubes or ``"points"``).
@@ -78,6 +79,7 @@ __all__ = [
 RADAR_CONDITIONS: tuple[str, ...] = ("encoder", "patches")
 """How the radar cube becomes condition cells: the 3-D conv :class:`RadarEncoder` (RaLD) or the raw
 cube cut into patches (:class:`RadarPatches`, the seed's Table 3(a) "w/o radar encoder")."""
+
 
 @dataclass(frozen=True)
 class LatentDiTConfig:
