@@ -100,6 +100,14 @@ def test_two_arms_share_stage_1_resume_and_report(colo_root, tmp_path, monkeypat
         assert _run(study, out) == 0
     assert calls == {}
 
+    # --plan lists the arms and their rows; --cache is not this study's
+    capsys.readouterr()
+    assert main(["experiment", "rald-ablation", str(study), "--out", str(out), "--plan"]) == 0
+    plan = capsys.readouterr().out
+    assert "2 arms, 2 with a row" in plan and f"[1/2] ae: autoencoder; {stage1.parent.name}/{stage1.name} -- row present" in plan
+    assert main(["experiment", "rald-ablation", str(study), "--out", str(out), "--cache", str(tmp_path)]) == 2
+    assert "--cache does not apply to rald-ablation" in capsys.readouterr().err
+
     # the report: one table row per arm, CD and EMD per scene and over all frames
     assert main(["report", str(out)]) == 0
     report = (out / "report" / "report.md").read_text()
