@@ -150,6 +150,17 @@ def test_every_generates_and_predicts_a_subset(generated, rald_run, colo_root, t
     assert capsys.readouterr().out.splitlines()[-1] == f"wrote 1 new point cloud (1 frame) to {oscfar}"
     index = json.loads((oscfar / "index.json").read_text())
     assert index["every"] == 2 and [e["file"] for e in index["frames"]] == [first["file"]]
+    # another subset into the folder would leave clouds the index does not list: refused, naming it
+    assert main(["baseline", "os-cfar", str(colo_root), "--split", "test", "--out", str(oscfar), "--quick-tune",
+                 "--max-tune-frames", "2"]) != 0
+    assert "(split test, every 2), not of" in capsys.readouterr().err
+    # a bad K is refused by the parser, before any model or frame is read
+    for cmd in (["generate", str(rald_run), "--out", str(tmp_path / "x")],
+                ["baseline", "os-cfar", str(colo_root), "--out", str(tmp_path / "y")]):
+        with pytest.raises(SystemExit) as e:
+            main([*cmd, "--every", "0"])
+        assert e.value.code == 2
+        assert "--every: expected a positive integer (1: every frame), got '0'" in capsys.readouterr().err
 
 
 @pytest.fixture(scope="module")

@@ -30,6 +30,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from radarpc.cli.options import frame_step
+
 __all__ = ["add_parser", "run_oscfar", "run_detect"]
 
 
@@ -64,7 +66,7 @@ def add_parser(sub) -> None:
                          description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     q.add_argument("root", help="ColoRadar root (real or simulated)")
     q.add_argument("--split", default="test", choices=("train", "val", "test", "all"), help="split whose paired frames are predicted (default test)")
-    q.add_argument("--every", type=int, default=1, metavar="K",
+    q.add_argument("--every", type=frame_step, default=1, metavar="K",
                    help="predict every K-th paired frame of each run (default 1: all)")
     q.add_argument("--out", required=True, help="prediction folder")
     q.add_argument("--tune-split", default="val", choices=("train", "val", "test", "all"),

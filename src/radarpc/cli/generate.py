@@ -61,7 +61,7 @@ from __future__ import annotations
 
 import argparse
 
-from radarpc.cli.options import GUIDE_SOURCES, POSTERIORS
+from radarpc.cli.options import GUIDE_SOURCES, POSTERIORS, frame_step
 
 __all__ = ["add_parser", "run"]
 
@@ -139,7 +139,7 @@ def add_parser(sub) -> None:
                    help="ColoRadar root (default: the root the run was trained on, or given to import-rald)")
     p.add_argument("--split", default="test", choices=("train", "val", "test", "all"),
                    help="split whose paired frames are generated (default test)")
-    p.add_argument("--every", type=int, default=1, metavar="K",
+    p.add_argument("--every", type=frame_step, default=1, metavar="K",
                    help="generate every K-th paired frame of each run (default 1: all); radarpc evaluate-points "
                         "scores the frames the folder lists")
     p.add_argument("--out", required=True, help="prediction folder")

@@ -45,3 +45,16 @@ def plain_text(text: str | None) -> str | None:
             line = line.rstrip()[:-1]
         lines.append(line)
     return "\n".join(lines)
+
+
+def frame_step(text: str) -> int:
+    """argparse type of ``--every K``: a positive integer, refused before any work starts."""
+    import argparse
+
+    try:
+        k = int(text)
+    except ValueError:
+        k = 0
+    if k < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer (1: every frame), got {text!r}")
+    return k

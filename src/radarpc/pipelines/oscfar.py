@@ -108,30 +108,31 @@ def _choose_config(job: OSCFARJob, axes: CubeAxes, cfg_path: Path, progress: boo
     return res.best, f"tuned on {res.n_frames} {job.tune_split} frames (mean CD {res.best_chamfer:.3f} m)"
 
 
-def _made_from(out: Path) -> tuple[str | None, str | None]:
-    """``(resolved root, split)`` the predictions in ``out`` were made from (index.json, else the
-    provenance of config.yaml); ``(None, None)`` when neither says."""
+def _made_from(out: Path) -> tuple[str | None, str | None, int | None]:
+    """``(resolved root, split, every)`` the predictions in ``out`` were made from (index.json, else
+    the provenance of config.yaml); ``(None, None, None)`` when neither says. A record without
+    ``every`` predates the option: every frame (1)."""
     idx = read_json(out / INDEX_FILE)
     if isinstance(idx, dict) and "root" in idx:
-        return str(idx["root"]), idx.get("split")
+        return str(idx["root"]), idx.get("split"), int(idx.get("every", 1))
     try:
         doc = yaml.safe_load((out / "config.yaml").read_text())
         prov = doc["provenance"]
-        return str(Path(prov["root"]).resolve()), prov.get("split")
-    except (OSError, yaml.YAMLError, KeyError, TypeError):
-        return None, None
+        return str(Path(prov["root"]).resolve()), prov.get("split"), int(prov.get("every", 1))
+    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError):
+        return None, None, None
 
 
 def _own_folder(out: Path, job: OSCFARJob) -> None:
     """Refuse (unless ``job.overwrite``) a non-empty folder that is not a prediction folder of this
-    root and split: its clouds would be mixed with this job's. With ``overwrite`` the earlier
+    root, split and frame subset (``every``): its clouds would be mixed with this job's. With ``overwrite`` the earlier
     predictions (config, tuning, index and run folders of clouds) are removed first."""
     entries = [p for p in out.iterdir()] if out.is_dir() else []
     if not entries:
         return
-    root, split = _made_from(out)
+    root, split, every = _made_from(out)
     want = str(Path(job.root).resolve())
-    if root == want and split == job.split:
+    if root == want and split == job.split and every == job.every:
         return
     foreign = [p for p in entries if not (p.name in ("config.yaml", "tuning.json", INDEX_FILE) or (
         p.is_dir() and all(f.suffix == ".npy" for f in p.iterdir())))]
@@ -139,7 +140,8 @@ def _own_folder(out: Path, job: OSCFARJob) -> None:
         return                              # a run killed before it recorded its root: resume it
     if not job.overwrite:
         what = ("is not empty and is not a prediction folder" if root is None else
-                f"holds predictions of {root} (split {split}), not of {want} (split {job.split})")
+                f"holds predictions of {root} (split {split}, every {every}), not of {want} (split {job.split}, "
+                f"every {job.every})")
         raise FileExistsError(f"{out} {what}; pass --overwrite (overwrite=True) to replace them, or choose "
                               f"another --out")
     for p in entries:
@@ -187,13 +189,13 @@ def predict_oscfar(job: OSCFARJob, *, progress: bool = True,
         cfg, how = _choose_config(job, axes, cfg_path, progress)
         same = cfg_path.is_file() and load_config(cfg_path) == cfg
         if not same:
-            save_config(cfg_path, cfg, method="os-cfar", root=str(job.root), split=job.split,
+            save_config(cfg_path, cfg, method="os-cfar", root=str(job.root), split=job.split, every=ds.every,
                         tune_split=job.tune_split, how=how)
         if on_config is not None:
             on_config(cfg, how)
         res = fill_predictions(
             out, ds, lambda i: detect_points(ds.cube(i).intensity_db, axes, cfg).cpu().numpy(),
             keep=lambda i, path: same, method="os-cfar", root=job.root, split=job.split,
-            index_extra={"every": job.every},
+            index_extra={"every": ds.every},
             progress=progress, desc=f"OS-CFAR {job.split}")
     return OSCFARRun(cfg, how, res.n_frames, res.n_new)
