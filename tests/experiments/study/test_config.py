@@ -19,7 +19,8 @@ from radarpc.sensors.radial import radial_sensor
 
 CONFIGS = Path(__file__).parents[3] / "configs" / "study"
 KIND = {"density-sweep": "density-sweep", "ablation": "ablation", "rd-comparison": "ablation",
-        "tiny-sweep": "density-sweep", "tiny-ablation": "ablation", "fps": "fps", "tiny-fps": "fps"}
+        "tiny-sweep": "density-sweep", "tiny-ablation": "ablation", "fps": "fps", "tiny-fps": "fps",
+        "density-sweep-short": "density-sweep"}
 
 
 def test_every_shipped_study_config_is_listed_here():
