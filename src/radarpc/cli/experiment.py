@@ -40,7 +40,11 @@ reused), the generation (or the autoencoder's reconstruction) of the config's sp
 EMD per scene as ``radarpc evaluate-points`` scores them, and its row ``OUT/results/ARM.json``::
 
     radarpc experiment rald-ablation table3.yaml --out runs/rald-table3
+    radarpc experiment rald-ablation generalization.yaml --data /data/sim_colo6 --out runs/rald-generalization
     radarpc report runs/rald-table3
+
+An arm with ``init: ARM`` fine-tunes that earlier arm's weights, and the stage configs' ``scenes``
+hold scene types out of training: the RaLD paper's generalization study (Tables 5-8).
 """
 from __future__ import annotations
 
@@ -57,6 +61,8 @@ def command_line(args: argparse.Namespace) -> str:
     argv = ["radarpc", "experiment", args.kind, str(args.config), "--out", str(args.out)]
     if args.cache is not None:
         argv += ["--cache", str(args.cache)]
+    if getattr(args, "data", None) is not None:
+        argv += ["--data", str(args.data)]
     if args.device is not None:
         argv += ["--device", args.device]
     if getattr(args, "overwrite", False):
@@ -75,6 +81,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.kind in RALD_STUDY_KINDS:
         return _run_rald(args)
+    if args.data is not None:
+        raise ValueError(f"--data applies to rald-ablation (the ColoRadar root in place of the study's data:); a "
+                         f"{args.kind} study names its data in {args.config}")
     cfg = load_study(args.config, args.kind, notice=lambda s: print(s, file=sys.stderr))
     if args.kind == "fps":
         return _run_fps(cfg, args)
@@ -121,12 +130,13 @@ def _run_rald(args: argparse.Namespace) -> int:
               f"{args.out} (its key checked when the study runs)")
         for p in plans:
             stages = p.stage1_dir + ("" if p.stage2_dir is None else f" -> {p.stage2_dir}")
+            stages += "" if p.init is None else f" (fine-tuned from {p.init.arm.name})"
             print(f"[{p.order + 1}/{len(plans)}] {p.arm.name}: {p.label}; {stages} -- "
                   f"{'row present' if p.arm.name in rows else 'to run'}")
         return 0
     if args.device is not None:
         check_device(args.device, "--device")
-    run_rald_ablation(args.config, args.out, device=args.device, progress=not args.no_progress,
+    run_rald_ablation(args.config, args.out, data=args.data, device=args.device, progress=not args.no_progress,
                       command=command_line(args))
     return 0
 
@@ -168,6 +178,9 @@ def add_parser(sub) -> None:
     p.add_argument("--cache", default=None, metavar="DIR",
                    help="simulated roots, point stores and sparse-RD roots (default OUT/cache); share one "
                         "between studies of the same data")
+    p.add_argument("--data", default=None, metavar="ROOT",
+                   help="rald-ablation only: this ColoRadar root instead of the study's data: (the same folder "
+                        "name: the rows name it)")
     p.add_argument("--device", default=None, help="torch device (default: a GPU when there is one, else the CPU)")
     p.add_argument("--plan", action="store_true", help="list the runs and which are finished; change nothing")
     p.add_argument("--overwrite", action="store_true",

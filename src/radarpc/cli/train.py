@@ -10,12 +10,15 @@ ColoRadar-layout root.
     radarpc train configs/spectralpillars-s.yaml --data sim_a sim_b --points pc_a.parquet pc_b.parquet --out runs/sp_ab
     radarpc train configs/rald-ae-s.yaml --data data/sim_colo --out runs/ae
     radarpc train configs/rald-s.yaml --data data/sim_colo --ae runs/ae --out runs/rald
+    radarpc train configs/rald/generalization/rald-s-finetune.yaml --data data/sim_colo --ae runs/ae --init runs/rald --out runs/rald-ft
     radarpc train configs/rpdnet-s.yaml --data data/sim_colo --out runs/rpdnet
 
 What the config is decides the rest. A config with a stage key is a RaLD experiment: stage
 autoencoder trains RaLD's LiDAR occupancy autoencoder (stage 1), stage diffusion its
 radar-conditioned latent diffusion model against a stage-1 run given by --ae RUN, whose
-autoencoder is frozen (stage 2), stage occupancy the learned baseline of RaLD's Table 2 (a
+autoencoder is frozen (stage 2); --init RUN starts a RaLD stage from the best weights of an earlier
+run of the same stage and model instead of fresh ones (fine-tuning, e.g. on the scenes a config's
+scenes list names; a stage-2 RUN must have been trained against the --ae weights), stage occupancy the learned baseline of RaLD's Table 2 (a
 radar-to-occupancy network, RPDNet-style, supervised by the LiDAR truth's occupancy of a coarse
 frustum grid). All three read one ColoRadar-layout root (--data; its runs give the
 train and val splits). A config without a stage key is a detection experiment on RADIal-layout
@@ -60,9 +63,10 @@ def run(args: argparse.Namespace) -> int:
         return _run_occupancy(args)
     if "stage" in mapping:
         return _run_rald(args)
-    if args.ae is not None:
-        raise ValueError(f"--ae names the stage-1 autoencoder run of a RaLD diffusion config (stage: diffusion); "
-                         f"{args.config} is a detection experiment (it has no 'stage')")
+    for opt, what in (("ae", "the stage-1 autoencoder run of a RaLD diffusion config (stage: diffusion)"),
+                      ("init", "the run a RaLD stage fine-tunes (stage: autoencoder or diffusion)")):
+        if getattr(args, opt) is not None:
+            raise ValueError(f"--{opt} names {what}; {args.config} is a detection experiment (it has no 'stage')")
     return _run_detection(args, notice=lambda s: print(s, file=sys.stderr))
 
 
@@ -121,7 +125,7 @@ def _run_rald(args: argparse.Namespace) -> int:
         cfg = with_train(cfg, **changes)
     rank0 = dist_env().rank == 0
     r = train_rald(cfg, args.data, args.out, ae=args.ae, device=args.device, overwrite=args.overwrite,
-                   progress=not args.no_progress, log=print if rank0 else (lambda s: None))
+                   progress=not args.no_progress, log=print if rank0 else (lambda s: None), init=args.init)
     if rank0:
         print(f"{r.out}: best validation {cfg.train.select_metric} {r.best_score:.4f} at step {r.best_step} "
               f"(epoch {r.best_epoch})")
@@ -137,6 +141,7 @@ def _run_occupancy(args: argparse.Namespace) -> int:
 
     for given, what in ((args.points is not None, "--points (a detection experiment's point store)"),
                         (args.ae is not None, "--ae (RaLD stage 2's autoencoder run)"),
+                        (args.init is not None, "--init (fine-tuning a RaLD stage)"),
                         (args.runs != 1, f"--runs {args.runs} (train each seed with --seed into its own --out)")):
         if given:
             raise ValueError(f"{args.config} is the occupancy baseline (stage: occupancy), which takes no {what}")
@@ -166,6 +171,8 @@ def add_parser(sub) -> None:
     p.add_argument("--ae", default=None, metavar="RUN",
                    help="RaLD stage 2 (stage: diffusion): the stage-1 autoencoder run folder, frozen while the "
                         "diffusion model trains")
+    p.add_argument("--init", default=None, metavar="RUN",
+                   help="RaLD stages: start from the best weights of this run (same stage and model; fine-tuning)")
     p.add_argument("--out", required=True, help="run folder")
     p.add_argument("--model", default=None, choices=MODEL_NAMES,
                    help="train this variant of the model registry instead of the config's model.variant "

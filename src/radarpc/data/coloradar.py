@@ -550,6 +550,9 @@ class ColoRadar(torch.utils.data.Dataset):
         Run-level split (see :func:`split_runs`).
     runs : sequence of str, optional
         Restrict to these runs (after the split).
+    scenes : sequence of str, optional
+        Restrict to the runs of these scenes (:func:`scene_of_run`: ``lab`` for ``lab_run3``), after
+        the split: training on some scene types and scoring the others held out.
     cube_size : (int, int, int) or None
         Upsampled intensity size (RaLD: 128 x 64 x 32); None keeps the raw 128 x 8 x 2 cube.
     fov : RadarFOV
@@ -571,9 +574,11 @@ class ColoRadar(torch.utils.data.Dataset):
 
     def __init__(self, root: str | os.PathLike, split: str = "train", *, runs: Sequence[str] | None = None,
                  cube_size: tuple[int, int, int] | None = (128, 64, 32), fov: RadarFOV = AWR1843_FOV,
-                 max_dt: float | None = None, every: int = 1):
+                 max_dt: float | None = None, every: int = 1, scenes: Sequence[str] | None = None):
         if isinstance(every, bool) or int(every) != every or every < 1:
             raise ValueError(f"every must be a positive integer (1 keeps every frame), got {every!r}")
+        if isinstance(scenes, str):
+            raise ValueError(f"scenes must be a sequence of scene names, got the string {scenes!r}")
         self.root = Path(root)
         self.calib = load_calib(find_calib(self.root))
         names = split_runs(find_runs(self.root), split)
@@ -582,6 +587,15 @@ class ColoRadar(torch.utils.data.Dataset):
             if missing:
                 raise ValueError(f"runs {missing} are not in split {split!r} of {self.root}")
             names = [n for n in names if n in set(runs)]
+        if scenes is not None:
+            have = sorted({scene_of_run(n) for n in names})
+            missing = sorted(set(scenes) - set(have))
+            if missing or not scenes:
+                raise ValueError(f"scenes {sorted(set(scenes))} of {self.root}: "
+                                 + (f"{missing} have no run in split {split!r}" if missing else "give at least one")
+                                 + f" (its scenes: {', '.join(have) or 'none'})")
+            names = [n for n in names if scene_of_run(n) in set(scenes)]
+        self.scenes = None if scenes is None else tuple(scenes)
         self.split = split
         self.cube_size = cube_size
         self.fov = fov

@@ -17,6 +17,17 @@ A study YAML names its arms, the ColoRadar root, the split and ``every``::
         autoencoder: ../../rald-ae-s.yaml
         diffusion: rald-s-no-encoder.yaml
         generate: ../generate-official.yaml
+      - name: finetuned                 # fine-tunes arm a-no-encoder's stage 2 (the seed's Tables 6, 8)
+        autoencoder: ../../rald-ae-s.yaml
+        diffusion: rald-s-finetune.yaml            # e.g. scenes: [lab] and a short budget
+        init: a-no-encoder
+
+An arm with ``init: ARM`` (an earlier arm) starts its last stage from that arm's best weights
+instead of fresh ones (:func:`~radarpc.experiments.rald.train.train_diffusion`'s ``init``): with a
+diffusion config, ARM's stage 2 (both arms must name the same stage-1 config: a fine-tuned
+diffusion model keeps its autoencoder); without one, ARM's stage 1. The configs' ``scenes`` say
+which scene types each stage trains on; the others are held out, and the per-scene table shows
+them zero-shot (an arm trained without them) and fine-tuned (an arm with ``init``).
 
 :func:`run_rald_ablation` works through the arms in order. For an arm without its result row it
 trains the arm's stage 1 into ``OUT/stage1/NAME-HASH`` and its stage 2 into
@@ -78,6 +89,7 @@ class RaldArm:
     diffusion: str | None = None        # stage-2 experiment YAML; None: score the autoencoder's reconstruction
     generate: str | None = None         # generation YAML (radarpc generate --config); None: the official defaults
     label: str | None = None            # the table's row label; None: the name
+    init: str | None = None             # an earlier arm whose last stage this arm's last stage fine-tunes
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
@@ -120,6 +132,7 @@ class ArmPlan:
     generate: GenerateConfig
     stage1_dir: str                     # "stage1/NAME-HASH"
     stage2_dir: str | None              # "stage2/NAME-HASH", None without a diffusion config
+    init: "ArmPlan | None" = None       # the arm whose last stage this one fine-tunes
 
     @property
     def label(self) -> str:
@@ -177,20 +190,46 @@ def load_rald_ablation(path: str | os.PathLike) -> tuple[RaldAblationConfig, lis
             raise ValueError(f"{where}: {arm.diffusion} generates {dit.model.config.n_latents} latents of "
                              f"{dit.model.config.latent_dim}, but {arm.autoencoder}'s autoencoder makes {a.n_latents} "
                              f"of {a.latent_dim}")
+        init = _init_plan(arm, plans, where)
+        if init is not None and dit is not None and ae != init.autoencoder:
+            raise ValueError(f"{where}: init: {arm.init} trains another autoencoder ({init.arm.autoencoder}); a "
+                             f"fine-tuned diffusion model keeps its autoencoder: give the same autoencoder config")
+        from_dir = None if init is None else (init.stage2_dir or init.stage1_dir)
         s1 = f"stage1/{ae.name}-{_digest(to_dict(ae))}"
-        s2 = None if dit is None else f"stage2/{dit.name}-{_digest({'experiment': to_dict(dit), 'ae': s1})}"
-        plans.append(ArmPlan(arm, i, ae, dit, gen, s1, s2))
+        if dit is None and init is not None:
+            s1 = f"stage1/{ae.name}-{_digest({'experiment': to_dict(ae), 'init': from_dir})}"
+        s2 = None
+        if dit is not None:
+            s2 = f"stage2/{dit.name}-{_digest({'experiment': to_dict(dit), 'ae': s1} | ({'init': from_dir} if init else {}))}"
+        plans.append(ArmPlan(arm, i, ae, dit, gen, s1, s2, init))
     return cfg, plans
+
+
+def _init_plan(arm: RaldArm, plans: list[ArmPlan], where: str) -> ArmPlan | None:
+    if arm.init is None:
+        return None
+    init = next((p for p in plans if p.arm.name == arm.init), None)
+    if init is None:
+        raise ValueError(f"{where}: init: {arm.init!r} is not an earlier arm of the study (arms before it: "
+                         f"{', '.join(p.arm.name for p in plans) or 'none'})")
+    if (arm.diffusion is None) != (init.diffusion is None):
+        mine, its = ("stage 1" if arm.diffusion is None else "stage 2"), ("stage 1" if init.diffusion is None else "stage 2")
+        raise ValueError(f"{where}: init: {arm.init!r} ends with its {its}, this arm with its {mine}; a fine-tuning "
+                         f"starts from the same stage")
+    return init
 
 
 def arm_key(cfg: RaldAblationConfig, plan: ArmPlan) -> dict:
     """What makes an arm's row this arm's: the resolved configs, the data (the root's folder name,
     so a row is the same on every machine), split, ``every`` and the EMD subset size."""
-    return plain_json({
-        "autoencoder": to_dict(plan.autoencoder),
-        "diffusion": None if plan.diffusion is None else to_dict(plan.diffusion),
-        "generate": to_dict(plan.generate),
-        "data": Path(cfg.data).name, "split": cfg.split, "every": cfg.every, "emd_points": cfg.emd_points})
+    key = {"autoencoder": to_dict(plan.autoencoder),
+           "diffusion": None if plan.diffusion is None else to_dict(plan.diffusion),
+           "generate": to_dict(plan.generate),
+           "data": Path(cfg.data).name, "split": cfg.split, "every": cfg.every, "emd_points": cfg.emd_points}
+    if plan.init is not None:                # what the fine-tuning started from: that arm's configs
+        init = arm_key(cfg, plan.init)
+        key["init"] = {"arm": plan.init.arm.name, "autoencoder": init["autoencoder"], "diffusion": init["diffusion"]}
+    return plain_json(key)
 
 
 def run_rald_ablation(path: str | os.PathLike, out: str | os.PathLike, *, data: str | os.PathLike | None = None,
@@ -230,13 +269,15 @@ def run_rald_ablation(path: str | os.PathLike, out: str | os.PathLike, *, data: 
             log(f"[{plan.order + 1}/{len(plans)}] {name}: finished (its row is present), reused")
             done[name] = out / RESULTS_DIR / f"{name}.json"
             continue
+        init = None if plan.init is None else out / (plan.init.stage2_dir or plan.init.stage1_dir)
         log(f"[{plan.order + 1}/{len(plans)}] {name}: stage 1 in {out / plan.stage1_dir}")
-        train_autoencoder(plan.autoencoder, root, out / plan.stage1_dir, device=device, progress=progress, log=log)
+        train_autoencoder(plan.autoencoder, root, out / plan.stage1_dir, device=device, progress=progress, log=log,
+                          init=init if plan.diffusion is None else None)
         run_dir = out / plan.stage1_dir
         if plan.diffusion is not None:
             log(f"[{plan.order + 1}/{len(plans)}] {name}: stage 2 in {out / plan.stage2_dir}")
             train_diffusion(plan.diffusion, root, run_dir, out / plan.stage2_dir, device=device, progress=progress,
-                            log=log)
+                            log=log, init=init)
             run_dir = out / plan.stage2_dir
         preds = out / plan.preds_dir
         log(f"[{plan.order + 1}/{len(plans)}] {name}: {'generating' if plan.diffusion else 'reconstructing'} "
@@ -252,7 +293,9 @@ def run_rald_ablation(path: str | os.PathLike, out: str | os.PathLike, *, data: 
                "arm": {"name": name, "label": plan.label, "order": plan.order,
                        "output": "generation" if plan.diffusion else "reconstruction",
                        "autoencoder": plan.arm.autoencoder, "diffusion": plan.arm.diffusion,
-                       "generate": plan.arm.generate},
+                       "generate": plan.arm.generate, "init": plan.arm.init,
+                       "scenes": {"stage1": _scenes(plan.autoencoder),
+                                  "stage2": None if plan.diffusion is None else _scenes(plan.diffusion)}},
                "key": key,
                "metrics": {"overall": asdict(report.overall), "scenes": [asdict(s) for s in report.scenes]},
                "runs": status, "evaluation": {"split": cfg.split, "every": cfg.every, "emd_points": cfg.emd_points},
@@ -266,6 +309,17 @@ def run_rald_ablation(path: str | os.PathLike, out: str | os.PathLike, *, data: 
 
 def _num(x) -> str:
     return "-" if x is None else f"{x:.3f}"
+
+
+def _scenes(cfg) -> list[str] | None:
+    return None if cfg.scenes is None else list(cfg.scenes)
+
+
+def _trained_on(arm: dict) -> str:
+    sc = arm.get("scenes") or {}
+    one = lambda v: "all" if v is None else ", ".join(v)                      # noqa: E731
+    text = one(sc.get("stage1")) + ("" if arm.get("output") != "generation" else f" / {one(sc.get('stage2'))}")
+    return text + (f" (from `{arm['init']}`)" if arm.get("init") else "")
 
 
 def write_rald_report(runs: str | os.PathLike, out: str | os.PathLike | None = None, *, command: str | None = None,
@@ -303,13 +357,16 @@ def write_rald_report(runs: str | os.PathLike, out: str | os.PathLike | None = N
             m = r["metrics"]["overall"] if s == "all" else by_scene.get(s)
             cells += ["-", "-"] if m is None else [_num(m.get("chamfer_mean")), _num(m.get("emd_mean"))]
         lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "### arms", "", "| arm | output | frames | empty | stage-1 steps | stage-2 steps | commit |",
-              "|---|---|---:|---:|---:|---:|---|"]
+    lines += ["", "### arms", "", "Trained on: the scenes of stage 1 / stage 2 (all: every scene of the root's "
+              "training runs; the others are held out), and the arm a fine-tuning started from.", "",
+              "| arm | output | trained on | frames | empty | stage-1 steps | stage-2 steps | commit |",
+              "|---|---|---|---:|---:|---:|---:|---|"]
     for r in ordered:
         o, st = r["metrics"]["overall"], r.get("runs") or {}
         steps = [(st.get(k) or {}).get("steps_done", "-") if st.get(k) else "-" for k in ("stage1", "stage2")]
         commit = (r.get("software") or {}).get("commit") or "-"
-        lines.append(f"| `{r['run']}` | {r['arm'].get('output', '-')} | {o['n_frames']} | {o.get('empty', 0)} | "
+        lines.append(f"| `{r['run']}` | {r['arm'].get('output', '-')} | {_trained_on(r['arm'])} | {o['n_frames']} | "
+                     f"{o.get('empty', 0)} | "
                      f"{steps[0]} | {steps[1]} | `{commit[:10]}` |")
     lines += [""] + made.config_section()
     path = out / RALD_REPORT_MD

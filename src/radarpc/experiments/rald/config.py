@@ -208,6 +208,17 @@ def _check_common(name: str, stage: str, want_stage: str, model: Any, train: Tra
                          f"{metrics[train.select_metric]}")
 
 
+def _check_scenes(name: str, scenes: tuple[str, ...] | None) -> None:
+    if scenes is None:
+        return
+    if not scenes or not all(isinstance(x, str) and x for x in scenes):
+        raise ValueError(f"experiment {name!r}: scenes must be a non-empty list of scene names (e.g. [hallway, "
+                         f"classroom]) or null for every scene, got {list(scenes)!r}")
+    twice = sorted({x for x in scenes if scenes.count(x) > 1})
+    if twice:
+        raise ValueError(f"experiment {name!r}: scenes names {', '.join(twice)} twice")
+
+
 @dataclass(frozen=True)
 class AutoencoderExperiment:
     """RaLD's stage 1: the LiDAR occupancy autoencoder.
@@ -224,6 +235,10 @@ class AutoencoderExperiment:
         Points, queries and the occupancy partition.
     train : TrainConfig
         The optimisation; ``select_metric`` one of :data:`AUTOENCODER_METRICS`.
+    scenes : tuple of str or None
+        Train and validate on the runs of these scenes only (scene names as
+        :func:`radarpc.data.coloradar.scene_of_run` gives them, e.g. ``lab``); None: every scene.
+        The others are held out (the seed's Tables 5-8).
     """
 
     name: str
@@ -231,9 +246,11 @@ class AutoencoderExperiment:
     stage: str = "autoencoder"
     data: LidarData = field(default_factory=LidarData)
     train: TrainConfig = field(default_factory=TrainConfig)
+    scenes: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         _check_common(self.name, self.stage, "autoencoder", self.model, self.train, AUTOENCODER_METRICS)
+        _check_scenes(self.name, self.scenes)
         mc = self.model.config
         if mc.query_type == "fps" and self.data.points < mc.n_latents:
             raise ValueError(f"experiment {self.name!r}: query_type 'fps' picks n_latents={mc.n_latents} of the "
@@ -270,6 +287,9 @@ class DiffusionExperiment:
         The training noise levels.
     train : TrainConfig
         The optimisation; ``select_metric`` ``"loss"`` (:data:`DIFFUSION_METRICS`).
+    scenes : tuple of str or None
+        Train and validate on the runs of these scenes only (as :class:`AutoencoderExperiment`'s);
+        None: every scene.
     """
 
     name: str
@@ -278,9 +298,11 @@ class DiffusionExperiment:
     radar: RadarInput = field(default_factory=RadarInput)
     loss: EDMLossConfig = field(default_factory=EDMLossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    scenes: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         _check_common(self.name, self.stage, "diffusion", self.model, self.train, DIFFUSION_METRICS)
+        _check_scenes(self.name, self.scenes)
         if not isinstance(self.model.config, LatentDiTConfig):
             raise ValueError(f"experiment {self.name!r}: stage 'diffusion' trains a latent diffusion model (rald-dit, "
                              f"...), but model {self.model.variant!r} is a {type(self.model.config).__name__} model"
@@ -367,9 +389,10 @@ def canonical_key(stored: Any, *, num_workers: int | None = None) -> Any:
     if num_workers is not None:
         cfg = with_train(cfg, num_workers=num_workers)
     out = {**stored, "experiment": to_dict(cfg)}
-    ae = stored.get("ae")
-    if isinstance(ae, dict) and isinstance(ae.get("run"), dict):
-        out["ae"] = {**ae, "run": canonical_key(ae["run"])}
+    for ref in ("ae", "init"):                 # the stage-1 run, and the run a fine-tuning started from
+        r = stored.get(ref)
+        if isinstance(r, dict) and isinstance(r.get("run"), dict):
+            out[ref] = {**r, "run": canonical_key(r["run"])}
     return out
 
 

@@ -57,7 +57,7 @@ from radarpc.training.checkpoint import load_model_state, load_weights
 from radarpc.training.loop import BEST_WEIGHTS, training_status
 
 __all__ = ["AutoencoderRun", "RaldRun", "rald_stage", "load_rald_ae", "load_rald", "autoencoder_run_key",
-           "diffusion_run_key", "ae_reference", "resolve_ae_dir", "file_sha256", "AE_STATUSES"]
+           "diffusion_run_key", "ae_reference", "init_reference", "resolve_ae_dir", "file_sha256", "AE_STATUSES"]
 
 AE_STATUSES = ("same", "changed", "missing")
 """What :attr:`RaldRun.ae_status` says of the stage-1 folder a stage-2 run names."""
@@ -84,9 +84,10 @@ def file_sha256(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
-def ae_reference(ae_dir: str | os.PathLike, out: str | os.PathLike) -> dict:
+def ae_reference(ae_dir: str | os.PathLike, out: str | os.PathLike, *, what: str = "stage-1") -> dict:
     """The ``"ae"`` entry of a stage-2 run key for the stage-1 run folder ``ae_dir``, as the
     stage-2 run folder ``out`` records it: ``{"path", "run", "weights_sha256"}`` (module docstring).
+    The ``"init"`` entry of a fine-tuned run (:func:`init_reference`) has the same form.
 
     Raises
     ------
@@ -96,14 +97,20 @@ def ae_reference(ae_dir: str | os.PathLike, out: str | os.PathLike) -> dict:
     ae_dir, out = Path(ae_dir), Path(out)
     key = read_json(ae_dir / "run.json")
     if not isinstance(key, dict):
-        raise FileNotFoundError(f"{ae_dir}: no stage-1 run here (no readable run.json)")
+        raise FileNotFoundError(f"{ae_dir}: no {what} run here (no readable run.json)")
     best = ae_dir / BEST_WEIGHTS
     if not best.is_file():
-        raise FileNotFoundError(f"{ae_dir}: no {BEST_WEIGHTS} yet (the autoencoder run has not validated once)")
+        raise FileNotFoundError(f"{ae_dir}: no {BEST_WEIGHTS} yet (the {what} run has not validated once)")
     a, o = ae_dir.resolve(), out.resolve()
     path = a.relative_to(o).as_posix() if a.is_relative_to(o) and a != o else str(a)
     return {"path": path, "run": {k: v for k, v in key.items() if k != "software"},
             "weights_sha256": file_sha256(best)}
+
+
+def init_reference(init_dir: str | os.PathLike, out: str | os.PathLike) -> dict:
+    """The ``"init"`` entry of a fine-tuned run's key: the run folder ``init_dir`` whose best weights
+    it started from, as :func:`ae_reference` records a stage-1 run (path, key, weights' SHA-256)."""
+    return ae_reference(init_dir, out, what="initial")
 
 
 def resolve_ae_dir(run_dir: str | os.PathLike, path: str) -> Path:

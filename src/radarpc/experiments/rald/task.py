@@ -142,11 +142,13 @@ def _collate_diffusion(items: list) -> DiffusionBatch:
 class _Frames(Dataset):
     """The paired frames of a split with the seeding of the module docstring."""
 
-    def __init__(self, root: str | os.PathLike, split: str, seed: int, training: bool, data: LidarData):
-        self.frames = ColoRadar(root, split, cube_size=None)
+    def __init__(self, root: str | os.PathLike, split: str, seed: int, training: bool, data: LidarData,
+                 scenes: tuple[str, ...] | None = None):
+        self.frames = ColoRadar(root, split, cube_size=None, scenes=scenes)
         if len(self.frames) == 0:
-            raise ValueError(f"{root}: split {split!r} has no paired radar / LiDAR frame (runs of this split: "
-                             f"{', '.join(r.name for r in self.frames.runs) or 'none'})")
+            raise ValueError(f"{root}: split {split!r} has no paired radar / LiDAR frame (runs of this split"
+                             + (f" and scenes {list(scenes)}" if scenes is not None else "")
+                             + f": {', '.join(r.name for r in self.frames.runs) or 'none'})")
         self.data = data
         self.grid = data.grid(self.frames.fov)
         self.seed = int(seed)
@@ -175,8 +177,8 @@ class AutoencoderFrames(_Frames):
     (see the module docstring)."""
 
     def __init__(self, root: str | os.PathLike, split: str, data: LidarData, *, seed: int = 0,
-                 training: bool = True):
-        super().__init__(root, split, seed, training, data)
+                 training: bool = True, scenes: tuple[str, ...] | None = None):
+        super().__init__(root, split, seed, training, data, scenes)
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         g = self._rng(i)
@@ -192,8 +194,9 @@ class DiffusionFrames(_Frames):
     cube as RaLD normalises it and the LiDAR points as stage 1 (``data``) reads them."""
 
     def __init__(self, root: str | os.PathLike, split: str, data: LidarData, radar_shape: tuple[int, int, int],
-                 max_intensity_db: float, *, seed: int = 0, training: bool = True):
-        super().__init__(root, split, seed, training, data)
+                 max_intensity_db: float, *, seed: int = 0, training: bool = True,
+                 scenes: tuple[str, ...] | None = None):
+        super().__init__(root, split, seed, training, data, scenes)
         self.radar_shape = tuple(radar_shape)
         self.max_intensity_db = float(max_intensity_db)
 
@@ -320,17 +323,24 @@ class AutoencoderTask:
         A ColoRadar-layout root.
     splits : (str, str)
         Training and validation splits (:func:`radarpc.data.coloradar.split_runs`).
+    init : VecSetAutoencoder, optional
+        Weights to start from (fine-tuning; :meth:`build_model` copies them); None: fresh ones.
     """
 
     def __init__(self, cfg: AutoencoderExperiment, data: str | os.PathLike,
-                 splits: tuple[str, str] = ("train", "val")) -> None:
+                 splits: tuple[str, str] = ("train", "val"), init: VecSetAutoencoder | None = None) -> None:
         self.cfg = cfg
         self.root = Path(data)
-        self.train_set = AutoencoderFrames(data, splits[0], cfg.data, seed=cfg.train.seed, training=True)
-        self.val_set = AutoencoderFrames(data, splits[1], cfg.data, seed=cfg.train.seed, training=False)
+        self._init = None if init is None else {k: v.detach().cpu().clone() for k, v in init.state_dict().items()}
+        kw = dict(seed=cfg.train.seed, scenes=cfg.scenes)
+        self.train_set = AutoencoderFrames(data, splits[0], cfg.data, training=True, **kw)
+        self.val_set = AutoencoderFrames(data, splits[1], cfg.data, training=False, **kw)
 
     def build_model(self) -> VecSetAutoencoder:
-        return self.cfg.build_model()
+        model = self.cfg.build_model()
+        if self._init is not None:
+            model.load_state_dict(self._init)
+        return model
 
     def collate(self, items: list) -> AutoencoderBatch:
         return _collate_autoencoder(items)
@@ -363,6 +373,8 @@ class DiffusionTask:
         The stage-1 weights; :meth:`build_model` freezes a copy beside a fresh diffusion model.
     splits : (str, str)
         Training and validation splits.
+    init : LatentDiT, optional
+        Diffusion weights to start from (fine-tuning; :meth:`build_model` copies them); None: fresh ones.
 
     Raises
     ------
@@ -371,20 +383,25 @@ class DiffusionTask:
     """
 
     def __init__(self, cfg: DiffusionExperiment, data: str | os.PathLike, ae_config: AutoencoderExperiment,
-                 autoencoder: VecSetAutoencoder, splits: tuple[str, str] = ("train", "val")) -> None:
+                 autoencoder: VecSetAutoencoder, splits: tuple[str, str] = ("train", "val"),
+                 init: LatentDiT | None = None) -> None:
         self.cfg = cfg
+        self._init = None if init is None else {k: v.detach().cpu().clone() for k, v in init.state_dict().items()}
         self.ae_config = ae_config
         self.root = Path(data)
         check_latents_match(autoencoder, cfg.model.build(device="meta"), f"experiment {cfg.name!r}")
         self._autoencoder = copy.deepcopy(autoencoder).cpu()
         shape = cfg.model.config.radar_shape
-        kw = dict(radar_shape=shape, max_intensity_db=cfg.radar.max_intensity_db, seed=cfg.train.seed)
+        kw = dict(radar_shape=shape, max_intensity_db=cfg.radar.max_intensity_db, seed=cfg.train.seed,
+                  scenes=cfg.scenes)
         self.train_set = DiffusionFrames(data, splits[0], ae_config.data, training=True, **kw)
         self.val_set = DiffusionFrames(data, splits[1], ae_config.data, training=False, **kw)
 
     def build_model(self) -> RaldStage2:
-        return RaldStage2(copy.deepcopy(self._autoencoder), self.cfg.build_model(), p_mean=self.cfg.loss.p_mean,
-                          p_std=self.cfg.loss.p_std)
+        dit = self.cfg.build_model()
+        if self._init is not None:
+            dit.load_state_dict(self._init)
+        return RaldStage2(copy.deepcopy(self._autoencoder), dit, p_mean=self.cfg.loss.p_mean, p_std=self.cfg.loss.p_std)
 
     def collate(self, items: list) -> DiffusionBatch:
         return _collate_diffusion(items)

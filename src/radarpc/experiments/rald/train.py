@@ -11,6 +11,13 @@ refused) and freezes it. Because the stage-1 key and the weights' hash are part 
 key, a rerun against another or a retrained stage-1 run is refused (the message names
 ``ae.run`` or ``ae.weights_sha256``) instead of resuming with other latents; ``overwrite``
 starts over. A stage-2 ``best.safetensors`` holds both networks (:class:`~.task.RaldStage2`).
+
+Fine-tuning (``init``, ``radarpc train --init RUN``; the seed's Tables 6 and 8): the run starts
+from the best weights of a finished or unfinished run of the same stage and model (a stage-2
+``init`` must have been trained against the same stage-1 weights as ``ae``) instead of fresh
+ones; the optimiser, schedule and steps are the config's. The key records the initial run like
+the stage-1 run (``"init"``: path, key, weights' SHA-256), so a rerun from other weights is
+refused. With the config's ``scenes`` this trains on the held-out scenes only.
 """
 from __future__ import annotations
 
@@ -22,7 +29,10 @@ from typing import Callable, Sequence
 from radarpc.config import save_yaml
 from radarpc.distributed import dist_env
 from radarpc.experiments.rald.config import AutoencoderExperiment, DiffusionExperiment, RaldExperiment, canonical_key
-from radarpc.experiments.rald.runs import ae_reference, autoencoder_run_key, diffusion_run_key, load_rald_ae
+from radarpc.config import to_dict
+from radarpc.experiments.rald.runs import (ae_reference, autoencoder_run_key, diffusion_run_key, file_sha256,
+                                           init_reference, load_rald, load_rald_ae)
+from radarpc.training.loop import BEST_WEIGHTS
 from radarpc.experiments.rald.task import AutoencoderTask, DiffusionTask
 from radarpc.training.loop import FitResult, fit
 
@@ -56,32 +66,54 @@ def _fit(task, cfg: RaldExperiment, out: Path, key: dict, device, overwrite, pro
     return res
 
 
+def _same_model(cfg: RaldExperiment, init_cfg: RaldExperiment, init: Path) -> None:
+    if to_dict(init_cfg.model) != to_dict(cfg.model):
+        raise ValueError(f"--init {init}: that run trains model {init_cfg.model.variant!r} with overrides "
+                         f"{init_cfg.model.overrides or {}}, experiment {cfg.name!r} model {cfg.model.variant!r} with "
+                         f"{cfg.model.overrides or {}}: a fine-tuning starts from the same network")
+
+
 def train_autoencoder(cfg: AutoencoderExperiment, data: str | os.PathLike, out: str | os.PathLike, *,
                       device: str | None = None, overwrite: bool = False, progress: bool = True,
-                      log: Callable[[str], None] = print,
-                      on_step: Callable[[int], None] | None = None) -> FitResult:
+                      log: Callable[[str], None] = print, on_step: Callable[[int], None] | None = None,
+                      init: str | os.PathLike | None = None) -> FitResult:
     """Train RaLD's autoencoder (stage 1) on the root ``data`` into the run folder ``out``; resumable.
 
-    ``on_step`` is called with the global step after each optimizer step (tests interrupt with it)."""
+    ``on_step`` is called with the global step after each optimizer step (tests interrupt with it).
+    ``init``: a stage-1 run folder whose best weights the run starts from (module docstring).
+
+    Raises
+    ------
+    ValueError
+        ``init`` holds another model.
+    """
     out = Path(out)
-    return _fit(AutoencoderTask(cfg, data), cfg, out, autoencoder_run_key(cfg, data), device, overwrite,
-                progress, log, on_step)
+    key, weights = autoencoder_run_key(cfg, data), None
+    if init is not None:
+        start = load_rald_ae(init)
+        _same_model(cfg, start.config, Path(init))
+        key, weights = key | {"init": init_reference(init, out)}, start.ae
+        log(f"fine-tuning from {init} (step {start.status['weights_step']} of that run)")
+    return _fit(AutoencoderTask(cfg, data, init=weights), cfg, out, key, device, overwrite, progress, log, on_step)
 
 
 def train_diffusion(cfg: DiffusionExperiment, data: str | os.PathLike, ae: str | os.PathLike,
                     out: str | os.PathLike, *, device: str | None = None, overwrite: bool = False,
                     progress: bool = True, log: Callable[[str], None] = print,
-                    on_step: Callable[[int], None] | None = None) -> FitResult:
+                    on_step: Callable[[int], None] | None = None,
+                    init: str | os.PathLike | None = None) -> FitResult:
     """Train RaLD's diffusion model (stage 2) on the root ``data`` against the stage-1 run folder
     ``ae`` (frozen) into the run folder ``out``; resumable (see the module docstring). ``on_step``
-    as in :func:`train_autoencoder`.
+    as in :func:`train_autoencoder`; ``init``: a stage-2 run folder, trained against the same
+    stage-1 weights, whose best diffusion weights the run starts from.
 
     Raises
     ------
     DataFileError, FileNotFoundError
-        ``ae`` is not a stage-1 run with usable best weights.
+        ``ae`` is not a stage-1 run with usable best weights (or ``init`` not a stage-2 run).
     ValueError
-        The diffusion model's latents are not the autoencoder's.
+        The diffusion model's latents are not the autoencoder's; ``init`` holds another model or
+        was trained against other stage-1 weights.
     RunMismatchError
         ``out`` holds another run (another config, root or stage-1 run) and ``overwrite`` is False.
     """
@@ -90,15 +122,25 @@ def train_diffusion(cfg: DiffusionExperiment, data: str | os.PathLike, ae: str |
     if stage1.status["finished"] is False:
         log(f"{ae}: the autoencoder run has not finished (step {stage1.status['steps_done']}); its best weights "
             f"so far (step {stage1.status['weights_step']}) are the frozen first stage")
-    task = DiffusionTask(cfg, data, stage1.config, stage1.ae)
-    return _fit(task, cfg, out, diffusion_run_key(cfg, data, ae_reference(ae, out)), device, overwrite,
-                progress, log, on_step)
+    key, weights = diffusion_run_key(cfg, data, ae_reference(ae, out)), None
+    if init is not None:
+        start = load_rald(init)
+        _same_model(cfg, start.config, Path(init))
+        if start.key["ae"].get("weights_sha256") != file_sha256(ae / BEST_WEIGHTS):
+            raise ValueError(f"--init {init} was trained against other autoencoder weights than --ae {ae} "
+                             f"({start.ae_dir}); fine-tune against the autoencoder it was trained on")
+        key, weights = key | {"init": init_reference(init, out)}, start.dit
+        log(f"fine-tuning from {init} (step {start.status['weights_step']} of that run)")
+    task = DiffusionTask(cfg, data, stage1.config, stage1.ae, init=weights)
+    return _fit(task, cfg, out, key, device, overwrite, progress, log, on_step)
 
 
 def train_rald(cfg: RaldExperiment, data: str | os.PathLike | Sequence[str | os.PathLike],
                out: str | os.PathLike, *, ae: str | os.PathLike | None = None, device: str | None = None,
-               overwrite: bool = False, progress: bool = True, log: Callable[[str], None] = print) -> FitResult:
-    """Train the stage ``cfg`` names: :func:`train_autoencoder` or :func:`train_diffusion`.
+               overwrite: bool = False, progress: bool = True, log: Callable[[str], None] = print,
+               init: str | os.PathLike | None = None) -> FitResult:
+    """Train the stage ``cfg`` names: :func:`train_autoencoder` or :func:`train_diffusion`
+    (``init``: the run to fine-tune, of the same stage).
 
     Raises
     ------
@@ -111,10 +153,11 @@ def train_rald(cfg: RaldExperiment, data: str | os.PathLike | Sequence[str | os.
         if ae is not None:
             raise ValueError(f"experiment {cfg.name!r} is stage 1 (stage: autoencoder): it trains the autoencoder "
                              f"and takes no --ae (that is stage 2's, the autoencoder run it builds on)")
-        return train_autoencoder(cfg, root, out, device=device, overwrite=overwrite, progress=progress, log=log)
+        return train_autoencoder(cfg, root, out, device=device, overwrite=overwrite, progress=progress, log=log,
+                                 init=init)
     if ae is None:
         raise ValueError(f"experiment {cfg.name!r} is stage 2 (stage: diffusion): give the stage-1 autoencoder "
                          f"run it trains against, --ae RUN (a folder written by `radarpc train` with a "
                          f"stage: autoencoder config)")
-    return train_diffusion(cfg, root, ae, out, device=device, overwrite=overwrite, progress=progress, log=log)
-
+    return train_diffusion(cfg, root, ae, out, device=device, overwrite=overwrite, progress=progress, log=log,
+                           init=init)
