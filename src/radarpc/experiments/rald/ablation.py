@@ -316,9 +316,11 @@ def _scenes(cfg) -> list[str] | None:
 
 
 def _trained_on(arm: dict) -> str:
+    """``hallway, classroom / lab`` (stage 1 / stage 2 scenes; ``all``: every scene), and the arm it
+    fine-tunes."""
     sc = arm.get("scenes") or {}
-    one = lambda v: "all" if v is None else ", ".join(v)                      # noqa: E731
-    text = one(sc.get("stage1")) + ("" if arm.get("output") != "generation" else f" / {one(sc.get('stage2'))}")
+    stages = ("stage1", "stage2") if arm.get("output") == "generation" else ("stage1",)
+    text = " / ".join("all" if sc.get(k) is None else ", ".join(sc[k]) for k in stages)
     return text + (f" (from `{arm['init']}`)" if arm.get("init") else "")
 
 
