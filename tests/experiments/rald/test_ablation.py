@@ -145,7 +145,7 @@ def test_study_config_refusals(tmp_path):
         ablation.load_rald_ablation(path)
 
 
-@pytest.mark.parametrize("table", ["table1", "table3", "table4", "table9"])
+@pytest.mark.parametrize("table", ["table1", "table3", "table4", "table9", "generalization"])
 def test_shipped_studies_load_with_their_configs(table):
     """Every shipped study reads strictly with every config it names; arms with the same stage-1
     config share one stage-1 folder."""
@@ -155,6 +155,16 @@ def test_shipped_studies_load_with_their_configs(table):
         assert all(p.diffusion is None for p in plans) and len({p.stage1_dir for p in plans}) == 4
     elif table == "table4":
         assert len({p.stage1_dir for p in plans}) == 4 and len({p.stage2_dir for p in plans}) == 4
+    elif table == "generalization":
+        ae_all, ae_seen, rald_all, rald_seen, tuned = plans
+        held_out = {"lab", "outdoor"}
+        assert ae_all.autoencoder.scenes is None and rald_all.diffusion.scenes is None
+        for p in (ae_seen, rald_seen):
+            assert set(p.autoencoder.scenes) == {"hallway", "classroom"}
+        assert set(rald_seen.diffusion.scenes) == {"hallway", "classroom"} and set(tuned.diffusion.scenes) == held_out
+        assert tuned.init is rald_seen and tuned.stage1_dir == rald_seen.stage1_dir == ae_seen.stage1_dir
+        assert rald_all.stage1_dir == ae_all.stage1_dir != ae_seen.stage1_dir
+        assert tuned.diffusion.train.max_steps < rald_seen.diffusion.train.max_steps
     else:
         assert len({p.stage1_dir for p in plans}) == 1
     if table == "table3":
