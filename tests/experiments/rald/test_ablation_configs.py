@@ -12,6 +12,7 @@ from radarpc.experiments.rald.config import load_experiment
 
 CONFIGS = Path(__file__).parents[3] / "configs"
 ABLATIONS = sorted((CONFIGS / "rald" / "ablations").glob("*.yaml"))
+GENERALIZATION = sorted((CONFIGS / "rald" / "generalization").glob("*.yaml"))
 DIFFERS = re.compile(r"^# Differs from (configs/\S+\.yaml) in: (.+?)\.?$", re.M)
 
 
@@ -54,6 +55,16 @@ def test_ablation_differs_from_its_base_in_the_documented_fields(path):
     text = path.read_text()
     assert f"configs/rald/ablations/{path.name}" in text     # the header's command names this file
     assert re.search(r"^# Ablation, the seed's Table", text, re.M)
+
+
+@pytest.mark.parametrize("path", GENERALIZATION, ids=lambda p: p.stem)
+def test_generalization_configs_differ_from_their_base_in_the_documented_fields(path):
+    cfg = load_experiment(path)
+    base_path, documented = _documented(path)
+    a, b = _flat(to_dict(cfg)), _flat(to_dict(load_experiment(base_path)))
+    assert {k for k in a.keys() | b.keys() if a.get(k, "<absent>") != b.get(k, "<absent>")} == documented
+    assert cfg.name == path.stem and f"configs/rald/generalization/{path.name}" in path.read_text()
+    assert cfg.scenes is not None
 
 
 def test_the_ablations_change_what_the_tables_compare():
