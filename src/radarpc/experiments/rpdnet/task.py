@@ -95,8 +95,9 @@ def occupancy_metrics(logits: torch.Tensor, occupied: torch.Tensor) -> dict[str,
     ``2 |P & O| / (|P| + |O|)``; each 1 where its denominator is 0 (nothing to get wrong)."""
     pred = (logits > 0).flatten(1)
     occ = occupied.flatten(1) > 0.5
-    inter = (pred & occ).sum(1).double()
-    n_pred, n_occ = pred.sum(1).double(), occ.sum(1).double()
+    # counts of at most a grid's cells (< 2^24) are exact in float32, which every device has (MPS no float64)
+    inter = (pred & occ).sum(1).float()
+    n_pred, n_occ = pred.sum(1).float(), occ.sum(1).float()
     union = n_pred + n_occ - inter
 
     def ratio(num, den):
@@ -119,7 +120,7 @@ def evaluate_occupancy(model: nn.Module, batches: Iterable[OccupancyBatch], devi
         loss = torch.stack([weighted_bce(logits[b], batch.occupied[b], occupied_weight)
                             for b in range(logits.shape[0])])                 # (B,)
         for k, v in {"loss": loss, **occupancy_metrics(logits, batch.occupied)}.items():
-            sums[k] = sums.get(k, 0.0) + float(v.double().sum())
+            sums[k] = sums.get(k, 0.0) + float(v.detach().cpu().double().sum())
         n += logits.shape[0]
     return {k: v / max(n, 1) for k, v in sums.items()}
 
