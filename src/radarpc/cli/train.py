@@ -16,12 +16,13 @@ ColoRadar-layout root.
 What the config is decides the rest. A config with a stage key is a RaLD experiment: stage
 autoencoder trains RaLD's LiDAR occupancy autoencoder (stage 1), stage diffusion its
 radar-conditioned latent diffusion model against a stage-1 run given by --ae RUN, whose
-autoencoder is frozen (stage 2); --init RUN starts a RaLD stage from the best weights of an earlier
-run of the same stage and model instead of fresh ones (fine-tuning, e.g. on the scenes a config's
-scenes list names; a stage-2 RUN must have been trained against the --ae weights), stage occupancy the learned baseline of RaLD's Table 2 (a
+autoencoder is frozen (stage 2), stage occupancy the learned baseline of RaLD's Table 2 (a
 radar-to-occupancy network, RPDNet-style, supervised by the LiDAR truth's occupancy of a coarse
 frustum grid). All three read one ColoRadar-layout root (--data; its runs give the
-train and val splits). A config without a stage key is a detection experiment on RADIal-layout
+train and val splits; a RaLD config's scenes list keeps the runs of those scene types only).
+--init RUN starts a RaLD stage from the best weights of another run of the same stage, model and
+inputs instead of fresh ones (fine-tuning; a stage-2 RUN must have been trained against the --ae
+weights); the run key records it, so a rerun from other weights is refused. A config without a stage key is a detection experiment on RADIal-layout
 roots.
 
 Detection: several roots (--data A B, with one point store each for the pillar models) train as

@@ -117,8 +117,10 @@ def test_init_starts_a_stage_from_another_runs_weights(rald_run, rald_ae_run, co
     assert load_rald(out).finished is True
     assert _train(DIT_YAML, "--data", colo_root, "--ae", ae_run, "--init", rald_run, "--out", out) == 0
     assert "already finished" in capsys.readouterr().out
-    assert _train(DIT_YAML, "--data", colo_root, "--ae", ae_run, "--init", out, "--out", out) == 2
-    assert "differs in run.json:init" in capsys.readouterr().err
+    twin = tmp_path / "twin"                       # the same weights in another folder: another start
+    shutil.copytree(rald_run, twin)
+    assert _train(DIT_YAML, "--data", colo_root, "--ae", ae_run, "--init", twin, "--out", out) == 2
+    assert "differs in run.json:init.path" in capsys.readouterr().err
     ae_out = tmp_path / "ae-ft"
     assert _train(AE_YAML, "--data", colo_root, "--init", ae_run, "--out", ae_out) == 0
     assert json.loads((ae_out / "run.json").read_text())["init"]["weights_sha256"] == file_sha256(ae_run / BEST_WEIGHTS)
@@ -131,13 +133,19 @@ def test_init_starts_a_stage_from_another_runs_weights(rald_run, rald_ae_run, co
     save_weights(other_ae / BEST_WEIGHTS, {k: v + 1e-3 for k, v in state.items()}, info)
     wide = tmp_path / "wide.yaml"
     wide.write_text(DIT_YAML.read_text().replace("    latent_dim: 8\n", "    latent_dim: 8\n    depth: 3\n"))
+    scaled = tmp_path / "scaled.yaml"
+    scaled.write_text(DIT_YAML.read_text().replace("max_intensity_db: 45.0", "max_intensity_db: 40.0"))
     cases = [
+        ((DIT_YAML, "--data", colo_root, "--ae", ae_run, "--init", tmp_path / "g", "--out", tmp_path / "g"),
+         "is the run folder --out itself"),
+        ((scaled, "--data", colo_root, "--ae", ae_run, "--init", rald_run, "--out", tmp_path / "h"),
+         "that run's radar section differs"),
         ((DIT_YAML, "--data", colo_root, "--ae", other_ae, "--init", rald_run, "--out", tmp_path / "a"),
          "was trained against other autoencoder weights than --ae"),
         ((wide, "--data", colo_root, "--ae", ae_run, "--init", rald_run, "--out", tmp_path / "b"),
          "a fine-tuning starts from the same network"),
         ((DIT_YAML, "--data", colo_root, "--ae", ae_run, "--init", ae_run, "--out", tmp_path / "c"),
-         "not a diffusion run"),
+         "not a run to fine-tune 'rald-tiny' from:"),
         ((AE_YAML, "--data", colo_root, "--init", rald_run, "--out", tmp_path / "d"), "not an autoencoder run"),
         ((Path(__file__).parents[3] / "configs" / "fftradnet-s.yaml", "--data", colo_root, "--init", rald_run,
           "--out", tmp_path / "e"), "--init names the run a RaLD stage fine-tunes"),
@@ -148,26 +156,59 @@ def test_init_starts_a_stage_from_another_runs_weights(rald_run, rald_ae_run, co
         assert _train(*argv) == 2, message
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
-    assert not any((tmp_path / n).exists() for n in "abcdef")
+    assert not any((tmp_path / n).exists() for n in "abcdefgh")
 
 
-def test_a_study_arm_fine_tunes_an_earlier_arm(colo_root, tmp_path, capsys):
+class _Stop(Exception):
+    pass
+
+
+def test_a_killed_fine_tuning_resumes_to_the_uninterrupted_one(rald_run, rald_ae_run, colo_root, tmp_path):
+    from radarpc.experiments.rald.train import train_diffusion
+
+    cfg = load_experiment(DIT_YAML)
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    train_diffusion(cfg, colo_root, rald_ae_run, whole, progress=False, init=rald_run, log=lambda s: None)
+
+    def stop_at_3(step: int) -> None:
+        if step == 3:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        train_diffusion(cfg, colo_root, rald_ae_run, killed, progress=False, init=rald_run, on_step=stop_at_3,
+                        log=lambda s: None)
+    train_diffusion(cfg, colo_root, rald_ae_run, killed, progress=False, init=rald_run, log=lambda s: None)
+    want, got = load_weights(whole / BEST_WEIGHTS)[0], load_weights(killed / BEST_WEIGHTS)[0]
+    assert want.keys() == got.keys() and all(torch.equal(want[k], got[k]) for k in want)
+
+
+def test_a_study_arm_fine_tunes_an_earlier_arm(two_scene_root, tmp_path, capsys):
     (tmp_path / "gen.yaml").write_text(QUICK)
+    (tmp_path / "seen.yaml").write_text(DIT_YAML.read_text() + "scenes: [hallway]\n")
     (tmp_path / "ft.yaml").write_text(DIT_YAML.read_text().replace("name: rald-tiny", "name: rald-tiny-ft")
                                       .replace("max_steps: 4", "max_steps: 2") + "scenes: [lab]\n")
     study = tmp_path / "study.yaml"
-    arms = (f"  - {{name: base, label: zero-shot, autoencoder: {AE_YAML}, diffusion: {DIT_YAML}, generate: gen.yaml}}\n"
+    arms = (f"  - {{name: base, label: zero-shot, autoencoder: {AE_YAML}, diffusion: seen.yaml, generate: gen.yaml}}\n"
             f"  - {{name: ft, label: fine-tuned, autoencoder: {AE_YAML}, diffusion: ft.yaml, generate: gen.yaml, "
             f"init: base}}\n")
-    study.write_text(f"name: tiny-generalization\ndata: {colo_root}\nsplit: test\nemd_points: 64\narms:\n{arms}")
+    # the study names a root of the same folder name elsewhere; --data gives the one to use
+    study.write_text(f"name: tiny-generalization\ndata: elsewhere/{two_scene_root.name}\nsplit: test\nemd_points: 64\n"
+                     f"arms:\n{arms}")
     out = tmp_path / "out"
     assert main(["experiment", "rald-ablation", str(study), "--out", str(out), "--plan"]) == 0
     assert "(fine-tuned from base) -- to run" in capsys.readouterr().out
-    assert main(["experiment", "rald-ablation", str(study), "--out", str(out), "--no-progress"]) == 0
+    argv = ["experiment", "rald-ablation", str(study), "--out", str(out), "--no-progress"]
+    assert main(argv + ["--data", str(tmp_path)]) == 2
+    assert f"rows name the root {two_scene_root.name!r}" in capsys.readouterr().err
+    assert main(argv + ["--data", str(two_scene_root)]) == 0
+    assert "fine-tuning from" in capsys.readouterr().out
     rows = read_rows(out, row_format=ablation.RALD_ROW_FORMAT, required=ablation.RALD_ROW_FIELDS)
     assert set(rows) == {"base", "ft"}
     assert rows["ft"]["arm"]["init"] == "base" and rows["ft"]["key"]["init"]["arm"] == "base"
     assert rows["ft"]["arm"]["scenes"] == {"stage1": None, "stage2": ["lab"]}
+    assert rows["base"]["arm"]["scenes"] == {"stage1": None, "stage2": ["hallway"]}
+    assert {s["scene"] for s in rows["ft"]["metrics"]["scenes"]} == {"hallway", "lab"}     # both scored
+    assert rows["ft"]["command"].endswith(f"--data {two_scene_root}")
     _, plans = ablation.load_rald_ablation(study)
     base, ft = plans
     assert ft.stage1_dir == base.stage1_dir and ft.stage2_dir != base.stage2_dir
@@ -177,13 +218,18 @@ def test_a_study_arm_fine_tunes_an_earlier_arm(colo_root, tmp_path, capsys):
     assert main(["report", str(out)]) == 0
     report = (out / "report" / "report.md").read_text()
     assert "| `ft` | generation | all / lab (from `base`) |" in report
-    assert "| `base` | generation | all / all |" in report
+    assert "| `base` | generation | all / hallway |" in report
+    assert main(["experiment", "density-sweep", str(study), "--out", str(out), "--data", str(two_scene_root)]) == 2
+    assert "--data applies to rald-ablation" in capsys.readouterr().err
 
 
 def test_study_init_refusals(tmp_path):
     (tmp_path / "ae2.yaml").write_text(AE_YAML.read_text().replace("name: rald-ae-tiny", "name: rald-ae-tiny-2"))
     base = f"name: x\ndata: d\narms:\n  - {{name: a, autoencoder: {AE_YAML}, diffusion: {DIT_YAML}}}\n"
+    (tmp_path / "deeper.yaml").write_text(DIT_YAML.read_text().replace("    latent_dim: 8\n", "    latent_dim: 8\n    depth: 3\n"))
     bad = [
+        (base + f"  - {{name: b, autoencoder: {AE_YAML}, diffusion: deeper.yaml, init: a}}\n",
+         "a fine-tuning starts from the same network"),
         (base + f"  - {{name: b, autoencoder: {AE_YAML}, diffusion: {DIT_YAML}, init: c}}\n",
          "init: 'c' is not an earlier arm of the study"),
         (f"name: x\ndata: d\narms:\n  - {{name: b, autoencoder: {AE_YAML}, diffusion: {DIT_YAML}, init: a}}\n"

@@ -17,15 +17,17 @@ A study YAML names its arms, the ColoRadar root, the split and ``every``::
         autoencoder: ../../rald-ae-s.yaml
         diffusion: rald-s-no-encoder.yaml
         generate: ../generate-official.yaml
-      - name: finetuned                 # fine-tunes arm a-no-encoder's stage 2 (the seed's Tables 6, 8)
+      - name: finetuned                 # fine-tunes arm c-encoder-cfar's stage 2 (the seed's Tables 6, 8)
         autoencoder: ../../rald-ae-s.yaml
-        diffusion: rald-s-finetune.yaml            # e.g. scenes: [lab] and a short budget
-        init: a-no-encoder
+        diffusion: ../generalization/rald-s-finetune.yaml   # rald-s with scenes: [lab, outdoor], 300 steps
+        init: c-encoder-cfar
 
 An arm with ``init: ARM`` (an earlier arm) starts its last stage from that arm's best weights
 instead of fresh ones (:func:`~radarpc.experiments.rald.train.train_diffusion`'s ``init``): with a
 diffusion config, ARM's stage 2 (both arms must name the same stage-1 config: a fine-tuned
-diffusion model keeps its autoencoder); without one, ARM's stage 1. The configs' ``scenes`` say
+diffusion model keeps its autoencoder); without one, ARM's stage 1; the two stages' models must be
+the same network (checked when the study is read). Its stage folder's ``HASH`` and its row's key
+include what it starts from (ARM's folder, ARM's configs and ARM's own ``init``). The configs' ``scenes`` say
 which scene types each stage trains on; the others are held out, and the per-scene table shows
 them zero-shot (an arm trained without them) and fine-tuned (an arm with ``init``).
 
@@ -202,6 +204,7 @@ def load_rald_ablation(path: str | os.PathLike) -> tuple[RaldAblationConfig, lis
         if dit is not None:
             s2 = f"stage2/{dit.name}-{_digest({'experiment': to_dict(dit), 'ae': s1} | ({'init': from_dir} if init else {}))}"
         plans.append(ArmPlan(arm, i, ae, dit, gen, s1, s2, init))
+        _check_init_model(plans[-1], where)
     return cfg, plans
 
 
@@ -219,6 +222,17 @@ def _init_plan(arm: RaldArm, plans: list[ArmPlan], where: str) -> ArmPlan | None
     return init
 
 
+def _check_init_model(plan: ArmPlan, where: str) -> None:
+    if plan.init is None:
+        return
+    mine = plan.diffusion if plan.diffusion is not None else plan.autoencoder
+    its = plan.init.diffusion if plan.init.diffusion is not None else plan.init.autoencoder
+    if to_dict(mine.model) != to_dict(its.model):
+        raise ValueError(f"{where}: init: {plan.init.arm.name!r} trains model {its.model.variant!r} with overrides "
+                         f"{its.model.overrides or {}}, this arm {mine.model.variant!r} with {mine.model.overrides or {}}; "
+                         f"a fine-tuning starts from the same network")
+
+
 def arm_key(cfg: RaldAblationConfig, plan: ArmPlan) -> dict:
     """What makes an arm's row this arm's: the resolved configs, the data (the root's folder name,
     so a row is the same on every machine), split, ``every`` and the EMD subset size."""
@@ -226,10 +240,27 @@ def arm_key(cfg: RaldAblationConfig, plan: ArmPlan) -> dict:
            "diffusion": None if plan.diffusion is None else to_dict(plan.diffusion),
            "generate": to_dict(plan.generate),
            "data": Path(cfg.data).name, "split": cfg.split, "every": cfg.every, "emd_points": cfg.emd_points}
-    if plan.init is not None:                # what the fine-tuning started from: that arm's configs
+    if plan.init is not None:                # what the fine-tuning started from: that arm's configs and its own start
         init = arm_key(cfg, plan.init)
-        key["init"] = {"arm": plan.init.arm.name, "autoencoder": init["autoencoder"], "diffusion": init["diffusion"]}
+        key["init"] = {"arm": plan.init.arm.name, **{k: init.get(k) for k in ("autoencoder", "diffusion", "init")}}
     return plain_json(key)
+
+
+def _canonical_arm_key(key: object) -> object:
+    """A stored row key with its configs read through today's config types, so that a field added
+    since the row was written compares as its default (chained ``init`` keys too)."""
+    if not isinstance(key, dict):
+        return key
+    out = dict(key)
+    for k in ("autoencoder", "diffusion"):
+        if isinstance(key.get(k), dict):
+            try:
+                out[k] = to_dict(experiment_from_dict(key[k], where=k))
+            except ValueError:
+                pass                            # unreadable: compared as stored, and refused as different
+    if isinstance(key.get("init"), dict):
+        out["init"] = _canonical_arm_key(key["init"])
+    return plain_json(out)
 
 
 def run_rald_ablation(path: str | os.PathLike, out: str | os.PathLike, *, data: str | os.PathLike | None = None,
@@ -260,7 +291,7 @@ def run_rald_ablation(path: str | os.PathLike, out: str | os.PathLike, *, data: 
         name, key = plan.arm.name, arm_key(cfg, plan)
         row = rows.get(name)
         if row is not None:
-            diff = flat_differences(row["key"], key)
+            diff = flat_differences(_canonical_arm_key(row["key"]), key)
             if diff:
                 more = f" (and {len(diff) - 3} more)" if len(diff) > 3 else ""
                 raise ValueError(f"{out / RESULTS_DIR / (name + '.json')}: made by another configuration of arm "

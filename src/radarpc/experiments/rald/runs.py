@@ -12,6 +12,8 @@ A RaLD run folder has the detection experiment's format (:func:`radarpc.training
   stage-2 folder when the stage-1 folder lies inside it (an imported official run is written as
   ``OUT/ae`` and ``OUT`` with ``"path": "ae"``), else absolute; a relative path is read against the
   stage-2 folder (:func:`resolve_ae_dir`).
+* a fine-tuned run of either stage (``radarpc train --init RUN``) adds ``"init"``: the run its
+  weights started from, in the same form as ``"ae"`` (:func:`init_reference`).
 
 An imported run (:func:`radarpc.experiments.rald.official.import_official_rald`) has the same keys
 plus ``"imported"`` (the official files, their SHA-256 and which weights were taken); its

@@ -13,9 +13,9 @@ key, a rerun against another or a retrained stage-1 run is refused (the message 
 starts over. A stage-2 ``best.safetensors`` holds both networks (:class:`~.task.RaldStage2`).
 
 Fine-tuning (``init``, ``radarpc train --init RUN``; the seed's Tables 6 and 8): the run starts
-from the best weights of a finished or unfinished run of the same stage and model (a stage-2
-``init`` must have been trained against the same stage-1 weights as ``ae``) instead of fresh
-ones; the optimiser, schedule and steps are the config's. The key records the initial run like
+from the best weights of another run of the same stage, model and inputs (stage 1's ``data``,
+stage 2's ``radar``; a stage-2 ``init`` must have been trained against the same stage-1 weights as
+``ae``) instead of fresh ones; the optimiser, schedule and steps are the config's. The key records the initial run like
 the stage-1 run (``"init"``: path, key, weights' SHA-256), so a rerun from other weights is
 refused. With the config's ``scenes`` this trains on the held-out scenes only.
 """
@@ -26,15 +26,14 @@ import os
 from pathlib import Path
 from typing import Callable, Sequence
 
-from radarpc.config import save_yaml
+from radarpc.config import save_yaml, to_dict
 from radarpc.distributed import dist_env
 from radarpc.experiments.rald.config import AutoencoderExperiment, DiffusionExperiment, RaldExperiment, canonical_key
-from radarpc.config import to_dict
 from radarpc.experiments.rald.runs import (ae_reference, autoencoder_run_key, diffusion_run_key, file_sha256,
                                            init_reference, load_rald, load_rald_ae)
-from radarpc.training.loop import BEST_WEIGHTS
 from radarpc.experiments.rald.task import AutoencoderTask, DiffusionTask
-from radarpc.training.loop import FitResult, fit
+from radarpc.io import DataFileError
+from radarpc.training.loop import BEST_WEIGHTS, FitResult, fit
 
 __all__ = ["CONFIG_YAML", "single_root", "train_autoencoder", "train_diffusion", "train_rald"]
 
@@ -66,11 +65,33 @@ def _fit(task, cfg: RaldExperiment, out: Path, key: dict, device, overwrite, pro
     return res
 
 
-def _same_model(cfg: RaldExperiment, init_cfg: RaldExperiment, init: Path) -> None:
-    if to_dict(init_cfg.model) != to_dict(cfg.model):
-        raise ValueError(f"--init {init}: that run trains model {init_cfg.model.variant!r} with overrides "
-                         f"{init_cfg.model.overrides or {}}, experiment {cfg.name!r} model {cfg.model.variant!r} with "
-                         f"{cfg.model.overrides or {}}: a fine-tuning starts from the same network")
+def _load_init(init: str | os.PathLike, out: Path, cfg: RaldExperiment, log: Callable[[str], None]):
+    """The run ``init`` a fine-tuning of ``cfg`` into ``out`` starts from, loaded and checked: not
+    ``out`` itself, the same stage, model and coordinates (stage 1's ``data``) or radar input
+    (stage 2's ``radar``)."""
+    init = Path(init)
+    if init.resolve() == out.resolve():
+        raise ValueError(f"--init {init} is the run folder --out itself; fine-tune another run's weights into a "
+                         f"new folder")
+    try:
+        start = load_rald_ae(init) if isinstance(cfg, AutoencoderExperiment) else load_rald(init)
+    except (DataFileError, FileNotFoundError) as e:
+        raise ValueError(f"--init {init}: not a run to fine-tune {cfg.name!r} from: {e}") from None
+    if to_dict(start.config.model) != to_dict(cfg.model):
+        raise ValueError(f"--init {init}: that run trains model {start.config.model.variant!r} with overrides "
+                         f"{start.config.model.overrides or {}}, experiment {cfg.name!r} model {cfg.model.variant!r} "
+                         f"with {cfg.model.overrides or {}}: a fine-tuning starts from the same network")
+    section = "data" if isinstance(cfg, AutoencoderExperiment) else "radar"   # what the weights' inputs mean
+    if to_dict(getattr(start.config, section)) != to_dict(getattr(cfg, section)):
+        raise ValueError(f"--init {init}: that run's {section} section differs from experiment {cfg.name!r}'s "
+                         f"({to_dict(getattr(start.config, section))} against {to_dict(getattr(cfg, section))}); its "
+                         f"weights read other inputs")
+    if start.status["finished"] is False:
+        log(f"--init {init}: that run has not finished; its best weights so far (step "
+            f"{start.status['weights_step']}) are the start, and the run key records their hash (a new best there "
+            f"later makes this run's resume refuse)")
+    log(f"fine-tuning from {init} (its best weights, step {start.status['weights_step']})")
+    return start
 
 
 def train_autoencoder(cfg: AutoencoderExperiment, data: str | os.PathLike, out: str | os.PathLike, *,
@@ -90,10 +111,8 @@ def train_autoencoder(cfg: AutoencoderExperiment, data: str | os.PathLike, out: 
     out = Path(out)
     key, weights = autoencoder_run_key(cfg, data), None
     if init is not None:
-        start = load_rald_ae(init)
-        _same_model(cfg, start.config, Path(init))
+        start = _load_init(init, out, cfg, log)
         key, weights = key | {"init": init_reference(init, out)}, start.ae
-        log(f"fine-tuning from {init} (step {start.status['weights_step']} of that run)")
     return _fit(AutoencoderTask(cfg, data, init=weights), cfg, out, key, device, overwrite, progress, log, on_step)
 
 
@@ -124,13 +143,11 @@ def train_diffusion(cfg: DiffusionExperiment, data: str | os.PathLike, ae: str |
             f"so far (step {stage1.status['weights_step']}) are the frozen first stage")
     key, weights = diffusion_run_key(cfg, data, ae_reference(ae, out)), None
     if init is not None:
-        start = load_rald(init)
-        _same_model(cfg, start.config, Path(init))
+        start = _load_init(init, out, cfg, log)
         if start.key["ae"].get("weights_sha256") != file_sha256(ae / BEST_WEIGHTS):
             raise ValueError(f"--init {init} was trained against other autoencoder weights than --ae {ae} "
                              f"({start.ae_dir}); fine-tune against the autoencoder it was trained on")
         key, weights = key | {"init": init_reference(init, out)}, start.dit
-        log(f"fine-tuning from {init} (step {start.status['weights_step']} of that run)")
     task = DiffusionTask(cfg, data, stage1.config, stage1.ae, init=weights)
     return _fit(task, cfg, out, key, device, overwrite, progress, log, on_step)
 
