@@ -85,3 +85,14 @@ def test_the_ablations_change_what_the_tables_compare():
         c = load_experiment(p)
         if c.stage == "diffusion":
             assert (c.model.config.n_latents, c.model.config.latent_dim) == (ae.n_latents, ae.latent_dim)
+
+
+@pytest.mark.parametrize("path", sorted((CONFIGS / "rald").glob("*.yaml")), ids=lambda p: p.stem)
+def test_shipped_generation_configs_load_strictly(path):
+    """configs/rald/*.yaml are `radarpc generate --config` files: strict loading, a command naming the file."""
+    from radarpc.config import load_yaml
+    from radarpc.experiments.rald.generation import GenerateConfig
+
+    cfg = load_yaml(GenerateConfig, path)
+    assert cfg.generation.random_queries + cfg.generation.guided_queries > 0
+    assert f"configs/rald/{path.name}" in path.read_text()
