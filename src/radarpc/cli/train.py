@@ -22,8 +22,8 @@ frustum grid). All three read one ColoRadar-layout root (--data; its runs give t
 train and val splits; a RaLD config's scenes list keeps the runs of those scene types only).
 --init RUN starts a RaLD stage from the best weights of another run of the same stage, model and
 inputs instead of fresh ones (fine-tuning; a stage-2 RUN must have been trained against the --ae
-weights); the run key records it, so a rerun from other weights is refused. A config without a stage key is a detection experiment on RADIal-layout
-roots.
+weights); the run key records it, so a rerun from other weights is refused. A config without a
+stage key is a detection experiment on RADIal-layout roots.
 
 Detection: several roots (--data A B, with one point store each for the pillar models) train as
 one dataset: the training frames of every root, validated on the validation frames of every root.

@@ -202,7 +202,8 @@ def load_rald_ablation(path: str | os.PathLike) -> tuple[RaldAblationConfig, lis
             s1 = f"stage1/{ae.name}-{_digest({'experiment': to_dict(ae), 'init': from_dir})}"
         s2 = None
         if dit is not None:
-            s2 = f"stage2/{dit.name}-{_digest({'experiment': to_dict(dit), 'ae': s1} | ({'init': from_dir} if init else {}))}"
+            what = {"experiment": to_dict(dit), "ae": s1} | ({"init": from_dir} if init else {})
+            s2 = f"stage2/{dit.name}-{_digest(what)}"
         plans.append(ArmPlan(arm, i, ae, dit, gen, s1, s2, init))
         _check_init_model(plans[-1], where)
     return cfg, plans
@@ -216,7 +217,8 @@ def _init_plan(arm: RaldArm, plans: list[ArmPlan], where: str) -> ArmPlan | None
         raise ValueError(f"{where}: init: {arm.init!r} is not an earlier arm of the study (arms before it: "
                          f"{', '.join(p.arm.name for p in plans) or 'none'})")
     if (arm.diffusion is None) != (init.diffusion is None):
-        mine, its = ("stage 1" if arm.diffusion is None else "stage 2"), ("stage 1" if init.diffusion is None else "stage 2")
+        mine = "stage 1" if arm.diffusion is None else "stage 2"
+        its = "stage 1" if init.diffusion is None else "stage 2"
         raise ValueError(f"{where}: init: {arm.init!r} ends with its {its}, this arm with its {mine}; a fine-tuning "
                          f"starts from the same stage")
     return init
@@ -229,7 +231,8 @@ def _check_init_model(plan: ArmPlan, where: str) -> None:
     its = plan.init.diffusion if plan.init.diffusion is not None else plan.init.autoencoder
     if to_dict(mine.model) != to_dict(its.model):
         raise ValueError(f"{where}: init: {plan.init.arm.name!r} trains model {its.model.variant!r} with overrides "
-                         f"{its.model.overrides or {}}, this arm {mine.model.variant!r} with {mine.model.overrides or {}}; "
+                         f"{its.model.overrides or {}}, this arm {mine.model.variant!r} with "
+                         f"{mine.model.overrides or {}}; "
                          f"a fine-tuning starts from the same network")
 
 

@@ -15,9 +15,9 @@ starts over. A stage-2 ``best.safetensors`` holds both networks (:class:`~.task.
 Fine-tuning (``init``, ``radarpc train --init RUN``; the seed's Tables 6 and 8): the run starts
 from the best weights of another run of the same stage, model and inputs (stage 1's ``data``,
 stage 2's ``radar``; a stage-2 ``init`` must have been trained against the same stage-1 weights as
-``ae``) instead of fresh ones; the optimiser, schedule and steps are the config's. The key records the initial run like
-the stage-1 run (``"init"``: path, key, weights' SHA-256), so a rerun from other weights is
-refused. With the config's ``scenes`` this trains on the held-out scenes only.
+``ae``) instead of fresh ones; the optimiser, schedule and steps are the config's. The key records
+the initial run like the stage-1 run (``"init"``: path, key, weights' SHA-256), so a rerun from
+other weights is refused. With the config's ``scenes`` this trains on the held-out scenes only.
 """
 from __future__ import annotations
 
@@ -106,7 +106,7 @@ def train_autoencoder(cfg: AutoencoderExperiment, data: str | os.PathLike, out: 
     Raises
     ------
     ValueError
-        ``init`` holds another model.
+        ``init`` is ``out``, not a stage-1 run, or holds another model or other ``data``.
     """
     out = Path(out)
     key, weights = autoencoder_run_key(cfg, data), None
