@@ -37,7 +37,7 @@ def _run(study: Path, out: Path) -> int:
 
 
 class _Stop(Exception):
-    pass
+    """Raised from on_step: a run killed mid-training."""
 
 
 def _counting(monkeypatch, calls: dict, stop_on: str | None = None) -> None:
@@ -127,7 +127,7 @@ def test_two_arms_share_stage_1_resume_and_report(colo_root, tmp_path, monkeypat
 def test_study_config_refusals(tmp_path):
     ae = CONFIGS / "rald-ae-tiny.yaml"
     bad = [
-        (f"name: x\ndata: d\narms: []\n", "give at least one arm"),
+        ("name: x\ndata: d\narms: []\n", "give at least one arm"),
         (f"name: x\ndata: d\narms: [{{name: a, autoencoder: {ae}}}, {{name: a, autoencoder: {ae}}}]\n", "given twice"),
         (f"name: x\ndata: d\narms: [{{name: 'a b', autoencoder: {ae}}}]\n", "use letters, digits"),
         (f"name: x\ndata: d\nevery: 0\narms: [{{name: a, autoencoder: {ae}}}]\n", "every must be an integer >= 1"),
@@ -140,7 +140,7 @@ def test_study_config_refusals(tmp_path):
         path.write_text(text)
         with pytest.raises(ValueError, match=message):
             ablation.load_rald_ablation(path)
-    path.write_text(f"name: x\ndata: d\narms: [{{name: a, autoencoder: missing.yaml}}]\n")
+    path.write_text("name: x\ndata: d\narms: [{name: a, autoencoder: missing.yaml}]\n")
     with pytest.raises(FileNotFoundError, match="relative to the study config"):
         ablation.load_rald_ablation(path)
 

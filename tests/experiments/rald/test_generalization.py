@@ -160,7 +160,7 @@ def test_init_starts_a_stage_from_another_runs_weights(rald_run, rald_ae_run, co
 
 
 class _Stop(Exception):
-    pass
+    """Raised from on_step: a run killed mid-training."""
 
 
 def test_a_killed_fine_tuning_resumes_to_the_uninterrupted_one(rald_run, rald_ae_run, colo_root, tmp_path):
