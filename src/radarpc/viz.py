@@ -939,6 +939,10 @@ def plot_rate_curves(panels: list[RatePanel], out: str | os.PathLike, *, title: 
         Stored in the file (:func:`save_figure`).
     """
     out, fig, axes = _panel_figure(out, len(panels), "plot_rate_curves")
+    most = max(len(p.curves) + len(p.references) for p in panels)
+    if most > 8:                                        # room for the legends under the panels
+        w, h = fig.get_size_inches()
+        fig.set_size_inches(w, h + 0.16 * (most + 1) // 2 + 0.4)
     colours = [f"C{k}" for k in range(10)]
     for ax, panel in zip(axes, panels):
         named: dict[str, str] = {}                      # one colour per model, solid and dashed alike
@@ -959,7 +963,10 @@ def plot_rate_curves(panels: list[RatePanel], out: str | os.PathLike, *, title: 
         ax.yaxis.set_major_formatter(_plain_log_labels())      # 60, not 6 x 10^1
         ax.yaxis.set_minor_formatter(_plain_log_labels())
         _density_axis(ax, panel)
-        if panel.curves or panel.references:
+        entries = len(panel.curves) + len(panel.references)
+        if entries > 8:                                 # below the panel: inside, it would hide the curves
+            ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)
+        elif entries:
             ax.legend(fontsize=7, loc="best")
     fig.suptitle(f"{title}\nline: median of the timed sweeps, bars: their range; solid: network alone, dashed: "
                  f"with extraction; dotted: density-free references", fontsize=10)
