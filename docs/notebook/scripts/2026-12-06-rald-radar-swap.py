@@ -1,6 +1,9 @@
 """Does RaLD-s use the radar? Each test frame generated from its own radar cube and from the cube of
 a frame of another scene (the next scene's frame at the same position), decoded as Table 1 decodes
-(500,000 random queries, no guide, no refinement); CD of both against the frame's own LiDAR truth."""
+(500,000 random queries, no guide, no refinement); CD of both against the frame's own LiDAR truth.
+Run from the folder holding runs/ and data/:  python this.py [STAGE-2 RUN]"""
+import sys
+
 import numpy as np, torch
 from radarpc.config import load_yaml
 from radarpc.data.coloradar import ColoRadar
@@ -10,7 +13,7 @@ from radarpc.experiments.rald.runs import load_rald
 from radarpc.rald.generate import generate_cloud
 
 torch.set_num_threads(1)
-run = load_rald("runs/rald-gen/stage2/rald-s-b7c52f5b0d")
+run = load_rald(sys.argv[1] if len(sys.argv) > 1 else "runs/rald-gen/stage2/rald-s-b7c52f5b0d")
 cfg = load_yaml(GenerateConfig, "configs/rald/generate-table1-decoding.yaml").generation
 ds = ColoRadar("data/sim_colo6", "test", cube_size=None, every=4)
 to_input = model_input(run)

@@ -15,8 +15,9 @@ from radarpc.eval.pointsets import chamfer_distance
 from radarpc.experiments.rald.config import AutoencoderExperiment, LidarData
 from radarpc.experiments.rald.task import (AutoencoderFrames, AutoencoderTask, DiffusionBatch, DiffusionFrames,
                                            RaldStage2, evaluate_autoencoder, evaluate_diffusion, occupancy_scores,
-                                           resample_points)
+                                           radar_swap_pairs, resample_points)
 from radarpc.models import ModelSpec
+from radarpc.models.edm import edm_sigma_steps
 from radarpc.rald.frustum import OccupancyGrid, normalize, occupancy_to_points, occupancy_to_polar
 from radarpc.rald.voxels import model_coords
 from radarpc.training.loop import TrainConfig
@@ -193,6 +194,13 @@ def test_autoencoder_loss_and_validation_by_their_formulas(colo_root):
     assert got["accuracy"] == pytest.approx(float(((lg > 0) == b.occupied).double().mean()), rel=1e-12)
 
 
+def test_radar_swap_pairs_spread_and_pair_half_a_split_apart():
+    assert radar_swap_pairs(10) == [(i, (i + 5) % 10) for i in range(10)]
+    assert radar_swap_pairs(400, 4) == [(0, 200), (133, 333), (266, 66), (399, 199)]
+    assert radar_swap_pairs(3, 2) == [(0, 1), (2, 0)]
+    assert radar_swap_pairs(1) == [] and radar_swap_pairs(0) == []
+
+
 def test_stage_2_loss_is_edms_on_a_posterior_sample(colo_root):
     ae = ModelSpec("rald-ae-tiny").build().eval()
     dit = ModelSpec("rald-dit-tiny", {"n_latents": 32, "latent_dim": 8, "radar_shape": (32, 16, 8),
@@ -222,6 +230,35 @@ def test_stage_2_loss_is_edms_on_a_posterior_sample(colo_root):
         torch.manual_seed(seed)
         scores.append(evaluate_diffusion(pair, batches, CPU)["loss"])
     assert scores[0] == scores[1] != scores[2]
+    # the radar check: frame k at the sampler's k-th noise level (80, then 57.6), the same latents and
+    # noise with each frame's own radar and with the other frame's
+    torch.manual_seed(5)
+    got = evaluate_diffusion(pair, [], CPU, swaps=[(DiffusionBatch(radar, points), radar.flip(0))])
+    torch.manual_seed(5)
+    with torch.no_grad():
+        mean, logvar = ae.encode(points)
+        z = mean + torch.exp(0.5 * logvar) * torch.randn_like(mean)
+        sigma = edm_sigma_steps()[:2].to(torch.float32).reshape(2, 1, 1)
+        noisy = z + torch.randn_like(z) * sigma
+        own = dit(noisy, sigma.flatten(), dit.encode_radar(radar))
+        swapped = dit(noisy, sigma.flatten(), dit.encode_radar(radar.flip(0)))
+    assert float(sigma[0]) == pytest.approx(80.0) and float(sigma[1]) == pytest.approx(57.6, rel=1e-2)
+    weight = (sigma ** 2 + 1) / sigma ** 2
+    own, other = (weight * (own - z) ** 2).mean(), (weight * (swapped - z) ** 2).mean()
+    assert got["loss_other_radar"] == pytest.approx(float(other), rel=1e-5)
+    assert got["radar_gain"] == pytest.approx(float(other - own), rel=1e-4, abs=1e-6)
+    # a model whose cross-attention adds nothing cannot tell the radars apart: a gain of exactly 0
+    deaf = RaldStage2(ae, ModelSpec("rald-dit-tiny", {"n_latents": 32, "latent_dim": 8, "radar_shape": (32, 16, 8),
+                                                      "enc_ch_mult": (1, 2, 2)}).build(), p_mean=-0.5, p_std=0.7)
+    with torch.no_grad():
+        for block in deaf.dit.denoiser.blocks:
+            block.cross_attn.to_out.weight.zero_()
+            block.cross_attn.to_out.bias.zero_()
+        deaf.dit.denoiser.proj_out.weight.normal_()                      # not the zero network of initialisation
+    got = evaluate_diffusion(deaf, [], CPU, swaps=[(DiffusionBatch(radar, points), radar.flip(0))])
+    assert got["radar_gain"] == 0.0 and got["loss_other_radar"] > 0
+    assert evaluate_diffusion(deaf, [DiffusionBatch(radar, points)], CPU).keys() == {"loss"}
+    assert "loss" not in got                                             # no batches, no loss (not 0)
     with pytest.raises(ValueError, match="the diffusion model generates 16 latents of 4, but the autoencoder's are 32 "
                                          "of 8; give the diffusion model overrides n_latents: 32, latent_dim: 8"):
         RaldStage2(ae, ModelSpec("rald-dit-tiny").build())

@@ -62,8 +62,10 @@ AUTOENCODER_METRICS: dict[str, str] = {"loss": "min", "bce": "min", "kl": "min",
                                        "accuracy": "max", "recall": "max"}
 """Stage 1's validation metrics and the direction in which each improves (``train.select_mode``)."""
 
-DIFFUSION_METRICS: dict[str, str] = {"loss": "min"}
-"""Stage 2's validation metric (the EDM loss with fixed noise) and its direction."""
+DIFFUSION_METRICS: dict[str, str] = {"loss": "min", "loss_other_radar": "min", "radar_gain": "max"}
+"""Stage 2's validation metrics and their directions: the EDM loss with fixed noise; at the sampler's
+noise levels, the loss with each frame conditioned on another frame's radar and its excess over the
+loss with the frame's own radar, the radar's gain (:func:`radarpc.experiments.rald.task.evaluate_diffusion`)."""
 
 REQUIRED_SECTIONS = ("name", "stage", "model", "train")
 """Keys a RaLD experiment YAML must give: its name, stage, model and training."""

@@ -55,7 +55,7 @@ import copy
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Iterator
 
 import numpy as np
 import torch
@@ -64,7 +64,7 @@ from torch.utils.data import Dataset
 
 from radarpc.data.coloradar import ColoRadar, rald_intensity
 from radarpc.experiments.rald.config import AutoencoderExperiment, DiffusionExperiment, LidarData
-from radarpc.models.edm import edm_loss
+from radarpc.models.edm import edm_loss, edm_loss_weight, edm_sigma_steps
 from radarpc.models.latent_dit import LatentDiT
 from radarpc.models.vecset import VecSetAutoencoder, kl_divergence, occupancy_loss
 from radarpc.rald.frustum import sample_queries
@@ -72,7 +72,7 @@ from radarpc.rald.voxels import model_coords, voxelize_points
 
 __all__ = ["resample_points", "AutoencoderBatch", "DiffusionBatch", "AutoencoderFrames", "DiffusionFrames",
            "RaldStage2", "AutoencoderTask", "DiffusionTask", "occupancy_scores", "evaluate_autoencoder",
-           "evaluate_diffusion", "check_latents_match"]
+           "evaluate_diffusion", "check_latents_match", "radar_swap_pairs", "RADAR_SWAP_FRAMES"]
 
 _TRAIN_STREAM = 0x7472                     # "tr": the draws of training items
 _VAL_STREAM = 0x76616C                     # "val": the draws of validation items
@@ -200,9 +200,13 @@ class DiffusionFrames(_Frames):
         self.radar_shape = tuple(radar_shape)
         self.max_intensity_db = float(max_intensity_db)
 
+    def radar(self, i: int) -> torch.Tensor:
+        """Frame ``i``'s radar cube ``(R, A, E)`` as RaLD normalises it."""
+        return rald_intensity(self.frames.cube(i), self.radar_shape, max_db=self.max_intensity_db)
+
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         g = self._rng(i)
-        radar = rald_intensity(self.frames.cube(i), self.radar_shape, max_db=self.max_intensity_db)   # (R, A, E)
+        radar = self.radar(i)                                                                      # (R, A, E)
         xyz = resample_points(self._lidar(i), self.data.points, g)
         return radar, model_coords(self.grid, xyz).to(torch.float32)                                # (N, 3)
 
@@ -258,6 +262,24 @@ class RaldStage2(nn.Module):
         return edm_loss(self.dit, z, condition, P_mean=self.p_mean, P_std=self.p_std,
                         sigma_data=self.dit.cfg.sigma_data)
 
+    @torch.no_grad()
+    def condition_check(self, radar: torch.Tensor, other_radar: torch.Tensor, points: torch.Tensor,
+                        sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-frame EDM losses ``(B,)`` of the frames' latents at noise levels ``sigma (B,)``, with
+        their own radar and with ``other_radar`` (other frames' cubes), the same latents and noise:
+        the difference says how much the radar condition lowers the loss, about 0 when the model
+        has learned only the latents' prior. The latents and the noise come from the global RNG."""
+        z = self.latents(points)                                              # (B, M, D)
+        sigma = sigma.to(device=z.device, dtype=z.dtype).reshape(-1, 1, 1)    # (B, 1, 1)
+        weight = edm_loss_weight(sigma, self.dit.cfg.sigma_data)             # (B, 1, 1)
+        x = z + torch.randn_like(z) * sigma                                   # (B, M, D)
+
+        def loss(cube: torch.Tensor) -> torch.Tensor:
+            denoised = self.dit(x, sigma.flatten(), self.dit.encode_radar(cube))
+            return (weight * (denoised - z) ** 2).mean((1, 2))                # (B,)
+
+        return loss(radar), loss(other_radar)
+
 
 # ---- validation -------------------------------------------------------------------------------------
 
@@ -298,17 +320,56 @@ def evaluate_autoencoder(model: nn.Module, batches: Iterable[AutoencoderBatch], 
     return {k: v / max(n, 1) for k, v in sums.items()}
 
 
+RADAR_SWAP_FRAMES = 72
+"""Validation frames of stage 2's radar check (:func:`radar_swap_pairs`): four at each of the
+sampler's 18 noise levels."""
+
+
+def radar_swap_pairs(n: int, count: int = RADAR_SWAP_FRAMES) -> list[tuple[int, int]]:
+    """``(frame, other frame)`` index pairs for stage 2's radar check: up to ``count`` frames evenly
+    spread over ``n``, each with the frame ``n // 2`` positions on (modulo ``n``), in a split ordered
+    by run another run's, so another place's radar."""
+    if n < 2:
+        return []
+    frames = np.unique(np.linspace(0, n - 1, min(count, n)).round().astype(int))
+    return [(int(i), int((i + n // 2) % n)) for i in frames]
+
+
 @torch.no_grad()
-def evaluate_diffusion(model: nn.Module, batches: Iterable[DiffusionBatch], device: torch.device
-                       ) -> dict[str, float]:
-    """Stage 2's validation: EDM's loss over the validation frames (the mean of the batches'
-    losses weighted by their sizes), with the noise of the caller's RNG state."""
+def evaluate_diffusion(model: nn.Module, batches: Iterable[DiffusionBatch], device: torch.device,
+                       swaps: Iterable[tuple[DiffusionBatch, torch.Tensor]] = ()) -> dict[str, float]:
+    """Stage 2's validation (:data:`~radarpc.experiments.rald.config.DIFFUSION_METRICS`), with the
+    noise of the caller's RNG state.
+
+    ``loss``: EDM's loss over the frames of ``batches`` (their mean), noise levels drawn as in
+    training. With ``swaps``, batches of frames each beside another frame's radar cube
+    ``(B, R, A, E)``, the radar check at the noise levels generation visits (the Heun sampler's 18,
+    :func:`~radarpc.models.edm.edm_sigma_steps`, frame ``k`` of the check at level ``k mod 18``):
+    ``loss_other_radar``, the loss of those frames conditioned on the other radar, and
+    ``radar_gain``, its excess over the loss of the same frames, latents, levels and noise with their
+    own radar. Training's noise levels (``ln sigma ~ N(-1.2, 1.2^2)``) sit mostly where the noisy
+    latents alone still tell one scene from another; the sampler's first steps do not.
+    """
+    stage2 = getattr(model, "module", model)                                  # a DDP wrapper's module
     total, n = 0.0, 0
     for batch in batches:
         batch = batch.to(device)
-        total += float(model(batch.radar, batch.points)) * batch.radar.shape[0]
+        total += float(stage2(batch.radar, batch.points)) * batch.radar.shape[0]
         n += batch.radar.shape[0]
-    return {"loss": total / max(n, 1)}
+    metrics = {"loss": total / n} if n else {}
+    levels = edm_sigma_steps(device=device)[:-1]                              # (18,) without the final 0
+    own_sum, other_sum, m = 0.0, 0.0, 0
+    for batch, other_radar in swaps:
+        batch = batch.to(device)
+        k = torch.arange(m, m + batch.radar.shape[0], device=device) % len(levels)
+        own, other = stage2.condition_check(batch.radar, other_radar.to(device), batch.points, levels[k])
+        own_sum += float(own.double().sum())
+        other_sum += float(other.double().sum())
+        m += own.shape[0]
+    if m:
+        metrics["loss_other_radar"] = other_sum / m
+        metrics["radar_gain"] = (other_sum - own_sum) / m
+    return metrics
 
 
 # ---- the tasks --------------------------------------------------------------------------------------
@@ -413,4 +474,14 @@ class DiffusionTask:
         return model(batch.radar, batch.points), {}
 
     def evaluate(self, model: nn.Module, batches: Iterable, device: torch.device) -> dict[str, float]:
-        return evaluate_diffusion(model, batches, device)
+        return evaluate_diffusion(model, batches, device, self._radar_swaps(batches))
+
+    def _radar_swaps(self, batches: Iterable) -> Iterator[tuple[DiffusionBatch, torch.Tensor]]:
+        """The radar check's batches (:func:`radar_swap_pairs` of the validation frames), as large as
+        the loop's validation batches."""
+        pairs = radar_swap_pairs(len(self.val_set))
+        size = getattr(batches, "batch_size", None) or 1
+        for k in range(0, len(pairs), size):
+            chunk = pairs[k:k + size]
+            batch = self.collate([self.val_set[i] for i, _ in chunk])
+            yield batch, torch.stack([self.val_set.radar(j) for _, j in chunk])
