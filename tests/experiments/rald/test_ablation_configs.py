@@ -13,6 +13,7 @@ from radarpc.experiments.rald.config import load_experiment
 CONFIGS = Path(__file__).parents[3] / "configs"
 ABLATIONS = sorted((CONFIGS / "rald" / "ablations").glob("*.yaml"))
 GENERALIZATION = sorted((CONFIGS / "rald" / "generalization").glob("*.yaml"))
+CONDITIONING = sorted((CONFIGS / "rald" / "conditioning").glob("*.yaml"))
 DIFFERS = re.compile(r"^# Differs from (configs/\S+\.yaml) in: (.+?)\.?$", re.M)
 
 
@@ -65,6 +66,15 @@ def test_generalization_configs_differ_from_their_base_in_the_documented_fields(
     assert {k for k in a.keys() | b.keys() if a.get(k, "<absent>") != b.get(k, "<absent>")} == documented
     assert cfg.name == path.stem and f"configs/rald/generalization/{path.name}" in path.read_text()
     assert cfg.scenes is not None
+
+
+@pytest.mark.parametrize("path", CONDITIONING, ids=lambda p: p.stem)
+def test_conditioning_configs_differ_from_their_base_in_the_documented_fields(path):
+    cfg = load_experiment(path)
+    base_path, documented = _documented(path)
+    a, b = _flat(to_dict(cfg)), _flat(to_dict(load_experiment(base_path)))
+    assert {k for k in a.keys() | b.keys() if a.get(k, "<absent>") != b.get(k, "<absent>")} == documented
+    assert cfg.name == path.stem and f"configs/rald/conditioning/{path.name}" in path.read_text()
 
 
 def test_the_ablations_change_what_the_tables_compare():
