@@ -1,5 +1,5 @@
 """How much does a stage-2 run's radar lower its EDM loss, noise level by noise level? For the radar
-check's 64 validation frames (radarpc.experiments.rald.task.radar_swap_pairs: each beside the frame
+check's 72 validation frames (radarpc.experiments.rald.task.radar_swap_pairs: each beside the frame
 half the split away, another run's), the loss of the frames' latents (posterior means) at fixed
 sigmas, the same noise, with the frame's own radar and with the other frame's; then the condition
 tokens' spread across frames against their spread across tokens.
