@@ -942,7 +942,7 @@ def plot_rate_curves(panels: list[RatePanel], out: str | os.PathLike, *, title: 
     most = max(len(p.curves) + len(p.references) for p in panels)
     if most > 8:                                        # room for the legends under the panels
         w, h = fig.get_size_inches()
-        fig.set_size_inches(w, h + 0.16 * (most + 1) // 2 + 0.4)
+        fig.set_size_inches(w, h + 0.16 * ((most + 1) // 2) + 0.4)   # 0.16 in a legend row, two columns
     colours = [f"C{k}" for k in range(10)]
     for ax, panel in zip(axes, panels):
         named: dict[str, str] = {}                      # one colour per model, solid and dashed alike
