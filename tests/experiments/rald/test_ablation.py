@@ -145,7 +145,7 @@ def test_study_config_refusals(tmp_path):
         ablation.load_rald_ablation(path)
 
 
-@pytest.mark.parametrize("table", ["table1", "table3", "table4", "table9", "generalization"])
+@pytest.mark.parametrize("table", ["table1", "table3", "table4", "table9", "generalization", "seeds"])
 def test_shipped_studies_load_with_their_configs(table):
     """Every shipped study reads strictly with every config it names; arms with the same stage-1
     config share one stage-1 folder."""
@@ -174,3 +174,17 @@ def test_shipped_studies_load_with_their_configs(table):
         assert b.stage2_dir == c.stage2_dir                # one rald-s run, two generations
     if table == "table9":
         assert [p.diffusion.model.config.depth for p in plans] == [2, 3, 4]
+    if table == "seeds":
+        s0, s1 = plans
+        assert (s0.diffusion.train.seed, s1.diffusion.train.seed) == (0, 1) and s0.stage2_dir != s1.stage2_dir
+
+
+def test_shipped_studies_share_their_reference_run():
+    """The reference RaLD-s arm of Tables 3, 4, 9, the seed study and the generalization study is one
+    stage-2 run (the same folder name, hence key): trained once, copied between study folders."""
+    studies = Path(__file__).parents[3] / "configs" / "rald" / "studies"
+    reference = {name: plans[i] for name, i in [("table3", -1), ("table4", -1), ("table9", -1), ("seeds", 0),
+                                                ("generalization", 2)]
+                 for plans in [ablation.load_rald_ablation(studies / f"{name}.yaml")[1]]}
+    assert len({(p.stage1_dir, p.stage2_dir) for p in reference.values()}) == 1
+    assert {p.diffusion.loss.p_mean for p in reference.values()} == {0.5}
