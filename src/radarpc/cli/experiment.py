@@ -41,7 +41,12 @@ EMD per scene as ``radarpc evaluate-points`` scores them, and its row ``OUT/resu
 
     radarpc experiment rald-ablation table3.yaml --out runs/rald-table3
     radarpc experiment rald-ablation generalization.yaml --data /data/sim_colo6 --out runs/rald-generalization
+    radarpc experiment rald-ablation table9.yaml --out runs/rald-table9 --cache runs/rald-stages
     radarpc report runs/rald-table3
+
+``--cache DIR`` keeps the stage runs in ``DIR/stage1``, ``DIR/stage2`` instead of ``OUT``: studies
+given the same ``--cache`` train an arm's stage runs once (Tables 3, 4, 9 share their reference
+arm); predictions and rows stay in ``--out``.
 
 An arm with ``init: ARM`` fine-tunes that earlier arm's weights, and the stage configs' ``scenes``
 hold scene types out of training: the RaLD paper's generalization study (Tables 5-8).
@@ -119,10 +124,9 @@ def _run_rald(args: argparse.Namespace) -> int:
     from radarpc.experiments.study.results import read_rows
     from radarpc.machine import check_device
 
-    for flag, given in (("--cache", args.cache is not None), ("--overwrite", args.overwrite)):
-        if given:
-            raise ValueError(f"{flag} does not apply to rald-ablation (its runs, predictions and rows live in --out; "
-                             f"remove an arm's row to run it again)")
+    if args.overwrite:
+        raise ValueError("--overwrite does not apply to rald-ablation (an arm whose row is present is finished; "
+                         "remove its row to run it again)")
     if args.plan:
         cfg, plans = load_rald_ablation(args.config)
         rows = read_rows(args.out, row_format=RALD_ROW_FORMAT, required=RALD_ROW_FIELDS)
@@ -136,8 +140,8 @@ def _run_rald(args: argparse.Namespace) -> int:
         return 0
     if args.device is not None:
         check_device(args.device, "--device")
-    run_rald_ablation(args.config, args.out, data=args.data, device=args.device, progress=not args.no_progress,
-                      command=command_line(args))
+    run_rald_ablation(args.config, args.out, data=args.data, stages=args.cache, device=args.device,
+                      progress=not args.no_progress, command=command_line(args))
     return 0
 
 
@@ -177,7 +181,8 @@ def add_parser(sub) -> None:
     p.add_argument("--out", required=True, help="study output: run folders (training studies), result rows, study.json")
     p.add_argument("--cache", default=None, metavar="DIR",
                    help="simulated roots, point stores and sparse-RD roots (default OUT/cache); share one "
-                        "between studies of the same data")
+                        "between studies of the same data. rald-ablation: the stage runs (DIR/stage1, DIR/stage2; "
+                        "default OUT), shared between studies that train the same configs")
     p.add_argument("--data", default=None, metavar="ROOT",
                    help="rald-ablation only: this ColoRadar root instead of the study's data: (the same folder "
                         "name: the rows name it)")

@@ -100,13 +100,32 @@ def test_two_arms_share_stage_1_resume_and_report(colo_root, tmp_path, monkeypat
         assert _run(study, out) == 0
     assert calls == {}
 
-    # --plan lists the arms and their rows; --cache is not this study's
+    # --plan lists the arms and their rows; --overwrite is not this study's
     capsys.readouterr()
     assert main(["experiment", "rald-ablation", str(study), "--out", str(out), "--plan"]) == 0
     plan = capsys.readouterr().out
     assert "2 arms, 2 with a row" in plan and f"[1/2] ae: autoencoder; {stage1.parent.name}/{stage1.name} -- row present" in plan
-    assert main(["experiment", "rald-ablation", str(study), "--out", str(out), "--cache", str(tmp_path)]) == 2
-    assert "--cache does not apply to rald-ablation" in capsys.readouterr().err
+    assert main(["experiment", "rald-ablation", str(study), "--out", str(out), "--overwrite"]) == 2
+    assert "--overwrite does not apply to rald-ablation" in capsys.readouterr().err
+
+    # another study folder with --cache naming this one's stage runs: it trains nothing, generates and
+    # scores into its own folder, and its rows say the same
+    out2, calls = tmp_path / "out2", {}
+    with monkeypatch.context() as m:
+        _counting(m, calls)
+        assert main(["experiment", "rald-ablation", str(study), "--out", str(out2), "--cache", str(out),
+                     "--no-progress"]) == 0
+    assert [Path(c[2]).parent.parent for c in calls["train_autoencoder"]] == [out, out]
+    assert {p: p.read_bytes() for p in sorted(stage1.rglob("*.safetensors"))} == weights
+    assert not (out2 / "stage1").exists() and not (out2 / "stage2").exists()
+    assert "already finished" in capsys.readouterr().out
+    rows2 = read_rows(out2, row_format=ablation.RALD_ROW_FORMAT, required=ablation.RALD_ROW_FIELDS)
+    assert set(rows2) == {"ae", "full"} and "--cache" in rows2["full"]["command"]
+    for name in rows:
+        assert rows2[name]["key"] == rows[name]["key"] and rows2[name]["runs"] == rows[name]["runs"]
+        a, b = rows[name]["metrics"]["overall"], rows2[name]["metrics"]["overall"]
+        assert (b["n_frames"], b["empty"]) == (a["n_frames"], a["empty"])
+        assert b["chamfer_mean"] == (None if a["chamfer_mean"] is None else pytest.approx(a["chamfer_mean"], rel=1e-5))
 
     # the report: one table row per arm, CD and EMD per scene and over all frames
     assert main(["report", str(out)]) == 0

@@ -36,7 +36,9 @@ trains the arm's stage 1 into ``OUT/stage1/NAME-HASH`` and its stage 2 into
 ``OUT/stage2/NAME-HASH`` (:func:`~radarpc.experiments.rald.train.train_autoencoder`,
 :func:`~radarpc.experiments.rald.train.train_diffusion`; ``HASH`` of the resolved config, and for
 stage 2 of its stage-1 folder too, so arms with the same stage 1 share one run, and a finished
-run returns at once), generates (or, without a diffusion config, reconstructs) the split into
+run returns at once; with ``stages``, ``STAGES/stage1/...`` and ``STAGES/stage2/...``, so that
+studies naming the same configs, such as the reference arm of Tables 3, 4 and 9, share one
+trained run), generates (or, without a diffusion config, reconstructs) the split into
 ``OUT/preds/ARM`` (:func:`~radarpc.experiments.rald.generation.generate_run`), scores it as
 ``radarpc evaluate-points`` does (:func:`radarpc.pipelines.point_eval.evaluate_folders`: CD and
 EMD per scene) and writes ``OUT/results/ARM.json``: the arm, its key (the resolved configs, the
@@ -267,11 +269,14 @@ def _canonical_arm_key(key: object) -> object:
 
 
 def run_rald_ablation(path: str | os.PathLike, out: str | os.PathLike, *, data: str | os.PathLike | None = None,
-                      device: str | None = None, progress: bool = True, log: Callable[[str], None] = print,
-                      command: str | None = None) -> dict[str, Path]:
+                      stages: str | os.PathLike | None = None, device: str | None = None, progress: bool = True,
+                      log: Callable[[str], None] = print, command: str | None = None) -> dict[str, Path]:
     """Run the study ``path`` into ``out`` (module docstring); returns the rows' paths by arm.
 
     ``data`` replaces the config's root (its folder name must be the same: rows name it).
+    ``stages``: the folder of the stage runs (``stage1/``, ``stage2/``) in place of ``out``, so that
+    studies sharing an arm's configs share its trained runs (``radarpc experiment rald-ablation
+    --cache``); predictions and rows stay in ``out``.
 
     Raises
     ------
@@ -288,6 +293,7 @@ def run_rald_ablation(path: str | os.PathLike, out: str | os.PathLike, *, data: 
         raise ValueError(f"--data {data}: the study's rows name the root {Path(cfg.data).name!r} (its folder name); "
                          f"give a copy of that root, or change data: in {path}")
     out = Path(out)
+    base = out if stages is None else Path(stages)       # where the stage runs live
     rows = read_rows(out, row_format=RALD_ROW_FORMAT, required=RALD_ROW_FIELDS)
     done: dict[str, Path] = {}
     for plan in plans:
@@ -303,16 +309,16 @@ def run_rald_ablation(path: str | os.PathLike, out: str | os.PathLike, *, data: 
             log(f"[{plan.order + 1}/{len(plans)}] {name}: finished (its row is present), reused")
             done[name] = out / RESULTS_DIR / f"{name}.json"
             continue
-        init = None if plan.init is None else out / (plan.init.stage2_dir or plan.init.stage1_dir)
-        log(f"[{plan.order + 1}/{len(plans)}] {name}: stage 1 in {out / plan.stage1_dir}")
-        train_autoencoder(plan.autoencoder, root, out / plan.stage1_dir, device=device, progress=progress, log=log,
+        init = None if plan.init is None else base / (plan.init.stage2_dir or plan.init.stage1_dir)
+        log(f"[{plan.order + 1}/{len(plans)}] {name}: stage 1 in {base / plan.stage1_dir}")
+        train_autoencoder(plan.autoencoder, root, base / plan.stage1_dir, device=device, progress=progress, log=log,
                           init=init if plan.diffusion is None else None)
-        run_dir = out / plan.stage1_dir
+        run_dir = base / plan.stage1_dir
         if plan.diffusion is not None:
-            log(f"[{plan.order + 1}/{len(plans)}] {name}: stage 2 in {out / plan.stage2_dir}")
-            train_diffusion(plan.diffusion, root, run_dir, out / plan.stage2_dir, device=device, progress=progress,
+            log(f"[{plan.order + 1}/{len(plans)}] {name}: stage 2 in {base / plan.stage2_dir}")
+            train_diffusion(plan.diffusion, root, run_dir, base / plan.stage2_dir, device=device, progress=progress,
                             log=log, init=init)
-            run_dir = out / plan.stage2_dir
+            run_dir = base / plan.stage2_dir
         preds = out / plan.preds_dir
         log(f"[{plan.order + 1}/{len(plans)}] {name}: {'generating' if plan.diffusion else 'reconstructing'} "
             f"split {cfg.split!r} into {preds}")
@@ -320,8 +326,8 @@ def run_rald_ablation(path: str | os.PathLike, out: str | os.PathLike, *, data: 
                      device=device, progress=progress, notice=log)
         evaluation = evaluate_folders([preds], root, cfg.split, emd_points=cfg.emd_points, progress=progress)
         report = next(iter(evaluation.reports.values()))
-        status = {"stage1": training_status(out / plan.stage1_dir),
-                  "stage2": None if plan.stage2_dir is None else training_status(out / plan.stage2_dir)}
+        status = {"stage1": training_status(base / plan.stage1_dir),
+                  "stage2": None if plan.stage2_dir is None else training_status(base / plan.stage2_dir)}
         row = {"format": RALD_ROW_FORMAT, "run": name,
                "study": {"name": cfg.name, "kind": "rald-ablation", "config_file": str(path), "config": to_dict(cfg)},
                "arm": {"name": name, "label": plan.label, "order": plan.order,
