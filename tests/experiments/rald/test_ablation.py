@@ -92,6 +92,15 @@ def test_two_arms_share_stage_1_resume_and_report(colo_root, tmp_path, monkeypat
     assert rows["ae"]["arm"]["output"] == "reconstruction" and rows["ae"]["runs"]["stage2"] is None
     assert rows["full"]["arm"]["output"] == "generation" and rows["full"]["runs"]["stage2"]["finished"] is True
     assert rows["full"]["key"]["diffusion"]["model"]["overrides"]["radar_condition"] == "patches"
+    # the validation at the best weights, as the stage runs logged it
+    import csv
+    for name, stage, folder in (("ae", "stage1", stage1), ("full", "stage2", next((out / "stage2").iterdir()))):
+        logged = list(csv.DictReader((folder / "log.csv").read_text().splitlines()))
+        best = rows[name]["runs"][stage]["weights_step"]
+        row = rows[name]["validation"][stage]
+        assert row["step"] == best and row["val_loss"] == pytest.approx(
+            float(next(r for r in logged if int(r["step"]) == best)["val_loss"]), rel=1e-12)
+    assert rows["ae"]["validation"]["stage2"] is None and "val_radar_gain" in rows["full"]["validation"]["stage2"]
 
     # a third run does nothing
     calls = {}
@@ -135,6 +144,8 @@ def test_two_arms_share_stage_1_resume_and_report(colo_root, tmp_path, monkeypat
     o = rows["full"]["metrics"]["overall"]
     assert f"| w/o encoder | {o['chamfer_mean']:.3f} | {o['emd_mean']:.3f} | {o['chamfer_mean']:.3f} |" in report
     assert report.index("| autoencoder |") < report.index("| w/o encoder |")
+    gain = rows["full"]["validation"]["stage2"]["val_radar_gain"]
+    assert "| radar check | commit |" in report and f"| {gain:.4f} | `" in report
 
     # another config of a finished arm is refused, naming the field
     capsys.readouterr()

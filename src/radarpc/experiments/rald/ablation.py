@@ -43,7 +43,8 @@ trained run), generates (or, without a diffusion config, reconstructs) the split
 ``radarpc evaluate-points`` does (:func:`radarpc.pipelines.point_eval.evaluate_folders`: CD and
 EMD per scene) and writes ``OUT/results/ARM.json``: the arm, its key (the resolved configs, the
 root's folder name, split, ``every``, the EMD subset size), the metrics per scene and over all
-frames, the runs' status, the command, config file and software (commit). **An arm whose row is
+frames, the runs' status and their validation row at the best weights (stage 2's holds the radar
+check, ``val_radar_gain``), the command, config file and software (commit). **An arm whose row is
 present with the same key is finished** and neither trained nor generated again; every step
 below it resumes on its own (a killed training from its last checkpoint, a killed generation
 frame by frame). A row whose key differs is refused, naming the fields: remove the row (and the
@@ -311,13 +312,14 @@ def run_rald_ablation(path: str | os.PathLike, out: str | os.PathLike, *, data: 
             continue
         init = None if plan.init is None else base / (plan.init.stage2_dir or plan.init.stage1_dir)
         log(f"[{plan.order + 1}/{len(plans)}] {name}: stage 1 in {base / plan.stage1_dir}")
-        train_autoencoder(plan.autoencoder, root, base / plan.stage1_dir, device=device, progress=progress, log=log,
-                          init=init if plan.diffusion is None else None)
+        fits = {"stage1": train_autoencoder(plan.autoencoder, root, base / plan.stage1_dir, device=device,
+                                            progress=progress, log=log, init=init if plan.diffusion is None else None),
+                "stage2": None}
         run_dir = base / plan.stage1_dir
         if plan.diffusion is not None:
             log(f"[{plan.order + 1}/{len(plans)}] {name}: stage 2 in {base / plan.stage2_dir}")
-            train_diffusion(plan.diffusion, root, run_dir, base / plan.stage2_dir, device=device, progress=progress,
-                            log=log, init=init)
+            fits["stage2"] = train_diffusion(plan.diffusion, root, run_dir, base / plan.stage2_dir, device=device,
+                                             progress=progress, log=log, init=init)
             run_dir = base / plan.stage2_dir
         preds = out / plan.preds_dir
         log(f"[{plan.order + 1}/{len(plans)}] {name}: {'generating' if plan.diffusion else 'reconstructing'} "
@@ -338,7 +340,8 @@ def run_rald_ablation(path: str | os.PathLike, out: str | os.PathLike, *, data: 
                                   "stage2": None if plan.diffusion is None else _scenes(plan.diffusion)}},
                "key": key,
                "metrics": {"overall": asdict(report.overall), "scenes": [asdict(s) for s in report.scenes]},
-               "runs": status, "evaluation": {"split": cfg.split, "every": cfg.every, "emd_points": cfg.emd_points},
+               "runs": status, "validation": {k: None if f is None else f.best_row for k, f in fits.items()},
+               "evaluation": {"split": cfg.split, "every": cfg.every, "emd_points": cfg.emd_points},
                "command": command, "software": software_record(),
                "times": {"finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}}
         done[name] = write_named_row(out, f"{name}.json", row)
@@ -347,8 +350,8 @@ def run_rald_ablation(path: str | os.PathLike, out: str | os.PathLike, *, data: 
     return done
 
 
-def _num(x) -> str:
-    return "-" if x is None else f"{x:.3f}"
+def _num(x, digits: int = 3) -> str:
+    return "-" if x is None else f"{x:.{digits}f}"
 
 
 def _scenes(cfg) -> list[str] | None:
@@ -368,7 +371,7 @@ def write_rald_report(runs: str | os.PathLike, out: str | os.PathLike | None = N
                       log: Callable[[str], None] = print) -> Path:
     """Write ``report.md`` of a RaLD ablation's rows (default into ``RUNS/report``): a Table-3-like
     table, one row per arm in the study's order, CD and EMD (means, metres) per scene and over all
-    frames, then every arm's frames, empty predictions, steps and commit.
+    frames, then every arm's frames, empty predictions, steps, validation at the best weights and commit.
 
     Raises
     ------
@@ -401,15 +404,20 @@ def write_rald_report(runs: str | os.PathLike, out: str | os.PathLike | None = N
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "### arms", "", "Trained on: the scenes of stage 1 / stage 2 (all: every scene of the root's "
               "training runs; the others are held out), and the arm a fine-tuning started from.", "",
-              "| arm | output | trained on | frames | empty | stage-1 steps | stage-2 steps | commit |",
-              "|---|---|---|---:|---:|---:|---:|---|"]
+              "Validation at the best weights (`log.csv` of the stage runs): stage 1's loss; stage 2's EDM loss "
+              "and its radar check, how much the frame's own radar lowers that loss against another run's "
+              "(`val_radar_gain`; 0: the model ignores the radar; `-`: a row written before the rows held it).", "",
+              "| arm | output | trained on | frames | empty | stage-1 steps | stage-2 steps | stage-1 val loss | "
+              "stage-2 val loss | radar check | commit |",
+              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in ordered:
-        o, st = r["metrics"]["overall"], r.get("runs") or {}
+        o, st, val = r["metrics"]["overall"], r.get("runs") or {}, r.get("validation") or {}
         steps = [(st.get(k) or {}).get("steps_done", "-") if st.get(k) else "-" for k in ("stage1", "stage2")]
+        v1, v2 = val.get("stage1") or {}, val.get("stage2") or {}
         commit = (r.get("software") or {}).get("commit") or "-"
         lines.append(f"| `{r['run']}` | {r['arm'].get('output', '-')} | {_trained_on(r['arm'])} | {o['n_frames']} | "
-                     f"{o.get('empty', 0)} | "
-                     f"{steps[0]} | {steps[1]} | `{commit[:10]}` |")
+                     f"{o.get('empty', 0)} | {steps[0]} | {steps[1]} | {_num(v1.get('val_loss'))} | "
+                     f"{_num(v2.get('val_loss'))} | {_num(v2.get('val_radar_gain'), 4)} | `{commit[:10]}` |")
     lines += [""] + made.config_section()
     path = out / RALD_REPORT_MD
     with atomic_write(path, "w") as f:
