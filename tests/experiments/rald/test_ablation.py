@@ -3,6 +3,7 @@ stage-1 run (a reconstruction, and a generation by the Table 3(a) model without 
 refusal of a row of another config, and the `radarpc report` table."""
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
@@ -93,7 +94,6 @@ def test_two_arms_share_stage_1_resume_and_report(colo_root, tmp_path, monkeypat
     assert rows["full"]["arm"]["output"] == "generation" and rows["full"]["runs"]["stage2"]["finished"] is True
     assert rows["full"]["key"]["diffusion"]["model"]["overrides"]["radar_condition"] == "patches"
     # the validation at the best weights, as the stage runs logged it
-    import csv
     for name, stage, folder in (("ae", "stage1", stage1), ("full", "stage2", next((out / "stage2").iterdir()))):
         logged = list(csv.DictReader((folder / "log.csv").read_text().splitlines()))
         best = rows[name]["runs"][stage]["weights_step"]
@@ -211,7 +211,7 @@ def test_shipped_studies_load_with_their_configs(table):
 
 def test_shipped_studies_share_their_reference_run():
     """The reference RaLD-s arm of Tables 3, 4, 9, the seed study and the generalization study is one
-    stage-2 run (the same folder name, hence key): trained once, copied between study folders."""
+    stage-2 run (the same folder name, hence key): trained once and shared through --cache."""
     studies = Path(__file__).parents[3] / "configs" / "rald" / "studies"
     reference = {name: plans[i] for name, i in [("table3", -1), ("table4", -1), ("table9", -1), ("seeds", 0),
                                                 ("generalization", 2)]
