@@ -274,6 +274,27 @@ def test_a_stored_key_is_read_through_the_canonical_function(tmp_path):
         RunFolder(d, new, canonical={"x.json": with_defaults})
 
 
+
+def test_locators_are_not_compared_and_are_updated_on_resume(tmp_path):
+    d = tmp_path / "run"
+    key = {"x": 1, "ae": {"path": "/old/ae", "sha": "s1"}, "v": "1"}
+    with RunFolder(d, {"run.json": key}, ignore_keys=("v",), locators=("ae.path", "init.path")) as run:
+        (run.path / "part.npy").write_bytes(b"p")
+    moved = {"x": 1, "ae": {"path": "/new/ae", "sha": "s1"}, "v": "2"}
+    run = RunFolder(d, {"run.json": moved}, ignore_keys=("v",), locators=("ae.path", "init.path"))
+    assert run.differences() == [] and run.changed_keys() == set()
+    with run:
+        assert run.resumed and (d / "part.npy").is_file()
+    # the new place is recorded, the ignored record kept as found; the absent "init" stays absent
+    assert json.loads((d / "run.json").read_text()) == {"x": 1, "ae": {"path": "/new/ae", "sha": "s1"}, "v": "1"}
+    # what the locator points at is still compared through the keys beside it
+    other = {"x": 1, "ae": {"path": "/new/ae", "sha": "s2"}}
+    with pytest.raises(RunMismatchError, match=r"run\.json:ae\.sha\)"):
+        RunFolder(d, {"run.json": other}, locators=("ae.path",)).start()
+    # without the locator the path is part of the key
+    with pytest.raises(RunMismatchError, match=r"run\.json:ae\.path\)"):
+        RunFolder(d, {"run.json": {"x": 1, "ae": {"path": "/elsewhere", "sha": "s1"}}}, ignore_keys=("v",)).start()
+
 def _fake_repo(root, head: str, *, loose=None, packed=None):
     git = root / ".git"
     git.mkdir(parents=True)

@@ -18,6 +18,10 @@ from start to finish:
 * **older keys** — a key stored before a setting existed lacks it; the caller may pass a
   ``canonical`` function per manifest that reads the stored key through its config type (so the
   missing setting takes its default) before it is compared;
+* **locators** — where another output the key refers to lives (a stage-1 run's folder) is
+  recorded in the key but is not what identifies it (its own key and weights' digest do): dotted
+  ``locators`` are left out of the comparison, and a resumed run records their current values, so
+  a moved or copied folder resumes instead of being refused;
 * **provenance** — :func:`source_commit` names the git commit of the radarpc source tree (read from
   ``.git`` without running git when it can), for records that are kept but not compared
   (``ignore_keys``).
@@ -239,6 +243,38 @@ def _canonical(d: object) -> object:
     return json.loads(json.dumps(d))
 
 
+_MISSING = object()
+
+
+def _lookup(d: object, path: tuple[str, ...]) -> object:
+    for k in path:
+        if not isinstance(d, dict) or k not in d:
+            return _MISSING
+        d = d[k]
+    return d
+
+
+def _assign(d: dict, path: tuple[str, ...], value: object) -> None:
+    """Set ``d[path]`` where its parent dict exists (a locator of an absent reference stays absent)."""
+    parent = _lookup(d, path[:-1])
+    if isinstance(parent, dict):
+        parent[path[-1]] = value
+
+
+def _without(paths: Sequence[tuple[str, ...]], d: dict) -> dict:
+    """``d`` without the dotted ``paths`` (copied where it changes, never modified)."""
+    for path in paths:
+        if _lookup(d, path) is _MISSING:
+            continue
+        d = dict(d)
+        node = d
+        for k in path[:-1]:
+            node[k] = dict(node[k])
+            node = node[k]
+        del node[path[-1]]
+    return d
+
+
 class RunFolder:
     """A folder that one job owns, fills part by part, and resumes after an interruption.
 
@@ -255,6 +291,10 @@ class RunFolder:
         What the folder is, for messages.
     ignore_keys : sequence of str
         Top-level manifest keys that are recorded but do not identify the run (a version string).
+    locators : sequence of str
+        Dotted keys (``"ae.path"``) that say where something the run refers to lives, not what it
+        is: not compared, and brought up to date in the stored manifests when a run resumes (the
+        keys beside them, e.g. the referred run's key and digest, identify it).
     canonical : mapping of str to callable, optional
         ``{file name: function}``: the function reads that manifest as stored (a dict, without its
         ``ignore_keys``) and returns it as this run would write it, e.g. through the config type
@@ -282,7 +322,8 @@ class RunFolder:
     """
 
     def __init__(self, path: str | os.PathLike, manifests: Mapping[str, Mapping], *, what: str = "run folder",
-                 ignore_keys: Sequence[str] = (), indent: int | None = 1, owned: Sequence[str] | None = None,
+                 ignore_keys: Sequence[str] = (), locators: Sequence[str] = (), indent: int | None = 1,
+                 owned: Sequence[str] | None = None,
                  lock_output: str | os.PathLike | None = None, lock: OutputLock | None = None,
                  canonical: Mapping[str, Callable[[dict], dict]] | None = None) -> None:
         if not manifests:
@@ -291,6 +332,7 @@ class RunFolder:
         self.manifests = {str(k): _canonical(dict(v)) for k, v in manifests.items()}
         self.what = what
         self.ignore_keys = tuple(ignore_keys)
+        self.locators = tuple(tuple(k.split(".")) for k in locators)
         self.canonical = dict(canonical or {})
         unknown = sorted(set(self.canonical) - set(self.manifests))
         if unknown:
@@ -307,7 +349,7 @@ class RunFolder:
     def _key(self, d: object) -> object:
         if not isinstance(d, dict):
             return d
-        return {k: v for k, v in d.items() if k not in self.ignore_keys}
+        return _without(self.locators, {k: v for k, v in d.items() if k not in self.ignore_keys})
 
     def stored(self) -> dict[str, object | None]:
         """The manifests as found in the folder (None for a missing or unreadable one)."""
@@ -432,12 +474,29 @@ class RunFolder:
                 self.clear()
             else:
                 self.resumed = True
+                self._update_locators()
         self.path.mkdir(parents=True, exist_ok=True)
         if write_manifests:
             for name, content in self.manifests.items():
                 # a resumed run keeps what it finds, and completes what a kill left unwritten
                 if not self.resumed or not isinstance(read_json(self.path / name), dict):
                     self.write_manifest(name, content)
+
+    def _update_locators(self) -> None:
+        """Record this run's locator values in the stored manifests (the rest as stored)."""
+        for name, stored in self.stored().items():
+            if not isinstance(stored, dict):
+                continue
+            updated = _canonical(stored)
+            for path in self.locators:
+                have = _lookup(self.manifests[name], path)
+                if have is not _MISSING:
+                    _assign(updated, path, have)
+            if updated != stored:
+                from radarpc.io import atomic_write
+
+                with atomic_write(self.path / name, "w") as f:
+                    json.dump(updated, f, indent=self.indent)
 
     def write_manifest(self, name: str, content: Mapping) -> None:
         """Write manifest ``name`` atomically (its key part must be this run's)."""
@@ -446,7 +505,7 @@ class RunFolder:
         if name not in self.manifests:
             raise ValueError(f"{name} is not a manifest of {self.path}")
         want = self._key(self.manifests[name])
-        have = _canonical(dict(content))
+        have = self._key(_canonical(dict(content)))
         if {k: have.get(k) for k in want} != want:
             raise ValueError(f"manifest {name} of {self.path} would not match this run's key")
         with atomic_write(self.path / name, "w") as f:

@@ -106,6 +106,15 @@ def test_a_rerun_keeps_every_frame(generated, rald_run, colo_root, tmp_path, cap
     assert capsys.readouterr().out.splitlines()[-1] == f"wrote 0 new point clouds (2 frames) to {out}"
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*.npy")} == before
     assert _files(out) == _files(generated[0])
+    # the run moved (the same weights elsewhere): still this folder's model, its new place recorded
+    moved = tmp_path / "moved" / "run"
+    shutil.copytree(rald_run, moved)
+    assert _generate(moved, colo_root, out) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == f"wrote 0 new point clouds (2 frames) to {out}"
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*.npy")} == before
+    key = json.loads((out / "generation.json").read_text())
+    assert key["model"]["run"] == str(moved.resolve()) and key["model"]["weights"] == json.loads(
+        (generated[0] / "generation.json").read_text())["model"]["weights"]
 
 
 def test_a_killed_generation_resumes_to_the_same_files(generated, rald_run, colo_root, tmp_path, monkeypatch,

@@ -6,7 +6,7 @@ every method shares (:func:`radarpc.pipelines.predictions.fill_predictions`):
 
 * ``prediction.json`` -- the job's key: method, the dataset root (resolved) and split, the cloud
   settings (:class:`CloudConfig`), the occupancy grid and the caller's model identity (the run
-  folder and a digest of its weights);
+  folder, ``model.run``, a locator that is recorded but not compared, and a digest of its weights);
 * ``{run}/{frame:06d}.npy`` -- float32 ``(N, 3)`` Cartesian points in the single-chip radar frame,
   metres: one point per cell of the grid whose occupancy probability ``sigma(logit)`` exceeds
   ``threshold``, at the cell's centre, or with ``jitter`` uniform inside the cell in (range,
@@ -192,7 +192,8 @@ def predict_occupancy_clouds(job: OccupancyJob, model: torch.nn.Module, *,
         return {**{k: key[k] for k in ("every", "cloud", "grid", "model")},
                 "empty_frames": [{"run": r, "frame": f} for r, f in res.empty]}
 
-    with RunFolder(job.out, {PREDICTION_FILE: key}, what="prediction folder").start(overwrite=job.overwrite) as folder:
+    folder = RunFolder(job.out, {PREDICTION_FILE: key}, what="prediction folder", locators=("model.run",))
+    with folder.start(overwrite=job.overwrite) as folder:
         res = fill_predictions(folder.path, ds, predict, keep=lambda i, path: folder.done(path), method=method,
                                root=job.root, split=job.split, index_extra=extra, records=RECORDS_FILE,
                                progress=progress, desc=f"{method} {job.split}", on_warning=on_warning)

@@ -5,8 +5,8 @@ loop the OS-CFAR baseline shares (:func:`radarpc.pipelines.predictions.fill_pred
 
 * ``generation.json`` -- the job's key: method ``rald``, the dataset root (resolved) and split,
   the generation and guide configs, the occupancy grid, whether the model's frame is mirrored
-  (``mirror_azimuth``) and the caller's model identity (e.g. the run folder and a digest of its
-  weights, :func:`file_digests`);
+  (``mirror_azimuth``) and the caller's model identity (e.g. the run folder, ``model.run``, a
+  locator recorded but not compared, and a digest of its weights, :func:`file_digests`);
 * ``{run}/{frame:06d}.npy`` -- float32 ``(N, 3)`` Cartesian points in the single-chip radar frame,
   one per paired frame (:func:`radarpc.rald.generate.generate_cloud` of the frame's radar cube,
   guide points and seed :func:`radarpc.rald.generate.frame_seed`);
@@ -201,7 +201,8 @@ def fill_rald_folder(job: GenerationJob, ds: ColoRadar, key: Mapping[str, object
         return {**{k: v for k, v in key.items() if k not in ("method", "root", "split")},
                 "empty_frames": [{"run": r, "frame": f} for r, f in res.empty]}
 
-    owned = RunFolder(job.out, {GENERATION_FILE: dict(key)}, what="prediction folder")
+    # where the model's run folder is (the identity's "run") is not what it is: its weights' digest
+    owned = RunFolder(job.out, {GENERATION_FILE: dict(key)}, what="prediction folder", locators=("model.run",))
     with owned.start(overwrite=job.overwrite) as folder:
         res = fill_predictions(folder.path, ds, predict, keep=lambda i, path: folder.done(path),
                                method=str(key["method"]), root=job.root, split=job.split, index_extra=extra, records=RECORDS_FILE,

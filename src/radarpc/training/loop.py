@@ -441,7 +441,7 @@ def fit(task: Task, cfg: TrainConfig, out: str | os.PathLike, run_key: dict, *,
         device: torch.device | str | None = None, overwrite: bool = False, progress: bool = True,
         log: Callable[[str], None] = print, extra_outputs: Sequence[str] = (),
         on_step: Callable[[int], None] | None = None,
-        canonical_key: Callable[[dict], dict] | None = None) -> FitResult:
+        canonical_key: Callable[[dict], dict] | None = None, locators: Sequence[str] = ()) -> FitResult:
     """Train ``task``'s model in the run folder ``out`` (resumed when it holds the same run).
 
     Parameters
@@ -473,6 +473,9 @@ def fit(task: Task, cfg: TrainConfig, out: str | os.PathLike, run_key: dict, *,
         through the config type so that fields added since the run started take their defaults;
         applied before the comparison (:class:`~radarpc.runs.RunFolder` ``canonical``). Without
         it the stored key is compared as it is, and a field it lacks reads as missing.
+    locators : sequence of str
+        Dotted keys of ``run_key`` that say where a run it refers to lives (``"ae.path"``): not
+        compared, and updated in ``run.json`` when the run resumes (:class:`~radarpc.runs.RunFolder`).
 
     Returns
     -------
@@ -494,7 +497,7 @@ def fit(task: Task, cfg: TrainConfig, out: str | os.PathLike, run_key: dict, *,
     if env.rank == 0:
         # evaluations of the weights (radarpc evaluate's eval_* and figures) go with them
         run = RunFolder(out, {"run.json": {**run_key, "software": software}}, what="training run", indent=2,
-                        ignore_keys=("software",),
+                        ignore_keys=("software",), locators=locators,
                         canonical=None if canonical_key is None else {"run.json": canonical_key},
                         owned=("run.json", "checkpoints", str(BEST_WEIGHTS), str(LOG_CSV), "tb",
                                "eval_*", "figures", *extra_outputs))

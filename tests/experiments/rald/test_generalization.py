@@ -117,10 +117,15 @@ def test_init_starts_a_stage_from_another_runs_weights(rald_run, rald_ae_run, co
     assert load_rald(out).finished is True
     assert _train(DIT_YAML, "--data", colo_root, "--ae", ae_run, "--init", rald_run, "--out", out) == 0
     assert "already finished" in capsys.readouterr().out
-    twin = tmp_path / "twin"                       # the same weights in another folder: another start
+    twin = tmp_path / "twin"               # the same run and weights in another folder: the same start
     shutil.copytree(rald_run, twin)
+    assert _train(DIT_YAML, "--data", colo_root, "--ae", ae_run, "--init", twin, "--out", out) == 0
+    assert "already finished" in capsys.readouterr().out
+    assert json.loads((out / "run.json").read_text())["init"]["path"] == str(twin.resolve())
+    state, info = load_weights(twin / BEST_WEIGHTS)  # other weights there: another start, refused
+    save_weights(twin / BEST_WEIGHTS, {k: v + 1e-3 if v.is_floating_point() else v for k, v in state.items()}, info)
     assert _train(DIT_YAML, "--data", colo_root, "--ae", ae_run, "--init", twin, "--out", out) == 2
-    assert "differs in run.json:init.path" in capsys.readouterr().err
+    assert "differs in run.json:init.weights_sha256" in capsys.readouterr().err
     ae_out = tmp_path / "ae-ft"
     assert _train(AE_YAML, "--data", colo_root, "--init", ae_run, "--out", ae_out) == 0
     assert json.loads((ae_out / "run.json").read_text())["init"]["weights_sha256"] == file_sha256(ae_run / BEST_WEIGHTS)

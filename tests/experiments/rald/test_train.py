@@ -135,6 +135,25 @@ def test_a_changed_autoencoder_is_refused_on_resume(rald_run, ae_run, colo_root,
     assert load_rald(out).ae_status == "missing"                        # the stored autoencoder still loads
 
 
+
+def test_moved_runs_resume_and_record_their_new_place(rald_run, ae_run, colo_root, tmp_path, capsys):
+    # a study folder moved (or its stage runs copied into a shared cache): the stage-1 run is the
+    # same run with the same weights, only elsewhere
+    ae, out = tmp_path / "moved" / "ae", tmp_path / "moved" / "rald"
+    shutil.copytree(ae_run, ae)
+    shutil.copytree(rald_run, out)
+    old = json.loads((out / "run.json").read_text())
+    assert _train(DIT_YAML, "--data", colo_root, "--ae", ae, "--out", out) == 0
+    assert f"{out}: already finished" in capsys.readouterr().out
+    key = json.loads((out / "run.json").read_text())
+    assert key["ae"]["path"] == str(ae.resolve())                         # the locator follows the run
+    assert {k: v for k, v in key["ae"].items() if k != "path"} == {k: v for k, v in old["ae"].items() if k != "path"}
+    assert key["software"] == old["software"]                             # the records kept as found
+    run = load_rald(out)                 # its weights still carry the old place in their run key
+    assert run.ae_dir == ae.resolve() and run.ae_status == "same" and run.finished is True
+    want, got = _weights(rald_run / BEST_WEIGHTS), _weights(out / BEST_WEIGHTS)
+    assert all(torch.equal(want[k], got[k]) for k in want)                # nothing retrained
+
 def test_ae_option_errors(ae_run, rald_run, colo_root, tmp_path, capsys):
     cases = [
         ((AE_YAML, "--data", colo_root, "--ae", ae_run, "--out", tmp_path / "a"),

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -96,6 +97,11 @@ def test_generate_writes_the_cells_above_the_threshold_and_evaluate_points_score
     # the same command again keeps every cloud; other settings into the same folder are refused
     assert main(["generate", str(run), "--out", str(preds), "--split", "test", "--no-progress"]) == 0
     assert "wrote 0 new point clouds (2 frames)" in capsys.readouterr().out
+    moved = tmp_path / "moved"                         # the run elsewhere: the same weights, kept clouds
+    shutil.copytree(run, moved)
+    assert main(["generate", str(moved), "--out", str(preds), "--split", "test", "--no-progress"]) == 0
+    assert "wrote 0 new point clouds (2 frames)" in capsys.readouterr().out
+    assert json.loads((preds / "prediction.json").read_text())["model"]["run"] == str(moved.resolve())
     assert main(["generate", str(run), "--out", str(preds), "--split", "test", "--threshold", "0.4",
                  "--no-progress"]) == 2
     assert "--overwrite" in capsys.readouterr().err

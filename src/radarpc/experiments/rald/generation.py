@@ -13,8 +13,9 @@ official checkpoints) the generation takes
 * the coordinates: the stage-1 config's grid (:meth:`LidarData.grid`) and frame (``mirror_azimuth``),
   so that the decoded queries map back to radar-frame metres by the inverse of the map the
   training applied to the LiDAR (:meth:`LidarData.to_radar` of :meth:`LidarData.to_model`);
-* the identity in the folder's key: the run folder (resolved) and the SHA-256 of its
-  ``best.safetensors`` (both networks), so that clouds of other weights are never mixed in.
+* the identity in the folder's key: the SHA-256 of the run's ``best.safetensors`` (both networks),
+  so that clouds of other weights are never mixed in, and the run folder (resolved), recorded but
+  not compared (a locator: a moved run's rerun keeps the clouds and records the new place).
 
 From a stage-1 run (:func:`radarpc.experiments.rald.runs.load_rald_ae`) the reconstruction takes the
 autoencoder, its grid and frame as above, and the encoder's input of a frame: ``data.points`` of

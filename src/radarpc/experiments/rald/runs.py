@@ -11,7 +11,10 @@ A RaLD run folder has the detection experiment's format (:func:`radarpc.training
   <sha256 of its best.safetensors>}}`` (:func:`ae_reference`). ``ae.path`` is relative to the
   stage-2 folder when the stage-1 folder lies inside it (an imported official run is written as
   ``OUT/ae`` and ``OUT`` with ``"path": "ae"``), else absolute; a relative path is read against the
-  stage-2 folder (:func:`resolve_ae_dir`).
+  stage-2 folder (:func:`resolve_ae_dir`). The path is where the stage-1 run is, not what it is
+  (its key and weights' digest say that): it is not compared, and a resumed stage-2 run records
+  the stage-1 folder's current place (:data:`REFERENCE_LOCATORS`), so study folders can move and
+  stage runs be shared between studies.
 * a fine-tuned run of either stage (``radarpc train --init RUN``) adds ``"init"``: the run its
   weights started from, in the same form as ``"ae"`` (:func:`init_reference`).
 
@@ -59,7 +62,11 @@ from radarpc.training.checkpoint import load_model_state, load_weights
 from radarpc.training.loop import BEST_WEIGHTS, training_status
 
 __all__ = ["AutoencoderRun", "RaldRun", "rald_stage", "load_rald_ae", "load_rald", "autoencoder_run_key",
-           "diffusion_run_key", "ae_reference", "init_reference", "resolve_ae_dir", "file_sha256", "AE_STATUSES"]
+           "diffusion_run_key", "ae_reference", "init_reference", "resolve_ae_dir", "file_sha256", "AE_STATUSES",
+           "REFERENCE_LOCATORS"]
+
+REFERENCE_LOCATORS = ("ae.path", "init.path")
+"""The keys of a run key that locate the runs it builds on (compared through their key and digest)."""
 
 AE_STATUSES = ("same", "changed", "missing")
 """What :attr:`RaldRun.ae_status` says of the stage-1 folder a stage-2 run names."""
@@ -132,10 +139,14 @@ def diffusion_run_key(cfg: DiffusionExperiment, data: str | os.PathLike | None, 
 
 def _comparable(key: object) -> object:
     """A run key as two copies of one run compare it: through the config types, without the
-    software record and with the loader processes left out."""
+    software record, the loader processes and where the runs it builds on lie."""
     if not isinstance(key, dict):
         return key
-    return {k: v for k, v in canonical_key(key, num_workers=0).items() if k != "software"}
+    out = {k: v for k, v in canonical_key(key, num_workers=0).items() if k != "software"}
+    for ref in ("ae", "init"):
+        if isinstance(out.get(ref), dict):
+            out[ref] = {k: v for k, v in out[ref].items() if k != "path"}
+    return out
 
 
 def _read_rald_key(folder: Path):

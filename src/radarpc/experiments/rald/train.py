@@ -29,7 +29,7 @@ from typing import Callable, Sequence
 from radarpc.config import save_yaml, to_dict
 from radarpc.distributed import dist_env
 from radarpc.experiments.rald.config import AutoencoderExperiment, DiffusionExperiment, RaldExperiment, canonical_key
-from radarpc.experiments.rald.runs import (ae_reference, autoencoder_run_key, diffusion_run_key, file_sha256,
+from radarpc.experiments.rald.runs import (REFERENCE_LOCATORS, ae_reference, autoencoder_run_key, diffusion_run_key, file_sha256,
                                            init_reference, load_rald, load_rald_ae)
 from radarpc.experiments.rald.task import AutoencoderTask, DiffusionTask
 from radarpc.io import DataFileError
@@ -59,7 +59,8 @@ def single_root(data: str | os.PathLike | Sequence[str | os.PathLike]) -> Path:
 def _fit(task, cfg: RaldExperiment, out: Path, key: dict, device, overwrite, progress, log, on_step) -> FitResult:
     res = fit(task, cfg.train, out, key, device=device, overwrite=overwrite, progress=progress, log=log,
               extra_outputs=(CONFIG_YAML,), on_step=on_step,
-              canonical_key=functools.partial(canonical_key, num_workers=cfg.train.num_workers))
+              canonical_key=functools.partial(canonical_key, num_workers=cfg.train.num_workers),
+              locators=REFERENCE_LOCATORS)
     if dist_env().rank == 0 and not (out / CONFIG_YAML).is_file():      # under torchrun, rank 0 alone writes
         save_yaml(cfg, out / CONFIG_YAML)
     return res

@@ -6,8 +6,8 @@ From the run (:func:`radarpc.experiments.rpdnet.runs.load_occupancy_run`) the pr
 network's best weights; its input, the frame's RaLD cube as the run's training read it
 (:func:`radarpc.data.coloradar.rald_intensity` with the run's ``radar.max_intensity_db`` and the
 model's ``radar_shape``, as :class:`~radarpc.experiments.rpdnet.task.OccupancyFrames`); the target
-grid its logits stand for; and the identity in the folder's key: the run folder (resolved) and the
-SHA-256 of its ``best.safetensors``.
+grid its logits stand for; and the identity in the folder's key: the SHA-256 of its
+``best.safetensors``, and the run folder (resolved) recorded but not compared.
 """
 from __future__ import annotations
 
