@@ -297,7 +297,7 @@ class RunFolder:
         keys beside them, e.g. the referred run's key and digest, identify it).
     canonical : mapping of str to callable, optional
         ``{file name: function}``: the function reads that manifest as stored (a dict, without its
-        ``ignore_keys``) and returns it as this run would write it, e.g. through the config type
+        ``ignore_keys`` and ``locators``) and returns it as this run would write it, e.g. through the config type
         (``to_dict(from_dict(Config, d))``) so that a setting added since the run started takes
         its default instead of reading as missing. It is applied before comparing; a
         ``ValueError``, ``KeyError`` or ``TypeError`` it raises makes the stored manifest a
@@ -432,7 +432,8 @@ class RunFolder:
         write_manifests : bool
             Write the manifests of a new run now. False when the caller completes them first
             (e.g. with a calibrated value) and writes them with :meth:`write_manifest`. A resumed
-            run keeps the manifests it finds (they match, ``ignore_keys`` aside).
+            run keeps the manifests it finds (they match, ``ignore_keys`` and ``locators`` aside), with
+            the ``locators`` updated to this run's.
 
         Raises
         ------
@@ -504,8 +505,8 @@ class RunFolder:
 
         if name not in self.manifests:
             raise ValueError(f"{name} is not a manifest of {self.path}")
-        want = self._key(self.manifests[name])
-        have = self._key(_canonical(dict(content)))
+        want = {k: v for k, v in self.manifests[name].items() if k not in self.ignore_keys}
+        have = _canonical(dict(content))
         if {k: have.get(k) for k in want} != want:
             raise ValueError(f"manifest {name} of {self.path} would not match this run's key")
         with atomic_write(self.path / name, "w") as f:

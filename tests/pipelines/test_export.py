@@ -151,6 +151,34 @@ def test_predictions_as_ply(tmp_path):
         export_predictions(pred, out, progress=False)
 
 
+
+def test_moved_sources_resume_their_export(store, tmp_path):
+    import shutil
+
+    # a point store moved: the same content (its metadata), so the export resumes
+    out = tmp_path / "export"
+    export_store(store.path, out, "bin", progress=False)
+    moved = tmp_path / "elsewhere" / "pc.parquet"
+    moved.parent.mkdir()
+    shutil.move(store.path, moved)
+    res = export_store(moved, out, "bin", progress=False)
+    assert res.n_new == 0 and json.loads((out / "export.json").read_text())["source"] == str(moved.resolve())
+    # predictions whose model's run folder moved (the generation records its new place, model.run):
+    # the same clouds, the same export; other weights are another export
+    pred, ply = tmp_path / "pred", tmp_path / "ply"
+    make_predictions(pred)
+    index = {"method": "rald", "root": "/r", "split": "test", "frames": [],
+             "model": {"run": "/runs/a", "weights": {"best.safetensors": "f00"}}}
+    (pred / "index.json").write_text(json.dumps(index))
+    export_predictions(pred, ply, progress=False)
+    (pred / "index.json").write_text(json.dumps({**index, "model": {**index["model"], "run": "/moved/a"}}))
+    shutil.move(pred, tmp_path / "pred2")
+    assert export_predictions(tmp_path / "pred2", ply, progress=False).n_new == 0
+    (tmp_path / "pred2" / "index.json").write_text(
+        json.dumps({**index, "model": {"run": "/moved/a", "weights": {"best.safetensors": "ba5"}}}))
+    with pytest.raises(RunMismatchError, match="source_digest"):
+        export_predictions(tmp_path / "pred2", ply, progress=False)
+
 def test_prediction_export_errors(tmp_path):
     pred = tmp_path / "pred"
     make_predictions(pred)

@@ -22,12 +22,14 @@ becomes one ``.npz`` or ``.jsonl`` file (:func:`export_detections`).
 Ownership and resume (:class:`radarpc.runs.RunFolder`): the output folder is locked for the whole
 job; ``export.json`` is the run's key (source, its identity, format, columns), so a rerun with the
 same settings keeps the frames already written and writes the rest, and a folder holding anything
-else is refused unless ``overwrite`` (which removes only this job's entries). Every file is
+else is refused unless ``overwrite`` (which removes only this job's entries). The source's path is
+recorded, not compared (its identity is: a moved source resumes the export). Every file is
 written atomically.
 """
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -81,7 +83,8 @@ class ExportRun:
 
 
 def _run_folder(out: Path, key: dict, owned: Sequence[str]) -> RunFolder:
-    return RunFolder(out, {EXPORT_FILE: key}, what="export folder", owned=tuple(owned))
+    # the source is known by its content (the store's metadata, the predictions' digest), not its place
+    return RunFolder(out, {EXPORT_FILE: key}, what="export folder", owned=tuple(owned), locators=("source",))
 
 
 def _check_apart(source: Path, out: Path) -> None:
@@ -183,9 +186,23 @@ def _digest(paths: Sequence[Path]) -> str | None:
     found = False
     for p in paths:
         if p.is_file():
-            h.update(p.name.encode() + b"\0" + p.read_bytes())
+            data = p.read_bytes()
+            h.update(p.name.encode() + b"\0" + (_index_content(data) if p.name == INDEX_FILE else data))
             found = True
     return h.hexdigest() if found else None
+
+
+def _index_content(data: bytes) -> bytes:
+    """A prediction index as its clouds' identity: without where the model's run folder lay
+    (``model.run``, a locator the generation updates when a moved run resumes it)."""
+    try:
+        index = json.loads(data)
+    except ValueError:
+        return data
+    model = index.get("model") if isinstance(index, dict) else None
+    if not (isinstance(model, dict) and "run" in model):
+        return data
+    return json.dumps({**index, "model": {k: v for k, v in model.items() if k != "run"}}, sort_keys=True).encode()
 
 
 def export_predictions(folder: str | os.PathLike, out: str | os.PathLike, *, overwrite: bool = False,
@@ -193,8 +210,8 @@ def export_predictions(folder: str | os.PathLike, out: str | os.PathLike, *, ove
     """Write every cloud of a prediction folder as ``out/{run}/{frame:06d}.ply`` (x, y, z floats).
 
     Empty predictions give PLY files with ``element vertex 0``. The key holds a digest of the
-    folder's ``index.json`` and ``config.yaml``, so predictions made again with other parameters
-    are exported again rather than kept.
+    folder's ``index.json`` (without the model's run folder, ``model.run``) and ``config.yaml``, so
+    predictions made again with other parameters are exported again rather than kept.
 
     Raises
     ------

@@ -226,6 +226,18 @@ def test_a_study_arm_fine_tunes_an_earlier_arm(two_scene_root, tmp_path, capsys)
     assert "| `base` | generation | all / hallway |" in report
     assert main(["experiment", "density-sweep", str(study), "--out", str(out), "--data", str(two_scene_root)]) == 2
     assert "--data applies to rald-ablation" in capsys.readouterr().err
+    # the study folder moved and its stage runs reused as another study's cache: the fine-tuned arm's
+    # key names its initial run's key, whose own stage-1 path moved too; nothing is trained again
+    moved = tmp_path / "moved"
+    shutil.move(out, moved)
+    again = ["experiment", "rald-ablation", str(study), "--out", str(tmp_path / "out2"), "--cache", str(moved),
+             "--data", str(two_scene_root), "--no-progress"]
+    assert main(again) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("already finished") == 4 and "fine-tuning from" in printed
+    key = json.loads((moved / ft.stage2_dir / "run.json").read_text())
+    assert key["init"]["path"] == str((moved / base.stage2_dir).resolve())
+    assert "path" not in key["init"]["run"]["ae"]                      # the places under it are not its key
 
 
 def test_study_init_refusals(tmp_path):

@@ -50,7 +50,8 @@ from radarpc.training.loop import TrainConfig
 
 __all__ = ["STAGES", "STAGE_INPUT", "AUTOENCODER_METRICS", "DIFFUSION_METRICS", "REQUIRED_SECTIONS", "LidarData",
            "RadarInput", "EDMLossConfig", "AutoencoderExperiment", "DiffusionExperiment", "RaldExperiment",
-           "experiment_from_dict", "load_experiment", "canonical_key", "with_train"]
+           "experiment_from_dict", "load_experiment", "canonical_key", "with_train", "without_locators",
+           "RUN_REFERENCES"]
 
 STAGES: tuple[str, ...] = ("autoencoder", "diffusion")
 """RaLD's two training stages, the values of a config's ``stage`` key."""
@@ -376,7 +377,8 @@ def load_experiment(path: str | os.PathLike, *, notice: Callable[[str], None] | 
 def canonical_key(stored: Any, *, num_workers: int | None = None) -> Any:
     """A stored run key read through the config types, so that it compares equal to the key the
     same run has today: the experiment (fields added since take their defaults) and, for stage 2,
-    the recorded stage-1 run's key the same way.
+    the recorded stage-1 run's key the same way, without the places of the runs it builds on in turn
+    (:func:`without_locators`; the reference's own ``path`` is the run folder's locator).
 
     ``num_workers`` replaces the stored ``train.num_workers`` (loader processes do not change what
     a run computes, so a run may resume with another count); the stage-1 key inside a stage-2 key
@@ -391,10 +393,28 @@ def canonical_key(stored: Any, *, num_workers: int | None = None) -> Any:
     if num_workers is not None:
         cfg = with_train(cfg, num_workers=num_workers)
     out = {**stored, "experiment": to_dict(cfg)}
-    for ref in ("ae", "init"):                 # the stage-1 run, and the run a fine-tuning started from
+    for ref in RUN_REFERENCES:                 # the stage-1 run, and the run a fine-tuning started from
         r = stored.get(ref)
         if isinstance(r, dict) and isinstance(r.get("run"), dict):
-            out[ref] = {**r, "run": canonical_key(r["run"])}
+            out[ref] = {**r, "run": without_locators(canonical_key(r["run"]))}
+    return out
+
+
+RUN_REFERENCES = ("ae", "init")
+"""The entries of a run key that name another run (``{"path", "run", "weights_sha256"}``)."""
+
+
+def without_locators(key: Any) -> Any:
+    """A run key without where the runs it builds on lie: the ``path`` of its :data:`RUN_REFERENCES`,
+    and of theirs inside their recorded keys, at every depth (a run is known by its key and weights'
+    digest; its folder may move)."""
+    if not isinstance(key, dict):
+        return key
+    out = dict(key)
+    for ref in RUN_REFERENCES:
+        r = out.get(ref)
+        if isinstance(r, dict):
+            out[ref] = {k: without_locators(v) if k == "run" else v for k, v in r.items() if k != "path"}
     return out
 
 

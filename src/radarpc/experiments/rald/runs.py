@@ -7,7 +7,8 @@ A RaLD run folder has the detection experiment's format (:func:`radarpc.training
 * stage 1 (:func:`autoencoder_run_key`): ``{"experiment": <AutoencoderExperiment as a dict>,
   "data": <absolute root>}``;
 * stage 2 (:func:`diffusion_run_key`): ``{"experiment": <DiffusionExperiment>, "data": <absolute
-  root>, "ae": {"path": <stage-1 folder>, "run": <its key without "software">, "weights_sha256":
+  root>, "ae": {"path": <stage-1 folder>, "run": <its key without "software" and without the paths of
+  the runs it builds on>, "weights_sha256":
   <sha256 of its best.safetensors>}}`` (:func:`ae_reference`). ``ae.path`` is relative to the
   stage-2 folder when the stage-1 folder lies inside it (an imported official run is written as
   ``OUT/ae`` and ``OUT`` with ``"path": "ae"``), else absolute; a relative path is read against the
@@ -49,8 +50,8 @@ from pathlib import Path
 import torch
 
 from radarpc.config import to_dict
-from radarpc.experiments.rald.config import (AutoencoderExperiment, DiffusionExperiment, canonical_key,
-                                             experiment_from_dict)
+from radarpc.experiments.rald.config import (RUN_REFERENCES, AutoencoderExperiment, DiffusionExperiment,
+                                             canonical_key, experiment_from_dict, without_locators)
 from radarpc.experiments.rald.task import RaldStage2
 from radarpc.io import DataFileError
 from radarpc.models.latent_dit import LatentDiT
@@ -65,7 +66,7 @@ __all__ = ["AutoencoderRun", "RaldRun", "rald_stage", "load_rald_ae", "load_rald
            "diffusion_run_key", "ae_reference", "init_reference", "resolve_ae_dir", "file_sha256", "AE_STATUSES",
            "REFERENCE_LOCATORS"]
 
-REFERENCE_LOCATORS = ("ae.path", "init.path")
+REFERENCE_LOCATORS = tuple(f"{ref}.path" for ref in RUN_REFERENCES)
 """The keys of a run key that locate the runs it builds on (compared through their key and digest)."""
 
 AE_STATUSES = ("same", "changed", "missing")
@@ -112,7 +113,8 @@ def ae_reference(ae_dir: str | os.PathLike, out: str | os.PathLike, *, what: str
         raise FileNotFoundError(f"{ae_dir}: no {BEST_WEIGHTS} yet (the {what} run has not validated once)")
     a, o = ae_dir.resolve(), out.resolve()
     path = a.relative_to(o).as_posix() if a.is_relative_to(o) and a != o else str(a)
-    return {"path": path, "run": {k: v for k, v in key.items() if k != "software"},
+    # the run as its key says, not where it and the runs under it lie (they may move)
+    return {"path": path, "run": without_locators({k: v for k, v in key.items() if k != "software"}),
             "weights_sha256": file_sha256(best)}
 
 
@@ -142,11 +144,7 @@ def _comparable(key: object) -> object:
     software record, the loader processes and where the runs it builds on lie."""
     if not isinstance(key, dict):
         return key
-    out = {k: v for k, v in canonical_key(key, num_workers=0).items() if k != "software"}
-    for ref in ("ae", "init"):
-        if isinstance(out.get(ref), dict):
-            out[ref] = {k: v for k, v in out[ref].items() if k != "path"}
-    return out
+    return without_locators({k: v for k, v in canonical_key(key, num_workers=0).items() if k != "software"})
 
 
 def _read_rald_key(folder: Path):
