@@ -33,6 +33,7 @@ from radarpc.experiments.rald.runs import (REFERENCE_LOCATORS, ae_reference, aut
                                            init_reference, load_rald, load_rald_ae)
 from radarpc.experiments.rald.task import AutoencoderTask, DiffusionTask
 from radarpc.io import DataFileError
+from radarpc.runs import RunMismatchError, read_json
 from radarpc.training.loop import BEST_WEIGHTS, FitResult, fit
 
 __all__ = ["CONFIG_YAML", "single_root", "train_autoencoder", "train_diffusion", "train_rald"]
@@ -57,6 +58,12 @@ def single_root(data: str | os.PathLike | Sequence[str | os.PathLike]) -> Path:
 
 
 def _fit(task, cfg: RaldExperiment, out: Path, key: dict, device, overwrite, progress, log, on_step) -> FitResult:
+    stored = read_json(out / "run.json")
+    if "init" not in key and not overwrite and isinstance(stored, dict) and isinstance(stored.get("init"), dict):
+        # the key compares the entries this run has: a fine-tuning's "init" would pass unseen
+        raise RunMismatchError(f"{out} holds a run fine-tuned from {stored['init'].get('path')} (differs in "
+                               f"run.json:init); pass --init to resume it, --overwrite (overwrite=True) to replace "
+                               f"it, or choose another output")
     res = fit(task, cfg.train, out, key, device=device, overwrite=overwrite, progress=progress, log=log,
               extra_outputs=(CONFIG_YAML,), on_step=on_step,
               canonical_key=functools.partial(canonical_key, num_workers=cfg.train.num_workers),
