@@ -297,9 +297,9 @@ class RunFolder:
         keys beside them, e.g. the referred run's key and digest, identify it).
     canonical : mapping of str to callable, optional
         ``{file name: function}``: the function reads that manifest as stored (a dict, without its
-        ``ignore_keys`` and ``locators``) and returns it as this run would write it, e.g. through the config type
-        (``to_dict(from_dict(Config, d))``) so that a setting added since the run started takes
-        its default instead of reading as missing. It is applied before comparing; a
+        ``ignore_keys`` and ``locators``) and returns it as this run would write it, e.g. through
+        the config type (``to_dict(from_dict(Config, d))``) so that a setting added since the run
+        started takes its default instead of reading as missing. It is applied before comparing; a
         ``ValueError``, ``KeyError`` or ``TypeError`` it raises makes the stored manifest a
         difference (the folder then holds another run).
     indent : int, optional

@@ -10,8 +10,9 @@ the same loop :func:`~radarpc.pipelines.rald_generate.fill_rald_folder`):
   key has no kind), the dataset root (resolved) and split, the generation config without the
   sampler's fields (:data:`SAMPLER_FIELDS`: a reconstruction has no sampler), the guide config,
   the reconstruction config (the posterior decoded), the occupancy grid, ``mirror_azimuth`` and the
-  caller's model identity (the stage-1 run folder, a locator not compared, and a digest of its weights); the method differs
-  from a generation's, so the two never share a folder without ``overwrite``;
+  caller's model identity (the stage-1 run folder, a locator not compared, and a digest of its
+  weights); the method differs from a generation's, so the two never share a folder without
+  ``overwrite``;
 * ``{run}/{frame:06d}.npy`` -- float32 ``(N, 3)`` Cartesian points in the single-chip radar frame;
 * ``generation.csv`` -- per frame as a generation's, with seconds per stage of
   :data:`~radarpc.rald.reconstruct.RECONSTRUCTION_STAGES` (encoding, decoding, refinement);

@@ -118,7 +118,8 @@ def test_init_starts_a_stage_from_another_runs_weights(rald_run, rald_ae_run, co
     assert _train(DIT_YAML, "--data", colo_root, "--ae", ae_run, "--init", rald_run, "--out", out) == 0
     assert "already finished" in capsys.readouterr().out
     assert _train(DIT_YAML, "--data", colo_root, "--ae", ae_run, "--out", out) == 2      # not a fresh run's folder
-    assert f"{out} holds a run fine-tuned from {rald_run.resolve()} (differs in run.json:init)" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"{out} holds a run fine-tuned from {rald_run.resolve()} (differs in run.json:init)" in err
     twin = tmp_path / "twin"               # the same run and weights in another folder: the same start
     shutil.copytree(rald_run, twin)
     assert _train(DIT_YAML, "--data", colo_root, "--ae", ae_run, "--init", twin, "--out", out) == 0

@@ -29,8 +29,8 @@ from typing import Callable, Sequence
 from radarpc.config import save_yaml, to_dict
 from radarpc.distributed import dist_env
 from radarpc.experiments.rald.config import AutoencoderExperiment, DiffusionExperiment, RaldExperiment, canonical_key
-from radarpc.experiments.rald.runs import (REFERENCE_LOCATORS, ae_reference, autoencoder_run_key, diffusion_run_key, file_sha256,
-                                           init_reference, load_rald, load_rald_ae)
+from radarpc.experiments.rald.runs import (REFERENCE_LOCATORS, ae_reference, autoencoder_run_key, diffusion_run_key,
+                                           file_sha256, init_reference, load_rald, load_rald_ae)
 from radarpc.experiments.rald.task import AutoencoderTask, DiffusionTask
 from radarpc.io import DataFileError
 from radarpc.runs import RunMismatchError, read_json
