@@ -286,3 +286,59 @@ def test_evaluate_points_counts_empty_predictions_and_compares_over_frames_all_s
     assert common["n_frames"] == 1 and common["frames"] == [{"run": ds.runs[0].name, "frame": ds.index[1][1]}]
     assert common["methods"][0]["overall"]["chamfer_mean"] == g["frames"][1]["chamfer"]
     assert common["methods"][1]["overall"]["chamfer_mean"] == f["frames"][1]["chamfer"]
+
+
+def test_evaluate_points_scores_a_folder_once(root, tmp_path, capsys, monkeypatch):
+    import os
+
+    import radarpc.pipelines.point_eval as point_eval
+
+    ds = ColoRadar(root, "test", cube_size=None)
+    pred = _folder(tmp_path / "shifted", root, ds, "shifted", [0, 1], shift=0.3)
+    args = ["--data", str(root), "--split", "test", "--emd-points", "16"]
+    capsys.readouterr()
+    assert main(["evaluate-points", str(pred), *args]) == 0
+    first = capsys.readouterr().out
+    stored = json.loads((pred / "metrics.json").read_text())
+    assert f"wrote {pred / 'metrics.json'}" in first and stored["extra"]["scores"]["version"] == point_eval.SCORING_VERSION
+
+    def scored(*a, **k):
+        raise AssertionError("scored again")
+
+    # the same clouds, truth and settings, from a moved folder: the stored scores, the same table
+    moved = tmp_path / "moved"
+    pred.rename(moved)
+    with monkeypatch.context() as m:
+        m.setattr(point_eval, "evaluate_clouds", scored)
+        assert main(["evaluate-points", str(moved), *args]) == 0
+    again = capsys.readouterr().out
+    assert f"reused {moved / 'metrics.json'}" in again and "--rescore" in again
+    table = first.split("wrote")[0]
+    assert table.strip() and table in again
+    # scored again: another EMD size, --rescore, a changed cloud, a changed LiDAR scan
+    calls = []
+    real = point_eval.evaluate_clouds
+
+    def counting(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(point_eval, "evaluate_clouds", counting)
+    assert main(["evaluate-points", str(moved), *args[:-1], "17"]) == 0 and len(calls) == 1
+    assert main(["evaluate-points", str(moved), *args[:-1], "16"]) == 0 and len(calls) == 2
+    assert main(["evaluate-points", str(moved), *args]) == 0 and len(calls) == 2          # reused
+    assert main(["evaluate-points", str(moved), *args, "--rescore"]) == 0 and len(calls) == 3
+    k, ri, li = ds.index[0]
+    cloud = moved / ds.runs[k].name / f"{ri:06d}.npy"
+    np.save(cloud, np.load(cloud) + np.float32([0.3, 0, 0]))
+    assert main(["evaluate-points", str(moved), *args]) == 0 and len(calls) == 4
+    changed = json.loads((moved / "metrics.json").read_text())["frames"][0]["chamfer"]
+    assert changed != stored["frames"][0]["chamfer"]
+    assert changed == pytest.approx(chamfer_distance(np.load(cloud), ds.lidar_points(0)))    # the new cloud's
+    scan = ds.runs[k].lidar_path(li)
+    st = scan.stat()
+    try:
+        os.utime(scan, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+        assert main(["evaluate-points", str(moved), *args]) == 0 and len(calls) == 5
+    finally:
+        os.utime(scan, ns=(st.st_atime_ns, st.st_mtime_ns))

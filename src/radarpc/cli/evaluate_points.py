@@ -3,7 +3,7 @@
 ::
 
     radarpc evaluate-points PRED_DIR [PRED_DIR ...] --data ROOT --split test [--emd-points 2048]
-                            [--emd-seed 0] [--figures] [--out DIR] [--common-frames] [--force]
+                            [--emd-seed 0] [--figures] [--out DIR] [--common-frames] [--force] [--rescore]
 
 Scores exactly the frames each ``PRED_DIR/index.json`` lists (every paired radar frame of the
 split, or a subset such as every K-th frame), reading ``PRED_DIR/{run}/{frame:06d}.npy`` (float32
@@ -31,7 +31,10 @@ dataset's LiDAR; ``--force`` skips that check (e.g. for hand-made prediction fol
 without an index is then scored on every paired frame of the split, and frames an index lists
 outside the split are left out). Prints a per-scene Markdown
 table per folder and writes ``PRED_DIR/metrics.json`` (per frame, per scene, overall) and
-``metrics.md``, always over that folder's own frames.
+``metrics.md``, always over that folder's own frames. A folder is scored once: when its
+``metrics.json`` holds the scores of the same clouds (by SHA-256), root, split, frames and EMD
+settings, made by the same scoring, and the LiDAR and calibration files have not changed (size and
+modification time), those scores are used and the command says so; ``--rescore`` scores again.
 
 With several folders, they must list the same frames: if they do not (e.g. RaLD generated every
 10th frame, OS-CFAR every frame), nothing is scored and the command says how they differ, unless
@@ -58,13 +61,17 @@ def run_evaluate_points(args: argparse.Namespace) -> int:
 
     res = evaluate_folders(args.pred_dir, args.data, args.split, emd_points=args.emd_points, emd_seed=args.emd_seed,
                            force=args.force, figures=args.figures, out=args.out,
-                           common_frames=args.common_frames, progress=True)
+                           common_frames=args.common_frames, rescore=args.rescore, progress=True)
     for name, report in res.reports.items():
         folder = res.folders[name]
         if len(res.reports) > 1:
             print(f"## {name} ({folder})\n")
         print(report.to_markdown(), end="")
-        print(f"wrote {folder / 'metrics.json'} and {folder / 'metrics.md'}")
+        if name in res.reused:
+            print(f"reused {folder / 'metrics.json'}: the same clouds, truth, split and EMD settings were scored "
+                  f"before (--rescore scores them again)")
+        else:
+            print(f"wrote {folder / 'metrics.json'} and {folder / 'metrics.md'}")
     if res.comparison is not None:
         n = len(res.compared)
         print(f"\n## side by side ({n} frame{'' if n == 1 else 's'})\n\n{res.comparison.read_text()}", end="")
@@ -98,4 +105,7 @@ def add_parser(sub) -> None:
                    help="folder for comparison.md/.json and figures/ (default: the first PRED_DIR)")
     p.add_argument("--force", action="store_true",
                    help="score even if a PRED_DIR/index.json is missing or names another root/split")
+    p.add_argument("--rescore", action="store_true",
+                   help="score every folder again, even where its metrics.json holds the scores of the same "
+                        "clouds, truth and settings")
     p.set_defaults(func=run_evaluate_points)

@@ -607,6 +607,14 @@ class PointSetReport:
             "frames": [{**asdict(f), "empty": f.empty} for f in self.frames],
         }
 
+    @classmethod
+    def from_dict(cls, d: Mapping) -> "PointSetReport":
+        """The report :meth:`to_dict` wrote (``KeyError`` / ``TypeError`` on another layout)."""
+        frame_fields = set(FrameMetrics.__dataclass_fields__)
+        frames = [FrameMetrics(**{k: v for k, v in f.items() if k in frame_fields}) for f in d["frames"]]
+        return cls(frames, [SceneSummary(**s) for s in d["scenes"]], SceneSummary(**d["overall"]),
+                   int(d["emd_points"]), int(d["emd_seed"]), dict(d.get("extra", {})))
+
     def write(self, json_path: str | os.PathLike, markdown_path: str | os.PathLike | None = None) -> None:
         """Write the JSON (and optionally the Markdown) report atomically."""
         with atomic_write(Path(json_path), "w") as f:

@@ -23,24 +23,36 @@ curve per method (:func:`radarpc.viz.plot_cdfs`, as the seed's Figs. 6-7), as
 per scene drawn with the radar cube, the truth and every method's cloud
 (:func:`radarpc.viz.plot_cloud_comparison`) as ``out/figures/{scene}.png``. ``out`` defaults to
 the first folder.
+
+A folder's scores are computed once: when its ``metrics.json`` was written by the same scoring
+(:data:`SCORING_VERSION`) for the same root, split, frames and EMD settings, and neither a
+listed cloud (by SHA-256) nor the LiDAR and calibration files it is scored against (by size and
+modification time) have changed since (:func:`score_identity`), the stored scores are used
+(``reused``); ``rescore`` scores every folder again.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Sequence
 
-from radarpc.data.coloradar import ColoRadar, scene_of_run
+from radarpc.data.coloradar import ColoRadar, find_calib, scene_of_run
 from radarpc.eval.comparison import CDF_METRICS, cdf_panels, comparison_dict, comparison_markdown
 from radarpc.eval.pointsets import EMD_POINTS, EMD_SEED, PointSetReport, evaluate_clouds
-from radarpc.eval.predictions import INDEX_FILE, check_index, index_frames, prediction_pairs
+from radarpc.eval.predictions import INDEX_FILE, check_index, index_frames, prediction_pairs, prediction_path
 from radarpc.io import DataFileError, atomic_write
 from radarpc.pipelines.frames import comparison_views
 
-__all__ = ["PointEvaluation", "CDF_FIGURES", "method_names", "folder_items", "evaluate_folders"]
+__all__ = ["PointEvaluation", "CDF_FIGURES", "SCORING_VERSION", "method_names", "folder_items", "score_identity",
+           "evaluate_folders"]
+
+SCORING_VERSION = 1
+"""Stored scores are reused only when this version of the scoring made them: bump it with any change
+that moves a frame's numbers (the metrics, the frustum crop, the pairing of radar and LiDAR frames)."""
 
 CDF_FIGURES = {"chamfer": "cdf_chamfer.png", "emd": "cdf_emd.png", "emd_equal": "cdf_emd_equal.png"}
 """The CDF figures ``figures/`` receives, by per-frame score."""
@@ -58,6 +70,7 @@ class PointEvaluation:
     figures: tuple[Path, ...]               # the CDF figures, then one per scene (with figures)
     compared: tuple[tuple[str, int], ...] = ()   # (run, frame) the methods are compared over, split order
     common_frames: bool = False             # the folders listed different frames, compared over the common ones
+    reused: tuple[str, ...] = ()            # methods whose stored metrics.json was used, not scored again
 
 def _method(folder: Path) -> str:
     try:
@@ -126,10 +139,49 @@ def _differ_message(ds: ColoRadar, names: list[str], items: dict[str, list[int]]
             f"frames every folder lists, or evaluate the folders one at a time")
 
 
+def score_identity(ds: ColoRadar, folder: str | os.PathLike, items: Sequence[int], *, emd_points: int,
+                   emd_seed: int) -> dict:
+    """What a prediction folder's stored scores must match to be reused (module docstring): the
+    scoring version, the EMD settings, the SHA-256 of the listed clouds with their runs and frames,
+    and the size and modification time of the LiDAR scans and calibration files they are scored
+    against. Raises ``OSError`` when one of those files is missing."""
+    clouds, truth = hashlib.sha256(), hashlib.sha256()
+    for i in items:
+        k, ri, li = ds.index[i]
+        run = ds.runs[k]
+        digest = hashlib.sha256(prediction_path(folder, run.name, ri).read_bytes()).hexdigest()
+        clouds.update(f"{run.name}/{ri}:{digest};".encode())
+        st = run.lidar_path(li).stat()
+        truth.update(f"{run.name}/{ri}/{li}:{st.st_size}:{st.st_mtime_ns};".encode())
+    calib = find_calib(ds.root)
+    for f in sorted(p for p in calib.rglob("*") if p.is_file()):
+        st = f.stat()
+        truth.update(f"{f.relative_to(calib)}:{st.st_size}:{st.st_mtime_ns};".encode())
+    return {"version": SCORING_VERSION, "emd_points": int(emd_points), "emd_seed": int(emd_seed),
+            "fov": asdict(ds.fov), "clouds_sha256": clouds.hexdigest(), "truth_files_sha256": truth.hexdigest()}
+
+
+_LOCATORS = ("pred_dir", "method")
+"""Provenance in ``metrics.json`` that names, not identifies: a moved folder or another method name
+(which depends on the folders given together) keeps its scores."""
+
+
+def _stored_report(folder: Path, extra: dict) -> PointSetReport | None:
+    """The folder's ``metrics.json`` when its provenance equals ``extra`` but for the locators, else None."""
+    try:
+        d = json.loads((folder / "metrics.json").read_text())
+        stored = {k: v for k, v in d["extra"].items() if k not in _LOCATORS}
+        if stored != {k: v for k, v in json.loads(json.dumps(extra)).items() if k not in _LOCATORS}:
+            return None
+        return PointSetReport.from_dict(d)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+
+
 def evaluate_folders(folders: Sequence[str | os.PathLike], data: str | os.PathLike, split: str, *,
                      emd_points: int = EMD_POINTS, emd_seed: int = EMD_SEED, force: bool = False,
                      figures: bool = False, out: str | os.PathLike | None = None,
-                     common_frames: bool = False, progress: bool = True) -> PointEvaluation:
+                     common_frames: bool = False, rescore: bool = False, progress: bool = True) -> PointEvaluation:
     """Score each prediction folder, compare them, draw the CDFs and a frame per scene (module docstring).
 
     Raises
@@ -170,12 +222,24 @@ def evaluate_folders(folders: Sequence[str | os.PathLike], data: str | os.PathLi
     compared = tuple(_key(ds, i) for i in sorted(common))
 
     reports: dict[str, PointSetReport] = {}
+    reused: list[str] = []
     for name, p in zip(names, paths):
+        extra = {"pred_dir": str(p), "method": name, "data": str(Path(data).resolve()), "split": split,
+                 "index_checked": not force,
+                 "frames_from": "index.json" if (p / INDEX_FILE).is_file() else "split (no index, --force)"}
+        try:
+            extra["scores"] = score_identity(ds, p, items[name], emd_points=emd_points, emd_seed=emd_seed)
+        except OSError:
+            extra["scores"] = None            # a cloud is missing: scoring below names it
+        stored = None if rescore or extra["scores"] is None else _stored_report(p, extra)
+        if stored is not None:
+            stored.extra.update(pred_dir=str(p), method=name)
+            reports[name] = stored
+            reused.append(name)
+            continue
         report = evaluate_clouds(prediction_pairs(ds, p, items[name], allow_empty=True), scene_of_run,
                                  emd_points=emd_points, emd_seed=emd_seed, progress=progress)
-        report.extra = {"pred_dir": str(p), "method": name, "data": str(Path(data).resolve()), "split": split,
-                        "index_checked": not force,
-                        "frames_from": "index.json" if (p / INDEX_FILE).is_file() else "split (no index, --force)"}
+        report.extra = extra
         report.write(p / "metrics.json", p / "metrics.md")
         reports[name] = report
     shown = {n: r.subset(compared) for n, r in reports.items()} if differ else reports
@@ -207,4 +271,4 @@ def evaluate_folders(folders: Sequence[str | os.PathLike], data: str | os.PathLi
                  for n, r in shown.items()}
         for view in comparison_views(data, split, folder_of, notes=notes, items=sorted(common)):
             drawn.append(plot_cloud_comparison(view, dest / "figures" / f"{_file_name(view.scene)}.png"))
-    return PointEvaluation(reports, folder_of, comparison, tuple(drawn), compared, differ)
+    return PointEvaluation(reports, folder_of, comparison, tuple(drawn), compared, differ, tuple(reused))
