@@ -13,6 +13,7 @@ from radarpc.cli import main
 from radarpc.experiments.rald.config import load_experiment
 from radarpc.experiments.rald.runs import (ae_reference, autoencoder_run_key, diffusion_run_key, file_sha256,
                                            load_rald, load_rald_ae)
+from radarpc.experiments.rald.generation import stage1_notice
 from radarpc.experiments.rald.train import train_diffusion
 from radarpc.io import DataFileError
 from radarpc.models.latent_dit import LatentDiT
@@ -131,8 +132,17 @@ def test_a_changed_autoencoder_is_refused_on_resume(rald_run, ae_run, colo_root,
     assert "does not hold a run with these settings (differs in run.json:ae.weights_sha256)" in err
     with pytest.raises(RunMismatchError, match="ae.weights_sha256"):
         train_diffusion(load_experiment(DIT_YAML), colo_root, ae, out, progress=False)
+    assert stage1_notice(out, ae, "changed").endswith(f"its stage-1 folder {ae} holds another run or other weights "
+                                                      f"now; the autoencoder stored with the run (the one the "
+                                                      f"diffusion model was trained on) is used")
     shutil.rmtree(ae)
-    assert load_rald(out).ae_status == "missing"                        # the stored autoencoder still loads
+    run = load_rald(out)                                                 # the stored autoencoder still loads
+    assert run.ae_status == "missing" and run.ae_dir.resolve() == ae.resolve()
+    # what generation says of it: not there, not "holds no run" (a stage-2 run moved alone lands here)
+    assert f"{run.ae_dir} is not there or holds no finished stage-1 run (moved apart from this run?)" in \
+        stage1_notice(out, run.ae_dir, run.ae_status)
+    with pytest.raises(ValueError, match="ae_status must be 'changed' or 'missing', got 'same'"):
+        stage1_notice(out, ae, "same")
 
 
 

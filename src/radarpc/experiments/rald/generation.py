@@ -53,7 +53,7 @@ from radarpc.rald.voxels import model_coords
 from radarpc.training.loop import BEST_WEIGHTS
 
 __all__ = ["GenerateConfig", "load_generate_config", "with_generation", "run_root", "model_input", "encoder_input",
-           "generate_run"]
+           "generate_run", "stage1_notice"]
 
 
 @dataclass(frozen=True)
@@ -185,9 +185,7 @@ def generate_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, data: st
                              f"so far")
         say(f"{run_dir}: the {what} run has not finished ({where}); generating with its best weights so far")
     if stage == "diffusion" and run.ae_status != "same":
-        state = "holds another run or other weights now" if run.ae_status == "changed" else "holds no run any more"
-        say(f"{run_dir}: its stage-1 folder {run.ae_dir} {state}; the autoencoder stored with the run (the one the "
-            f"diffusion model was trained on) is used")
+        say(stage1_notice(run_dir, run.ae_dir, run.ae_status))
     if data is None:
         data = run_root(run)
         if data is None:
@@ -204,6 +202,20 @@ def generate_run(run_dir: str | os.PathLike, out: str | os.PathLike, *, data: st
     return generate_predictions(job, run.ae, run.dit, model_input=model_input(run), grid=run.grid,
                                 mirror_azimuth=run.ae_config.data.mirror_azimuth, model=identity,
                                 progress=progress, on_warning=on_warning)
+
+
+def stage1_notice(run_dir: str | os.PathLike, ae_dir: str | os.PathLike, ae_status: str) -> str:
+    """What generation says when a stage-2 run's stage-1 folder is not the run it trained on
+    (``ae_status`` "changed" or "missing", :data:`~radarpc.experiments.rald.runs.AE_STATUSES`)."""
+    if ae_status == "changed":
+        state = "holds another run or other weights now"
+    elif ae_status == "missing":
+        # most often the stage-2 folder was moved or copied without its stage-1 folder
+        state = "is not there or holds no finished stage-1 run (moved apart from this run?)"
+    else:
+        raise ValueError(f"stage1_notice: ae_status must be 'changed' or 'missing', got {ae_status!r}")
+    return (f"{run_dir}: its stage-1 folder {ae_dir} {state}; the autoencoder stored with the run (the one the "
+            f"diffusion model was trained on) is used")
 
 
 _OPTIONS = {"num_steps": "--steps", "posterior": "--posterior"}
