@@ -20,7 +20,7 @@ from radarpc.sensors.radial import radial_sensor
 CONFIGS = Path(__file__).parents[3] / "configs" / "study"
 KIND = {"density-sweep": "density-sweep", "ablation": "ablation", "rd-comparison": "ablation",
         "tiny-sweep": "density-sweep", "tiny-ablation": "ablation", "fps": "fps", "tiny-fps": "fps",
-        "density-sweep-short": "density-sweep"}
+        "density-sweep-short": "density-sweep", "ablation-short": "ablation"}
 
 
 def test_every_shipped_study_config_is_listed_here():
