@@ -1,5 +1,6 @@
 """Simulated roots and point stores shared by the whole test session, each built once, on first use,
-in pytest's session temporary folder.
+in pytest's session temporary folder (once per pytest-xdist worker: the README runs ``-n 2 --dist
+loadfile``, each file's tests in one worker).
 
 Every fixture here is **read-only** for tests: a test that damages, resumes or extends a root works on
 its own copy (``shutil.copytree(root, tmp_path / "copy")``) or writes its own root. Each root checks at
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 from pathlib import Path
 
 import pytest
@@ -220,3 +222,14 @@ def rald_ae_overfit(colo_hallway_root):
     grid_search = TuningGrid(windows=((9, 3, 3), (17, 7, 3)), guards=((3, 1, 1), (5, 3, 1)), ranks=(0.5, 0.75))
     oscfar = tune_oscfar([(cube.intensity_db, frames.lidar_points(0))], axes, grid_search).best_chamfer
     return cfg, {k: v.detach().clone() for k, v in model.state_dict().items()}, oscfar
+
+
+def pytest_configure(config):
+    """Under pytest-xdist (the README runs ``-n 2``) each worker's torch takes its share of the
+    cores: two workers that each spin every core's threads would wait on each other."""
+    workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
+    if workers:
+        import torch
+
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        torch.set_num_threads(max(1, cores // int(workers)))

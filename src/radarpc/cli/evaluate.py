@@ -16,8 +16,8 @@ another store), so the run's own scores stay. ``--show K`` draws K frames spread
 the split, first and last included (``RUN/figures/eval_{split}_{item}.png``): points or nothing in
 bird's-eye view with the label and predicted boxes, and the predicted probability map;
 ``--show-frames N ...`` draws the frames of these numSample values the same way.
-``RUN/figures/learning_curve.png`` always (validation F1 and training loss per epoch, from
-``log.csv``), and ``RUN/figures/eval_{split}_labels.png``: per threshold, the labels matched,
+``RUN/figures/learning_curve.png`` (validation F1 and training loss per epoch, from ``log.csv``;
+drawn again only when the log is newer), and ``RUN/figures/eval_{split}_labels.png``: per threshold, the labels matched,
 missed with a detection within 3 m (a box in the wrong place) and missed with nothing near, and
 the false alarms per frame. A folder of several runs (``--runs N``) is evaluated run by run, then
 summarised (mean and standard deviation). ``--precision bf16`` scores the same weights under bf16

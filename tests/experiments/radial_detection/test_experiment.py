@@ -405,8 +405,11 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     scored = detection.evaluate_model
     monkeypatch.setattr(detection, "evaluate_model", spy)
     fp32_doc = (out / "eval_test.json").read_text()
+    curve = out / "figures" / "learning_curve.png"
+    drawn = curve.stat().st_mtime_ns
     assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--precision", "bf16",
                  "--device", "cpu"]) == 0
+    assert curve.stat().st_mtime_ns == drawn                  # the log did not change: not drawn again
     assert seen == [torch.bfloat16]
     bf = json.loads((out / "eval_test_bf16.json").read_text())
     assert bf["precision"] == "bf16" and doc["precision"] == "fp32" and bf["metrics"]["n_frames"] == 4
@@ -452,8 +455,11 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
         return scored(model, *a, **k)
 
     monkeypatch.setattr(detection, "evaluate_model", spy_model)
+    log = out / "log.csv"
+    os.utime(log, ns=(log.stat().st_atime_ns, curve.stat().st_mtime_ns + 1))   # as if training went on
     assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--mirror-average",
                  "--device", "cpu"]) == 0
+    assert curve.stat().st_mtime_ns > log.stat().st_mtime_ns                   # drawn again, from the newer log
     assert len(models) == 1 and isinstance(models[0], MirrorAveraged) and models[0].sectors == (32, 1)
     mi = json.loads((out / "eval_test_mirror.json").read_text())
     assert mi["mirror_average"] is True and doc["mirror_average"] is False and mi["metrics"]["n_frames"] == 4

@@ -255,8 +255,9 @@ def _evaluate_folder(folder: Path, split: str, data, points, dev: torch.device, 
                      empty_frames=empty_frames, training=status)
     _write_eval(folder, res, cfg.name, frames_of_items)
     _write_detections(folder / f"{res.stem}_detections.csv", frames_of_items, found)
-    if (folder / LOG_CSV).is_file():
-        plot_learning_curves({cfg.name: folder / LOG_CSV}, folder / "figures" / "learning_curve.png")
+    curve = folder / "figures" / "learning_curve.png"
+    if (folder / LOG_CSV).is_file() and not _newer(curve, folder / LOG_CSV):     # drawn once per log, not per evaluation
+        plot_learning_curves({cfg.name: folder / LOG_CSV}, curve)
     shown = _shown(ds, show, collate) + [(i, collate([ds[i]])) for i in drawn]
     if shown:
         with torch.inference_mode(), autocast_context(precision, dev):
@@ -313,6 +314,11 @@ def _scored_on(scored: list[tuple[Path, Path | None]], own: list[tuple[Path, Pat
     if any(store is not None and own_store.get(root, store) != store for root, store in scored):
         parts.append("+".join(store.stem for _, store in scored))
     return "_".join(parts)
+
+
+def _newer(path: Path, than: Path) -> bool:
+    """Whether ``path`` exists and was written after ``than`` (at the same instant counts as not newer)."""
+    return path.is_file() and path.stat().st_mtime_ns > than.stat().st_mtime_ns
 
 
 def _shown(ds, k: int, collate) -> list[tuple[int, DetectionBatch]]:
