@@ -326,11 +326,13 @@ def _random_scene(cfg, n, g):
 def test_screened_beamforming_gives_the_exact_points(selection):
     cfg = RADIAL_S
     g = torch.Generator().manual_seed(7)
-    rd = synthesize_rd(cfg, [_random_scene(cfg, 40, g) for _ in range(4)], noise=True, generator=g)
+    # two frames at density 0.25: a few hundred points (the screen's bfloat16 GEMM takes ~10 ms a
+    # point on CPUs without native bfloat16)
+    rd = synthesize_rd(cfg, [_random_scene(cfg, 40, g) for _ in range(2)], noise=True, generator=g)
     calib = make_calibration(cfg)
-    exact = SpectralPointCloud(cfg, calib, density=0.5, beamforming="exact")(rd)
-    fast = SpectralPointCloud(cfg, calib, density=0.5, beamforming="screened")(rd)
-    assert exact.num_points > 1000
+    exact = SpectralPointCloud(cfg, calib, density=0.25, beamforming="exact")(rd)
+    fast = SpectralPointCloud(cfg, calib, density=0.25, beamforming="screened")(rd)
+    assert exact.num_points > 250
     for name in ("offset", "range_bin", "doppler_bin", "doppler_full", "snr", "azimuth_deg", "elevation_deg"):
         assert torch.equal(getattr(exact, name), getattr(fast, name)), name
     torch.testing.assert_close(fast.amplitude, exact.amplitude, rtol=2e-6, atol=0)
