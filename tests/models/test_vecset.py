@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import copy
 import math
-import time
 
 import pytest
 import torch
@@ -329,7 +328,6 @@ def test_tiny_autoencoder_overfits_one_frames_occupancy(one_thread):
     steps = 1000
     opt = torch.optim.AdamW(model.parameters(), lr=3e-3, weight_decay=0.0)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=3e-3, total_steps=steps, pct_start=0.1)
-    t0 = time.process_time()
     model.train()
     for _ in range(steps):
         # fresh queries each step, RaLD's 6.25 % in occupied cells
@@ -340,8 +338,6 @@ def test_tiny_autoencoder_overfits_one_frames_occupancy(one_thread):
         loss.backward()
         opt.step()
         sched.step()
-    cpu = time.process_time() - t0
     bce, iou = scores()
-    assert cpu < 60, f"{cpu:.1f} s of CPU time"
     assert bce < bce0 / 15, (bce0, bce)                 # ~0.68 -> ~0.03 over every cell centre
     assert iou > 0.75, iou                              # the decoded occupied cells are the frame's
