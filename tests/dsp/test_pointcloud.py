@@ -326,7 +326,7 @@ def _random_scene(cfg, n, g):
 def test_screened_beamforming_gives_the_exact_points(selection):
     cfg = RADIAL_S
     g = torch.Generator().manual_seed(7)
-    # two frames at density 0.25: a few hundred points (the screen's bfloat16 GEMM takes ~10 ms a
+    # two frames at density 0.25: a few hundred points (the screen's bfloat16 GEMM takes milliseconds a
     # point on CPUs without native bfloat16)
     rd = synthesize_rd(cfg, [_random_scene(cfg, 40, g) for _ in range(2)], noise=True, generator=g)
     calib = make_calibration(cfg)
