@@ -184,6 +184,26 @@ def test_the_time_limit_stops_a_run_and_its_row_says_so(sweep, finished, tmp_pat
     assert any("stopped at the time limit of 1 min, at step 2" in line for line in logs)
     assert row["training"]["cut_at_time_limit"] is True and row["training"]["finished"] is False
     assert row["training"]["weights_step"] == 1 and row["key"]["time_limit_min"] == 1.0
+    # a raised limit: the cut run trains on from its folder to the end; then, under a higher limit
+    # still, its row (not cut) is the same run's and is reused; a lowered limit is refused
+    raised = dataclasses.replace(cfg, budget=Budget(epochs=2, time_limit_min=10.0))
+    logs.clear()
+    outcome = run_grid(study_grid(raised), tmp_path / "cut", progress=False, log=logs.append,
+                       cache=sweep.out / "cache")
+    row = outcome.rows[0]
+    assert outcome.trained == [row["run"]]
+    assert any("cut by the earlier time limit of 1 min; it trains on" in line for line in logs)
+    assert any("resuming" in line for line in logs)                  # from the cut run's checkpoint
+    assert row["training"]["finished"] is True and row["training"]["cut_at_time_limit"] is False
+    assert row["key"]["time_limit_min"] == 10.0
+    logs.clear()
+    higher = dataclasses.replace(cfg, budget=Budget(epochs=2, time_limit_min=20.0))
+    again = run_grid(study_grid(higher), tmp_path / "cut", progress=False, log=logs.append, cache=sweep.out / "cache")
+    assert again.reused == [row["run"]] and again.rows == [row]
+    assert any("under a time limit of 10 min that did not cut it" in line for line in logs)
+    with pytest.raises(ValueError, match=r"time_limit_min"):
+        run_grid(study_grid(dataclasses.replace(cfg, budget=Budget(epochs=2, time_limit_min=5.0))), tmp_path / "cut",
+                 progress=False, log=lambda s: None, cache=sweep.out / "cache")
     # a limit reached before the first validation leaves nothing to score: said, not scored
     clock2 = iter(range(0, 10**6, 100))
     monkeypatch.setattr(runner, "time", SimpleNamespace(perf_counter=lambda: float(next(clock2))))

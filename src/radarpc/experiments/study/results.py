@@ -28,7 +28,8 @@ from radarpc.experiments.study.grid import Grid, GridRun
 from radarpc.io import DataFileError, atomic_write
 
 __all__ = ["ROW_FORMAT", "RESULTS_DIR", "REQUIRED_FIELDS", "run_key", "data_identity", "plain_json", "write_row",
-           "write_named_row", "read_rows", "rows_format", "flat_differences", "key_differences", "check_rows"]
+           "write_named_row", "read_rows", "rows_format", "flat_differences", "key_differences", "under_raised_limit",
+           "check_rows"]
 
 ROW_FORMAT = "radarpc study result row 1"
 """The ``format`` every row states; a row of another format is refused."""
@@ -163,8 +164,24 @@ def key_differences(stored: dict, key: dict) -> list[str]:
     return flat_differences(_readable(stored, key["experiment"]["train"]["num_workers"]), key)
 
 
+def under_raised_limit(row: dict, key: dict) -> str | None:
+    """How a result row whose key differs from ``key`` stands when the only difference is a raised
+    time limit (``time_limit_min`` higher, or none): ``"finished"`` if the limit did not cut its run
+    (the run under the higher limit is the same run, to the same weights), ``"resume"`` if it did (the
+    run trains on, from its folder's checkpoint when there is one). ``None`` for any other difference,
+    a lowered limit among them (the run might not have ended within it)."""
+    old, new = row["key"].get("time_limit_min"), key.get("time_limit_min")
+    raised = old is not None and (new is None or new > old)
+    if not raised or key_differences({**row["key"], "time_limit_min": new}, key):
+        return None
+    return "resume" if row.get("training", {}).get("cut_at_time_limit") else "finished"
+
+
 def check_rows(grid: Grid, out: str | os.PathLike, rows: dict[str, dict]) -> dict[str, dict]:
     """The rows of ``grid``'s runs that are finished (present with a matching key), by run id.
+
+    A row that differs only by a lower time limit that did not cut its run is finished too; one
+    that such a limit cut is left out, so its run trains on (:func:`under_raised_limit`).
 
     Raises
     ------
@@ -177,7 +194,12 @@ def check_rows(grid: Grid, out: str | os.PathLike, rows: dict[str, dict]) -> dic
         row = rows.get(run.id)
         if row is None:
             continue
-        diff = key_differences(row["key"], run_key(grid, run))
+        key = run_key(grid, run)
+        diff = key_differences(row["key"], key)
+        if diff and (raised := under_raised_limit(row, key)) is not None:
+            if raised == "finished":
+                finished[run.id] = row
+            continue
         if diff:
             more = f" (and {len(diff) - 3} more)" if len(diff) > 3 else ""
             bad.append(f"{run.id}: {'; '.join(diff[:3])}{more}")

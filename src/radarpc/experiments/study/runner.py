@@ -152,11 +152,17 @@ def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress
         head = f"[{k}/{n}] {run.id}"
         if run.id in finished:
             row = finished[run.id]
-            log(f"{head}: finished earlier, result row reused (F1@0.2 {_num(row['metrics'].get('f1_fixed'))}); "
-                f"not trained again")
+            limit = row["key"].get("time_limit_min")
+            under = (f", under a time limit of {limit:g} min that did not cut it" if limit != grid.budget.time_limit_min
+                     else "")
+            log(f"{head}: finished earlier{under}, result row reused (F1@0.2 "
+                f"{_num(row['metrics'].get('f1_fixed'))}); not trained again")
             outcome.rows.append(row)
             outcome.reused.append(run.id)
             continue
+        if run.id in rows and rows[run.id]["training"].get("cut_at_time_limit"):
+            log(f"{head}: its row was cut by the earlier time limit of {rows[run.id]['key'].get('time_limit_min'):g} "
+                f"min; it trains on under this one")
         twin = by_key.get(_key_text(run_key(grid, run)))
         if twin is not None:
             row = _twin_row(grid, run, twin)
