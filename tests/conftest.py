@@ -225,11 +225,16 @@ def rald_ae_overfit(colo_hallway_root):
 
 
 def pytest_configure(config):
-    """Under pytest-xdist (the README runs ``-n 2``) each worker's torch takes its share of the
-    cores: two workers that each spin every core's threads would wait on each other."""
+    """Under pytest-xdist (the README runs ``-n 2``) each worker takes its share of the cores: its
+    torch, its BLAS and the processes its tests start (through ``OMP_NUM_THREADS``). Two workers
+    that each spin every core's threads would wait on each other."""
     workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
     if workers:
         import torch
+        from threadpoolctl import threadpool_limits
 
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        torch.set_num_threads(max(1, cores // int(workers)))
+        share = max(1, cores // int(workers))
+        torch.set_num_threads(share)
+        threadpool_limits(share)
+        os.environ.setdefault("OMP_NUM_THREADS", str(share))

@@ -19,7 +19,8 @@ reference), scores its best-validation weights on the test split (F1 at IoU 0.5 
 density, tau, times; no weights). A run whose row is present is finished and never trained again;
 commit ``OUT/results/`` and the study resumes on another machine. Run the same command again after
 an interruption: finished runs are reused (it says so), a killed run resumes from its last
-checkpoint. A row made with another config of the same run is refused, naming what differs.
+checkpoint. A row made with another config of the same run is refused, naming what differs, except
+a raised ``time_limit_min``: rows it would not have cut are reused, runs the old limit cut train on.
 ``--plan`` lists the runs and which are finished, and does nothing else. ``radarpc report OUT``
 makes the tables and figures.
 

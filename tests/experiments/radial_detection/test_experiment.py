@@ -405,8 +405,9 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
     scored = detection.evaluate_model
     monkeypatch.setattr(detection, "evaluate_model", spy)
     fp32_doc = (out / "eval_test.json").read_text()
-    curve = out / "figures" / "learning_curve.png"
+    curve, log = out / "figures" / "learning_curve.png", out / "log.csv"
     drawn = curve.stat().st_mtime_ns
+    os.utime(log, ns=(log.stat().st_atime_ns, drawn - 10**9))  # older than the curve, on coarse-mtime file systems too
     assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--precision", "bf16",
                  "--device", "cpu"]) == 0
     assert curve.stat().st_mtime_ns == drawn                  # the log did not change: not drawn again
@@ -455,7 +456,6 @@ def test_train_and_evaluate_cli(root, store, tmp_path, capsys, monkeypatch):
         return scored(model, *a, **k)
 
     monkeypatch.setattr(detection, "evaluate_model", spy_model)
-    log = out / "log.csv"
     os.utime(log, ns=(log.stat().st_atime_ns, curve.stat().st_mtime_ns + 1))   # as if training went on
     assert main(["evaluate", str(out), "--split", "test", "--fps-frames", "1", "--mirror-average",
                  "--device", "cpu"]) == 0

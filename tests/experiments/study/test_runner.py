@@ -192,15 +192,22 @@ def test_the_time_limit_stops_a_run_and_its_row_says_so(sweep, finished, tmp_pat
                        cache=sweep.out / "cache")
     row = outcome.rows[0]
     assert outcome.trained == [row["run"]]
-    assert any("cut by the earlier time limit of 1 min; it trains on" in line for line in logs)
+    assert any("cut by the earlier time limit of 1 min; it trains on under this one, from its run folder" in line
+               for line in logs)
     assert any("resuming" in line for line in logs)                  # from the cut run's checkpoint
     assert row["training"]["finished"] is True and row["training"]["cut_at_time_limit"] is False
     assert row["key"]["time_limit_min"] == 10.0
-    logs.clear()
-    higher = dataclasses.replace(cfg, budget=Budget(epochs=2, time_limit_min=20.0))
-    again = run_grid(study_grid(higher), tmp_path / "cut", progress=False, log=logs.append, cache=sweep.out / "cache")
-    assert again.reused == [row["run"]] and again.rows == [row]
-    assert any("under a time limit of 10 min that did not cut it" in line for line in logs)
+    # the same weights and scores as the run the fixture trained without a limit
+    a, b = _weights(sweep.out / RUN1 / "best.safetensors"), _weights(tmp_path / "cut" / RUN1 / "best.safetensors")
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert row["metrics"] == read_rows(sweep.out)[RUN1]["metrics"]
+    for limit in (20.0, None):                                       # higher still, or none
+        logs.clear()
+        higher = dataclasses.replace(cfg, budget=Budget(epochs=2, time_limit_min=limit))
+        again = run_grid(study_grid(higher), tmp_path / "cut", progress=False, log=logs.append,
+                         cache=sweep.out / "cache")
+        assert again.reused == [row["run"]] and again.rows == [row]
+        assert any("under a time limit of 10 min that did not cut it" in line for line in logs)
     with pytest.raises(ValueError, match=r"time_limit_min"):
         run_grid(study_grid(dataclasses.replace(cfg, budget=Budget(epochs=2, time_limit_min=5.0))), tmp_path / "cut",
                  progress=False, log=lambda s: None, cache=sweep.out / "cache")

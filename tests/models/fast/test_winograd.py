@@ -75,9 +75,10 @@ def test_a_wrong_transform_breaks_the_bound(monkeypatch):
 
 
 def test_compiled_transforms_agree_with_the_bound():
-    # one block of every tile row (one input graph and one output graph: each graph costs ~30 s of
-    # C++ compilation on a cold cache, and the block positions are the eager code's, tested above
-    # and in test_any_memory_layout) on a crop of a channels-last tensor, which is read without a copy
+    # one block holding all three tile rows (one input graph, padded above and cut below, and one
+    # output graph: each graph costs tens of seconds of Inductor code generation on a cold cache),
+    # on a crop of a channels-last tensor, which is read without a copy. The middle and last block
+    # positions (pad_top 0) compile separately and are tested eagerly only (test_any_memory_layout)
     g = torch.Generator().manual_seed(2)
     full = torch.randn(2, 3, 10, 9, generator=g).contiguous(memory_format=torch.channels_last)
     x = full[:, :, :, 1:8]

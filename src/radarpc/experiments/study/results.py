@@ -12,7 +12,9 @@ The key (:func:`run_key`) is what makes a run this run: the resolved experiment 
 length and the seed applied), the input kind, the density and the conversion settings, the sensor
 and the data (the simulations, or the roots' folder names), the evaluation split, the time limit.
 A row whose key differs from the config's is refused, with the fields that differ
-(:func:`check_rows`): remove the row (and its run folder) to train that run again.
+(:func:`check_rows`): remove the row (and its run folder) to train that run again. The one
+difference allowed is a raised time limit (:func:`under_raised_limit`): a row it would not have cut
+stays finished, and a run the old limit cut trains on.
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ from radarpc.io import DataFileError, atomic_write
 
 __all__ = ["ROW_FORMAT", "RESULTS_DIR", "REQUIRED_FIELDS", "run_key", "data_identity", "plain_json", "write_row",
            "write_named_row", "read_rows", "rows_format", "flat_differences", "key_differences", "under_raised_limit",
-           "check_rows"]
+           "cut_by_limit", "check_rows"]
 
 ROW_FORMAT = "radarpc study result row 1"
 """The ``format`` every row states; a row of another format is refused."""
@@ -174,7 +176,12 @@ def under_raised_limit(row: dict, key: dict) -> str | None:
     raised = old is not None and (new is None or new > old)
     if not raised or key_differences({**row["key"], "time_limit_min": new}, key):
         return None
-    return "resume" if row.get("training", {}).get("cut_at_time_limit") else "finished"
+    return "resume" if cut_by_limit(row) else "finished"
+
+
+def cut_by_limit(row: dict) -> bool:
+    """Whether the study's time limit stopped the run of ``row`` before its last step."""
+    return bool(row.get("training", {}).get("cut_at_time_limit"))
 
 
 def check_rows(grid: Grid, out: str | os.PathLike, rows: dict[str, dict]) -> dict[str, dict]:
@@ -186,8 +193,8 @@ def check_rows(grid: Grid, out: str | os.PathLike, rows: dict[str, dict]) -> dic
     Raises
     ------
     ValueError
-        A row of a run of the grid holds another key: every such run is named with its first
-        differing fields, and what to do.
+        A row of a run of the grid holds another key (other than by a raised time limit): every
+        such run is named with its first differing fields, and what to do.
     """
     finished, bad = {}, []
     for run in grid.runs:

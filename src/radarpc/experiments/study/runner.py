@@ -4,7 +4,8 @@ and its result row. One runner for every study kind.
 For each run of the :class:`~radarpc.experiments.study.grid.Grid`, in order:
 
 1. a result row with the run's key in ``OUT/results/``: the run is finished, and reused (a row
-   with another key is refused before any work, :func:`~radarpc.experiments.study.results.check_rows`);
+   with another key is refused before any work, :func:`~radarpc.experiments.study.results.check_rows`,
+   unless only the time limit was raised: a run it did not cut is finished, one it cut trains on);
 2. else its inputs (:class:`~radarpc.experiments.study.inputs.StudyInputs`: roots, point stores,
    sparse-RD roots; those of every run to train are made first, root by root, and cached);
 3. training in ``OUT/RUN`` through the detection experiment's
@@ -36,7 +37,7 @@ from radarpc.training.loop import training_status
 from radarpc.experiments.radial_detection.train import train_runs
 from radarpc.experiments.study.grid import Grid, GridRun
 from radarpc.experiments.study.inputs import StudyInputs
-from radarpc.experiments.study.results import ROW_FORMAT, check_rows, read_rows, run_key, write_row
+from radarpc.experiments.study.results import ROW_FORMAT, check_rows, cut_by_limit, read_rows, run_key, write_row
 from radarpc.io import atomic_write
 from radarpc.runs import OutputLock, RunMismatchError, check_writable
 from radarpc.training.checkpoint import software_record
@@ -118,7 +119,8 @@ def run_grid(grid: Grid, out: str | os.PathLike, *, cache: str | os.PathLike | N
     Raises
     ------
     ValueError
-        A result row of a run of the grid holds another key (before any work).
+        A result row of a run of the grid holds another key, other than by a raised time limit
+        (before any work).
     """
     out = Path(out)
     check_writable(out, "study output")
@@ -160,9 +162,6 @@ def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress
             outcome.rows.append(row)
             outcome.reused.append(run.id)
             continue
-        if run.id in rows and rows[run.id]["training"].get("cut_at_time_limit"):
-            log(f"{head}: its row was cut by the earlier time limit of {rows[run.id]['key'].get('time_limit_min'):g} "
-                f"min; it trains on under this one")
         twin = by_key.get(_key_text(run_key(grid, run)))
         if twin is not None:
             row = _twin_row(grid, run, twin)
@@ -171,6 +170,11 @@ def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress
             outcome.rows.append(row)
             outcome.reused.append(run.id)
             continue
+        if run.id in rows and cut_by_limit(rows[run.id]):
+            where = ("from its run folder" if (out / run.id / LOG_CSV).is_file()
+                     else "from the start (its run folder is not here)")
+            log(f"{head}: its row was cut by the earlier time limit of {rows[run.id]['key']['time_limit_min']:g} "
+                f"min; it trains on under this one, {where}")
         row = _train_and_score(grid, run, out, inputs, device, progress, log, head, command, config_file, on_step)
         by_key[_key_text(run_key(grid, run))] = row
         outcome.rows.append(row)
