@@ -192,6 +192,22 @@ def test_demo_config_refuses_bad_densities():
         DemoConfig(densities=(0.057, 0.02, 0.2))
 
 
+def test_step_and_batch_options_reach_the_config(monkeypatch, tmp_path, capsys):
+    import radarpc.cli.demo as demo_cli
+
+    seen = []
+    monkeypatch.setattr(demo_cli, "run_demo", lambda cfg: seen.append(cfg))
+    assert main(["demo", "--out", str(tmp_path), "--pillars-steps", "500", "--fftradnet-steps", "1000",
+                 "--batch-size", "8"]) == 0
+    assert (seen[0].pillars_steps, seen[0].fftradnet_steps, seen[0].batch_size) == (500, 1000, 8)
+    assert main(["demo", "--tiny", "--out", str(tmp_path)]) == 0     # unset: the preset's
+    tiny = DemoConfig.preset(tiny=True)
+    assert (seen[1].pillars_steps, seen[1].fftradnet_steps, seen[1].batch_size) == \
+        (tiny.pillars_steps, tiny.fftradnet_steps, tiny.batch_size)
+    assert main(["demo", "--out", str(tmp_path), "--fftradnet-steps", "0"]) != 0
+    assert "fftradnet_steps must be >= 1, got 0" in capsys.readouterr().err
+
+
 def test_most_labelled_frame_is_the_first_of_the_largest_count():
     ds = SimpleNamespace(frame_ids=[4, 7, 9, 12], label_tensor=lambda i: torch.zeros((0, 2, 2, 1)[i], 14))
     assert _most_labelled(ds) == (7, 2)                  # a tie: the first in numSample order

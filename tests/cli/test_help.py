@@ -73,7 +73,8 @@ def test_every_help_is_plain_text_with_defaults():
                 assert action.help, f"{name} {action.option_strings[0]} has no help"
     assert "Examples:" in parsers["radarpc pointcloud"].format_help()
     demo = parsers["radarpc demo"].format_help()
-    for opt in ("--sequences", "--frames-per-sequence", "--colo-frames", "--seed", "--device"):
+    for opt in ("--sequences", "--frames-per-sequence", "--colo-frames", "--seed", "--device", "--pillars-steps",
+                "--fftradnet-steps", "--batch-size"):
         assert opt in demo
     assert "(default 150," in demo and "(default 4," in demo and "(default 6," in demo and "(default 0," in demo
     assert "--tiny" in demo and "--data ROOT" in demo

@@ -61,9 +61,11 @@ class DemoConfig:
     enrich: str = "rd3,sector32"            # SpectralPillars' enrichments (RD neighbourhoods, 32 angle sectors)
     pillars: str = "spectralpillars-s"      # SpectralPillars variant of radarpc.models.MODELS
     fftradnet: str = "fftradnet-s"          # FFTRadNet variant (its input sizes follow the root's sensor)
-    pillars_steps: int = 300                # SpectralPillars optimizer steps
-    fftradnet_steps: int = 120              # FFTRadNet optimizer steps
-    batch_size: int = 8                     # training batch (both models)
+    # The step budgets hold the demo under 10 minutes on 2 AVX2-only cores in fp32 (README); a GPU
+    # or more time buys more with --pillars-steps / --fftradnet-steps.
+    pillars_steps: int = 200                # SpectralPillars optimizer steps
+    fftradnet_steps: int = 60               # FFTRadNet optimizer steps
+    batch_size: int = 4                     # training batch (both models)
     statistics_frames: int = 64             # training frames of FFTRadNet's input normalisation
     num_workers: int = 0                    # data-loading processes of training
     precision: str = "auto"                 # training precision: auto (bf16 where the CPU has it natively), fp32
@@ -618,13 +620,22 @@ def add_parser(sub) -> None:
                    help=f"radar frames per ColoRadar run (default {d.colo_frames}, --tiny {t.colo_frames}; scenes "
                         f"{d.colo_scenes}, {d.colo_runs_per_scene} runs each)")
     p.add_argument("--seed", type=int, default=None, help=f"simulator seed (default {d.seed}, --tiny {t.seed})")
+    p.add_argument("--pillars-steps", type=int, default=None,
+                   help=f"SpectralPillars optimizer steps (default {d.pillars_steps}, --tiny {t.pillars_steps})")
+    p.add_argument("--fftradnet-steps", type=int, default=None,
+                   help=f"FFTRadNet optimizer steps (default {d.fftradnet_steps}, --tiny {t.fftradnet_steps}; it "
+                        f"finds vehicles after about 1,000 steps of 8 frames)")
+    p.add_argument("--batch-size", type=int, default=None,
+                   help=f"training batch of both models (default {d.batch_size}, --tiny {t.batch_size})")
     p.add_argument("--device", default=None,
                    help="torch device: cpu, cuda, cuda:1, ... (default: a GPU when there is one, else the CPU)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars in the steps")
 
     def run(a) -> int:
         changes = {k: v for k, v in (("sequences", a.sequences), ("frames_per_sequence", a.frames_per_sequence),
-                                     ("colo_frames", a.colo_frames), ("seed", a.seed)) if v is not None}
+                                     ("colo_frames", a.colo_frames), ("seed", a.seed),
+                                     ("pillars_steps", a.pillars_steps), ("fftradnet_steps", a.fftradnet_steps),
+                                     ("batch_size", a.batch_size)) if v is not None}
         out = Path(a.out) if a.out is not None else Path("demo-tiny" if a.tiny else "demo")
         cfg = DemoConfig.preset(a.tiny, out=out, sensor=a.sensor, device=a.device, progress=not a.no_progress,
                                 data=None if a.data is None else Path(a.data), **changes)
