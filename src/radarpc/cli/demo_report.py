@@ -273,8 +273,8 @@ def write_report(cfg, paths, steps: list, *, device: str, frame: int, frame_note
         L += ["", f"FFTRadNet found no vehicle in its {training['fftradnet']['steps']} steps: it must learn each "
               "vehicle's angle from the phases of the receive channels. In radarpc's longer trainings on simulated "
               "`radial-s` cubes (" + _docs_link("detection.md", out) + ") its first validation, after about 1,000 "
-              "steps of 8 frames, already found vehicles (F1 about 0.25): 13 minutes on the 2-core Intel Xeon of "
-              "those results, about 50 on 2 AVX2-only cores. The demo's budget keeps it under 10 minutes on a CPU; "
+              "steps of 8 frames, already found vehicles (F1 about 0.25), tens of minutes on 2 CPU cores. The demo's "
+              "budget keeps it under 10 minutes on a CPU; "
               "with a GPU or more time, `radarpc demo --fftradnet-steps 1000 --batch-size 8` trains it that far."]
     L += ["", f"![SpectralPillars' learning curve]({rel(paths.run('spectralpillars') / 'figures' / 'learning_curve.png')})",
           "", "### Scores on the test split", "",
