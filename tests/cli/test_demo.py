@@ -208,6 +208,64 @@ def test_step_and_batch_options_reach_the_config(monkeypatch, tmp_path, capsys):
     assert "fftradnet_steps must be >= 1, got 0" in capsys.readouterr().err
 
 
+def test_default_budgets_reach_the_training_configs():
+    from radarpc.cli.demo import experiment_configs
+    from radarpc.sensors.radial import radial_sensor
+
+    d = DemoConfig()
+    assert (d.pillars_steps, d.fftradnet_steps, d.batch_size) == (200, 60, 4)
+    configs = experiment_configs(DemoConfig(fftradnet_steps=1000, batch_size=8), radial_sensor("radial-s"))
+    assert configs["fftradnet"].train.max_steps == 1000 and configs["spectralpillars"].train.max_steps == 200
+    for c in configs.values():
+        assert c.train.batch_size == c.train.eval_batch_size == 8
+
+
+def test_fftradnet_note_only_when_it_found_nothing():
+    from radarpc.cli.demo_report import LONG_FFTRADNET_FRAMES, fftradnet_note
+
+    link = "`docs/results/detection.md`"
+    short = fftradnet_note(DemoConfig(), {"steps": 60, "best_f1": 0.0}, link)
+    assert "found no vehicle" in short[1] and "in its 60 steps of 4 frames" in short[1]
+    assert "`radarpc demo --fftradnet-steps 1000 --batch-size 8`" in short[1]
+    long = fftradnet_note(DemoConfig(fftradnet_steps=1000, batch_size=8),
+                          {"steps": 1000, "best_f1": 0.0}, link)
+    assert "found no vehicle" in long[1] and "--fftradnet-steps" not in long[1]      # no advice to do it again
+    assert 1000 * 8 >= LONG_FFTRADNET_FRAMES
+    assert fftradnet_note(DemoConfig(), {"steps": 60, "best_f1": 0.01}, link) == []
+    assert fftradnet_note(DemoConfig.preset(tiny=True), {"steps": 2, "best_f1": 0.0}, link) == []
+
+
+def test_a_training_finished_with_other_settings_is_replaced_not_refused(tmp_path, monkeypatch):
+    """The demo's own run folder holding a finished run of other settings: the step passes
+    --overwrite (else `radarpc train` refuses it) and drops the stale record first; without such
+    a record the command runs as given (a killed run of the same settings resumes)."""
+    import radarpc.cli.runner as runner
+    from radarpc.cli.demo import DemoPaths, DemoStep, _execute, _record_path
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "best.safetensors").write_bytes(b"")
+    ran = []
+    monkeypatch.setattr(runner, "run_command", lambda parser, argv: ran.append(argv) or 0)
+    paths = DemoPaths(DemoConfig(out=tmp_path))
+    step = DemoStep("train X", "train-x", "radial", ["train", "cfg.yaml", "--out", str(out)], "why",
+                    outputs=[out / "best.safetensors"], key={"steps": 2}, replaces_stale=True)
+    _execute(step, paths, "1/1", True, lambda s: None)                      # no record: as given
+    assert ran[-1] == step.argv and not step.reused
+    _execute(step, paths, "1/1", True, lambda s: None)                      # its own record: reused
+    assert len(ran) == 1 and step.reused
+    changed = DemoStep("train X", "train-x", "radial", step.argv, "why", outputs=step.outputs, key={"steps": 3},
+                       replaces_stale=True)
+    _execute(changed, paths, "1/1", True, lambda s: None)                   # other settings: replaced
+    assert ran[-1] == [*step.argv, "--overwrite"]
+    record = json.loads(_record_path(paths, changed).read_text())
+    assert record["argv"] == step.argv and record["key"] == {"steps": 3}   # the record keeps the plain command
+    plain = DemoStep("show", "show", "radial", ["show", "x"], "why", outputs=step.outputs)
+    _record_path(paths, plain).write_text(json.dumps({"argv": ["show", "y"], "key": {}}))
+    _execute(plain, paths, "1/1", True, lambda s: None)                     # no replaces_stale: as given
+    assert ran[-1] == ["show", "x"]
+
+
 def test_most_labelled_frame_is_the_first_of_the_largest_count():
     ds = SimpleNamespace(frame_ids=[4, 7, 9, 12], label_tensor=lambda i: torch.zeros((0, 2, 2, 1)[i], 14))
     assert _most_labelled(ds) == (7, 2)                  # a tie: the first in numSample order

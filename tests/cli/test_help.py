@@ -77,6 +77,7 @@ def test_every_help_is_plain_text_with_defaults():
                 "--fftradnet-steps", "--batch-size"):
         assert opt in demo
     assert "(default 150," in demo and "(default 4," in demo and "(default 6," in demo and "(default 0," in demo
+    assert "(default 200," in demo and "(default 60," in demo
     assert "--tiny" in demo and "--data ROOT" in demo
     for name in ("radarpc baseline os-cfar", "radarpc evaluate-points", "radarpc pointcloud", "radarpc generate"):
         split = next(a for a in parsers[name]._actions if "--split" in a.option_strings)

@@ -140,6 +140,11 @@ class DemoStep:
     key : dict
         Settings the command reads from files the demo writes (an experiment config), compared
         with the record's as the command is.
+    replaces_stale : bool
+        The command refuses an output made with other settings unless ``--overwrite``, which the
+        demo passes when the step finished earlier and cannot be reused (other settings, or an
+        earlier step ran again): that output is the demo's own and out of date. Without such a
+        record the command runs as given, so that a killed run of the same settings resumes.
     """
 
     name: str
@@ -150,6 +155,7 @@ class DemoStep:
     outputs: list[Path] = field(default_factory=list)
     figures: list[tuple[Path, str]] = field(default_factory=list)
     key: dict = field(default_factory=dict)
+    replaces_stale: bool = False
     record: dict | None = None          # what the step measured, once run or reused
     reused: bool = False
 
@@ -369,7 +375,8 @@ def _model_steps(cfg: DemoConfig, paths: DemoPaths, device: str, frame: int, fra
             ["train", str(paths.config(model)), "--data", str(root), *extra, "--out", str(run), "--device", device,
              *quiet],
             f"{why} {c.train.max_steps} optimizer steps of {c.train.batch_size} frames; the weights of the best "
-            f"validation F1 are kept.", outputs=[run / "best.safetensors"], key={"experiment": to_dict(c)}))
+            f"validation F1 are kept.", outputs=[run / "best.safetensors"], key={"experiment": to_dict(c)},
+            replaces_stale=True))
     timing = ["--fps-frames", str(cfg.fps_frames)]
     for d in cfg.densities:
         stem = paths.eval_stem(d)
@@ -519,15 +526,20 @@ def _execute(step: DemoStep, paths: DemoPaths, number: str, may_reuse: bool,
         say(f"\n[{number}] {step.name}: reused, finished earlier in {rec['seconds']:.1f} s "
             f"({_record_path(paths, step)}): {step.command}")
         return
-    say(f"\n[{number}] {step.name}\n$ {step.command}")
+    argv = step.argv
+    stale = _record_path(paths, step)
+    if step.replaces_stale and stale.is_file():
+        argv = [*argv, "--overwrite"]
+        stale.unlink()              # a kill from here on leaves a half-done run of these settings: it resumes
+    say(f"\n[{number}] {step.name}\n$ radarpc {shlex.join(argv)}")
     load = _load()
     t0, c0 = time.perf_counter(), time.process_time()
     parser = build_parser([simulate, info, pointcloud, show, train, evaluate, baseline, evaluate_points])
-    code = run_command(parser, step.argv)
+    code = run_command(parser, argv)
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     if code != 0:
-        raise DemoStepFailed(f"step {step.name!r} failed (exit code {code}): {step.command}; fix what it says and "
-                             f"run the demo again: the finished steps are reused", code)
+        raise DemoStepFailed(f"step {step.name!r} failed (exit code {code}): radarpc {shlex.join(argv)}; fix what it "
+                             f"says and run the demo again: the finished steps are reused", code)
     missing = [str(p) for p in step.outputs + [f for f, _ in step.figures] if not p.exists()]
     if missing:
         raise DemoStepFailed(f"step {step.name!r} finished but did not write {', '.join(missing)}", 1)
