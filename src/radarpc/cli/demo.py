@@ -635,8 +635,8 @@ def add_parser(sub) -> None:
     p.add_argument("--pillars-steps", type=int, default=None,
                    help=f"SpectralPillars optimizer steps (default {d.pillars_steps}, --tiny {t.pillars_steps})")
     p.add_argument("--fftradnet-steps", type=int, default=None,
-                   help=f"FFTRadNet optimizer steps (default {d.fftradnet_steps}, --tiny {t.fftradnet_steps}; it "
-                        f"finds vehicles after about 1,000 steps of 8 frames)")
+                   help=f"FFTRadNet optimizer steps (default {d.fftradnet_steps}, --tiny {t.fftradnet_steps}; in "
+                        f"radarpc's longer trainings it found vehicles by about 1,000 steps of 8 frames)")
     p.add_argument("--batch-size", type=int, default=None,
                    help=f"training batch of both models (default {d.batch_size}, --tiny {t.batch_size})")
     p.add_argument("--device", default=None,

@@ -16,7 +16,8 @@ import os
 import shlex
 from pathlib import Path
 
-__all__ = ["write_report", "fftradnet_note", "LONG_FFTRADNET_FRAMES", "SEED_DETECTION", "SEED_SWEEP", "SEED_MIOU", "SEED_COLORADAR"]
+__all__ = ["write_report", "fftradnet_note", "LONG_FFTRADNET_FRAMES", "SEED_DETECTION", "SEED_SWEEP", "SEED_MIOU",
+           "SEED_COLORADAR"]
 
 # ---- the papers' numbers on real data (the seeds' tables, in percent as printed) ------------------
 SEED_DETECTION = {                    # spectral point-cloud paper, Table 3: RADIal's protocol, real RADIal
