@@ -1,6 +1,7 @@
 """Tests of :mod:`radarpc.viz`: each figure at tiny size, from the inputs its callers compute."""
 from __future__ import annotations
 
+import matplotlib.colors
 import numpy as np
 import pytest
 import torch
@@ -28,9 +29,9 @@ def figures(monkeypatch):
     saved = []
     save = viz.save_figure
 
-    def keep(fig, out, dpi):
+    def keep(fig, out, *args, **kwargs):
         saved.append(fig)
-        save(fig, out, dpi)
+        return save(fig, out, *args, **kwargs)
 
     monkeypatch.setattr(viz, "save_figure", keep)
     return saved
@@ -335,3 +336,24 @@ def test_plot_cdfs_draws_a_step_curve_per_method_and_panel(tmp_path, monkeypatch
     np.testing.assert_array_equal(ax1.get_lines()[0].get_ydata(), [0.0, 0.0])       # nothing scored: flat at 0
     with pytest.raises(ValueError, match="no panel"):
         viz.plot_cdfs([], tmp_path / "x.png", title="t", xlabel="x")
+
+
+def test_density_curves_keep_one_colour_per_label_across_panels(tmp_path, figures):
+    from radarpc.eval.curves import DensityCurve
+
+    dens = (0.02, 0.057, 0.2)
+    model = DensityCurve("model", dens, ((0.1,), (0.2,), (0.3,)), None)
+    classical = DensityCurve("classical", dens, ((0.05,), (0.1,), (0.2,)), None)
+    panels = [viz.DensityPanel("F1", "F1", (model, classical), (("dense", (0.4,)),)),
+              viz.DensityPanel("mIoU", "mIoU", (model,), (("dense", (0.5,)),))]   # no classical here
+    colours = viz.label_colours(panels)
+    assert colours == {"model": "C0", "classical": "C1", "dense": "C2"}
+    out = viz.plot_density_curves(panels, tmp_path / "d.png", title="t")
+    _png_size(out)
+    fig = figures[-1]
+    for ax in fig.axes:                                  # the legend's colour of each label, per panel
+        legend = ax.get_legend()
+        drawn = {t.get_text().split(" (")[0]: h.get_color()
+                 for t, h in zip(legend.get_texts(), legend.legend_handles)}
+        assert all(matplotlib.colors.same_color(c, colours[label]) for label, c in drawn.items()), drawn
+    assert len(fig.axes[1].get_legend().get_texts()) == 2

@@ -800,10 +800,10 @@ def plot_density_curves(panels: list[DensityPanel], out: str | os.PathLike, *, t
         Stored in the file (:func:`save_figure`).
     """
     out, fig, axes = _panel_figure(out, len(panels), "plot_density_curves")
-    colours = [f"C{k}" for k in range(10)]
+    colours = label_colours(panels)
     for ax, panel in zip(axes, panels):
-        for k, curve in enumerate(panel.curves):
-            c = colours[k % len(colours)]
+        for curve in panel.curves:
+            c = colours[curve.label]
             x = 100 * np.asarray(curve.density, dtype=float)
             stats = curve.statistics
             mean = np.array([s.mean for s in stats])
@@ -814,8 +814,8 @@ def plot_density_curves(panels: list[DensityPanel], out: str | os.PathLike, *, t
                 ax.fill_between(x, mean - std, mean + std, color=c, alpha=0.18, lw=0)
             for xi, runs in zip(x, curve.runs):
                 ax.scatter(np.full(len(runs), xi), runs, s=10, color=c, alpha=0.6, lw=0)
-        for k, (label, runs) in enumerate(panel.references):
-            c = colours[(len(panel.curves) + k) % len(colours)]
+        for label, runs in panel.references:
+            c = colours[label]
             s = seed_statistics(runs)
             ax.axhline(s.mean, color=c, ls="--", label=f"{label} ({s.mean:.3f})")
             if s.std is not None:
@@ -823,10 +823,18 @@ def plot_density_curves(panels: list[DensityPanel], out: str | os.PathLike, *, t
         ax.set_xscale("log")
         _density_axis(ax, panel)
         if panel.curves or panel.references:
-            ax.legend(fontsize=8, loc="lower right")
+            ax.legend(fontsize=8, loc="best")          # where it hides the fewest points
     fig.suptitle(f"{title}\nline: mean over runs (seeds), band: +-1 standard deviation, dots: each run; "
                  f"dashed: density-free references", fontsize=10)
     return _save_with_footer(fig, out, footer, metadata)
+
+
+def label_colours(panels: list[DensityPanel]) -> dict[str, str]:
+    """One matplotlib colour per curve or reference label, the same in every panel: labels in the
+    order they first appear (curves before references within a panel), ``C0``, ``C1``, ... cycled."""
+    labels = dict.fromkeys(label for panel in panels
+                           for label in [c.label for c in panel.curves] + [r[0] for r in panel.references])
+    return {label: f"C{k % 10}" for k, label in enumerate(labels)}
 
 
 _PANELS_PER_ROW = 3
