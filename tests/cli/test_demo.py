@@ -230,7 +230,9 @@ def test_fftradnet_note_only_when_it_found_nothing():
     long = fftradnet_note(DemoConfig(fftradnet_steps=1000, batch_size=8),
                           {"steps": 1000, "best_f1": 0.0}, link)
     assert "found no vehicle" in long[1] and "--fftradnet-steps" not in long[1]      # no advice to do it again
-    assert 1000 * 8 >= LONG_FFTRADNET_FRAMES
+    below = fftradnet_note(DemoConfig(batch_size=8), {"steps": LONG_FFTRADNET_FRAMES // 8 - 1, "best_f1": 0.0}, link)
+    at = fftradnet_note(DemoConfig(batch_size=8), {"steps": LONG_FFTRADNET_FRAMES // 8, "best_f1": 0.0}, link)
+    assert "--fftradnet-steps" in below[1] and "--fftradnet-steps" not in at[1]       # the boundary
     assert fftradnet_note(DemoConfig(), {"steps": 60, "best_f1": 0.01}, link) == []
     assert fftradnet_note(DemoConfig.preset(tiny=True), {"steps": 2, "best_f1": 0.0}, link) == []
 
