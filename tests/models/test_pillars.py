@@ -115,7 +115,7 @@ def test_unknown_feature_and_missing_or_mismatched_enrichment():
 
 def test_config_round_trip_and_feature_widths():
     cfg = PillarsConfig(features=POINT_FEATURES, n_sector=16, n_patch=25)
-    assert cfg.in_channels == 5 + 2 + 16 + 25 + 1
+    assert cfg.in_channels == 6 + 2 + 16 + 25 + 1
     back = from_dict(PillarsConfig, to_dict(cfg))
     assert back == cfg and isinstance(back.features, tuple)
     # every feature reaches the encoder: log(1 + x) of the amplitude columns, raw values otherwise
@@ -123,9 +123,11 @@ def test_config_round_trip_and_feature_widths():
     keep, coords = pillar_coords(cloud, cfg)
     x = point_features(cloud, keep, coords, cfg)
     assert x.shape == (int(keep.sum()), cfg.in_channels)
-    torch.testing.assert_close(x[:, 4], torch.log1p(cloud.amplitude[keep]))
-    torch.testing.assert_close(x[:, 7:23], torch.log1p(cloud.sector[keep]))
+    assert POINT_FEATURES[:6] == ("r", "a", "e", "d", "v", "Ae")
     assert torch.equal(x[:, 3], cloud.doppler_bin[keep].float())
+    assert torch.equal(x[:, 4], cloud.velocity_mps[keep])          # the resolved velocity, m/s, as it is
+    torch.testing.assert_close(x[:, 5], torch.log1p(cloud.amplitude[keep]))
+    torch.testing.assert_close(x[:, 8:24], torch.log1p(cloud.sector[keep]))
     assert torch.equal(x[:, -1], cloud.is_neighbour[keep].float())
 
 

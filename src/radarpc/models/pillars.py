@@ -24,7 +24,10 @@ Point features are named in :attr:`PillarsConfig.features`, so the seed's axis a
 * ``r``: range, m (``range_m``);
 * ``a``: azimuth, deg, left positive (``azimuth_deg``);
 * ``e``: elevation, deg (``elevation_deg``);
-* ``d``: consolidated Doppler index (``doppler_bin``, the seed's ``d_j``);
+* ``d``: consolidated Doppler index (``doppler_bin``, the seed's ``d_j``): the radial velocity
+  modulo one DDMA slot (16 bins, 2.43 m/s on ``radial``), so it wraps many times over the span;
+* ``v``: radial velocity, m/s, receding positive, from the resolved full-axis Doppler bin
+  (``velocity_mps``; not a seed axis: the unwrapped counterpart of ``d``);
 * ``Ae``: angle-spectrum amplitude (``amplitude``, eq. 7), as ``log(1 + Ae)``;
 * ``pillar_offset`` (2 values): ``r - r_c`` (m) and ``a - a_c`` (deg) to the pillar centre;
 * ``sector`` (``n_sector`` values): angle-sector maxima (``sector``, eq. 10), as ``log(1 + x)``;
@@ -73,7 +76,8 @@ __all__ = [
     "pillars_tiny",
 ]
 
-POINT_FEATURES: tuple[str, ...] = ("r", "a", "e", "d", "Ae", "pillar_offset", "sector", "rd_patch", "neighbour")
+POINT_FEATURES: tuple[str, ...] = ("r", "a", "e", "d", "v", "Ae", "pillar_offset", "sector", "rd_patch",
+                                   "neighbour")
 """Every point feature a pillar model can take (see the module docstring)."""
 LOG_FEATURES: tuple[str, ...] = ("Ae", "sector", "rd_patch")
 """Amplitude and power features, which enter as ``log(1 + x)``."""
@@ -274,7 +278,7 @@ def point_features(points: PointCloudBatch, keep: torch.Tensor, coords: torch.Te
             cols += list(torch.log1p(x[keep]).unbind(1))
             continue
         x = {"r": points.range_m, "a": points.azimuth_deg, "e": points.elevation_deg, "d": points.doppler_bin,
-             "Ae": points.amplitude, "neighbour": points.is_neighbour}[name][keep].to(points.range_m.dtype)
+             "v": points.velocity_mps, "Ae": points.amplitude, "neighbour": points.is_neighbour}[name][keep].to(points.range_m.dtype)
         cols.append(torch.log1p(x) if name in LOG_FEATURES else x)
     return torch.stack(cols, dim=1)                                                # (N_keep, F)
 

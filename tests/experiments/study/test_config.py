@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from radarpc.cli import main
-from radarpc.experiments.study.config import (AXIS_FEATURES, AblationConfig, DataSpec, DensitySweepConfig,
+from radarpc.experiments.study.config import (AXIS_ARMS, AXIS_FEATURES, AblationConfig, DataSpec, DensitySweepConfig,
                                               load_ablation, load_density_sweep, load_study)
 from radarpc.experiments.study.grid import density_folder, study_grid
 from radarpc.experiments.study.results import run_key
@@ -20,7 +20,7 @@ from radarpc.sensors.radial import radial_sensor
 CONFIGS = Path(__file__).parents[3] / "configs" / "study"
 KIND = {"density-sweep": "density-sweep", "ablation": "ablation", "rd-comparison": "ablation",
         "tiny-sweep": "density-sweep", "tiny-ablation": "ablation", "fps": "fps", "tiny-fps": "fps",
-        "density-sweep-short": "density-sweep", "ablation-short": "ablation"}
+        "density-sweep-short": "density-sweep", "ablation-short": "ablation", "ablation-velocity-short": "ablation"}
 
 
 def test_every_shipped_study_config_is_listed_here():
@@ -101,7 +101,7 @@ def test_ablation_arms_are_model_overrides_and_store_enrichments():
     arms = {a.name: a for a in grid.arms}
     assert list(arms) == ["axes-base", "axes-Ae", "axes-d", "axes-Ae-d",
                           "enrich-none", "enrich-rd3", "enrich-sector4", "enrich-rd3-sector4"]
-    for name, axis in zip(["axes-base", "axes-Ae", "axes-d", "axes-Ae-d"], AXIS_FEATURES):
+    for name, axis in zip(["axes-base", "axes-Ae", "axes-d", "axes-Ae-d"], AXIS_ARMS, strict=True):
         a = arms[name]
         assert a.experiment.model.config.features == AXIS_FEATURES[axis] + ("pillar_offset",)
         assert a.enrich == () and a.group == "axes" and a.input == "points"
@@ -118,6 +118,21 @@ def test_ablation_arms_are_model_overrides_and_store_enrichments():
     twins = sorted(ids for ids in keys.values() if len(ids) > 1)
     assert twins == [["density-050/axes-Ae-d/seed0", "density-050/enrich-none/seed0"],
                      ["density-200/axes-Ae-d/seed0", "density-200/enrich-none/seed0"]]
+
+
+def test_the_velocity_arm_pairs_with_the_short_ablations_doppler_arm():
+    # the controlled test of + d: the same data, densities, budget, model and seed, v in place of d
+    short, vel = load_ablation(CONFIGS / "ablation-short.yaml"), load_ablation(CONFIGS / "ablation-velocity-short.yaml")
+    assert vel.axes.arms == ("+v",) and AXIS_ARMS == ("base", "+Ae", "+d", "+Ae+d")
+    for field in ("sensor", "data", "densities", "budget", "conversion", "evaluation"):
+        assert getattr(vel, field) == getattr(short, field), field
+    (arm, label, entry), = vel.axes.entries()
+    d_entry = next(e for a, _, e in short.axes.entries() if a == "+d")
+    assert label == "[r, a, e, v]" and entry.name == "axes-v"
+    v_model, d_model = entry.resolved().model.config, d_entry.resolved().model.config
+    assert v_model.features == ("r", "a", "e", "v", "pillar_offset")
+    assert dataclasses.replace(v_model, features=d_model.features) == d_model
+    assert entry.resolved().train == d_entry.resolved().train
 
 
 def test_run_keys_name_the_data_without_machine_paths(tmp_path):

@@ -335,15 +335,19 @@ AXIS_FEATURES: dict[str, tuple[str, ...]] = {
     "+Ae": ("r", "a", "e", "Ae"),
     "+d": ("r", "a", "e", "d"),
     "+Ae+d": ("r", "a", "e", "d", "Ae"),
+    "+v": ("r", "a", "e", "v"),
 }
 """The point axes of each arm of the axis ablation (seed Fig. 5): the spatial coordinates
-``[r, a, e]``, plus the angle-spectrum amplitude ``Ae``, the Doppler bin ``d``, or both. Every arm
-keeps PointPillars' pillar decoration (``pillar_offset``), which is not a point axis."""
-AXIS_ARMS = tuple(AXIS_FEATURES)
+``[r, a, e]``, plus the angle-spectrum amplitude ``Ae``, the consolidated Doppler index ``d``, or
+both; and, beyond the seed, ``+v``: the resolved radial velocity in place of ``d`` (the index
+wraps every DDMA slot; ``v`` does not). Every arm keeps PointPillars' pillar decoration
+(``pillar_offset``), which is not a point axis."""
+AXIS_ARMS = ("base", "+Ae", "+d", "+Ae+d")
+"""The seed's four arms, the default."""
 ENRICHMENT_ARMS = ("none", "rd", "sector", "both")
 """The enrichment ablation's arms (seed Fig. 6): none, the RD neighbourhood (``rdN``, more points),
 the angle-sector descriptor (``sectorA``, more features per point), both (SpectralPillars)."""
-_AXIS_FOLDER = {"base": "base", "+Ae": "Ae", "+d": "d", "+Ae+d": "Ae-d"}
+_AXIS_FOLDER = {"base": "base", "+Ae": "Ae", "+d": "d", "+Ae+d": "Ae-d", "+v": "v"}
 
 
 @dataclass(frozen=True)
@@ -356,7 +360,7 @@ class AxesSection:
     def __post_init__(self) -> None:
         bad = [a for a in self.arms if a not in AXIS_FEATURES]
         if bad or not self.arms or len(set(self.arms)) != len(self.arms):
-            raise ValueError(f"axes.arms: each once, from {list(AXIS_ARMS)}; got {list(self.arms)}")
+            raise ValueError(f"axes.arms: each once, from {list(AXIS_FEATURES)}; got {list(self.arms)}")
         if self.model.input_kind != "points":
             raise ValueError(f"axes.model: the axis ablation needs a pillar model, {self.model.name!r} reads "
                              f"{self.model.input_kind}")
