@@ -7,7 +7,11 @@ classifier (P(vehicle | bin) on the training sequences' points, quantile bins pe
 test sequences' points; AUROC says how well those axes alone separate vehicle points (0.5: not at
 all). The axes: r, a, e as the models see them; d the consolidated Doppler index (the + d arm's
 feature); v the resolved radial velocity; v_c that velocity with the ego's motion removed
-(v + v_ego cos a cos e, the simulator's ego speed from sim_frames.csv; 0 on static surfaces); log Ae.
+(v + v_ego cos a cos e folded back into the radar's +-v_max, the simulator's ego speed from
+sim_frames.csv; 0 on static surfaces, whose radial velocity is -v_ego cos a cos e); log Ae.
+Integer axes (d) are binned by value, real ones by quantiles. Caveat: a point is labelled by its
+distance to the labelled face centre, so the far parts of long or side-on vehicles, and vehicles
+outside the labelled field of view, count as "rest".
 
     python this.py STORE.parquet ROOT [--bins 24] [--radius 3.0]       # prints JSON
 """
@@ -17,7 +21,9 @@ import json
 import numpy as np
 import pyarrow.parquet as pq
 
-from radarpc.data.radial import read_labels, split_of_sequence
+from radarpc.data.radial import read_labels, root_sensor, split_of_sequence
+from radarpc.data.radial_truth import read_sim_frames
+from radarpc.models.classical import wrap_velocity
 
 
 def auroc(score, y):
@@ -34,6 +40,8 @@ def auroc(score, y):
     r[order] = ranks
     n1 = int(y.sum())
     n0 = len(y) - n1
+    if n1 == 0 or n0 == 0:
+        raise ValueError(f"AUROC needs both classes; got {n1} positive and {n0} negative points")
     return float((r[y].sum() - n1 * (n1 + 1) / 2) / (n1 * n0))
 
 
@@ -42,7 +50,10 @@ def histogram_score(train_cols, y_train, test_cols, bins):
     key_tr = np.zeros(len(y_train), dtype=np.int64)
     key_te = np.zeros(len(test_cols[0]), dtype=np.int64)
     for xt, xe in zip(train_cols, test_cols):
-        edges = np.unique(np.quantile(xt, np.linspace(0, 1, bins + 1)[1:-1]))
+        if np.issubdtype(xt.dtype, np.integer):                        # one bin a value
+            edges = np.unique(xt)[1:] - 0.5
+        else:
+            edges = np.unique(np.quantile(xt, np.linspace(0, 1, bins + 1)[1:-1]))
         key_tr = key_tr * (bins + 1) + np.searchsorted(edges, xt)
         key_te = key_te * (bins + 1) + np.searchsorted(edges, xe)
     keys, inv = np.unique(key_tr, return_inverse=True)
@@ -69,12 +80,11 @@ def main():
            for n in t.column_names}
     frame = col["frame"]
 
-    ego = {}
-    with open(f"{args.root}/sim_frames.csv") as f:
-        next(f)
-        for line in f:
-            parts = line.strip().split(",")
-            ego[int(parts[0])] = float(parts[4])
+    sim = read_sim_frames(f"{args.root}/sim_frames.csv")
+    ego = dict(zip(sim.num_sample.tolist(), sim.ego_speed_mps.tolist()))
+    missing = sorted(set(np.unique(frame).tolist()) - set(ego))
+    if missing:
+        raise ValueError(f"{args.root}/sim_frames.csv has no ego speed for frames {missing[:5]}")
     v_ego = np.array([ego[int(i)] for i in frame])
 
     labels = read_labels(f"{args.root}/labels.csv")
@@ -95,11 +105,10 @@ def main():
 
     a = np.deg2rad(col["azimuth_deg"])
     e = np.deg2rad(col["elevation_deg"])
-    static_v = {s: col["velocity_mps"] + s * v_ego * np.cos(a) * np.cos(e) for s in (+1, -1)}
-    # the sign that puts static (non-vehicle) points at 0
-    sign = min(static_v, key=lambda s: np.median(np.abs(static_v[s][~is_vehicle])))
+    v_max = root_sensor(args.root)[0].max_velocity_mps
+    v_c = wrap_velocity(col["velocity_mps"] + v_ego * np.cos(a) * np.cos(e), v_max)
     axes = {"r": col["range_m"], "a": col["azimuth_deg"], "e": col["elevation_deg"],
-            "d": col["doppler_bin"].astype(float), "v": col["velocity_mps"], "v_c": static_v[sign],
+            "d": col["doppler_bin"].astype(np.int64), "v": col["velocity_mps"], "v_c": v_c,
             "Ae": np.log1p(col["amplitude"])}
 
     names = sorted(set(col["sequence"]))
@@ -107,9 +116,10 @@ def main():
     split = np.array([split_of[s] for s in col["sequence"]])
     tr, te = split == "train", split == "test"
     sets = [("r",), ("a",), ("e",), ("d",), ("v",), ("v_c",), ("Ae",), ("r", "a"), ("r", "a", "e"),
-            ("r", "a", "d"), ("r", "a", "v"), ("r", "a", "v_c"), ("r", "a", "Ae"), ("d", "Ae"), ("v_c", "Ae")]
+            ("r", "a", "d"), ("r", "a", "v"), ("r", "a", "v_c"), ("r", "a", "Ae"),
+            ("r", "a", "e", "d"), ("r", "a", "e", "v"), ("r", "a", "e", "v_c"), ("r", "a", "e", "Ae")]
     out = {"store": args.store, "points": int(len(frame)), "vehicle_fraction": float(is_vehicle.mean()),
-           "radius_m": args.radius, "bins": args.bins, "ego_sign": sign,
+           "radius_m": args.radius, "bins": args.bins, "v_max": v_max,
            "static_points_abs_v_c_median": float(np.median(np.abs(axes["v_c"][~is_vehicle]))),
            "vehicle_points_abs_v_c_median": float(np.median(np.abs(axes["v_c"][is_vehicle]))),
            "train_points": int(tr.sum()), "test_points": int(te.sum()), "auroc": {}}
