@@ -1,6 +1,7 @@
 """Polar PointPillars / SpectralPillars: pillarisation against hand-worked cases, shapes, sizes, gradients."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -228,3 +229,17 @@ def test_fused_model_gives_the_same_outputs(upsample_logits):
     # fp32 rounding of a reassociated affine map through a handful of layers
     for x, y in ((a.detection, b.detection), (a.freespace, b.freespace)):
         assert (x - y).abs().max() <= 1e-4 * x.abs().max()
+
+
+def test_velocity_feature_reaches_the_output_and_doppler_index_does_not():
+    # the + v arm's model reads velocity_mps, not doppler_bin
+    torch.manual_seed(0)
+    model = pillars_tiny(features=("r", "a", "e", "v", "pillar_offset")).eval()
+    randomise_batchnorm_(model, torch.Generator().manual_seed(0))
+    cloud = make_cloud([random_frame(40, 5)])
+    with torch.no_grad():
+        out = model(cloud).detection
+        other_d = dataclasses.replace(cloud, doppler_bin=(cloud.doppler_bin + 5) % 16)
+        assert torch.equal(model(other_d).detection, out)
+        other_v = dataclasses.replace(cloud, velocity_mps=-cloud.velocity_mps)
+        assert not torch.allclose(model(other_v).detection, out)

@@ -13,7 +13,7 @@ Integer axes (d) are binned by value, real ones by quantiles. Caveat: a point is
 distance to the labelled face centre, so the far parts of long or side-on vehicles, and vehicles
 outside the labelled field of view, count as "rest".
 
-    python this.py STORE.parquet ROOT [--bins 24] [--radius 3.0]       # prints JSON
+    python this.py STORE.parquet ROOT [--bins 12] [--radius 3.0]       # prints JSON
 """
 import argparse
 import json
@@ -70,7 +70,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("store")
     ap.add_argument("root")
-    ap.add_argument("--bins", type=int, default=24)
+    ap.add_argument("--bins", type=int, default=12)
     ap.add_argument("--radius", type=float, default=3.0)
     args = ap.parse_args()
 
