@@ -20,6 +20,7 @@ import json
 
 import numpy as np
 import pyarrow.parquet as pq
+from scipy.stats import rankdata
 
 from radarpc.data.radial import read_labels, root_sensor, split_of_sequence
 from radarpc.data.radial_truth import read_sim_frames
@@ -28,16 +29,7 @@ from radarpc.models.classical import wrap_velocity
 
 def auroc(score, y):
     """Area under the ROC curve, ties counted half (Mann-Whitney U / (n_pos n_neg))."""
-    order = np.argsort(score, kind="stable")
-    s = score[order]
-    ranks = np.empty(len(s))
-    edges = np.flatnonzero(np.diff(s)) + 1                         # tie groups get their mean rank
-    starts = np.r_[0, edges]
-    ends = np.r_[edges, len(s)]
-    for a, b in zip(starts, ends):
-        ranks[a:b] = 0.5 * (a + b - 1) + 1
-    r = np.empty(len(s))
-    r[order] = ranks
+    r = rankdata(score)                                            # ties get their mean rank
     n1 = int(y.sum())
     n0 = len(y) - n1
     if n1 == 0 or n0 == 0:
