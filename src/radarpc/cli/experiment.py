@@ -21,8 +21,11 @@ commit ``OUT/results/`` and the study resumes on another machine. Run the same c
 an interruption: finished runs are reused (it says so), a killed run resumes from its last
 checkpoint. A row made with another config of the same run is refused, naming what differs, except
 a raised ``time_limit_min``: rows it would not have cut are reused, runs the old limit cut train on.
-``--plan`` lists the runs and which are finished, and does nothing else. ``radarpc report OUT``
-makes the tables and figures.
+``--plan`` lists the runs and which are finished, and does nothing else. ``--reuse OTHER_OUT``
+takes the result row of a run of another study with the same key (model, input, data, budget, seed,
+scoring) instead of training it: the density sweep's PointPillars runs are the ablation's ``+Ae+d``
+arm, so ``radarpc experiment density-sweep ... --reuse runs/axes`` trains them once (the row names
+the run it came from). ``radarpc report OUT`` makes the tables and figures.
 
 ``fps`` times instead of training (the paper's Table 2): every model of the config at every
 density (a dense FFTRadNet once), at batch 1, the network alone and with the extraction from the
@@ -67,6 +70,8 @@ def command_line(args: argparse.Namespace) -> str:
     argv = ["radarpc", "experiment", args.kind, str(args.config), "--out", str(args.out)]
     if args.cache is not None:
         argv += ["--cache", str(args.cache)]
+    for other in getattr(args, "reuse", None) or ():
+        argv += ["--reuse", str(other)]
     if getattr(args, "data", None) is not None:
         argv += ["--data", str(args.data)]
     if args.device is not None:
@@ -85,6 +90,9 @@ def run(args: argparse.Namespace) -> int:
     from radarpc.experiments.study.runner import run_grid
     from radarpc.machine import check_device
 
+    reuse = list(getattr(args, "reuse", None) or ())
+    if reuse and args.kind not in ("density-sweep", "ablation"):
+        raise ValueError(f"--reuse applies to the density-sweep and ablation studies (their result rows), not {args.kind}")
     if args.kind in RALD_STUDY_KINDS:
         return _run_rald(args)
     if args.data is not None:
@@ -101,13 +109,18 @@ def run(args: argparse.Namespace) -> int:
         import json
 
         from radarpc.experiments.study.results import run_key
+        from radarpc.experiments.study.runner import rows_elsewhere
 
         finished = check_rows(grid, args.out, read_rows(args.out))
-        print(f"study {grid.name!r} ({grid.kind}): {len(grid.runs)} runs, {len(finished)} finished")
+        elsewhere = rows_elsewhere(grid, reuse, finished)
+        print(f"study {grid.name!r} ({grid.kind}): {len(grid.runs)} runs, {len(finished)} finished"
+              + (f", {len(elsewhere)} to take from --reuse" if reuse else ""))
         first: dict[str, str] = {}
         for k, r in enumerate(grid.runs, 1):
             twin = first.setdefault(json.dumps(run_key(grid, r), sort_keys=True), r.id)
+            hit = elsewhere.get(r.id)
             state = ("finished" if r.id in finished else
+                     f"the same run as {hit['row']['run']} of {hit['source']}, its row reused" if hit else
                      f"the same run as {twin}, trained once" if twin != r.id else "to train")
             print(f"[{k}/{len(grid.runs)}] {r.id}: {r.arm.label}, {r.arm.input}"
                   + (f" +{'+'.join(r.arm.enrich)}" if r.arm.enrich else "") + f" -- {state}")
@@ -115,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
     if args.device is not None:
         check_device(args.device, "--device")
     run_grid(grid, args.out, cache=args.cache, device=args.device, progress=not args.no_progress,
-             command=command_line(args), config_file=str(args.config))
+             command=command_line(args), config_file=str(args.config), reuse=reuse)
     return 0
 
 
@@ -184,6 +197,10 @@ def add_parser(sub) -> None:
                    help="simulated roots, point stores and sparse-RD roots (default OUT/cache); share one "
                         "between studies of the same data. rald-ablation: the stage runs (DIR/stage1, DIR/stage2; "
                         "default OUT), shared between studies that train the same configs")
+    p.add_argument("--reuse", action="append", default=[], metavar="OUT",
+                   help="density-sweep and ablation: another study's output whose result rows are taken for the "
+                        "runs with the same key (same model, input, data, budget, seed and scoring) instead of "
+                        "training them, e.g. the ablation's +Ae+d arm for the sweep's PointPillars; repeatable")
     p.add_argument("--data", default=None, metavar="ROOT",
                    help="rald-ablation only: this ColoRadar root instead of the study's data: (the same folder "
                         "name: the rows name it)")

@@ -170,6 +170,66 @@ def test_a_row_of_another_config_of_the_run_is_refused(sweep, finished, tmp_path
     assert err.startswith("radarpc experiment: error: ") and err.count("\n") == 1
 
 
+def _ablation_of_the_sweeps_model(sweep, out_name: str = "ablation"):
+    """An ablation whose ``+Ae+d`` arm is the tiny sweep's pillars-tiny run at 0.05 (same
+    experiment, data, budget, seed and scoring) and whose base arm is not."""
+    from radarpc.config import from_dict
+    from radarpc.experiments.study.config import AblationConfig
+
+    experiment = yaml.safe_load((CONFIGS / "tiny-sweep.yaml").read_text())["models"][0]["experiment"]
+    return study_grid(from_dict(AblationConfig, {
+        "name": "tiny-axes", "sensor": "tiny", "data": {"roots": [str(sweep.root)]}, "densities": [0.05],
+        "budget": {"epochs": 2}, "conversion": {"density_mode": "per-dataset"}, "evaluation": {"fps_frames": 0},
+        "axes": {"model": {"experiment": experiment}, "arms": ["base", "+Ae+d"]}}))
+
+
+def test_another_studys_row_of_the_same_run_is_reused_and_names_its_origin(sweep, finished, tmp_path, capsys):
+    grid = _ablation_of_the_sweeps_model(sweep)
+    out = tmp_path / "axes"
+    # --plan says which run is taken from the sweep, and trains nothing
+    d = {"name": "tiny-axes", "sensor": "tiny", "data": {"roots": [str(sweep.root)]}, "densities": [0.05],
+         "budget": {"epochs": 2}, "conversion": {"density_mode": "per-dataset"}, "evaluation": {"fps_frames": 0},
+         "axes": {"model": {"experiment": yaml.safe_load((CONFIGS / "tiny-sweep.yaml").read_text())["models"][0]["experiment"]},
+                  "arms": ["base", "+Ae+d"]}}
+    (tmp_path / "axes.yaml").write_text(yaml.safe_dump(d))
+    assert main(["experiment", "ablation", str(tmp_path / "axes.yaml"), "--out", str(out), "--reuse",
+                 str(sweep.out), "--plan"]) == 0
+    plan = capsys.readouterr().out
+    assert "2 runs, 0 finished, 1 to take from --reuse" in plan
+    assert f"density-050/axes-Ae-d/seed0: [r, a, e, d, Ae], points -- the same run as {RUN1} of {sweep.out}" in plan
+    assert "density-050/axes-base/seed0: [r, a, e], points -- to train" in plan
+    assert not out.exists()
+    # the run: the base arm trains, the +Ae+d arm takes the sweep's row
+    logs: list[str] = []
+    outcome = run_grid(grid, out, progress=False, log=logs.append, cache=sweep.out / "cache", reuse=[sweep.out],
+                       command="the command", config_file="axes.yaml")
+    assert outcome.trained == ["density-050/axes-base/seed0"] and outcome.reused == ["density-050/axes-Ae-d/seed0"]
+    assert f"--reuse {sweep.out}: 1 run(s) of this study not finished here have a row there with the same key" in logs
+    assert any(f"the same run as tiny-sweep:{RUN1}" in line for line in logs)
+    assert not (out / "density-050" / "axes-Ae-d").exists()             # not trained
+    source, row = read_rows(sweep.out)[RUN1], read_rows(out)["density-050/axes-Ae-d/seed0"]
+    assert row["metrics"] == source["metrics"] and row["key"] == source["key"] and row["inputs"] == source["inputs"]
+    assert row["study"]["name"] == "tiny-axes" and row["command"] == "the command"
+    assert row["same_as"] == f"tiny-sweep:{RUN1}" and row["arm"]["group"] == "axes"
+    assert row["reused_from"] == {"study": "tiny-sweep", "kind": "density-sweep",
+                                  "config_file": source["study"]["config_file"],
+                                  "command": source["command"], "run": RUN1}
+    # a rerun without --reuse finds it finished; the report marks where it came from
+    again = run_grid(grid, out, progress=False, log=lambda s: None, cache=sweep.out / "cache")
+    assert again.trained == [] and len(again.reused) == 2
+    assert f"| `density-050/axes-Ae-d/seed0` (= `tiny-sweep:{RUN1}`) |" in write_report(out, log=lambda s: None).read_text()
+
+
+def test_a_reuse_folder_without_rows_is_refused_before_any_work(sweep, tmp_path, capsys):
+    grid = _ablation_of_the_sweeps_model(sweep)
+    with pytest.raises(FileNotFoundError, match=r"--reuse .*typo: no result rows of a study there"):
+        run_grid(grid, tmp_path / "axes", progress=False, log=lambda s: None, reuse=[tmp_path / "typo"])
+    assert not (tmp_path / "axes" / "results").exists()
+    assert main(["experiment", "fps", str(CONFIGS / "tiny-sweep.yaml"), "--out", str(tmp_path / "f"),
+                 "--reuse", str(tmp_path)]) == 2
+    assert "--reuse applies to the density-sweep and ablation studies" in capsys.readouterr().err
+
+
 def test_the_time_limit_stops_a_run_and_its_row_says_so(sweep, finished, tmp_path, monkeypatch):
     import radarpc.experiments.study.runner as runner
 

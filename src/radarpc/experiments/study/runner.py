@@ -6,6 +6,9 @@ For each run of the :class:`~radarpc.experiments.study.grid.Grid`, in order:
 1. a result row with the run's key in ``OUT/results/``: the run is finished, and reused (a row
    with another key is refused before any work, :func:`~radarpc.experiments.study.results.check_rows`,
    unless only the time limit was raised: a run it did not cut is finished, one it cut trains on);
+   else a row of another run of the grid with the same key (two arms that are one run), or a row
+   with the same key in another study's output given as ``reuse`` (the density sweep's PointPillars
+   runs are the ablation's ``+Ae+d`` arm): copied as the run's row, naming where it came from;
 2. else its inputs (:class:`~radarpc.experiments.study.inputs.StudyInputs`: roots, point stores,
    sparse-RD roots; those of every run to train are made first, root by root, and cached);
 3. training in ``OUT/RUN`` through the detection experiment's
@@ -30,7 +33,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 from radarpc.experiments.radial_detection.evaluation import evaluate_run
 from radarpc.training.loop import training_status
@@ -87,7 +90,8 @@ def _log_rows(folder: Path) -> list[dict]:
 def run_grid(grid: Grid, out: str | os.PathLike, *, cache: str | os.PathLike | None = None,
              device: str | None = None, progress: bool = True, log: Callable[[str], None] = print,
              command: str | None = None, config_file: str | None = None,
-             on_step: Callable[[GridRun, int], None] | None = None) -> StudyOutcome:
+             on_step: Callable[[GridRun, int], None] | None = None,
+             reuse: Sequence[str | os.PathLike] = ()) -> StudyOutcome:
     """Train, score and record every run of ``grid`` that ``out`` does not hold finished.
 
     Parameters
@@ -111,6 +115,10 @@ def run_grid(grid: Grid, out: str | os.PathLike, *, cache: str | os.PathLike | N
     on_step : callable, optional
         Called with the run and the global step after each optimizer step (tests interrupt a
         study through it).
+    reuse : sequence of path-like
+        Outputs (or ``results`` folders) of other studies: a run without its own row takes the
+        row of a run there with the same key (same model, input, data, budget, seed and
+        scoring) instead of training; the row says which (``same_as``, ``reused_from``).
 
     Returns
     -------
@@ -126,14 +134,18 @@ def run_grid(grid: Grid, out: str | os.PathLike, *, cache: str | os.PathLike | N
     check_writable(out, "study output")
     with OutputLock(out, "study output"):
         return _run_locked(grid, out, Path(cache) if cache is not None else out / CACHE_DIR, device, progress, log,
-                           command, config_file, on_step)
+                           command, config_file, on_step, reuse)
 
 
 def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress: bool, log: Callable[[str], None],
                 command: str | None, config_file: str | None,
-                on_step: Callable[[GridRun, int], None] | None) -> StudyOutcome:
+                on_step: Callable[[GridRun, int], None] | None, reuse: Sequence[str | os.PathLike]) -> StudyOutcome:
     rows = read_rows(out)
     finished = check_rows(grid, out, rows)
+    elsewhere = rows_elsewhere(grid, reuse, finished)
+    for other in reuse:
+        found = sum(1 for r in elsewhere.values() if r["source"] == str(other))
+        log(f"--reuse {other}: {found} run(s) of this study not finished here have a row there with the same key")
     out.mkdir(parents=True, exist_ok=True)
     with atomic_write(out / STUDY_JSON, "w") as f:
         json.dump({"kind": grid.kind, "name": grid.name, "config_file": config_file, "command": command,
@@ -145,7 +157,7 @@ def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress
         f"{n - len(finished)} to train" + (f"; {len(others)} rows of runs this config does not list are kept"
                                            if others else ""))
     inputs = StudyInputs(grid, cache, device=device, progress=progress, log=log)
-    inputs.prepare(r for r in grid.runs if r.id not in finished)
+    inputs.prepare(r for r in grid.runs if r.id not in finished and r.id not in elsewhere)
     outcome = StudyOutcome(out, [])
     # runs of two arms that build the same model on the same input (the axis arm +Ae+d and the
     # enrichment arm "none") have the same key: the second takes the first's result
@@ -159,6 +171,15 @@ def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress
                      else "")
             log(f"{head}: finished earlier{under}, result row reused (F1@0.2 "
                 f"{_num(row['metrics'].get('f1_fixed'))}); not trained again")
+            outcome.rows.append(row)
+            outcome.reused.append(run.id)
+            continue
+        if run.id in elsewhere:
+            row = _reused_row(grid, run, elsewhere[run.id], command, config_file)
+            write_row(out, run, row)
+            log(f"{head}: the same run as {row['same_as']} (same model, input and settings; --reuse "
+                f"{elsewhere[run.id]['source']}), its result row reused")
+            by_key.setdefault(_key_text(run_key(grid, run)), row)
             outcome.rows.append(row)
             outcome.reused.append(run.id)
             continue
@@ -192,6 +213,41 @@ def _arm_record(grid: Grid, run: GridRun) -> dict:
     return {"name": run.arm.name, "label": run.arm.label, "group": run.arm.group, "input": run.arm.input,
             "enrich": list(run.arm.enrich), "variant": run.arm.experiment.model.variant,
             "order": [a.name for a in grid.arms].index(run.arm.name)}
+
+
+def rows_elsewhere(grid: Grid, reuse: Sequence[str | os.PathLike], finished: dict[str, dict]) -> dict[str, dict]:
+    """For each run of ``grid`` not in ``finished``, the first row in the study outputs ``reuse``
+    whose key is the run's, as ``{"row": row, "source": the output as given}`` by run id.
+
+    Raises
+    ------
+    FileNotFoundError
+        An output of ``reuse`` without result rows (a mistyped path would silently train all).
+    """
+    by_key: dict[str, dict] = {}
+    for other in reuse:
+        rows = read_rows(other)
+        if not rows:
+            raise FileNotFoundError(f"--reuse {other}: no result rows of a study there (no {Path(other) / 'results'}/*.json)")
+        for row in rows.values():
+            by_key.setdefault(_key_text(row["key"]), {"row": row, "source": str(other)})
+    found = {}
+    for run in grid.runs:
+        if run.id not in finished and (hit := by_key.get(_key_text(run_key(grid, run)))) is not None:
+            found[run.id] = hit
+    return found
+
+
+def _reused_row(grid: Grid, run: GridRun, hit: dict, command: str | None, config_file: str | None) -> dict:
+    """The row of another study's run with ``run``'s key, as this study's row of ``run``: this study's
+    record and command, the metrics, inputs, training and software of the run that was trained."""
+    other = hit["row"]
+    origin = other.get("reused_from") or {"study": other["study"].get("name"), "kind": other["study"].get("kind"),
+                                          "config_file": other["study"].get("config_file"),
+                                          "command": other.get("command"), "run": other.get("same_as") or other["run"]}
+    return {**other, "run": run.id, "arm": _arm_record(grid, run),
+            "study": {"kind": grid.kind, "name": grid.name, "config_file": config_file, "config": grid.config},
+            "command": command, "same_as": f"{origin['study']}:{origin['run']}", "reused_from": origin}
 
 
 def _twin_row(grid: Grid, run: GridRun, twin: dict) -> dict:
