@@ -220,6 +220,24 @@ def test_another_studys_row_of_the_same_run_is_reused_and_names_its_origin(sweep
     assert f"| `density-050/axes-Ae-d/seed0` (= `tiny-sweep:{RUN1}`) |" in write_report(out, log=lambda s: None).read_text()
 
 
+def test_a_reused_row_may_differ_only_by_a_raised_time_limit_that_did_not_cut_it(sweep, finished, tmp_path):
+    from radarpc.experiments.study.runner import rows_elsewhere
+
+    grid = _ablation_of_the_sweeps_model(sweep)                       # no time limit
+    row = read_rows(sweep.out)[RUN1]
+    for cut, expected in ((False, ["density-050/axes-Ae-d/seed0"]), (True, [])):
+        other = tmp_path / f"cut-{cut}"
+        changed = {**row, "key": {**row["key"], "time_limit_min": 5.0},
+                   "training": {**row["training"], "cut_at_time_limit": cut}}
+        (other / "results").mkdir(parents=True)
+        (other / "results" / (RUN1.replace("/", "__") + ".json")).write_text(json.dumps(changed))
+        assert sorted(rows_elsewhere(grid, [other], {})) == expected
+    other_seed = tmp_path / "seed1"
+    (other_seed / "results").mkdir(parents=True)
+    (other_seed / "results" / (RUN1.replace("/", "__") + ".json")).write_text(json.dumps({**row, "seed": 1}))
+    assert rows_elsewhere(grid, [other_seed], {}) == {}
+
+
 def test_a_reuse_folder_without_rows_is_refused_before_any_work(sweep, tmp_path, capsys):
     grid = _ablation_of_the_sweeps_model(sweep)
     with pytest.raises(FileNotFoundError, match=r"--reuse .*typo: no result rows of a study there"):

@@ -40,7 +40,8 @@ from radarpc.training.loop import training_status
 from radarpc.experiments.radial_detection.train import train_runs
 from radarpc.experiments.study.grid import Grid, GridRun
 from radarpc.experiments.study.inputs import StudyInputs
-from radarpc.experiments.study.results import ROW_FORMAT, check_rows, cut_by_limit, read_rows, run_key, write_row
+from radarpc.experiments.study.results import (ROW_FORMAT, check_rows, cut_by_limit, key_differences, read_rows,
+                                               run_key, under_raised_limit, write_row)
 from radarpc.io import atomic_write
 from radarpc.runs import OutputLock, RunMismatchError, check_writable
 from radarpc.training.checkpoint import software_record
@@ -217,24 +218,31 @@ def _arm_record(grid: Grid, run: GridRun) -> dict:
 
 def rows_elsewhere(grid: Grid, reuse: Sequence[str | os.PathLike], finished: dict[str, dict]) -> dict[str, dict]:
     """For each run of ``grid`` not in ``finished``, the first row in the study outputs ``reuse``
-    whose key is the run's, as ``{"row": row, "source": the output as given}`` by run id.
+    that would finish it in its own study (the same key read through today's config types, or one
+    that differs only by a raised time limit that did not cut it, as :func:`check_rows` decides),
+    as ``{"row": row, "source": the output as given}`` by run id.
 
     Raises
     ------
     FileNotFoundError
         An output of ``reuse`` without result rows (a mistyped path would silently train all).
     """
-    by_key: dict[str, dict] = {}
+    others: list[tuple[dict, str]] = []
     for other in reuse:
         rows = read_rows(other)
         if not rows:
             raise FileNotFoundError(f"--reuse {other}: no result rows of a study there (no {Path(other) / 'results'}/*.json)")
-        for row in rows.values():
-            by_key.setdefault(_key_text(row["key"]), {"row": row, "source": str(other)})
+        others += [(row, str(other)) for row in rows.values()]
     found = {}
     for run in grid.runs:
-        if run.id not in finished and (hit := by_key.get(_key_text(run_key(grid, run)))) is not None:
-            found[run.id] = hit
+        if run.id in finished:
+            continue
+        key = run_key(grid, run)
+        for row, source in others:
+            if row["density"] == run.density and row["seed"] == run.seed and (
+                    not key_differences(row["key"], key) or under_raised_limit(row, key) == "finished"):
+                found[run.id] = {"row": row, "source": source}
+                break
     return found
 
 
