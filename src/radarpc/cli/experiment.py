@@ -23,9 +23,10 @@ checkpoint. A row made with another config of the same run is refused, naming wh
 a raised ``time_limit_min``: rows it would not have cut are reused, runs the old limit cut train on.
 ``--plan`` lists the runs and which are finished, and does nothing else. ``--reuse OTHER_OUT``
 takes the result row of a run of another study with the same key (model, input, data, budget, seed,
-scoring) instead of training it: the density sweep's PointPillars runs are the ablation's ``+Ae+d``
-arm, so ``radarpc experiment density-sweep ... --reuse runs/axes`` trains them once (the row names
-the run it came from). ``radarpc report OUT`` makes the tables and figures.
+scoring) instead of training it: the short density sweep's PointPillars-s runs are the short
+ablation's ``+Ae+d`` arm (same data and budget), so ``radarpc experiment density-sweep
+configs/study/density-sweep-short.yaml --out runs/sweep-short --reuse runs/ablation-short`` trains
+them once (the row names the run it came from). ``radarpc report OUT`` makes the tables and figures.
 
 ``fps`` times instead of training (the paper's Table 2): every model of the config at every
 density (a dense FFTRadNet once), at batch 1, the network alone and with the extraction from the
