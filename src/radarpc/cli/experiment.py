@@ -22,11 +22,12 @@ an interruption: finished runs are reused (it says so), a killed run resumes fro
 checkpoint. A row made with another config of the same run is refused, naming what differs, except
 a raised ``time_limit_min``: rows it would not have cut are reused, runs the old limit cut train on.
 ``--plan`` lists the runs and which are finished, and does nothing else. ``--reuse OTHER_OUT``
-takes the result row of a run of another study with the same key (model, input, data, budget, seed,
-scoring) instead of training it: the short density sweep's PointPillars-s runs are the short
-ablation's ``+Ae+d`` arm (same data and budget), so ``radarpc experiment density-sweep
-configs/study/density-sweep-short.yaml --out runs/sweep-short --reuse runs/ablation-short`` trains
-them once (the row names the run it came from). ``radarpc report OUT`` makes the tables and figures.
+takes the result row of a run of another study with the same key (model, input, density,
+conversion, data, budget, time limit, seed, scoring) instead of training it: at the densities both
+list, the short density sweep's PointPillars-s runs are the short ablation's ``+Ae+d`` arm, so
+``radarpc experiment density-sweep configs/study/density-sweep-short.yaml --out runs/sweep-short
+--reuse runs/ablation-short`` trains those once (the row names the run it came from; the other
+output's rows are read at the start). ``radarpc report OUT`` makes the tables and figures.
 
 ``fps`` times instead of training (the paper's Table 2): every model of the config at every
 density (a dense FFTRadNet once), at batch 1, the network alone and with the extraction from the
@@ -93,7 +94,8 @@ def run(args: argparse.Namespace) -> int:
 
     reuse = list(getattr(args, "reuse", None) or ())
     if reuse and args.kind not in ("density-sweep", "ablation"):
-        raise ValueError(f"--reuse applies to the density-sweep and ablation studies (their result rows), not {args.kind}")
+        raise ValueError(f"--reuse applies to the density-sweep and ablation studies (their result rows), "
+                         f"not {args.kind}")
     if args.kind in RALD_STUDY_KINDS:
         return _run_rald(args)
     if args.data is not None:
@@ -109,20 +111,28 @@ def run(args: argparse.Namespace) -> int:
     if args.plan:
         import json
 
-        from radarpc.experiments.study.results import run_key
+        from radarpc.experiments.study.results import row_origin, run_key
         from radarpc.experiments.study.runner import rows_elsewhere
 
         finished = check_rows(grid, args.out, read_rows(args.out))
         elsewhere = rows_elsewhere(grid, reuse, finished)
         print(f"study {grid.name!r} ({grid.kind}): {len(grid.runs)} runs, {len(finished)} finished"
               + (f", {len(elsewhere)} to take from --reuse" if reuse else ""))
+        keys = {r.id: json.dumps(run_key(grid, r), sort_keys=True) for r in grid.runs}
+        done = {keys[r]: r for r in finished}                        # a finished run's twins take its row
         first: dict[str, str] = {}
         for k, r in enumerate(grid.runs, 1):
-            twin = first.setdefault(json.dumps(run_key(grid, r), sort_keys=True), r.id)
+            twin = first.setdefault(keys[r.id], r.id)
             hit = elsewhere.get(r.id)
-            state = ("finished" if r.id in finished else
-                     f"the same run as {hit['row']['run']} of {hit['source']}, its row reused" if hit else
-                     f"the same run as {twin}, trained once" if twin != r.id else "to train")
+            if r.id in finished:
+                state = "finished"
+            elif keys[r.id] in done:
+                state = f"the same run as {done[keys[r.id]]} (finished), its row reused"
+            elif hit:
+                origin = row_origin(hit["row"])
+                state = f"the same run as {origin['study']}:{origin['run']} ({hit['source']}), its row reused"
+            else:
+                state = f"the same run as {twin}, trained once" if twin != r.id else "to train"
             print(f"[{k}/{len(grid.runs)}] {r.id}: {r.arm.label}, {r.arm.input}"
                   + (f" +{'+'.join(r.arm.enrich)}" if r.arm.enrich else "") + f" -- {state}")
         return 0
@@ -200,8 +210,9 @@ def add_parser(sub) -> None:
                         "default OUT), shared between studies that train the same configs")
     p.add_argument("--reuse", action="append", default=[], metavar="OUT",
                    help="density-sweep and ablation: another study's output whose result rows are taken for the "
-                        "runs with the same key (same model, input, data, budget, seed and scoring) instead of "
-                        "training them, e.g. the ablation's +Ae+d arm for the sweep's PointPillars; repeatable")
+                        "runs with the same key (model, input, density, conversion, data, budget, time limit, seed, "
+                        "scoring) instead of training them, e.g. the short ablation's +Ae+d arm for the short sweep's "
+                        "PointPillars-s at the densities both list; repeatable")
     p.add_argument("--data", default=None, metavar="ROOT",
                    help="rald-ablation only: this ColoRadar root instead of the study's data: (the same folder "
                         "name: the rows name it)")

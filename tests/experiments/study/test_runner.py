@@ -170,33 +170,36 @@ def test_a_row_of_another_config_of_the_run_is_refused(sweep, finished, tmp_path
     assert err.startswith("radarpc experiment: error: ") and err.count("\n") == 1
 
 
-def _ablation_of_the_sweeps_model(sweep, out_name: str = "ablation"):
-    """An ablation whose ``+Ae+d`` arm is the tiny sweep's pillars-tiny run at 0.05 (same
-    experiment, data, budget, seed and scoring) and whose base arm is not."""
+def _ablation_of_the_sweeps_model(root: Path, arms=("base", "+Ae+d"), enrichments=()) -> dict:
+    """An ablation config whose ``+Ae+d`` arm (and enrichment arm ``none``) is the tiny sweep's
+    pillars-tiny run at 0.05 (same experiment, data, budget, seed and scoring); its base arm is not."""
+    experiment = yaml.safe_load((CONFIGS / "tiny-sweep.yaml").read_text())["models"][0]["experiment"]
+    d = {"name": "tiny-axes", "sensor": "tiny", "data": {"roots": [str(root)]}, "densities": [0.05],
+         "budget": {"epochs": 2}, "conversion": {"density_mode": "per-dataset"}, "evaluation": {"fps_frames": 0},
+         "axes": {"model": {"experiment": experiment}, "arms": list(arms)}}
+    if enrichments:
+        d["enrichments"] = {"model": {"experiment": experiment}, "arms": list(enrichments)}
+    return d
+
+
+def _grid(d: dict) -> Grid:
     from radarpc.config import from_dict
     from radarpc.experiments.study.config import AblationConfig
 
-    experiment = yaml.safe_load((CONFIGS / "tiny-sweep.yaml").read_text())["models"][0]["experiment"]
-    return study_grid(from_dict(AblationConfig, {
-        "name": "tiny-axes", "sensor": "tiny", "data": {"roots": [str(sweep.root)]}, "densities": [0.05],
-        "budget": {"epochs": 2}, "conversion": {"density_mode": "per-dataset"}, "evaluation": {"fps_frames": 0},
-        "axes": {"model": {"experiment": experiment}, "arms": ["base", "+Ae+d"]}}))
+    return study_grid(from_dict(AblationConfig, d))
 
 
 def test_another_studys_row_of_the_same_run_is_reused_and_names_its_origin(sweep, finished, tmp_path, capsys):
-    grid = _ablation_of_the_sweeps_model(sweep)
-    out = tmp_path / "axes"
+    d = _ablation_of_the_sweeps_model(sweep.root)
+    grid, out = _grid(d), tmp_path / "axes"
     # --plan says which run is taken from the sweep, and trains nothing
-    d = {"name": "tiny-axes", "sensor": "tiny", "data": {"roots": [str(sweep.root)]}, "densities": [0.05],
-         "budget": {"epochs": 2}, "conversion": {"density_mode": "per-dataset"}, "evaluation": {"fps_frames": 0},
-         "axes": {"model": {"experiment": yaml.safe_load((CONFIGS / "tiny-sweep.yaml").read_text())["models"][0]["experiment"]},
-                  "arms": ["base", "+Ae+d"]}}
     (tmp_path / "axes.yaml").write_text(yaml.safe_dump(d))
     assert main(["experiment", "ablation", str(tmp_path / "axes.yaml"), "--out", str(out), "--reuse",
                  str(sweep.out), "--plan"]) == 0
     plan = capsys.readouterr().out
     assert "2 runs, 0 finished, 1 to take from --reuse" in plan
-    assert f"density-050/axes-Ae-d/seed0: [r, a, e, d, Ae], points -- the same run as {RUN1} of {sweep.out}" in plan
+    assert (f"density-050/axes-Ae-d/seed0: [r, a, e, d, Ae], points -- the same run as tiny-sweep:{RUN1} "
+            f"({sweep.out}), its row reused") in plan
     assert "density-050/axes-base/seed0: [r, a, e], points -- to train" in plan
     assert not out.exists()
     # the run: the base arm trains, the +Ae+d arm takes the sweep's row
@@ -204,11 +207,14 @@ def test_another_studys_row_of_the_same_run_is_reused_and_names_its_origin(sweep
     outcome = run_grid(grid, out, progress=False, log=logs.append, cache=sweep.out / "cache", reuse=[sweep.out],
                        command="the command", config_file="axes.yaml")
     assert outcome.trained == ["density-050/axes-base/seed0"] and outcome.reused == ["density-050/axes-Ae-d/seed0"]
-    assert f"--reuse {sweep.out}: 1 run(s) of this study not finished here have a row there with the same key" in logs
+    assert any(line.startswith(f"--reuse {sweep.out}: 1 run(s) of this study not finished here") for line in logs)
+    assert any("0 finished (result rows in" in line and "1 taken from --reuse, 1 to train" in line for line in logs)
     assert any(f"the same run as tiny-sweep:{RUN1}" in line for line in logs)
     assert not (out / "density-050" / "axes-Ae-d").exists()             # not trained
     source, row = read_rows(sweep.out)[RUN1], read_rows(out)["density-050/axes-Ae-d/seed0"]
     assert row["metrics"] == source["metrics"] and row["key"] == source["key"] and row["inputs"] == source["inputs"]
+    assert row["software"] == source["software"] and row["times"]["finished_at"] == source["times"]["finished_at"]
+    assert row["times"]["reused_at"] >= source["times"]["finished_at"]
     assert row["study"]["name"] == "tiny-axes" and row["command"] == "the command"
     assert row["same_as"] == f"tiny-sweep:{RUN1}" and row["arm"]["group"] == "axes"
     assert row["reused_from"] == {"study": "tiny-sweep", "kind": "density-sweep",
@@ -217,30 +223,77 @@ def test_another_studys_row_of_the_same_run_is_reused_and_names_its_origin(sweep
     # a rerun without --reuse finds it finished; the report marks where it came from
     again = run_grid(grid, out, progress=False, log=lambda s: None, cache=sweep.out / "cache")
     assert again.trained == [] and len(again.reused) == 2
-    assert f"| `density-050/axes-Ae-d/seed0` (= `tiny-sweep:{RUN1}`) |" in write_report(out, log=lambda s: None).read_text()
+    report = write_report(out, log=lambda s: None).read_text()
+    assert f"| `density-050/axes-Ae-d/seed0` (= `tiny-sweep:{RUN1}`) |" in report
+    from radarpc.experiments.study.fps_report import collect_scores
 
-
-def test_a_reused_row_may_differ_only_by_a_raised_time_limit_that_did_not_cut_it(sweep, finished, tmp_path):
+    scores = dict(next(iter(collect_scores([sweep.out, out]).values())))       # the one model at 0.05
+    assert scores["tiny-sweep"] == [source["metrics"]["f1_fixed"]]              # not again under tiny-axes
+    # a row taken from a row that was itself taken names the run that trained
+    chained = read_rows(out)
+    chained_grid = _grid({**d, "name": "tiny-axes-2"})
     from radarpc.experiments.study.runner import rows_elsewhere
 
-    grid = _ablation_of_the_sweeps_model(sweep)                       # no time limit
+    hit = rows_elsewhere(chained_grid, [out], {})
+    assert sorted(hit) == ["density-050/axes-Ae-d/seed0", "density-050/axes-base/seed0"]
+    assert hit["density-050/axes-Ae-d/seed0"]["row"] == chained["density-050/axes-Ae-d/seed0"]
+    out2 = tmp_path / "axes2"
+    run_grid(chained_grid, out2, progress=False, log=lambda s: None, reuse=[out])
+    assert read_rows(out2)["density-050/axes-Ae-d/seed0"]["same_as"] == f"tiny-sweep:{RUN1}"
+    assert read_rows(out2)["density-050/axes-base/seed0"]["same_as"] == "tiny-axes:density-050/axes-base/seed0"
+
+
+def test_a_finished_arm_of_the_same_run_wins_over_reuse(sweep, finished, tmp_path):
+    """The +Ae+d arm trained here: its enrichment twin "none" takes this study's row, not the sweep's."""
+    from radarpc.experiments.study.runner import rows_elsewhere
+
+    d = _ablation_of_the_sweeps_model(sweep.root, arms=("+Ae+d",), enrichments=("none",))
+    grid, out = _grid(d), tmp_path / "own"
+    source = read_rows(sweep.out)[RUN1]
+    (out / "results").mkdir(parents=True)
+    own = {**source, "run": "density-050/axes-Ae-d/seed0", "metrics": {**source["metrics"], "f1_fixed": 0.123},
+           "study": {**source["study"], "name": "tiny-axes", "kind": "ablation"}}
+    (out / "results" / "density-050__axes-Ae-d__seed0.json").write_text(json.dumps(own))
+    assert rows_elsewhere(grid, [sweep.out], {"density-050/axes-Ae-d/seed0": own}) == {}
+    outcome = run_grid(grid, out, progress=False, log=lambda s: None, reuse=[sweep.out])
+    assert outcome.trained == [] and outcome.reused == ["density-050/axes-Ae-d/seed0", "density-050/enrich-none/seed0"]
+    twin = read_rows(out)["density-050/enrich-none/seed0"]
+    assert twin["metrics"]["f1_fixed"] == 0.123 and twin["same_as"] == "density-050/axes-Ae-d/seed0"
+    # a run trained once counts once where F1 is paired with frames/s (two arms here; --reuse rows)
+    from radarpc.experiments.study.fps_report import collect_scores
+
+    assert list(collect_scores([out]).values()) == [[("tiny-axes", [0.123])]]
+
+
+def test_a_reused_row_must_have_the_runs_key(sweep, finished, tmp_path):
+    """Rows that differ in the key are not taken (another seed, root, split); one that differs only by a
+    raised time limit is, unless that limit cut it."""
+    from radarpc.experiments.study.runner import rows_elsewhere
+
+    grid = _grid(_ablation_of_the_sweeps_model(sweep.root))              # no time limit
     row = read_rows(sweep.out)[RUN1]
-    for cut, expected in ((False, ["density-050/axes-Ae-d/seed0"]), (True, [])):
-        other = tmp_path / f"cut-{cut}"
-        changed = {**row, "key": {**row["key"], "time_limit_min": 5.0},
-                   "training": {**row["training"], "cut_at_time_limit": cut}}
+    key = row["key"]
+    experiment = key["experiment"]
+
+    def taken(changed: dict) -> list[str]:
+        other = tmp_path / f"other{len(list(tmp_path.iterdir()))}"
         (other / "results").mkdir(parents=True)
         (other / "results" / (RUN1.replace("/", "__") + ".json")).write_text(json.dumps(changed))
-        assert sorted(rows_elsewhere(grid, [other], {})) == expected
-    other_seed = tmp_path / "seed1"
-    (other_seed / "results").mkdir(parents=True)
-    (other_seed / "results" / (RUN1.replace("/", "__") + ".json")).write_text(json.dumps({**row, "seed": 1}))
-    assert rows_elsewhere(grid, [other_seed], {}) == {}
+        return sorted(rows_elsewhere(grid, [other], {}))
+
+    assert taken(row) == ["density-050/axes-Ae-d/seed0"]
+    assert taken({**row, "key": {**key, "time_limit_min": 5.0}}) == ["density-050/axes-Ae-d/seed0"]
+    assert taken({**row, "key": {**key, "time_limit_min": 5.0},
+                  "training": {**row["training"], "cut_at_time_limit": True}}) == []
+    assert taken({**row, "seed": 1, "key": {**key, "experiment": {
+        **experiment, "train": {**experiment["train"], "seed": 1}}}}) == []
+    assert taken({**row, "key": {**key, "data": {**key["data"], "roots": ["another-root"]}}}) == []
+    assert taken({**row, "key": {**key, "evaluation": {**key["evaluation"], "split": "val"}}}) == []
 
 
 def test_a_reuse_folder_without_rows_is_refused_before_any_work(sweep, tmp_path, capsys):
-    grid = _ablation_of_the_sweeps_model(sweep)
-    with pytest.raises(FileNotFoundError, match=r"--reuse .*typo: no result rows of a study there"):
+    grid = _grid(_ablation_of_the_sweeps_model(sweep.root))
+    with pytest.raises(FileNotFoundError, match=r"--reuse .*typo: no result rows of a training study there"):
         run_grid(grid, tmp_path / "axes", progress=False, log=lambda s: None, reuse=[tmp_path / "typo"])
     assert not (tmp_path / "axes" / "results").exists()
     assert main(["experiment", "fps", str(CONFIGS / "tiny-sweep.yaml"), "--out", str(tmp_path / "f"),

@@ -29,7 +29,7 @@ from typing import Callable
 
 from radarpc.experiments.study.fps import FPS_REQUIRED, FPS_ROW_FORMAT
 from radarpc.experiments.study.provenance import provenance
-from radarpc.experiments.study.results import RESULTS_DIR, read_rows
+from radarpc.experiments.study.results import RESULTS_DIR, read_rows, row_origin
 from radarpc.io import atomic_write
 from radarpc.models.complexity import MEMORY_METHODS
 
@@ -82,7 +82,9 @@ ScoreKey = tuple[str, str, str, tuple[str, ...], "float | None"]
 
 
 def collect_scores(studies) -> dict[ScoreKey, list[tuple[str, list[float]]]]:
-    """F1 @ 0.2 (``metrics.f1_fixed``) of training studies' rows by :data:`ScoreKey`.
+    """F1 @ 0.2 (``metrics.f1_fixed``) of training studies' rows by :data:`ScoreKey`; a run trained
+    once counts once, under the first study given that holds it (two arms of one run, a row taken
+    with ``--reuse``: :func:`~radarpc.experiments.study.results.row_origin`).
 
     Parameters
     ----------
@@ -101,14 +103,17 @@ def collect_scores(studies) -> dict[ScoreKey, list[tuple[str, list[float]]]]:
         A study without result rows.
     """
     found: dict[ScoreKey, dict[str, list[float]]] = {}
+    counted: set[tuple[str, str]] = set()
     for study in studies:
         rows = read_rows(Path(study))
         if not rows:
             raise FileNotFoundError(f"{study}: no result rows of a training study (no {RESULTS_DIR}/*.json)")
         for row in sorted(rows.values(), key=lambda r: r["seed"]):
             f1 = row["metrics"].get("f1_fixed")
-            if f1 is None:
-                continue
+            origin = row_origin(row)
+            if f1 is None or (origin["study"], origin["run"]) in counted:
+                continue                       # a run trained once counts once (twin arms, --reuse rows)
+            counted.add((origin["study"], origin["run"]))
             a = row["arm"]
             key = ((row["key"].get("data") or {}).get("sensor", "?"), a.get("variant", a["name"]), a["input"],
                    tuple(a.get("enrich") or ()), row["density"])

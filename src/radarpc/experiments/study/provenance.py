@@ -94,7 +94,9 @@ def provenance(rows: dict[str, dict], rows_dir: Path, runs: str | Path, command:
     commands = ranked(r.get("command") or "(not recorded: the library was called directly)" for r in rows.values())
     files = ranked(r["study"].get("config_file") or "(not recorded)" for r in rows.values())
     commits = ranked((r.get("software") or {}).get("commit") or "unknown" for r in rows.values())
-    latest = max(rows.values(), key=lambda r: (r.get("times") or {}).get("finished_at") or "")
+    # a row taken from another study (--reuse) is as recent as its taking, not its training
+    latest = max(rows.values(), key=lambda r: max((r.get("times") or {}).get("finished_at") or "",
+                                                  (r.get("times") or {}).get("reused_at") or ""))
     return Provenance(made_by=command or f"radarpc report {shlex.quote(str(runs))}", commands=commands, files=files,
                       commits=commits, config=latest["study"].get("config", {}),
                       own_commit=software_record().get("commit") or "unknown",

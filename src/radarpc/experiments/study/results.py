@@ -29,7 +29,8 @@ from radarpc.experiments.radial_detection.config import canonical_key
 from radarpc.experiments.study.grid import Grid, GridRun
 from radarpc.io import DataFileError, atomic_write
 
-__all__ = ["ROW_FORMAT", "RESULTS_DIR", "REQUIRED_FIELDS", "run_key", "data_identity", "plain_json", "write_row",
+__all__ = ["ROW_FORMAT", "RESULTS_DIR", "REQUIRED_FIELDS", "run_key", "row_origin", "data_identity", "plain_json",
+           "write_row",
            "write_named_row", "read_rows", "rows_format", "flat_differences", "key_differences", "under_raised_limit",
            "cut_by_limit", "check_rows"]
 
@@ -59,6 +60,17 @@ def run_key(grid: Grid, run: GridRun) -> dict:
                        "density": run.density, "conversion": conversion, "data": data_identity(grid),
                        "evaluation": {"split": grid.evaluation.split, "weights": "best validation"},
                        "time_limit_min": grid.budget.time_limit_min})
+
+
+def row_origin(row: dict) -> dict:
+    """The training run whose numbers ``row`` holds, ``{"study", "kind", "config_file", "command",
+    "run"}``: the row's own study and run, or the run it is the same as (an arm of its study with
+    the same key, ``same_as``, or a run of another study taken with ``--reuse``, ``reused_from``)."""
+    if row.get("reused_from"):
+        return dict(row["reused_from"])
+    study = row["study"]
+    return {"study": study.get("name"), "kind": study.get("kind"), "config_file": study.get("config_file"),
+            "command": row.get("command"), "run": row.get("same_as") or row["run"]}
 
 
 def plain_json(value: Any) -> Any:

@@ -41,13 +41,13 @@ from radarpc.experiments.radial_detection.train import train_runs
 from radarpc.experiments.study.grid import Grid, GridRun
 from radarpc.experiments.study.inputs import StudyInputs
 from radarpc.experiments.study.results import (ROW_FORMAT, check_rows, cut_by_limit, key_differences, read_rows,
-                                               run_key, under_raised_limit, write_row)
+                                               row_origin, run_key, under_raised_limit, write_row)
 from radarpc.io import atomic_write
 from radarpc.runs import OutputLock, RunMismatchError, check_writable
 from radarpc.training.checkpoint import software_record
 from radarpc.training.loop import BEST_WEIGHTS, LOG_CSV
 
-__all__ = ["StudyOutcome", "run_grid", "STUDY_JSON", "CACHE_DIR"]
+__all__ = ["StudyOutcome", "run_grid", "rows_elsewhere", "STUDY_JSON", "CACHE_DIR"]
 
 STUDY_JSON = "study.json"
 """The study's config and command, written into its output at each start (not compared: the
@@ -130,6 +130,8 @@ def run_grid(grid: Grid, out: str | os.PathLike, *, cache: str | os.PathLike | N
     ValueError
         A result row of a run of the grid holds another key, other than by a raised time limit
         (before any work).
+    FileNotFoundError
+        An output of ``reuse`` without result rows (before any work).
     """
     out = Path(out)
     check_writable(out, "study output")
@@ -146,7 +148,8 @@ def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress
     elsewhere = rows_elsewhere(grid, reuse, finished)
     for other in reuse:
         found = sum(1 for r in elsewhere.values() if r["source"] == str(other))
-        log(f"--reuse {other}: {found} run(s) of this study not finished here have a row there with the same key")
+        log(f"--reuse {other}: {found} run(s) of this study not finished here have a row there with the same key "
+            f"(its rows are read now, once)")
     out.mkdir(parents=True, exist_ok=True)
     with atomic_write(out / STUDY_JSON, "w") as f:
         json.dump({"kind": grid.kind, "name": grid.name, "config_file": config_file, "command": command,
@@ -155,8 +158,8 @@ def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress
     others = sorted(set(rows) - {r.id for r in grid.runs})
     log(f"study {grid.name!r} ({grid.kind}): {n} runs ({len(grid.arms)} arms, {len(grid.densities)} densities, "
         f"{len({r.seed for r in grid.runs})} seeds); {len(finished)} finished (result rows in {out / 'results'}), "
-        f"{n - len(finished)} to train" + (f"; {len(others)} rows of runs this config does not list are kept"
-                                           if others else ""))
+        + (f"{len(elsewhere)} taken from --reuse, " if reuse else "") + f"{n - len(finished) - len(elsewhere)} to train"
+        + (f"; {len(others)} rows of runs this config does not list are kept" if others else ""))
     inputs = StudyInputs(grid, cache, device=device, progress=progress, log=log)
     inputs.prepare(r for r in grid.runs if r.id not in finished and r.id not in elsewhere)
     outcome = StudyOutcome(out, [])
@@ -175,20 +178,20 @@ def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress
             outcome.rows.append(row)
             outcome.reused.append(run.id)
             continue
+        twin = by_key.get(_key_text(run_key(grid, run)))
+        if twin is not None:
+            row = _twin_row(grid, run, twin)
+            write_row(out, run, row)
+            log(f"{head}: the same run as {twin['run']} (same model, input and settings), its result row reused")
+            outcome.rows.append(row)
+            outcome.reused.append(run.id)
+            continue
         if run.id in elsewhere:
             row = _reused_row(grid, run, elsewhere[run.id], command, config_file)
             write_row(out, run, row)
             log(f"{head}: the same run as {row['same_as']} (same model, input and settings; --reuse "
                 f"{elsewhere[run.id]['source']}), its result row reused")
             by_key.setdefault(_key_text(run_key(grid, run)), row)
-            outcome.rows.append(row)
-            outcome.reused.append(run.id)
-            continue
-        twin = by_key.get(_key_text(run_key(grid, run)))
-        if twin is not None:
-            row = _twin_row(grid, run, twin)
-            write_row(out, run, row)
-            log(f"{head}: the same run as {twin['run']} (same model, input and settings), its result row reused")
             outcome.rows.append(row)
             outcome.reused.append(run.id)
             continue
@@ -217,10 +220,10 @@ def _arm_record(grid: Grid, run: GridRun) -> dict:
 
 
 def rows_elsewhere(grid: Grid, reuse: Sequence[str | os.PathLike], finished: dict[str, dict]) -> dict[str, dict]:
-    """For each run of ``grid`` not in ``finished``, the first row in the study outputs ``reuse``
-    that would finish it in its own study (the same key read through today's config types, or one
-    that differs only by a raised time limit that did not cut it, as :func:`check_rows` decides),
-    as ``{"row": row, "source": the output as given}`` by run id.
+    """For each run of ``grid`` neither in ``finished`` nor the same run (key) as one in it, the first
+    row in the study outputs ``reuse`` that would finish it in its own study (the same key read
+    through today's config types, or one that differs only by a raised time limit that did not cut
+    it, as :func:`check_rows` decides), as ``{"row": row, "source": the output as given}`` by run id.
 
     Raises
     ------
@@ -231,13 +234,14 @@ def rows_elsewhere(grid: Grid, reuse: Sequence[str | os.PathLike], finished: dic
     for other in reuse:
         rows = read_rows(other)
         if not rows:
-            raise FileNotFoundError(f"--reuse {other}: no result rows of a study there (no {Path(other) / 'results'}/*.json)")
+            raise FileNotFoundError(f"--reuse {other}: no result rows of a training study there (no results/*.json)")
         others += [(row, str(other)) for row in rows.values()]
+    done = {_key_text(run_key(grid, r)) for r in grid.runs if r.id in finished}
     found = {}
     for run in grid.runs:
-        if run.id in finished:
-            continue
         key = run_key(grid, run)
+        if run.id in finished or _key_text(key) in done:
+            continue
         for row, source in others:
             if row["density"] == run.density and row["seed"] == run.seed and (
                     not key_differences(row["key"], key) or under_raised_limit(row, key) == "finished"):
@@ -248,14 +252,14 @@ def rows_elsewhere(grid: Grid, reuse: Sequence[str | os.PathLike], finished: dic
 
 def _reused_row(grid: Grid, run: GridRun, hit: dict, command: str | None, config_file: str | None) -> dict:
     """The row of another study's run with ``run``'s key, as this study's row of ``run``: this study's
-    record and command, the metrics, inputs, training and software of the run that was trained."""
+    record and command, the metrics, inputs, training, times and software of the run that trained."""
     other = hit["row"]
-    origin = other.get("reused_from") or {"study": other["study"].get("name"), "kind": other["study"].get("kind"),
-                                          "config_file": other["study"].get("config_file"),
-                                          "command": other.get("command"), "run": other.get("same_as") or other["run"]}
+    origin = row_origin(other)
+    now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     return {**other, "run": run.id, "arm": _arm_record(grid, run),
             "study": {"kind": grid.kind, "name": grid.name, "config_file": config_file, "config": grid.config},
-            "command": command, "same_as": f"{origin['study']}:{origin['run']}", "reused_from": origin}
+            "command": command, "same_as": f"{origin['study']}:{origin['run']}", "reused_from": origin,
+            "times": {**(other.get("times") or {}), "reused_at": now}}
 
 
 def _twin_row(grid: Grid, run: GridRun, twin: dict) -> dict:
