@@ -288,14 +288,21 @@ def test_the_report_renders_the_table(fps_run, tmp_path):
         write_fps_report(tmp_path / "empty")
 
 
-def _scored_row(name: str, variant: str, input_: str, sensor: str, density: float, seed: int, f1: float) -> dict:
+# the timed pillars-tiny's overrides (configs/study/tiny-fps.yaml)
+_TINY = {"pfn_channels": 4, "num_filters": [4, 4, 4], "num_upsample_filters": [4, 2, 2], "detection_widths": [4, 4],
+         "freespace_widths": [4, 4]}
+
+
+def _scored_row(name: str, variant: str, input_: str, sensor: str, density: float, seed: int, f1: float,
+                overrides: dict = _TINY) -> dict:
     from radarpc.experiments.study.results import ROW_FORMAT
 
     return {"format": ROW_FORMAT, "run": f"density-{density * 1000:03.0f}/{name}/seed{seed}",
             "study": {"kind": "density-sweep", "name": "sweep", "config": {"name": "sweep"}},
             "arm": {"name": name, "label": name, "group": "models", "input": input_, "enrich": [], "variant": variant,
                     "order": 0},
-            "density": density, "seed": seed, "key": {"seed": seed, "data": {"sensor": sensor}},
+            "density": density, "seed": seed,
+            "key": {"experiment": {"model": {"variant": variant, "overrides": overrides}}, "data": {"sensor": sensor}},
             "metrics": {"f1_fixed": f1}}
 
 
@@ -305,7 +312,10 @@ def test_scores_put_a_training_studys_f1_beside_the_frames_per_second(fps_run, t
     rows = [_scored_row("pp", "pillars-tiny", "points", "radial-s", 0.05, 0, 0.5),
             _scored_row("pp", "pillars-tiny", "points", "radial-s", 0.05, 1, 0.7),
             _scored_row("pp", "pillars-tiny", "points", "radial-s", 0.2, 0, 0.9),       # a density not timed
-            _scored_row("pp-r", "pillars-tiny", "points", "radial", 0.05, 0, 0.1)]      # another sensor
+            _scored_row("pp-r", "pillars-tiny", "points", "radial", 0.05, 0, 0.1),      # another sensor
+            _scored_row("pp-rae", "pillars-tiny", "points", "radial-s", 0.05, 0, 0.2,   # other point features
+                        {**_TINY, "features": ["r", "a", "e"]}),
+            _scored_row("pp-wide", "pillars-tiny", "points", "radial-s", 0.05, 0, 0.3, {})]   # another width
     for row in rows:
         (sweep / "results" / (row["run"].replace("/", "__") + ".json")).write_text(json.dumps(row))
     assert main(["report", str(fps_run.out), "--out", str(tmp_path / "report"), "--scores", str(sweep)]) == 0

@@ -15,13 +15,14 @@ the rows alone are enough) and writes ``report.md`` and ``figures/fps.png`` (def
 * a figure of frames/s against density (log axes), one panel per mode, the dense models as lines;
 * with ``scores`` (training studies' outputs, e.g. the density sweep): the paper's Table 2 pairing,
   each model's F1 @ 0.2 beside its frames/s, where a training study scored the same model
-  (variant), sensor, input, enrichments and density (:func:`collect_scores`).
+  (variant and config changes), sensor, input, enrichments and density (:func:`collect_scores`).
 
 Like the training studies' report it states the study command, config file and commits of its
 rows and of itself (:mod:`radarpc.experiments.study.provenance`), and ends with the study config.
 """
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +30,7 @@ from typing import Callable
 
 from radarpc.experiments.study.fps import FPS_REQUIRED, FPS_ROW_FORMAT
 from radarpc.experiments.study.provenance import provenance
-from radarpc.experiments.study.results import RESULTS_DIR, read_rows, row_origin
+from radarpc.experiments.study.results import RESULTS_DIR, plain_json, read_rows, row_origin
 from radarpc.io import atomic_write
 from radarpc.models.complexity import MEMORY_METHODS
 
@@ -50,6 +51,7 @@ class FPSModelRows:
     variant: str
     enrich: tuple[str, ...]
     order: int
+    overrides: str = "{}"                   # the model's config changes from the variant's (canonical JSON)
     rows: dict[float | None, dict[str, dict]] = field(default_factory=dict)
 
     @property
@@ -72,13 +74,29 @@ def collect_fps(rows: dict[str, dict]) -> list[FPSModelRows]:
     for row in rows.values():
         a = row["arm"]
         m = models.setdefault(a["name"], FPSModelRows(a["name"], a["sensor"], a["input"], a["variant"],
-                                                      tuple(a.get("enrich") or ()), int(a.get("order", 10 ** 6))))
+                                                      tuple(a.get("enrich") or ()), int(a.get("order", 10 ** 6)),
+                                                      _canonical(row["key"]["model"].get("overrides") or {})))
         m.rows.setdefault(row["density"], {})[row["mode"]] = row
     return sorted(models.values(), key=lambda m: (m.order, m.name))
 
 
-ScoreKey = tuple[str, str, str, tuple[str, ...], "float | None"]
-"""What pairs a training study's score with an FPS row: ``(sensor, variant, input, enrich, density)``."""
+ScoreKey = tuple[str, str, str, str, tuple[str, ...], "float | None"]
+"""What pairs a training study's score with an FPS row: ``(sensor, variant, overrides, input, enrich,
+density)``, ``overrides`` the model config's changes from the variant's as canonical JSON (so an
+ablation arm with other point features is not another arm's model)."""
+
+
+def _canonical(overrides: dict) -> str:
+    return json.dumps(plain_json(overrides), sort_keys=True)
+
+
+def _trained_model(model: dict) -> tuple[str, str]:
+    """``(variant, canonical overrides)`` of a training row's ``key.experiment.model``: the fields its
+    resolved config changes from the variant's, as the FPS study records them."""
+    from radarpc.models import ModelSpec
+
+    spec = ModelSpec(model["variant"], model.get("overrides") or {})
+    return spec.variant, _canonical(ModelSpec.matching(spec.variant, spec.config).overrides)
 
 
 def collect_scores(studies) -> dict[ScoreKey, list[tuple[str, list[float]]]]:
@@ -115,7 +133,8 @@ def collect_scores(studies) -> dict[ScoreKey, list[tuple[str, list[float]]]]:
                 continue                       # a run trained once counts once (twin arms, --reuse rows)
             counted.add((origin["study"], origin["run"]))
             a = row["arm"]
-            key = ((row["key"].get("data") or {}).get("sensor", "?"), a.get("variant", a["name"]), a["input"],
+            variant, overrides = _trained_model(row["key"]["experiment"]["model"])
+            key = ((row["key"].get("data") or {}).get("sensor", "?"), variant, overrides, a["input"],
                    tuple(a.get("enrich") or ()), row["density"])
             found.setdefault(key, {}).setdefault(row["study"]["name"], []).append(float(f1))
     return {k: list(v.items()) for k, v in found.items()}
@@ -137,7 +156,7 @@ def _score_table(models: list[FPSModelRows], modes: list[str], scores: dict) -> 
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for m in models:
         for d in m.densities:
-            got = scores.get((m.sensor, m.variant, m.input, m.enrich, d))
+            got = scores.get((m.sensor, m.variant, m.overrides, m.input, m.enrich, d))
             if not got:
                 continue
             path = "network" if m.dense else "pipeline"
