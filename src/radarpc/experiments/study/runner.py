@@ -7,8 +7,9 @@ For each run of the :class:`~radarpc.experiments.study.grid.Grid`, in order:
    with another key is refused before any work, :func:`~radarpc.experiments.study.results.check_rows`,
    unless only the time limit was raised: a run it did not cut is finished, one it cut trains on);
    else a row of another run of the grid with the same key (two arms that are one run), or a row
-   with the same key in another study's output given as ``reuse`` (the density sweep's PointPillars
-   runs are the ablation's ``+Ae+d`` arm): copied as the run's row, naming where it came from;
+   with the same key in another study's output given as ``reuse`` (at the densities both list, the
+   short sweep's PointPillars-s runs are the short ablation's ``+Ae+d`` arm): copied as the run's
+   row, naming the run that trained it;
 2. else its inputs (:class:`~radarpc.experiments.study.inputs.StudyInputs`: roots, point stores,
    sparse-RD roots; those of every run to train are made first, root by root, and cached);
 3. training in ``OUT/RUN`` through the detection experiment's
@@ -117,9 +118,10 @@ def run_grid(grid: Grid, out: str | os.PathLike, *, cache: str | os.PathLike | N
         Called with the run and the global step after each optimizer step (tests interrupt a
         study through it).
     reuse : sequence of path-like
-        Outputs (or ``results`` folders) of other studies: a run without its own row takes the
-        row of a run there with the same key (same model, input, data, budget, seed and
-        scoring) instead of training; the row says which (``same_as``, ``reused_from``).
+        Outputs (or ``results`` folders) of other studies, read once at the start: a run without
+        its own row (or a finished arm of the same run here) takes the row of a run there with the
+        same key (:func:`rows_elsewhere`) instead of training; the row names the run that trained
+        it (``same_as``, ``reused_from``).
 
     Returns
     -------
