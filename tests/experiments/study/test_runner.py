@@ -288,6 +288,8 @@ def test_a_reused_row_must_have_the_runs_key(sweep, finished, tmp_path):
                   "training": {**row["training"], "cut_at_time_limit": True}}) == []
     assert taken({**row, "seed": 1, "key": {**key, "experiment": {
         **experiment, "train": {**experiment["train"], "seed": 1}}}}) == []
+    assert taken({**row, "key": {**key, "experiment": {                 # the key's seed, not only the row's
+        **experiment, "train": {**experiment["train"], "seed": 1}}}}) == []
     assert taken({**row, "key": {**key, "data": {**key["data"], "roots": ["another-root"]}}}) == []
     assert taken({**row, "key": {**key, "evaluation": {**key["evaluation"], "split": "val"}}}) == []
 
