@@ -97,6 +97,14 @@ def test_report_names_every_figure_and_each_is_a_readable_png(demo):
         assert np.ptp(image[..., :3]) > 0.5, name               # drawn, not blank
 
 
+def test_the_reports_links_to_the_results_pages_resolve(demo):
+    # run from the source tree the report links the results pages; each link must reach its file
+    links = re.findall(r"\[`docs/results/([^`]+)`\]\(([^)]+)\)", demo.report)
+    assert {name for name, _ in links} >= {"README.md", "detection.md", "study.md", "pointcloud.md", "coloradar.md"}
+    for name, target in links:
+        assert (demo.out / target).resolve() == (Path(__file__).parents[2] / "docs" / "results" / name).resolve()
+
+
 def _vehicles_per_frame(labels_csv) -> tuple[dict[int, int], dict[int, str]]:
     """``{numSample: labelled vehicles}`` and ``{numSample: sequence}`` read from ``labels.csv``
     with the csv module (a frame without vehicles has one row of -1)."""

@@ -406,7 +406,8 @@ def write_report(cfg, paths, steps: list, *, device: str, frame: int, frame_note
           "In the paper F1 rises with density and does not fall at high density, SpectralPillars reaches the "
           "dense FFTRadNet at 7.2 %, and point clouds match the RD benchmark's freespace mIoU (0.794) from 1.6 % "
           "on. Whether the simulated data reproduces each finding is the subject of the study "
-          "(`radarpc experiment density-sweep`, " + _docs_link("README.md", out) + ").", ""]
+          "(`radarpc experiment density-sweep`; its results, finding by finding: " + _docs_link("study.md", out)
+          + ").", ""]
 
     # ---- part 2 ----
     ov = colo["overall"]
@@ -439,8 +440,9 @@ def write_report(cfg, paths, steps: list, *, device: str, frame: int, frame_note
           "- " + _docs_link("README.md", out) + ": every measured result, with its config and command.",
           "- " + _docs_link("detection.md", out) + ", " + _docs_link("pointcloud.md", out) + ", "
           + _docs_link("coloradar.md", out) + ": the detection models, the point clouds, the ColoRadar side.",
-          "- The study behind the paper's figures: `radarpc experiment density-sweep configs/study/density-sweep.yaml "
-          "--out runs/sweep`, then `radarpc report runs/sweep`.", "",
+          "- " + _docs_link("study.md", out) + ": the study behind the paper's figures on simulated data (density "
+          "sweep, ablations, sparse RD, FPS), finding by finding; run it with `radarpc experiment density-sweep "
+          "configs/study/density-sweep.yaml --out runs/sweep`, then `radarpc report runs/sweep`.", "",
           "## Every figure", ""]
     figures = [(f, c) for s in steps for f, c in s.figures] + [(paths.density_figure, figure_caption)]
     L += [f"- `{rel(f)}`: {c}." for f, c in figures]
