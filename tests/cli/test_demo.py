@@ -6,6 +6,7 @@ import io
 import json
 import math
 import re
+import shutil
 from collections import Counter
 from pathlib import Path
 from types import SimpleNamespace
@@ -128,6 +129,33 @@ def test_figures_draw_the_test_frame_with_the_most_vehicles(demo):
     for run in ("spectralpillars", "fftradnet"):
         assert f"runs/{run}/figures/eval_test_easy_frame{want:06d}.png" in demo.report
         assert f"--show-frames {want} " in demo.report
+
+
+def test_data_runs_the_radial_part_on_the_given_root(demo, tmp_path):
+    root = tmp_path / "user" / "RADIal"                  # a root the demo did not simulate
+    shutil.copytree(demo.out / "sim_radial", root)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        stdout = _demo(tmp_path / "demo", "--no-progress", "--data", str(root))
+    finally:
+        torch.set_num_threads(threads)
+    assert f"the RADIal root {root}" in stdout and "simulate RADIal" not in stdout
+    assert f"0 of {len(STEP_NAMES) - 1} steps reused, {len(STEP_NAMES) - 1} run" in stdout
+    assert not (tmp_path / "demo" / "sim_radial").exists()
+    for tag in ("020", "057", "200"):                  # the same frames: the stores the simulating demo made
+        ours, theirs = (PointStore(o / "points" / f"pc_{tag}.parquet") for o in (tmp_path / "demo", demo.out))
+        assert Path(ours.metadata.source_root).resolve() == root.resolve()
+        assert len(ours) == len(theirs) == 9
+        assert ours.metadata.tau == pytest.approx(theirs.metadata.tau, rel=1e-4)
+    assert "The given (`--data`) RADIal root `../user/RADIal`" in (tmp_path / "demo" / "REPORT.md").read_text()
+
+
+def test_data_that_is_not_a_radial_root_is_refused_before_any_work(tmp_path, capsys):
+    assert main(["demo", "--tiny", "--out", str(tmp_path / "demo"), "--data", str(tmp_path / "nothing")]) == 2
+    err = capsys.readouterr().err
+    assert f"radarpc demo: error: --data {tmp_path / 'nothing'}: not a RADIal root (no labels.csv)" in err
+    assert not (tmp_path / "demo" / STEPS_DIR).exists()
 
 
 def test_stores_and_scores_in_the_report_are_the_outputs(demo):
