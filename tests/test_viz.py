@@ -338,6 +338,26 @@ def test_plot_cdfs_draws_a_step_curve_per_method_and_panel(tmp_path, monkeypatch
         viz.plot_cdfs([], tmp_path / "x.png", title="t", xlabel="x")
 
 
+def test_a_long_footer_is_wrapped_inside_the_figure_below_the_axes(tmp_path, monkeypatch):
+    from radarpc.eval.comparison import CDFCurve, CDFPanel
+
+    saved = []
+    save = viz.save_figure
+    monkeypatch.setattr(viz, "save_figure", lambda fig, out, dpi, metadata=None: (saved.append(fig),
+                                                                                   save(fig, out, dpi, metadata)))
+    footer = " | ".join(f"radarpc experiment ablation configs/study/arm{i}.yaml --out runs/arm{i}" for i in range(9))
+    curve = CDFCurve("os-cfar", np.array([1.0, 2.0]), np.array([0.5, 1.0]), 2, 0)
+    viz.plot_cdfs([CDFPanel("scene lab", (curve,))], tmp_path / "cdf.png", title="t", xlabel="x [m]", footer=footer)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    fig = saved[-1]
+    text, renderer = fig.texts[-1], FigureCanvasAgg(fig).get_renderer()     # the saved figure, measured
+    assert text.get_text().replace("\n", " ") == footer and len(text.get_text().splitlines()) >= 2
+    box = text.get_window_extent(renderer)
+    assert 0 <= box.x0 and box.x1 <= fig.bbox.x1 and 0 <= box.y0      # every line inside the figure
+    assert all(ax.get_tightbbox(renderer).y0 >= box.y1 for ax in fig.axes if ax.get_visible())
+
+
 def test_density_curves_keep_one_colour_per_label_across_panels(tmp_path, figures):
     from radarpc.eval.curves import DensityCurve
 

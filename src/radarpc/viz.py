@@ -867,11 +867,23 @@ def _density_axis(ax, panel) -> None:
     ax.grid(alpha=0.3, which="both")
 
 
+def footer_lines(footer: str, width_in: float, fontsize: float = 6.5) -> list[str]:
+    """``footer`` broken at spaces into lines that fit ``width_in`` inches at ``fontsize`` points
+    (0.62 em a character, wider than DejaVu Sans' average, so that no line runs off the figure)."""
+    import textwrap
+
+    return textwrap.wrap(footer, width=max(20, int(0.98 * width_in * 72 / (0.62 * fontsize))),
+                         break_on_hyphens=False)
+
+
 def _save_with_footer(fig, out, footer: str | None, metadata) -> Path:
-    """Write ``fig`` with ``footer`` (the provenance line) in small print under it."""
+    """Write ``fig`` with ``footer`` (the provenance line) in small print under it, wrapped to its width."""
+    bottom = 0.0
     if footer:
-        fig.text(0.01, 0.005, footer, fontsize=6.5, color="0.35", ha="left", va="bottom")
-    fig.tight_layout(rect=(0, 0.04 if footer else 0, 1, 1))
+        lines = footer_lines(footer, fig.get_figwidth())
+        fig.text(0.01, 0.005, "\n".join(lines), fontsize=6.5, color="0.35", ha="left", va="bottom")
+        bottom = max(0.04, (0.03 + len(lines) * 6.5 * 1.25 / 72) / fig.get_figheight())
+    fig.tight_layout(rect=(0, bottom, 1, 1))
     save_figure(fig, out, dpi=110, metadata=metadata)
     return out
 
