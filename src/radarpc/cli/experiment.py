@@ -23,8 +23,10 @@ checkpoint. A row made with another config of the same run is refused, naming wh
 a raised ``time_limit_min``: rows it would not have cut are reused, runs the old limit cut train on.
 ``--plan`` lists the runs and which are finished, and does nothing else. ``--reuse OTHER_OUT``
 takes the result row of a run of another study with the same key (model, input, density,
-conversion, data, budget, time limit, seed, scoring) instead of training it: at the densities both
-list, the short density sweep's PointPillars-s runs are the short ablation's ``+Ae+d`` arm, so
+conversion, data, budget, time limit, seed, scoring; the model compared as the network it builds, so
+``spectralpillars-s`` is ``pointpillars-s`` with SpectralPillars' point features) instead of
+training it: at the densities both list, the short density sweep's PointPillars-s runs are the short
+ablation's ``+Ae+d`` arm and its SpectralPillars-s runs the ``rd3 + sector32`` arm, so
 ``radarpc experiment density-sweep configs/study/density-sweep-short.yaml --out runs/sweep-short
 --reuse runs/ablation-short`` trains those once (the row names the run it came from; the other
 output's rows are read at the start). ``radarpc report OUT`` makes the tables and figures.
@@ -211,8 +213,9 @@ def add_parser(sub) -> None:
     p.add_argument("--reuse", action="append", default=[], metavar="OUT",
                    help="density-sweep and ablation: another study's output whose result rows are taken for the "
                         "runs with the same key (model, input, density, conversion, data, budget, time limit, seed, "
-                        "scoring) instead of training them, e.g. the short ablation's +Ae+d arm for the short sweep's "
-                        "PointPillars-s at the densities both list; repeatable")
+                        "scoring; the model compared as the network it builds) instead of training them, e.g. the "
+                        "short ablation's +Ae+d and rd3 + sector32 arms for the short sweep's PointPillars-s and "
+                        "SpectralPillars-s at the densities both list; repeatable")
     p.add_argument("--data", default=None, metavar="ROOT",
                    help="rald-ablation only: this ColoRadar root instead of the study's data: (the same folder "
                         "name: the rows name it)")

@@ -291,6 +291,32 @@ def test_a_reused_row_must_have_the_runs_key(sweep, finished, tmp_path):
         **experiment, "train": {**experiment["train"], "seed": 1}}}}) == []
     assert taken({**row, "key": {**key, "data": {**key["data"], "roots": ["another-root"]}}}) == []
     assert taken({**row, "key": {**key, "evaluation": {**key["evaluation"], "split": "val"}}}) == []
+    # the same network named otherwise (the variant's own value as an override, another experiment name)
+    # is the same run; another network, or an unknown variant, is not
+    def model(spec: dict, **train) -> dict:
+        return {**row, "key": {**key, "experiment": {**experiment, "name": "another-name", "model": spec,
+                                                     "train": {**experiment["train"], **train}}}}
+
+    ours = experiment["model"]["overrides"]
+    assert experiment["model"]["variant"] == "pillars-tiny" and "layer_nums" not in ours
+    same = {"variant": "pillars-tiny", "overrides": {**ours, "layer_nums": [0, 1, 1]}}     # pillars_tiny's own
+    assert taken(model(same)) == ["density-050/axes-Ae-d/seed0"]
+    assert taken(model({**same, "overrides": {**ours, "layer_nums": [1, 1, 1]}})) == []
+    assert taken(model(same, lr_max=0.5)) == []
+    assert taken(model({"variant": "no-such-model", "overrides": {}})) == []
+
+
+def test_two_spellings_of_one_network_have_one_identity():
+    from radarpc.experiments.study.results import network_identity
+    from radarpc.models.pillars import SPECTRAL_FEATURES
+
+    spectral = network_identity({"variant": "spectralpillars-s", "overrides": {}})
+    assert spectral == network_identity({"variant": "pointpillars-s", "overrides": {"features": list(SPECTRAL_FEATURES)}})
+    assert spectral["class"] == "radarpc.models.pillars.PointPillars"
+    assert spectral != network_identity({"variant": "pointpillars-s", "overrides": {}})
+    assert spectral != network_identity({"variant": "spectralpillars", "overrides": {}})       # the full size
+    assert network_identity({"variant": "no-such-model", "overrides": {}}) is None
+    assert network_identity({"variant": "pointpillars-s", "overrides": {"no_such_field": 1}}) is None
 
 
 def test_a_reuse_folder_without_rows_is_refused_before_any_work(sweep, tmp_path, capsys):

@@ -31,7 +31,8 @@ from radarpc.io import DataFileError, atomic_write
 
 __all__ = ["ROW_FORMAT", "RESULTS_DIR", "REQUIRED_FIELDS", "run_key", "row_origin", "data_identity", "plain_json",
            "write_row",
-           "write_named_row", "read_rows", "rows_format", "flat_differences", "key_differences", "under_raised_limit",
+           "write_named_row", "read_rows", "rows_format", "flat_differences", "key_differences", "network_identity",
+           "same_network_run", "under_raised_limit",
            "cut_by_limit", "check_rows"]
 
 ROW_FORMAT = "radarpc study result row 1"
@@ -176,6 +177,42 @@ def flat_differences(stored: dict, key: dict) -> list[str]:
 def key_differences(stored: dict, key: dict) -> list[str]:
     """:func:`flat_differences` of a training run's stored key, read through today's config types."""
     return flat_differences(_readable(stored, key["experiment"]["train"]["num_workers"]), key)
+
+
+def network_identity(model: dict) -> dict | None:
+    """The network an experiment's model section (``{"variant", "overrides"}``) builds: the class and
+    the resolved config of ``MODELS[variant](**overrides)`` (built on the meta device). Two spellings
+    of one network, ``spectralpillars-s`` and ``pointpillars-s`` with the point features it sets, have
+    one identity: the same modules in the same order, so the same initial weights for a seed. None
+    when today's code cannot build the section."""
+    import dataclasses
+
+    from radarpc.models import build_model
+
+    try:
+        net = build_model(model["variant"], model.get("overrides") or {}, device="meta")
+    except (KeyError, TypeError, ValueError):
+        return None
+    cfg = getattr(net, "cfg", None)
+    if cfg is None or not dataclasses.is_dataclass(cfg):
+        return None
+    return {"class": f"{type(net).__module__}.{type(net).__qualname__}", "config": plain_json(to_dict(cfg))}
+
+
+def same_network_run(stored: dict, key: dict) -> bool:
+    """Whether a stored run key names the run ``key`` names once each experiment's model section is
+    read as the network it builds (:func:`network_identity`) and the experiment's name, a label that
+    changes no number, is set aside; every other field (data, conversion, loss, training, seed, time
+    limit) must be equal, as for :func:`key_differences`."""
+    have = _readable(stored, key["experiment"]["train"]["num_workers"])
+    nets = [network_identity(k["experiment"]["model"]) for k in (have, key)]
+    if nets[0] is None or nets[0] != nets[1]:
+        return False
+
+    def without_model(k: dict) -> dict:
+        return {**k, "experiment": {f: v for f, v in k["experiment"].items() if f not in ("model", "name")}}
+
+    return not flat_differences(without_model(have), without_model(key))
 
 
 def under_raised_limit(row: dict, key: dict) -> str | None:

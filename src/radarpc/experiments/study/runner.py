@@ -42,7 +42,8 @@ from radarpc.experiments.radial_detection.train import train_runs
 from radarpc.experiments.study.grid import Grid, GridRun
 from radarpc.experiments.study.inputs import StudyInputs
 from radarpc.experiments.study.results import (ROW_FORMAT, check_rows, cut_by_limit, key_differences, read_rows,
-                                               row_origin, run_key, under_raised_limit, write_row)
+                                               row_origin, run_key, same_network_run, under_raised_limit,
+                                               write_row)
 from radarpc.io import atomic_write
 from radarpc.runs import OutputLock, RunMismatchError, check_writable
 from radarpc.training.checkpoint import software_record
@@ -225,7 +226,10 @@ def rows_elsewhere(grid: Grid, reuse: Sequence[str | os.PathLike], finished: dic
     """For each run of ``grid`` neither in ``finished`` nor the same run (key) as one in it, the first
     row in the study outputs ``reuse`` that would finish it in its own study (the same key read
     through today's config types, or one that differs only by a raised time limit that did not cut
-    it, as :func:`check_rows` decides), as ``{"row": row, "source": the output as given}`` by run id.
+    it, as :func:`check_rows` decides), or whose key differs only by how it names the same network
+    (:func:`~radarpc.experiments.study.results.same_network_run`: ``spectralpillars-s`` is
+    ``pointpillars-s`` with SpectralPillars' point features), as ``{"row": row, "source": the output
+    as given}`` by run id.
 
     Raises
     ------
@@ -246,7 +250,8 @@ def rows_elsewhere(grid: Grid, reuse: Sequence[str | os.PathLike], finished: dic
             continue
         for row, source in others:
             if row["density"] == run.density and row["seed"] == run.seed and (
-                    not key_differences(row["key"], key) or under_raised_limit(row, key) == "finished"):
+                    not key_differences(row["key"], key) or under_raised_limit(row, key) == "finished"
+                    or same_network_run(row["key"], key)):
                 found[run.id] = {"row": row, "source": source}
                 break
     return found
