@@ -243,6 +243,23 @@ def test_another_studys_row_of_the_same_run_is_reused_and_names_its_origin(sweep
     assert read_rows(out2)["density-050/axes-base/seed0"]["same_as"] == "tiny-axes:density-050/axes-base/seed0"
 
 
+def test_rows_taken_from_reuse_are_written_before_the_first_training(sweep, finished, tmp_path):
+    """The base arm comes first in the grid and trains; a stop in its first step keeps the +Ae+d
+    arm's row taken from the sweep, and the rerun trains only the base arm."""
+    grid, out = _grid(_ablation_of_the_sweeps_model(sweep.root)), tmp_path / "stopped"
+    assert [r.id for r in grid.runs] == ["density-050/axes-base/seed0", "density-050/axes-Ae-d/seed0"]
+
+    def stop(run: GridRun, step: int) -> None:
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_grid(grid, out, progress=False, log=lambda s: None, cache=sweep.out / "cache", reuse=[sweep.out],
+                 on_step=stop)
+    assert sorted(read_rows(out)) == ["density-050/axes-Ae-d/seed0"]
+    outcome = run_grid(grid, out, progress=False, log=lambda s: None, cache=sweep.out / "cache")
+    assert outcome.trained == ["density-050/axes-base/seed0"] and outcome.reused == ["density-050/axes-Ae-d/seed0"]
+
+
 def test_a_finished_arm_of_the_same_run_wins_over_reuse(sweep, finished, tmp_path):
     """The +Ae+d arm trained here: its enrichment twin "none" takes this study's row, not the sweep's."""
     from radarpc.experiments.study.runner import rows_elsewhere

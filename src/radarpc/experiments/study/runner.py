@@ -122,7 +122,8 @@ def run_grid(grid: Grid, out: str | os.PathLike, *, cache: str | os.PathLike | N
         Outputs (or ``results`` folders) of other studies, read once at the start: a run without
         its own row (or a finished arm of the same run here) takes the row of a run there with the
         same key (:func:`rows_elsewhere`) instead of training; the row names the run that trained
-        it (``same_as``, ``reused_from``).
+        it (``same_as``, ``reused_from``). Such rows, and the rows of twin arms of finished runs,
+        are written before the first training, so a study stopped during it keeps them.
 
     Returns
     -------
@@ -169,6 +170,20 @@ def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress
     # runs of two arms that build the same model on the same input (the axis arm +Ae+d and the
     # enrichment arm "none") have the same key: the second takes the first's result
     by_key = {_key_text(run_key(grid, r)): finished[r.id] for r in grid.runs if r.id in finished}
+    # first what costs nothing (finished rows, twins, rows taken from --reuse), so that a study
+    # stopped during its first training keeps every row it could take; then the trainings
+    def took_twin(head: str, run: GridRun) -> bool:
+        twin = by_key.get(_key_text(run_key(grid, run)))
+        if twin is None:
+            return False
+        row = _twin_row(grid, run, twin)
+        write_row(out, run, row)
+        log(f"{head}: the same run as {twin['run']} (same model, input and settings), its result row reused")
+        outcome.rows.append(row)
+        outcome.reused.append(run.id)
+        return True
+
+    to_train = []
     for k, run in enumerate(grid.runs, 1):
         head = f"[{k}/{n}] {run.id}"
         if run.id in finished:
@@ -181,13 +196,7 @@ def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress
             outcome.rows.append(row)
             outcome.reused.append(run.id)
             continue
-        twin = by_key.get(_key_text(run_key(grid, run)))
-        if twin is not None:
-            row = _twin_row(grid, run, twin)
-            write_row(out, run, row)
-            log(f"{head}: the same run as {twin['run']} (same model, input and settings), its result row reused")
-            outcome.rows.append(row)
-            outcome.reused.append(run.id)
+        if took_twin(head, run):
             continue
         if run.id in elsewhere:
             row = _reused_row(grid, run, elsewhere[run.id], command, config_file)
@@ -197,6 +206,10 @@ def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress
             by_key.setdefault(_key_text(run_key(grid, run)), row)
             outcome.rows.append(row)
             outcome.reused.append(run.id)
+            continue
+        to_train.append((head, run))
+    for head, run in to_train:
+        if took_twin(head, run):                                    # an arm trained just before
             continue
         if run.id in rows and cut_by_limit(rows[run.id]):
             where = ("from its run folder" if (out / run.id / LOG_CSV).is_file()
