@@ -566,11 +566,11 @@ def run_demo(cfg: DemoConfig, *, say: Callable[[str], None] | None = None) -> Pa
     say = say or (lambda s: print(s, flush=True))
     device = cfg.device or ("cuda" if torch.cuda.is_available() else "cpu")
     paths = DemoPaths(cfg)
-    paths.out.mkdir(parents=True, exist_ok=True)
     if cfg.data is not None and not (Path(cfg.data) / "labels.csv").is_file():
         raise FileNotFoundError(f"--data {cfg.data}: not a RADIal root (no labels.csv)")
     sensor = root_sensor(cfg.data)[0] if cfg.data is not None else radial_sensor(cfg.sensor)
     configs = experiment_configs(cfg, sensor)          # fails before any work for a sensor FFTRadNet cannot read
+    paths.out.mkdir(parents=True, exist_ok=True)
     say(f"radarpc demo{' --tiny' if cfg.tiny else ''} into {paths.out} on {device}: "
         + (f"the RADIal root {cfg.data}" if cfg.data is not None else f"simulated `{sensor.name}` data")
         + " and simulated ColoRadar runs")

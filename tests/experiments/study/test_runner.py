@@ -218,7 +218,7 @@ def test_another_studys_row_of_the_same_run_is_reused_and_names_its_origin(sweep
     assert row["same_as"] == f"tiny-sweep:{RUN1}" and row["arm"]["group"] == "axes"
     assert row["reused_from"] == {"study": "tiny-sweep", "kind": "density-sweep",
                                   "config_file": source["study"]["config_file"],
-                                  "command": source["command"], "run": RUN1}
+                                  "command": source["command"], "run": RUN1, "key": source["key"]}
     # a rerun without --reuse finds it finished; the report marks where it came from
     again = run_grid(grid, out, progress=False, log=lambda s: None, cache=sweep.out / "cache")
     assert again.trained == [] and len(again.reused) == 2
@@ -321,6 +321,31 @@ def test_a_reused_row_must_have_the_runs_key(sweep, finished, tmp_path):
     assert taken(model({**same, "overrides": {**ours, "layer_nums": [1, 1, 1]}})) == []
     assert taken(model(same, lr_max=0.5)) == []
     assert taken(model({"variant": "no-such-model", "overrides": {}})) == []
+
+
+def test_a_row_of_the_same_network_named_otherwise_is_reused_and_resumes(sweep, finished, tmp_path):
+    """The row carries this study's key (its own check accepts it on every later start) and keeps the
+    key the run that trained stored."""
+    grid, out = _grid(_ablation_of_the_sweeps_model(sweep.root)), tmp_path / "named-otherwise"
+    source = read_rows(sweep.out)[RUN1]
+    experiment = source["key"]["experiment"]
+    spelled = {**experiment, "name": "another-name", "model": {
+        **experiment["model"], "overrides": {**experiment["model"]["overrides"], "layer_nums": [0, 1, 1]}}}
+    other = tmp_path / "other"
+    (other / "results").mkdir(parents=True)
+    (other / "results" / (RUN1.replace("/", "__") + ".json")).write_text(
+        json.dumps({**source, "key": {**source["key"], "experiment": spelled}}))
+
+    def stop(run: GridRun, step: int) -> None:
+        raise KeyboardInterrupt
+
+    for reuse in ([other], []):                 # the second start reads its own rows only
+        with pytest.raises(KeyboardInterrupt):  # got as far as training the base arm
+            run_grid(grid, out, progress=False, log=lambda s: None, cache=sweep.out / "cache", reuse=reuse,
+                     on_step=stop)
+    row = read_rows(out)["density-050/axes-Ae-d/seed0"]
+    assert row["key"] == source["key"] and row["reused_from"]["key"]["experiment"] == spelled
+    assert row["metrics"] == source["metrics"]
 
 
 def test_two_spellings_of_one_network_have_one_identity():

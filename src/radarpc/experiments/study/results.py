@@ -205,7 +205,7 @@ def same_network_run(stored: dict, key: dict) -> bool:
     changes no number, is set aside; every other field (data, conversion, loss, training, seed, time
     limit) must be equal, as for :func:`key_differences`."""
     have = _readable(stored, key["experiment"]["train"]["num_workers"])
-    nets = [network_identity(k["experiment"]["model"]) for k in (have, key)]
+    nets = [network_identity((k.get("experiment") or {}).get("model") or {}) for k in (have, key)]
     if nets[0] is None or nets[0] != nets[1]:
         return False
 

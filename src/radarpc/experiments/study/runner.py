@@ -220,6 +220,10 @@ def _run_locked(grid: Grid, out: Path, cache: Path, device: str | None, progress
         by_key[_key_text(run_key(grid, run))] = row
         outcome.rows.append(row)
         outcome.trained.append(run.id)
+    order = {run.id: k for k, run in enumerate(grid.runs)}         # grid order, as documented
+    outcome.rows.sort(key=lambda row: order[row["run"]])
+    outcome.trained.sort(key=order.__getitem__)
+    outcome.reused.sort(key=order.__getitem__)
     log(f"study {grid.name!r}: all {n} runs finished ({len(outcome.trained)} trained now, {len(outcome.reused)} "
         f"reused); `radarpc report {out}` makes the tables and figures")
     return outcome
@@ -272,11 +276,13 @@ def rows_elsewhere(grid: Grid, reuse: Sequence[str | os.PathLike], finished: dic
 
 def _reused_row(grid: Grid, run: GridRun, hit: dict, command: str | None, config_file: str | None) -> dict:
     """The row of another study's run with ``run``'s key, as this study's row of ``run``: this study's
-    record and command, the metrics, inputs, training, times and software of the run that trained."""
+    record, command and key (so that its own check of rows accepts it; the key the run that trained
+    stored is kept in ``reused_from``), the metrics, inputs, training, times and software of that run."""
     other = hit["row"]
     origin = row_origin(other)
+    origin.setdefault("key", other["key"])         # the key of the run that trained, as it named it
     now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-    return {**other, "run": run.id, "arm": _arm_record(grid, run),
+    return {**other, "run": run.id, "arm": _arm_record(grid, run), "key": run_key(grid, run),
             "study": {"kind": grid.kind, "name": grid.name, "config_file": config_file, "config": grid.config},
             "command": command, "same_as": f"{origin['study']}:{origin['run']}", "reused_from": origin,
             "times": {**(other.get("times") or {}), "reused_at": now}}
