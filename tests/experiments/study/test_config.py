@@ -20,7 +20,8 @@ from radarpc.sensors.radial import radial_sensor
 CONFIGS = Path(__file__).parents[3] / "configs" / "study"
 KIND = {"density-sweep": "density-sweep", "ablation": "ablation", "rd-comparison": "ablation",
         "tiny-sweep": "density-sweep", "tiny-ablation": "ablation", "fps": "fps", "tiny-fps": "fps",
-        "density-sweep-short": "density-sweep", "ablation-short": "ablation", "ablation-velocity-short": "ablation"}
+        "density-sweep-short": "density-sweep", "ablation-short": "ablation", "ablation-velocity-short": "ablation",
+        "density-sweep-budget-control": "density-sweep"}
 
 
 def test_every_shipped_study_config_is_listed_here():
@@ -53,6 +54,18 @@ def test_the_shipped_sweep_is_the_issues():
     assert cfg.budget.time_limit_min is not None and cfg.budget.time_limit_min <= 20
     assert cfg.data.simulate and cfg.data.drop_cubes                # one seeded command brings the data back
     assert len(study_grid(cfg).runs) == 2 * len(cfg.densities) * 2
+
+
+def test_the_budget_control_changes_only_the_short_sweeps_budget():
+    short = load_density_sweep(CONFIGS / "density-sweep-short.yaml")
+    control = load_density_sweep(CONFIGS / "density-sweep-budget-control.yaml")
+    assert set(control.densities) == {0.19, 0.564} <= set(short.densities)
+    assert control.seeds == 1 <= short.seeds                        # seed 0: the sweep's first seed
+    assert control.budget.max_steps == 2 * short.budget.max_steps
+    assert control.budget.time_limit_min > short.budget.time_limit_min       # no run is cut short
+    assert sorted(control.models, key=lambda m: m.name) == sorted(short.models, key=lambda m: m.name)
+    for field in ("sensor", "data", "conversion", "evaluation"):
+        assert getattr(control, field) == getattr(short, field), field
 
 
 def test_the_shipped_ablations_are_the_issues():
