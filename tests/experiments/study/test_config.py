@@ -21,7 +21,7 @@ CONFIGS = Path(__file__).parents[3] / "configs" / "study"
 KIND = {"density-sweep": "density-sweep", "ablation": "ablation", "rd-comparison": "ablation",
         "tiny-sweep": "density-sweep", "tiny-ablation": "ablation", "fps": "fps", "tiny-fps": "fps",
         "density-sweep-short": "density-sweep", "ablation-short": "ablation", "ablation-velocity-short": "ablation",
-        "density-sweep-budget-control": "density-sweep"}
+        "density-sweep-budget-control": "density-sweep", "density-sweep-budget-control-spectral": "density-sweep"}
 
 
 def test_every_shipped_study_config_is_listed_here():
@@ -66,6 +66,9 @@ def test_the_budget_control_changes_only_the_short_sweeps_budget():
     assert sorted(control.models, key=lambda m: m.name) == sorted(short.models, key=lambda m: m.name)
     for field in ("sensor", "data", "conversion", "evaluation"):
         assert getattr(control, field) == getattr(short, field), field
+    spectral = load_density_sweep(CONFIGS / "density-sweep-budget-control-spectral.yaml")   # its second seed
+    assert spectral.models == tuple(m for m in control.models if m.name == "spectralpillars-s") and spectral.seeds == 2
+    assert dataclasses.replace(spectral, name=control.name, models=control.models, seeds=control.seeds) == control
 
 
 def test_the_shipped_ablations_are_the_issues():
