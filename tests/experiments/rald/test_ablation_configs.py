@@ -14,6 +14,7 @@ CONFIGS = Path(__file__).parents[3] / "configs"
 ABLATIONS = sorted((CONFIGS / "rald" / "ablations").glob("*.yaml"))
 GENERALIZATION = sorted((CONFIGS / "rald" / "generalization").glob("*.yaml"))
 CONDITIONING = sorted((CONFIGS / "rald" / "conditioning").glob("*.yaml"))
+BUDGET = sorted((CONFIGS / "rald" / "budget").glob("*.yaml"))
 DIFFERS = re.compile(r"^# Differs from (configs/\S+\.yaml) in: (.+?)\.?$", re.M)
 
 
@@ -58,9 +59,9 @@ def test_ablation_differs_from_its_base_in_the_documented_fields(path):
     assert re.search(r"^# Ablation, the seed's Table", text, re.M)
 
 
-@pytest.mark.parametrize("path", GENERALIZATION + CONDITIONING, ids=lambda p: f"{p.parent.name}/{p.stem}")
+@pytest.mark.parametrize("path", GENERALIZATION + CONDITIONING + BUDGET, ids=lambda p: f"{p.parent.name}/{p.stem}")
 def test_derived_configs_differ_from_their_base_in_the_documented_fields(path):
-    """configs/rald/generalization and configs/rald/conditioning: each names its base and its changes."""
+    """configs/rald/generalization, conditioning and budget: each names its base and its changes."""
     cfg = load_experiment(path)
     base_path, documented = _documented(path)
     a, b = _flat(to_dict(cfg)), _flat(to_dict(load_experiment(base_path)))
