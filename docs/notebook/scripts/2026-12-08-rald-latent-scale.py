@@ -29,8 +29,7 @@ for run_dir in args.runs:
     means, zs, sigmas = [], [], []
     with torch.no_grad():
         for i in range(len(frames)):
-            item = frames[i]
-            points = to_input(item.points.numpy(), gen)[None]                  # (1, N, 3)
+            points = to_input(frames.lidar_points(i), gen)[None]                # (1, N, 3), no radar read
             mean, logvar = run.ae.encode(points)                                # (1, M, D) each
             means.append(mean[0].double())
             sigmas.append(torch.exp(0.5 * logvar[0]).double())
