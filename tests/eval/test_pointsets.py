@@ -47,6 +47,21 @@ def test_chamfer_hand_worked_two_points():
     # gt->pred distances 1 and sqrt(5); pred->gt distance 1  =>  0.5 (1 + sqrt 5)/2 + 0.5 * 1
     cd = chamfer_distance([[0.0, 1.0, 0.0]], [[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
     assert cd == pytest.approx(0.25 * (1 + np.sqrt(5)) + 0.5)
+    pred_to_gt, gt_to_pred = ChamferTarget([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]).directions([[0.0, 1.0, 0.0]])
+    assert pred_to_gt == pytest.approx(1.0)
+    assert gt_to_pred == pytest.approx(0.5 * (1 + np.sqrt(5)))
+
+
+@pytest.mark.parametrize("n,m", [(7, 30), (50, 13)])
+def test_chamfer_directions_match_brute_force(n, m):
+    rng = np.random.default_rng(n * 7 + m)
+    p, g = rng.normal(size=(n, 3)) * 3, rng.normal(size=(m, 3)) * 3
+    d = np.linalg.norm(p[:, None, :] - g[None, :, :], axis=-1)      # (n, m)
+    pred_to_gt, gt_to_pred = ChamferTarget(g).directions(p)
+    assert pred_to_gt == pytest.approx(d.min(1).mean(), rel=1e-12)
+    assert gt_to_pred == pytest.approx(d.min(0).mean(), rel=1e-12)
+    with pytest.raises(ValueError, match="pred"):
+        ChamferTarget(g).directions(np.zeros((0, 3)))
 
 
 def test_zero_for_identical_clouds():

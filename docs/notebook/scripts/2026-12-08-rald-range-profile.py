@@ -9,9 +9,8 @@ test frame (50 frames).
 import sys
 
 import numpy as np
-from scipy.spatial import cKDTree
-
 from radarpc.data.coloradar import ColoRadar
+from radarpc.eval.pointsets import ChamferTarget
 
 ds = ColoRadar("data/sim_colo6", "test", cube_size=None, every=4)
 folders = sys.argv[1:]
@@ -22,13 +21,13 @@ for i in range(0, len(ds), 2):
     gt = ds.lidar_points(i)
     r = np.linalg.norm(gt, axis=1)
     rows.setdefault(("truth", run.scene), []).append((np.median(r), (r > 10).mean(), np.nan, np.nan, len(gt)))
+    target = ChamferTarget(gt, workers=1)
     for f in folders:
         p = np.load(f"{f}/{run.name}/{ri:06d}.npy")
         if len(p) == 0:
             continue
         r = np.linalg.norm(p, axis=1)
-        acc = cKDTree(gt).query(p, workers=1)[0].mean()        # predicted -> truth
-        comp = cKDTree(p).query(gt, workers=1)[0].mean()       # truth -> predicted
+        acc, comp = target.directions(p)                        # predicted -> truth, truth -> predicted
         rows.setdefault((f, run.scene), []).append((np.median(r), (r > 10).mean(), acc, comp, len(p)))
 for (f, scene), v in sorted(rows.items(), key=lambda kv: (kv[0][1], kv[0][0])):
     a = np.array(v)
